@@ -1,0 +1,528 @@
+"""Virtual UAV laser scanning (ULS): pulses along the flight plan, ray-cast through Embree.
+
+Numerics: the mesh is shifted to a local origin (the centre of its bounding box) in
+float64 and only then converted to float32 for Embree. Embree answers *which* triangle a
+ray hits; the hit point is recomputed in float64 as the intersection of the float64 ray
+with that triangle's float64 plane. A scene at UTM coordinates therefore gives the same
+points as the same scene at the origin.
+
+Beam model (`Survey.beam`):
+- `single`: one ray per pulse, one return at the exact hit (default, fastest).
+- `full`: every pulse casts `Survey.sub_rays` rays over its footprint (rings out to the
+  1/e² divergence, Gaussian weights); sub-ray hits are grouped by range into returns
+  (a new return where the range gap exceeds `echo_separation_m`); a return's range is the
+  energy-weighted mean of its sub-rays, its position lies on the central ray at that
+  range, its labels come from its strongest sub-ray, and returns weaker than
+  `min_echo_energy` of the pulse are not detected.
+- `adaptive`: the central ray of every pulse first; a pulse gets the full beam only when
+  a neighbouring pulse (previous/next in the scan line, same angle in the
+  previous/next line) misses where it hits (or the reverse) or hits a point farther than
+  `adaptive_edge_m` from the plane of its own hit: a depth discontinuity or a crease.
+  Elsewhere the footprint lies on one plane and the full beam would return the central
+  hit within a fraction of a millimetre (measured in bench/bench_scan.py).
+  Discontinuities narrower than the pulse spacing (wires, antennas) can be missed.
+"""
+from __future__ import annotations
+
+import logging
+import math
+import os
+import time
+from collections import deque
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .errors import SceneError, SurveyError
+from .pointcloud import (BUILDING_CLASS, GRADE_UNKNOWN, GROUND_CLASS, UNCLASSIFIED, LasChunkWriter,
+                         PointChunk)
+from .scene import GROUND, Scene
+from .survey import FlightLine, FlightPlan, Survey, plan_flight
+
+log = logging.getLogger(__name__)
+
+DEFAULT_BATCH_RAYS = 1 << 20
+
+
+class RayCaster:
+    """Embree scene of a QuakeScan scene, with float64 hit refinement and face labels."""
+
+    def __init__(self, scene: Scene):
+        from embreex import rtcore_scene
+        from embreex.mesh_construction import TriangleMesh
+
+        if len(scene.faces) == 0:
+            raise SceneError("scene has no faces: nothing to scan")
+        bounds = scene.bounds()
+        # Local origin: keeps float32 coordinates small (|x| < scene size) at the Embree boundary.
+        self.local_origin = 0.5 * (bounds[0] + bounds[1])
+        v = scene.vertices - self.local_origin
+        f = scene.faces
+        self.bounds_local = bounds - self.local_origin
+        a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+        n = np.cross(b - a, c - a)
+        n /= np.linalg.norm(n, axis=1, keepdims=True)
+        self.normals = n
+        self.plane_d = np.einsum("ij,ij->i", n, a)
+        self.face_building = scene.face_building.astype(np.uint32)
+        self.face_surface = scene.face_surface.astype(np.uint8)
+        grades = scene.grade_lookup()
+        lut = np.full(int(self.face_building.max()) + 1, GRADE_UNKNOWN, np.uint8)
+        for bid, g in grades.items():
+            lut[bid] = g
+        self.face_grade = lut[self.face_building]
+        self.face_class = np.where(self.face_building > 0, BUILDING_CLASS,
+                                   np.where(self.face_surface == GROUND, GROUND_CLASS, UNCLASSIFIED)
+                                   ).astype(np.uint8)
+        self._embree = rtcore_scene.EmbreeScene()
+        self._mesh = TriangleMesh(self._embree, v.astype(np.float32), f.astype(np.int32))
+        # Committing is lazy in embreex and not thread-safe: do it now with one ray.
+        self._embree.run(np.zeros((1, 3), np.float32), np.array([[0, 0, 1]], np.float32))
+
+    def cast(self, origins: np.ndarray, directions: np.ndarray, max_range: float):
+        """Cast rays (local frame, float64 (n, 3), unit directions).
+
+        Returns (face, t): face index per ray (-1 = no hit) and the float64 distance to
+        the hit on that face's plane (inf where there is no hit). Releases the GIL while
+        Embree runs, so calls from several threads run in parallel.
+        """
+        face = self._embree.run(origins.astype(np.float32), directions.astype(np.float32),
+                                dists=float(max_range), output=0)
+        face = np.asarray(face, dtype=np.int64)
+        t = np.full(len(face), np.inf)
+        hit = face >= 0
+        if hit.any():
+            fh = face[hit]
+            nrm = self.normals[fh]
+            num = self.plane_d[fh] - np.einsum("ij,ij->i", nrm, origins[hit])
+            den = np.einsum("ij,ij->i", nrm, directions[hit])
+            with np.errstate(divide="ignore", invalid="ignore"):
+                th = num / den
+            # A ray that Embree reports on a face but that is exactly parallel to its plane in
+            # float64 (grazing) has no defined hit point: drop it instead of inventing one.
+            bad = ~np.isfinite(th) | (th < 0) | (th > max_range)
+            if bad.any():
+                idx = np.flatnonzero(hit)[bad]
+                face[idx] = -1
+                th[bad] = np.inf
+            t[hit] = th
+        return face, t
+
+
+@dataclass
+class ScanSummary:
+    output: str
+    pulses_swept: int = 0  # all pulses of the mirror's sweep; only the FOV share leaves the scanner
+    pulses_emitted: int = 0
+    pulses_cast: int = 0
+    rays_cast: int = 0
+    points: int = 0
+    pulses_with_sub_rays: int = 0
+    points_by_return: dict = field(default_factory=dict)
+    points_by_surface: dict = field(default_factory=dict)
+    points_by_building: dict = field(default_factory=dict)
+    lines: int = 0
+    flight_duration_s: float = 0.0
+    wall_time_s: float = 0.0
+    beam: str = "single"
+    seed: int = 0
+
+    def to_json(self) -> dict:
+        d = dict(self.__dict__)
+        d["points_by_building"] = {str(k): v for k, v in sorted(self.points_by_building.items())}
+        return d
+
+
+@dataclass(frozen=True)
+class _Batch:
+    line: FlightLine
+    j0: int
+    j1: int
+    number: int
+
+
+def _deflection(survey: Survey, t: np.ndarray):
+    """Scan angle (rad, 0 = nadir, + = right), scan-line number and sweep direction at GPS times t."""
+    phase = (t - survey.gps_start_s) * survey.scan_rate_hz
+    scan_line = np.floor(phase)
+    frac = phase - scan_line
+    half = survey.sweep_rad / 2
+    if survey.deflector == "rotating_polygon":
+        return -half + 2 * half * frac, scan_line, np.ones(len(t), bool)
+    forward = (scan_line.astype(np.int64) % 2) == 0
+    return np.where(forward, -half + 2 * half * frac, half - 2 * half * frac), scan_line, forward
+
+
+class _Pulses:
+    """Pulse times and scan angles for pulse indices `j` of a line (1-D, cheap); rays for
+    any subset on demand (origins and directions in float64, local frame)."""
+
+    def __init__(self, survey: Survey, line: FlightLine, j: np.ndarray, local_origin: np.ndarray):
+        t = line.t_start + j / survey.pulse_rate_hz
+        theta, scan_line, forward = _deflection(survey, t)
+        half_fov = math.radians(survey.fov_deg) / 2 + 1e-12
+        keep = np.abs(theta) <= half_fov
+        if not keep.all():
+            j, t, theta, scan_line, forward = j[keep], t[keep], theta[keep], scan_line[keep], forward[keep]
+        self.j, self.t, self.theta, self.forward = j, t, theta, forward
+        self.line = line
+        # Edge of flight line: the next pulse starts a new scan line or leaves the FOV.
+        next_theta, next_line, _ = _deflection(survey, t + 1.0 / survey.pulse_rate_hz)
+        self.edge = (next_line != scan_line) | (np.abs(next_theta) > half_fov)
+        h = line.heading
+        pitch = math.radians(survey.scan_pitch_deg)
+        self.down = np.array([0.0, 0.0, -1.0]) * math.cos(pitch) + h * math.sin(pitch)
+        self.right = np.array([h[1], -h[0], 0.0])
+        self.plane_normal = np.cross(self.down, self.right)  # perpendicular to every ray of the line
+        self.start_local = line.start - local_origin
+        self.velocity = h * line.speed_m_s
+
+    def __len__(self):
+        return len(self.j)
+
+    def rays(self, sel: np.ndarray):
+        """(origins, directions), each (len(sel), 3) float64, filled column by column."""
+        dt = self.t[sel] - self.line.t_start
+        c, s = np.cos(self.theta[sel]), np.sin(self.theta[sel])
+        o = np.empty((len(sel), 3))
+        d = np.empty((len(sel), 3))
+        for k in range(3):
+            o[:, k] = self.start_local[k] + dt * self.velocity[k]
+            d[:, k] = c * self.down[k] + s * self.right[k]
+        return o, d
+
+    def aimed_at(self, box: np.ndarray) -> np.ndarray:
+        """Indices of the pulses whose scan angle can reach the box (conservative).
+
+        A box corner's angle in the scan plane is monotonic in the platform's position along
+        the line, so the corners seen from the batch's first and last positions bound the
+        window. When the box is not entirely below the scanner every pulse is kept."""
+        if len(self.j) == 0:
+            return np.zeros(0, np.int64)
+        corners = np.array([[x, y, z] for x in box[:, 0] for y in box[:, 1] for z in box[:, 2]])
+        angles = []
+        for t in (self.t[0], self.t[-1]):
+            rel = corners - (self.start_local + (t - self.line.t_start) * self.velocity)
+            depth = rel @ self.down
+            if (depth <= 0).any():
+                return np.arange(len(self.j))
+            angles.append(np.arctan2(rel @ self.right, depth))
+        angles = np.concatenate(angles)
+        return np.flatnonzero((self.theta >= angles.min()) & (self.theta <= angles.max()))
+
+
+class _Simulator:
+    def __init__(self, caster: RayCaster, survey: Survey, seed: int, shift=None, pack=None):
+        """`shift` turns local coordinates into LAS-offset coordinates; `pack` (a
+        LasChunkWriter.pack) makes workers return packed records instead of chunks."""
+        self.caster = caster
+        self.survey = survey
+        self.seed = seed
+        self.shift = caster.local_origin if shift is None else shift
+        self.pack = pack
+        # neighbour at the same angle in the next scan line, counted in in-FOV pulses
+        self.ppl = max(1, int(round(survey.pulses_per_line * survey.fov_fraction)))
+        self.ppl_raw = max(1, int(round(survey.pulses_per_line)))
+        # Adaptive mode compares a pulse with every pulse whose footprint could overlap its own:
+        # in the scan line the footprint spans half_div / angle_step pulses (angles, exact);
+        # across lines it spans the footprint radius at the longest slant range / line spacing.
+        half_div = survey.beam_divergence_mrad * 1e-3 / 2
+        slant = (survey.altitude_agl_m + caster.bounds_local[1, 2] - caster.bounds_local[0, 2]) / math.cos(
+            math.radians(survey.fov_deg / 2))
+        k_in = max(1, math.ceil(half_div / survey.angle_step_rad))
+        k_lines = max(1, math.ceil(slant * half_div / (survey.speed_m_s / survey.scan_rate_hz)))
+        self.neighbour_offsets = sorted({m * self.ppl + l for m in range(0, k_lines + 1)
+                                         for l in range(-k_in, k_in + 1) if m * self.ppl + l > 0})
+        self.halo_raw = k_lines * self.ppl_raw + k_in + 1
+        pad = 0.01
+        self.box = caster.bounds_local + np.array([[-pad] * 3, [pad] * 3])
+        self._sub_ray_pattern()
+
+    def _sub_ray_pattern(self):
+        s = self.survey
+        half = s.beam_divergence_mrad * 1e-3 / 2
+        offsets, weights = [(0.0, 0.0)], [1.0]
+        for k in range(1, s.beam_rings + 1):
+            alpha = half * k / s.beam_rings
+            m = 6 * k
+            for i in range(m):
+                phi = 2 * math.pi * (i + 0.5 * (k % 2)) / m
+                offsets.append((math.tan(alpha) * math.cos(phi), math.tan(alpha) * math.sin(phi)))
+                # Gaussian beam: intensity exp(-2 r²/w²), w = 1/e² radius
+                weights.append(math.exp(-2.0 * (alpha / half) ** 2) if half > 0 else 1.0)
+        self.sub_offsets = np.array(offsets)
+        w = np.array(weights)
+        self.sub_weights = w / w.sum()
+
+    # --- one batch -------------------------------------------------------------------
+    def run_batch(self, batch: _Batch):
+        """Simulate one batch; returns (packed LAS record or PointChunk, stats)."""
+        s = self.survey
+        rng = np.random.default_rng([self.seed, batch.line.index, batch.number])
+        pulses = _Pulses(s, batch.line, np.arange(batch.j0, batch.j1), self.caster.local_origin)
+        stats = {"pulses_swept": batch.j1 - batch.j0, "pulses_emitted": len(pulses), "pulses_cast": 0, "rays_cast": 0, "pulses_with_sub_rays": 0}
+        aimed = pulses.aimed_at(self.box)
+        stats["pulses_cast"] = len(aimed)
+        origins, dirs = pulses.rays(aimed)
+        if s.beam == "single":
+            face, t = self.caster.cast(origins, dirs, s.max_range_m)
+            stats["rays_cast"] = len(aimed)
+            hit = face >= 0
+            idx, face, rng_m = aimed[hit], face[hit], t[hit]
+            origins, dirs = origins[hit], dirs[hit]
+            ret = nret = np.ones(len(idx), np.uint8)
+        elif s.beam == "full":
+            sel, face, rng_m, ret, nret = self._full_beam(origins, dirs, pulses.plane_normal, stats)
+            idx, origins, dirs = aimed[sel], origins[sel], dirs[sel]
+        else:
+            idx, face, rng_m, ret, nret = self._adaptive(batch, pulses, aimed, origins, dirs, stats)
+            origins, dirs = pulses.rays(idx)
+        if s.range_noise_sigma_m > 0 and len(idx):
+            rng_m = rng_m + rng.normal(0.0, s.range_noise_sigma_m, len(idx))
+        xyz_local = origins + dirs * rng_m[:, None]
+        chunk = self._chunk(pulses, idx, face, xyz_local, ret, nret, batch.line.index)
+        stats["points"] = len(chunk)
+        stats["by_return"] = np.bincount(ret, minlength=16)[:16]
+        stats["by_surface"] = np.bincount(chunk.surface, minlength=256)[:256]
+        stats["by_building"] = np.unique(chunk.building_id, return_counts=True)
+        return (self.pack(chunk) if self.pack else chunk), stats
+
+    def _adaptive(self, batch: _Batch, pulses: _Pulses, aimed, origins, dirs, stats):
+        s, line = self.survey, batch.line
+        n_line = _pulse_count(s, line)
+        halo = self.halo_raw
+        # Central rays of the batch plus a halo of scan lines on each side, so that the
+        # across-line neighbours of the batch's first and last scan lines are known.
+        before = _Pulses(s, line, np.arange(max(0, batch.j0 - halo), batch.j0), self.caster.local_origin)
+        after = _Pulses(s, line, np.arange(batch.j1, min(n_line, batch.j1 + halo)), self.caster.local_origin)
+        n_ext = len(before) + len(pulses) + len(after)
+        face = np.full(n_ext, -1, np.int64)
+        t = np.full(n_ext, np.inf)
+        p = np.zeros((n_ext, 3))
+        base = len(before)
+        for part, offset, sel, o, d in ((before, 0, None, None, None), (pulses, base, aimed, origins, dirs),
+                                        (after, base + len(pulses), None, None, None)):
+            if sel is None:
+                sel = part.aimed_at(self.box)
+                o, d = part.rays(sel)
+            f_, t_ = self.caster.cast(o, d, s.max_range_m)
+            stats["rays_cast"] += len(sel)
+            face[offset + sel], t[offset + sel] = f_, t_
+            h_ = f_ >= 0
+            p[offset + sel[h_]] = o[h_] + d[h_] * t_[h_, None]
+        hit = face >= 0
+        nrm = self.caster.normals[np.where(hit, face, 0)]
+        flag = np.zeros(n_ext, bool)
+        for step in self.neighbour_offsets:
+            a = np.arange(n_ext - step)
+            b = a + step
+            both = hit[a] & hit[b]
+            diff = p[b] - p[a]
+            off_a = np.abs(np.einsum("ij,ij->i", nrm[a], diff))
+            off_b = np.abs(np.einsum("ij,ij->i", nrm[b], diff))
+            edge = (hit[a] != hit[b]) | (both & ((off_a > s.adaptive_edge_m) | (off_b > s.adaptive_edge_m)))
+            flag[a] |= edge
+            flag[b] |= edge
+        core = slice(base, base + len(pulses))
+        flag, face, t = flag[core], face[core], t[core]
+        in_aimed = np.zeros(len(pulses), bool)
+        in_aimed[aimed] = True
+        flagged = np.flatnonzero(flag & in_aimed)
+        stats["pulses_with_sub_rays"] += len(flagged)
+        s_idx = np.flatnonzero(~flag & (face >= 0))
+        fo, fd = pulses.rays(flagged)
+        sel, f_face, f_rng, f_ret, f_nret = self._full_beam(fo, fd, pulses.plane_normal, stats, count=False)
+        f_idx = flagged[sel]
+        idx = np.concatenate([s_idx, f_idx])
+        order = np.argsort(idx, kind="stable")  # back to scan order
+        ones = np.ones(len(s_idx), np.uint8)
+        return (idx[order], np.concatenate([face[s_idx], f_face])[order],
+                np.concatenate([t[s_idx], f_rng])[order], np.concatenate([ones, f_ret])[order],
+                np.concatenate([ones, f_nret])[order])
+
+    def _full_beam(self, origins, dirs, plane_normal, stats, count=True):
+        """Sub-rays over the footprints of the given pulses; returns formed per pulse.
+
+        Returns (pulse, face, range, return_number, number_of_returns) per detected return,
+        pulse-major and return-minor (scan order); `pulse` indexes the given rays."""
+        s = self.survey
+        n, k = len(dirs), len(self.sub_weights)
+        empty = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros(0, np.uint8),
+                 np.zeros(0, np.uint8))
+        if n == 0:
+            return empty
+        e1 = np.broadcast_to(plane_normal, dirs.shape)
+        e2 = np.cross(dirs, e1)
+        sub = (dirs[:, None, :] + self.sub_offsets[None, :, 0, None] * e1[:, None, :]
+               + self.sub_offsets[None, :, 1, None] * e2[:, None, :])
+        sub /= np.linalg.norm(sub, axis=2, keepdims=True)
+        org = np.repeat(origins, k, axis=0)
+        face, t = self.caster.cast(org, sub.reshape(-1, 3), s.max_range_m)
+        stats["rays_cast"] += n * k
+        if count:
+            stats["pulses_with_sub_rays"] += n
+        face = face.reshape(n, k)
+        t = t.reshape(n, k)
+        # Sort each pulse's sub-rays by range; a gap > echo separation starts a new return.
+        order = np.argsort(t, axis=1, kind="stable")
+        t = np.take_along_axis(t, order, 1)
+        face = np.take_along_axis(face, order, 1)
+        w = self.sub_weights[order]
+        finite = np.isfinite(t)
+        with np.errstate(invalid="ignore"):
+            gap = np.diff(t, axis=1) > s.echo_separation_m
+        echo = np.concatenate([np.zeros((n, 1), np.int64), np.cumsum(gap, axis=1)], axis=1)
+        rows_i, rows_ret, rows_face, rows_rng = [], [], [], []
+        det_count = np.zeros(n, np.int64)
+        kmax = int(echo[finite].max()) + 1 if finite.any() else 0
+        for e in range(kmax):
+            m = finite & (echo == e)
+            energy = (w * m).sum(axis=1)
+            ok = (energy >= s.min_echo_energy) & (energy > 0) & (det_count < s.max_returns)
+            if not ok.any():
+                continue
+            rng_e = (w * np.where(m, t, 0.0)).sum(axis=1)[ok] / energy[ok]
+            strongest = np.argmax(np.where(m, w, -1.0), axis=1)[ok]
+            okr = np.flatnonzero(ok)
+            rows_i.append(okr)
+            rows_ret.append(det_count[okr] + 1)
+            rows_face.append(face[okr, strongest])
+            rows_rng.append(rng_e)
+            det_count[okr] += 1
+        if not rows_i:
+            return empty
+        pi = np.concatenate(rows_i)
+        ret = np.concatenate(rows_ret)
+        order = np.lexsort((ret, pi))  # pulse-major, return-minor: scan order
+        pi, ret = pi[order], ret[order]
+        return (pi, np.concatenate(rows_face)[order], np.concatenate(rows_rng)[order],
+                ret.astype(np.uint8), det_count[pi].astype(np.uint8))
+
+    def _chunk(self, pulses, idx, face, xyz_local, ret, nret, line_index) -> PointChunk:
+        c = self.caster
+        return PointChunk(
+            xyz=xyz_local + self.shift,
+            gps_time=pulses.t[idx],
+            scan_angle_deg=np.degrees(pulses.theta[idx]),
+            return_number=ret, number_of_returns=nret,
+            classification=c.face_class[face], building_id=c.face_building[face],
+            grade=c.face_grade[face], surface=c.face_surface[face],
+            point_source_id=np.full(len(idx), line_index + 1, np.uint16),
+            scan_direction=pulses.forward[idx],
+            edge_of_flight_line=pulses.edge[idx],
+        )
+
+
+def _pulse_count(survey: Survey, line: FlightLine) -> int:
+    return int(math.floor(line.duration_s * survey.pulse_rate_hz)) + 1
+
+
+def _batches(survey: Survey, plan: FlightPlan, batch_rays: int):
+    rays_per_pulse = survey.sub_rays if survey.beam == "full" else 1
+    # batches are counted in raw pulses; only the FOV share of them is cast
+    size = max(1, int(batch_rays / (rays_per_pulse * survey.fov_fraction)))
+    number = 0
+    for line in plan.lines:
+        n = _pulse_count(survey, line)
+        for j0 in range(0, n, size):
+            yield _Batch(line, j0, min(n, j0 + size), number)
+            number += 1
+
+
+def ground_level(scene: Scene) -> float:
+    """Median height of terrain faces (building_id 0, surface ground), else the lowest vertex."""
+    terrain = (scene.face_building == 0) & (scene.face_surface == GROUND)
+    if terrain.any():
+        return float(np.median(scene.vertices[scene.faces[terrain]][..., 2]))
+    return float(scene.vertices[:, 2].min())
+
+
+def check_scannable(scene: Scene, source="scene") -> None:
+    if len(scene.faces) == 0:
+        raise SceneError(f"{source}: the scene is empty (no faces); nothing to scan")
+    if not scene.buildings or not (scene.face_building > 0).any():
+        raise SceneError(f"{source}: the scene has no buildings (no faces with building_id > 0); "
+                         "a damage scan needs at least one building")
+
+
+def scan(scene: Scene, survey: Survey, out_path: str | os.PathLike, seed: int = 0,
+         threads: int | None = None, batch_rays: int = DEFAULT_BATCH_RAYS,
+         lines: list | None = None, progress=None, source: str = "scene",
+         require_buildings: bool = True) -> ScanSummary:
+    """Scan `scene` with `survey` and write the point cloud to `out_path` (.las / .laz).
+
+    `lines` replaces the planned flight lines (tests use a single line); `progress` is
+    called with (pulses_done, pulses_total). Same scene, survey and seed give the same
+    bytes, whatever the number of threads.
+    """
+    started = time.perf_counter()
+    if require_buildings:
+        check_scannable(scene, source)
+    elif len(scene.faces) == 0:
+        raise SceneError(f"{source}: the scene is empty (no faces); nothing to scan")
+    caster = RayCaster(scene)
+    ground_z = ground_level(scene)
+    plan = plan_flight(survey, scene.bounds(), ground_z)
+    if lines is not None:
+        plan = FlightPlan(list(lines), plan.ground_z, plan.flight_z)
+    threads = threads or os.cpu_count() or 1
+    summary = ScanSummary(output=str(out_path), lines=len(plan.lines), flight_duration_s=plan.duration_s,
+                          beam=survey.beam, seed=seed)
+    total = sum(_pulse_count(survey, ln) for ln in plan.lines)
+    offset, shift = _las_offset(scene, caster)
+    by_return = np.zeros(16, np.int64)
+    by_surface = np.zeros(256, np.int64)
+    by_building: dict[int, int] = {}
+    with LasChunkWriter(out_path, offset, scene.crs, survey.acquisition_date) as writer, \
+            ThreadPoolExecutor(max_workers=threads) as pool:
+        sim = _Simulator(caster, survey, seed, shift=shift, pack=writer.pack)
+        pending: deque = deque()
+
+        def consume(future):
+            record, stats = future.result()
+            writer.write(record)
+            by_return[:] += stats.pop("by_return")
+            by_surface[:] += stats.pop("by_surface")
+            for i, c in zip(*(a.tolist() for a in stats.pop("by_building"))):
+                by_building[i] = by_building.get(i, 0) + c
+            for k, v in stats.items():
+                setattr(summary, k, getattr(summary, k) + v)
+            if progress:
+                progress(summary.pulses_swept, total)
+
+        # Workers simulate and pack batches; this thread only writes, in order. A bounded
+        # window of batches in flight keeps memory flat.
+        for batch in _batches(survey, plan, batch_rays):
+            pending.append(pool.submit(sim.run_batch, batch))
+            if len(pending) >= 2 * threads:
+                consume(pending.popleft())
+        while pending:
+            consume(pending.popleft())
+        if summary.points == 0:
+            raise SurveyError(f"{source}: the survey recorded no points: its flight lines miss the scene "
+                              f"or every surface is beyond max_range_m={survey.max_range_m}")
+    summary.points_by_return = {str(r): int(c) for r, c in enumerate(by_return) if c}
+    from .scene import SURFACE_NAMES
+    summary.points_by_surface = {SURFACE_NAMES.get(k, str(k)): int(c) for k, c in enumerate(by_surface) if c}
+    summary.points_by_building = {k: v for k, v in by_building.items() if k > 0}
+    missing = [b.id for b in scene.buildings if b.id not in by_building]
+    if missing:
+        log.warning("%s: %d buildings got no points: %s", source, len(missing), missing[:10])
+    summary.wall_time_s = time.perf_counter() - started
+    return summary
+
+
+def _las_offset(scene: Scene, caster: RayCaster):
+    """LAS offset = scene origin (contract). Points are local + shift, shift = local origin.
+
+    When a scene stores large coordinates relative to a zero origin the offset moves to the
+    whole metre nearest the local origin, so that int32 millimetres still reach."""
+    lo = caster.local_origin
+    if np.all(np.abs(caster.bounds_local) + np.abs(lo) < 2.0e6):
+        return scene.origin.copy(), lo
+    step = np.round(lo)
+    log.warning("scene coordinates reach %s m from its origin; LAS offset moved by %s", np.abs(lo).max(),
+                step.tolist())
+    return scene.origin + step, lo - step

@@ -1,0 +1,326 @@
+"""Survey = flight plan + scanner model for a virtual UAV laser scanning (ULS) flight.
+
+A survey is a JSON file (`quakescan survey-template` writes a documented one). Every field
+name ends in its unit. The preset `paper` reproduces the acquisition parameters of Zahs et
+al. (Table: 89 lines/s, 300 kHz, 60 % strip overlap, 120° FOV, 100 m AGL, 8 m/s).
+
+Geometry conventions (all in the scene's local frame, metres, z up):
+- Flight lines are parallel, `line_direction_deg` counter-clockwise from +x, flown
+  back and forth (serpentine) at `altitude_agl_m` above the scene's ground level.
+- The scanner deflects the beam in the plane perpendicular to the heading (optionally
+  pitched forward by `scan_pitch_deg`); the scan angle is 0 at nadir, positive to the
+  right of the heading.
+- `rotating_polygon`: the angle sweeps linearly from -FOV/2 to +FOV/2 `scan_rate_hz`
+  times per second, always in the same direction (saw-tooth). `oscillating_mirror`:
+  the sweep alternates direction every line (triangle wave). Every pulse at
+  `pulse_rate_hz` is emitted inside the FOV (effective pulse rate).
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+
+import numpy as np
+
+from .errors import SurveyError
+
+FORMAT = "quakescan-survey"
+VERSION = 1
+DEFLECTORS = ("rotating_polygon", "oscillating_mirror")
+BEAM_MODES = ("single", "adaptive", "full")
+PATTERNS = ("parallel", "crosshatch")
+
+# name → (meaning, unit); the survey JSON template carries this table as "_doc".
+FIELD_DOC = {
+    "altitude_agl_m": ("flight altitude above the scene's ground level", "m"),
+    "speed_m_s": ("platform ground speed", "m/s"),
+    "strip_overlap_pct": ("overlap of neighbouring strips on flat ground at ground level", "%"),
+    "line_direction_deg": ("direction of the flight lines, counter-clockwise from the scene's +x axis", "deg"),
+    "run_in_m": ("length flown beyond the scene's extent at both ends of every line", "m"),
+    "pattern": ("'parallel' lines, or 'crosshatch' (a second set perpendicular to the first)", "-"),
+    "gps_start_s": ("GPS time of the first pulse (adjusted standard GPS time)", "s"),
+    "deflector": ("'rotating_polygon' (saw-tooth sweep) or 'oscillating_mirror' (triangle sweep)", "-"),
+    "scan_rate_hz": ("scan lines per second", "lines/s"),
+    "pulse_rate_hz": ("pulse repetition rate (effective, all pulses inside the FOV)", "Hz"),
+    "fov_deg": ("full field of view across track; pulses outside it are not emitted", "deg"),
+    "sweep_deg": ("rotating_polygon: angle the mirror sweeps per scan line (pulse_rate_hz is spread "
+                  "over it; only the part inside fov_deg is recorded); ignored by oscillating_mirror, "
+                  "which sweeps exactly the FOV", "deg"),
+    "scan_pitch_deg": ("forward tilt of the scan plane (0 = vertical, perpendicular to the heading)", "deg"),
+    "range_noise_sigma_m": ("standard deviation of the Gaussian range noise (seeded)", "m"),
+    "max_range_m": ("maximum range; farther surfaces give no return", "m"),
+    "beam_divergence_mrad": ("full beam divergence at 1/e² intensity", "mrad"),
+    "beam": ("'single' (one ray per pulse), 'full' (sub-rays over the footprint for every pulse) or "
+             "'adaptive' (sub-rays only for pulses next to a depth discontinuity)", "-"),
+    "beam_rings": ("rings of sub-rays over the footprint: 1 + 6 + 12 + … rays (2 rings = 19 rays)", "-"),
+    "echo_separation_m": ("minimum range difference between two returns of one pulse", "m"),
+    "min_echo_energy": ("share of the pulse energy a return needs to be detected", "fraction"),
+    "max_returns": ("maximum number of returns recorded per pulse", "-"),
+    "adaptive_edge_m": ("adaptive mode: distance of a neighbouring pulse's hit from the plane of this "
+                        "pulse's hit above which the pulse lies at a discontinuity", "m"),
+    "acquisition_date": ("date written to the LAS header (fixed so that reruns are byte-identical)", "YYYY-MM-DD"),
+}
+
+
+@dataclass(frozen=True)
+class Survey:
+    name: str = "paper"
+    # platform and flight plan
+    altitude_agl_m: float = 100.0
+    speed_m_s: float = 8.0
+    strip_overlap_pct: float = 60.0
+    line_direction_deg: float = 0.0
+    run_in_m: float = 10.0
+    pattern: str = "parallel"
+    gps_start_s: float = 0.0
+    # scanner
+    deflector: str = "rotating_polygon"
+    scan_rate_hz: float = 89.0
+    pulse_rate_hz: float = 300_000.0
+    fov_deg: float = 120.0
+    # RIEGL VUX-1UAV, the UAV scanner of HELIOS++: its mirror turns through 330° per line.
+    sweep_deg: float = 330.0
+    scan_pitch_deg: float = 0.0
+    range_noise_sigma_m: float = 0.01
+    max_range_m: float = 400.0
+    # beam model
+    beam_divergence_mrad: float = 0.5
+    beam: str = "single"
+    beam_rings: int = 2
+    echo_separation_m: float = 0.8
+    min_echo_energy: float = 0.05
+    max_returns: int = 5
+    adaptive_edge_m: float = 0.1
+    acquisition_date: str = "2020-01-01"
+
+    def __post_init__(self):
+        self.validate()
+
+    def validate(self, source: str = "survey") -> None:
+        def bad(msg):
+            raise SurveyError(f"{source}: {msg}")
+
+        positive = ["altitude_agl_m", "speed_m_s", "scan_rate_hz", "pulse_rate_hz", "fov_deg", "max_range_m",
+                    "sweep_deg"]
+        for name in positive:
+            v = getattr(self, name)
+            if not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
+                bad(f"{name} must be a positive number [{FIELD_DOC[name][1]}], got {v!r}")
+        for name in ("run_in_m", "range_noise_sigma_m", "beam_divergence_mrad", "echo_separation_m",
+                     "adaptive_edge_m", "min_echo_energy", "gps_start_s"):
+            v = getattr(self, name)
+            if not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
+                bad(f"{name} must be a number >= 0 [{FIELD_DOC[name][1]}], got {v!r}")
+        if not 0 <= self.strip_overlap_pct < 100:
+            bad(f"strip_overlap_pct must be in [0, 100), got {self.strip_overlap_pct!r}")
+        if not 0 < self.fov_deg < 180:
+            bad(f"fov_deg must be in (0, 180), got {self.fov_deg!r}")
+        if not -60 <= self.scan_pitch_deg <= 60:
+            bad(f"scan_pitch_deg must be in [-60, 60], got {self.scan_pitch_deg!r}")
+        if self.deflector == "rotating_polygon" and not self.fov_deg <= self.sweep_deg <= 360:
+            bad(f"sweep_deg must lie between fov_deg ({self.fov_deg}) and 360, got {self.sweep_deg!r}")
+        if self.deflector not in DEFLECTORS:
+            bad(f"deflector must be one of {DEFLECTORS}, got {self.deflector!r}")
+        if self.beam not in BEAM_MODES:
+            bad(f"beam must be one of {BEAM_MODES}, got {self.beam!r}")
+        if self.pattern not in PATTERNS:
+            bad(f"pattern must be one of {PATTERNS}, got {self.pattern!r}")
+        if not isinstance(self.beam_rings, int) or not 0 <= self.beam_rings <= 6:
+            bad(f"beam_rings must be an integer 0..6, got {self.beam_rings!r}")
+        if not isinstance(self.max_returns, int) or not 1 <= self.max_returns <= 15:
+            bad(f"max_returns must be an integer 1..15 (LAS 1.4 limit), got {self.max_returns!r}")
+        if self.min_echo_energy >= 1:
+            bad(f"min_echo_energy must be < 1, got {self.min_echo_energy!r}")
+        if self.pulse_rate_hz / self.scan_rate_hz < 2:
+            bad("pulse_rate_hz / scan_rate_hz must give at least 2 pulses per scan line")
+        try:
+            y, m, d = (int(x) for x in self.acquisition_date.split("-"))
+            import datetime
+            datetime.date(y, m, d)
+        except Exception:
+            bad(f"acquisition_date must be YYYY-MM-DD, got {self.acquisition_date!r}")
+
+    # Derived quantities -------------------------------------------------------------
+    @property
+    def pulses_per_line(self) -> float:
+        """Pulses per scan line over the whole sweep (inside and outside the FOV)."""
+        return self.pulse_rate_hz / self.scan_rate_hz
+
+    @property
+    def sweep_rad(self) -> float:
+        return math.radians(self.sweep_deg if self.deflector == "rotating_polygon" else self.fov_deg)
+
+    @property
+    def fov_fraction(self) -> float:
+        """Share of the pulses that leave the scanner inside the FOV."""
+        return math.radians(self.fov_deg) / self.sweep_rad
+
+    @property
+    def angle_step_rad(self) -> float:
+        """Angle between consecutive pulses of a scan line."""
+        return self.sweep_rad / self.pulses_per_line
+
+    @property
+    def swath_m(self) -> float:
+        """Strip width on flat ground at ground level."""
+        return 2 * self.altitude_agl_m * math.tan(math.radians(self.fov_deg / 2))
+
+    @property
+    def line_spacing_m(self) -> float:
+        return self.swath_m * (1 - self.strip_overlap_pct / 100)
+
+    @property
+    def sub_rays(self) -> int:
+        return 1 + sum(6 * k for k in range(1, self.beam_rings + 1))
+
+    def replace(self, **changes) -> "Survey":
+        d = asdict(self)
+        d.update(changes)
+        return Survey(**d)
+
+    def to_json(self) -> dict:
+        d = {"format": FORMAT, "version": VERSION}
+        d.update(asdict(self))
+        d["_doc"] = {k: f"{text} [{unit}]" for k, (text, unit) in FIELD_DOC.items()}
+        return d
+
+
+def preset(name: str) -> Survey:
+    """Named presets: 'paper' (Zahs et al. Table)."""
+    if name == "paper":
+        return Survey()
+    raise SurveyError(f"unknown survey preset {name!r}; known: 'paper', or give a survey JSON file")
+
+
+def load_survey(spec: str | os.PathLike) -> Survey:
+    """A preset name or the path of a survey JSON file."""
+    spec = str(spec)
+    if not spec.endswith(".json") and not Path(spec).exists():
+        return preset(spec)
+    path = Path(spec)
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise SurveyError(f"{path}: survey file does not exist") from None
+    except json.JSONDecodeError as e:
+        raise SurveyError(f"{path}: not valid JSON ({e})") from None
+    if not isinstance(data, dict) or data.get("format") != FORMAT:
+        raise SurveyError(f"{path}: not a survey file (format must be {FORMAT!r})")
+    if data.get("version") != VERSION:
+        raise SurveyError(f"{path}: survey version {data.get('version')!r} not supported (expected {VERSION})")
+    known = {f.name for f in fields(Survey)}
+    values = {k: v for k, v in data.items() if not k.startswith("_") and k not in ("format", "version")}
+    unknown = sorted(set(values) - known)
+    if unknown:
+        raise SurveyError(f"{path}: unknown survey fields {unknown}; known fields: {sorted(known)}")
+    base = preset(values.pop("preset")) if "preset" in values else Survey()
+    d = asdict(base)
+    d.update(values)
+    try:
+        return Survey(**d)
+    except SurveyError as e:
+        raise SurveyError(f"{path}: {str(e).removeprefix('survey: ')}") from None
+    except TypeError as e:
+        raise SurveyError(f"{path}: {e}") from None
+
+
+# Flight planning ---------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class FlightLine:
+    """One straight strip, flown at constant speed; times are GPS seconds."""
+
+    index: int
+    start: np.ndarray  # (3,) float64, local frame
+    heading: np.ndarray  # (3,) unit vector, horizontal
+    length_m: float
+    t_start: float
+    speed_m_s: float
+
+    @property
+    def duration_s(self) -> float:
+        return self.length_m / self.speed_m_s
+
+    @property
+    def end(self) -> np.ndarray:
+        return self.start + self.heading * self.length_m
+
+    def position(self, t: np.ndarray) -> np.ndarray:
+        """(n, 3) platform positions at GPS times t."""
+        return self.start + np.multiply.outer(np.asarray(t) - self.t_start, self.heading * self.speed_m_s)
+
+
+@dataclass(frozen=True)
+class FlightPlan:
+    lines: list = field(default_factory=list)
+    ground_z: float = 0.0
+    flight_z: float = 0.0
+
+    @property
+    def duration_s(self) -> float:
+        if not self.lines:
+            return 0.0
+        last = self.lines[-1]
+        return last.t_start + last.duration_s - self.lines[0].t_start
+
+    def trajectory(self, rate_hz: float = 10.0) -> np.ndarray:
+        """Sampled trajectory rows (gps_time, x, y, z, heading_deg, line) in the local frame."""
+        rows = []
+        for ln in self.lines:
+            t = ln.t_start + np.arange(0.0, ln.duration_s + 1e-9, 1.0 / rate_hz)
+            p = ln.position(t)
+            hd = math.degrees(math.atan2(ln.heading[1], ln.heading[0]))
+            rows.append(np.column_stack([t, p, np.full(len(t), hd), np.full(len(t), ln.index)]))
+        return np.concatenate(rows) if rows else np.zeros((0, 6))
+
+
+def plan_flight(survey: Survey, bounds: np.ndarray, ground_z: float) -> FlightPlan:
+    """Parallel lines over the scene's xy extent `bounds` ((2, 3) min/max, local frame).
+
+    Lines are spaced by swath × (1 - overlap) and centred on the scene; the outermost lines
+    lie at or beyond its edges, so with ≥ 50 % overlap every ground point is seen from at
+    least two strips. Lines run beyond the extent by `run_in_m` plus the horizontal reach
+    of a pitched scan plane.
+    """
+    directions = [survey.line_direction_deg]
+    if survey.pattern == "crosshatch":
+        directions.append(survey.line_direction_deg + 90.0)
+    flight_z = ground_z + survey.altitude_agl_m
+    reach = (flight_z - bounds[0, 2]) * abs(math.tan(math.radians(survey.scan_pitch_deg)))
+    lines: list[FlightLine] = []
+    t = survey.gps_start_s
+    position = None
+    corners = np.array([[x, y] for x in bounds[:, 0] for y in bounds[:, 1]])
+    for deg in directions:
+        a = math.radians(deg)
+        u = np.array([math.cos(a), math.sin(a)])
+        v = np.array([-u[1], u[0]])
+        along = corners @ u
+        across = corners @ v
+        width = across.max() - across.min()
+        spacing = survey.line_spacing_m
+        n = max(1, math.ceil(width / spacing) + 1) if width > 0 else 1
+        centre = 0.5 * (across.max() + across.min())
+        a0 = along.min() - survey.run_in_m - reach
+        a1 = along.max() + survey.run_in_m + reach
+        for k in range(n):
+            c = centre + (k - (n - 1) / 2) * spacing
+            forward = (len(lines) % 2 == 0)
+            s_along, heading2 = (a0, u) if forward else (a1, -u)
+            start = np.array([*(s_along * u + c * v), flight_z])
+            if position is not None:  # transit from the previous line's end, no pulses
+                t += float(np.linalg.norm(start - position)) / survey.speed_m_s
+            heading = np.array([heading2[0], heading2[1], 0.0])
+            ln = FlightLine(len(lines), start, heading, float(a1 - a0), t, survey.speed_m_s)
+            lines.append(ln)
+            t += ln.duration_s
+            position = ln.end
+    return FlightPlan(lines, ground_z, flight_z)
+
+
+def write_survey_template(path: str | os.PathLike, survey: Survey | None = None) -> None:
+    survey = survey or preset("paper")
+    Path(path).write_text(json.dumps(survey.to_json(), indent=1) + "\n")

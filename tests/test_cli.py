@@ -1,0 +1,101 @@
+"""The `quakescan` command line: main job, scan, survey files, errors and exit codes."""
+import json
+
+import laspy
+import pytest
+
+from core.cli import main
+from core.errors import SurveyError
+from core.scene import write_scene
+from core.survey import Survey, load_survey, preset
+from core.synthetic import box_city
+
+
+def test_demo_runs_end_to_end(tmp_path, capsys):
+    assert main(["demo", "-o", str(tmp_path / "demo")]) == 0
+    las = laspy.read(tmp_path / "demo" / "pre.las")
+    summary = json.loads((tmp_path / "demo" / "pre.las.summary.json").read_text())
+    assert len(las.x) == summary["points"] > 100_000
+    assert len(summary["points_by_building"]) == 12
+    assert "buildings with points: 12 of 12" in capsys.readouterr().out
+
+
+def test_scan_writes_summary_and_resumes(tmp_path, capsys):
+    scene_dir = write_scene(box_city(rows=1, cols=2), tmp_path / "scene")
+    out = tmp_path / "pre.laz"
+    args = ["scan", str(scene_dir), "-o", str(out), "--seed", "3", "--trajectory", str(tmp_path / "traj.csv")]
+    assert main(args) == 0
+    first = out.read_bytes()
+    summary = json.loads((tmp_path / "pre.laz.summary.json").read_text())
+    assert summary["seed"] == 3 and summary["survey"]["pulse_rate_hz"] == 300000
+    assert (tmp_path / "traj.csv").read_text().startswith("gps_time_s,x_m,y_m,z_m")
+    capsys.readouterr()
+    assert main(args) == 0
+    assert "up to date" in capsys.readouterr().out
+    assert main(args + ["--force"]) == 0
+    assert out.read_bytes() == first
+
+
+def test_bad_scene_exits_2_naming_the_file(tmp_path, capsys):
+    scene_dir = write_scene(box_city(rows=1, cols=1), tmp_path / "scene")
+    (scene_dir / "mesh.ply").write_bytes(b"ply\nformat binary_little_endian 1.0\nend_header\n")
+    assert main(["scan", str(scene_dir), "-o", str(tmp_path / "x.las")]) == 2
+    err = capsys.readouterr().err
+    assert "quakescan: error:" in err and "mesh.ply" in err
+    assert not (tmp_path / "x.las").exists()
+
+
+def test_survey_template_round_trip(tmp_path):
+    path = tmp_path / "survey.json"
+    assert main(["survey-template", "-o", str(path)]) == 0
+    data = json.loads(path.read_text())
+    assert set(data["_doc"]) == {k for k in Survey.__dataclass_fields__ if k != "name"}
+    assert all("[" in text for text in data["_doc"].values())  # every field documents its unit
+    assert load_survey(path) == preset("paper")
+
+
+def test_paper_preset_is_the_papers_table():
+    s = preset("paper")
+    assert (s.scan_rate_hz, s.pulse_rate_hz, s.strip_overlap_pct, s.fov_deg, s.altitude_agl_m,
+            s.speed_m_s) == (89, 300_000, 60, 120, 100, 8)
+    assert s.beam == "single"
+
+
+@pytest.mark.parametrize("content, text", [
+    ("{", "not valid JSON"),
+    ('{"format": "x"}', "not a survey file"),
+    ('{"format": "quakescan-survey", "version": 1, "speed": 3}', "unknown survey fields ['speed']"),
+    ('{"format": "quakescan-survey", "version": 1, "speed_m_s": -3}', "speed_m_s must be a positive number [m/s]"),
+    ('{"format": "quakescan-survey", "version": 1, "fov_deg": 200}', "fov_deg"),
+    ('{"format": "quakescan-survey", "version": 1, "beam": "wide"}', "beam must be one of"),
+    ('{"format": "quakescan-survey", "version": 2}', "version 2 not supported"),
+])
+def test_bad_survey_files_are_named(tmp_path, content, text):
+    path = tmp_path / "s.json"
+    path.write_text(content)
+    with pytest.raises(SurveyError) as err:
+        load_survey(path)
+    assert text in str(err.value) and str(path) in str(err.value)
+
+
+def test_unknown_preset():
+    with pytest.raises(SurveyError, match="unknown survey preset 'fast'"):
+        load_survey("fast")
+
+
+def test_import_cityjson_then_scan(tmp_path, shared_data):
+    scene_dir = tmp_path / "rdam"
+    assert main(["import-cityjson", str(shared_data / "rotterdam_subset.json"), "-o", str(scene_dir)]) == 0
+    assert main(["validate", str(scene_dir)]) == 0
+    survey = tmp_path / "s.json"
+    data = preset("paper").to_json()
+    data["run_in_m"] = 0.0
+    data["pulse_rate_hz"] = 30000.0  # a light scan: this test checks the path, not the density
+    survey.write_text(json.dumps(data))
+    out = tmp_path / "rdam.las"
+    assert main(["scan", str(scene_dir), "-o", str(out), "--survey", str(survey)]) == 0
+    las = laspy.read(out)
+    assert set(range(1, 17)) <= set(int(b) for b in set(las.building_id))
+    # real projected coordinates kept: the file's translate is the LAS offset
+    meta = json.loads((scene_dir / "scene.json").read_text())
+    assert list(las.header.offsets) == meta["origin"]
