@@ -206,8 +206,29 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def tune_allocator() -> None:
+    """Keep freed batch buffers in the heap (glibc only).
+
+    A scan allocates and frees ~100 MB per batch and thread; by default glibc returns such
+    blocks to the OS and the next batch page-faults them back, which costs a tenth of the
+    scan and serialises the threads on the kernel's memory lock (BENCHMARKS.md). Done here,
+    in the command, not in the library: it is a process-wide setting."""
+    import ctypes
+    import ctypes.util
+
+    name = ctypes.util.find_library("c")
+    try:
+        libc = ctypes.CDLL(name)
+        m_trim_threshold, m_mmap_threshold = -1, -3
+        libc.mallopt(m_mmap_threshold, 512 << 20)
+        libc.mallopt(m_trim_threshold, 2 << 30)
+    except (OSError, AttributeError, TypeError):
+        pass  # not glibc: keep the default allocator
+
+
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
+    tune_allocator()
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
     try:

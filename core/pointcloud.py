@@ -101,7 +101,29 @@ class LasChunkWriter:
         rec = chunk_or_record if not isinstance(chunk_or_record, PointChunk) else self.pack(chunk_or_record)
         if rec is None or len(rec) == 0:
             return
-        self._writer.write_points(rec)
+        bounds = record_bounds(rec) if len(rec) else None
+        self.write_record(rec, bounds)
+
+    def write_record(self, rec, bounds) -> None:
+        """Write a packed record whose `record_bounds` the caller computed (a worker can).
+
+        laspy's write_points would recompute them here, on the one thread that writes;
+        this updates the header with the given bounds and hands the bytes to its writer."""
+        if rec is None or len(rec) == 0:
+            return
+        w = self._writer
+        point_writer = getattr(w, "point_writer", None)
+        if point_writer is None or bounds is None:  # another laspy: take the documented path
+            w.write_points(rec)
+            self.count += len(rec)
+            return
+        mins, maxs, by_return = bounds
+        h = w.header
+        h.mins = np.minimum(h.mins, mins)
+        h.maxs = np.maximum(h.maxs, maxs)
+        h.number_of_points_by_return[: len(by_return)] += by_return.astype(np.uint64)
+        h.point_count += len(rec)
+        point_writer.write_points(rec)
         self.count += len(rec)
 
     def __exit__(self, exc_type, exc, tb):
@@ -117,6 +139,16 @@ class LasChunkWriter:
             else:
                 self.tmp.unlink(missing_ok=True)
         return False
+
+
+def record_bounds(rec):
+    """(mins, maxs, points by return 1..15) of a packed record, in world units."""
+    a = rec.array
+    scales, offsets = np.asarray(rec.scales), np.asarray(rec.offsets)
+    mins = np.array([a[c].min() for c in "XYZ"]) * scales + offsets
+    maxs = np.array([a[c].max() for c in "XYZ"]) * scales + offsets
+    by_return = np.bincount(a["bit_fields"] & 15, minlength=16)[1:16]
+    return mins, maxs, by_return
 
 
 def pack_points(header, chunk: PointChunk, name="point cloud"):

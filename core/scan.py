@@ -36,9 +36,10 @@ from pathlib import Path
 import numpy as np
 
 from .errors import SceneError, SurveyError
-from .pointcloud import (BUILDING_CLASS, GRADE_UNKNOWN, GROUND_CLASS, UNCLASSIFIED, LasChunkWriter,
+from .errors import PointCloudError
+from .pointcloud import (BUILDING_CLASS, GRADE_UNKNOWN, GROUND_CLASS, SCALE, UNCLASSIFIED, LasChunkWriter,
                          PointChunk)
-from .scene import GROUND, Scene
+from .scene import GROUND, SURFACE_NAMES, Scene
 from .survey import FlightLine, FlightPlan, Survey, plan_flight
 
 log = logging.getLogger(__name__)
@@ -81,16 +82,27 @@ class RayCaster:
         # Committing is lazy in embreex and not thread-safe: do it now with one ray.
         self._embree.run(np.zeros((1, 3), np.float32), np.array([[0, 0, 1]], np.float32))
 
-    def cast(self, origins: np.ndarray, directions: np.ndarray, max_range: float):
+    def cast(self, origins: np.ndarray, directions: np.ndarray, max_range: float,
+             origins32=None, directions32=None, fast: bool = True):
         """Cast rays (local frame, float64 (n, 3), unit directions).
 
         Returns (face, t): face index per ray (-1 = no hit) and the float64 distance to
-        the hit on that face's plane (inf where there is no hit). Releases the GIL while
-        Embree runs, so calls from several threads run in parallel.
+        the hit on that face's plane (inf where there is no hit). Embree releases the GIL,
+        so calls from several threads run in parallel. `origins32`/`directions32` skip the
+        float32 conversion when the caller has them; `fast=False` refines with the numpy
+        reference instead of the compiled loop.
         """
-        face = self._embree.run(origins.astype(np.float32), directions.astype(np.float32),
-                                dists=float(max_range), output=0)
-        face = np.asarray(face, dtype=np.int64)
+        o32 = origins.astype(np.float32) if origins32 is None else origins32
+        d32 = directions.astype(np.float32) if directions32 is None else directions32
+        face = np.asarray(self._embree.run(o32, d32, dists=float(max_range), output=0), dtype=np.int64)
+        if fast:
+            from ._scan_kernels import refine_hits
+
+            return face, refine_hits(origins, directions, face, self.normals, self.plane_d, float(max_range))
+        return face, self._refine_reference(origins, directions, face, max_range)
+
+    def _refine_reference(self, origins, directions, face, max_range):
+        """Numpy reference of `_scan_kernels.refine_hits` (same results, more passes)."""
         t = np.full(len(face), np.inf)
         hit = face >= 0
         if hit.any():
@@ -104,11 +116,10 @@ class RayCaster:
             # float64 (grazing) has no defined hit point: drop it instead of inventing one.
             bad = ~np.isfinite(th) | (th < 0) | (th > max_range)
             if bad.any():
-                idx = np.flatnonzero(hit)[bad]
-                face[idx] = -1
+                face[np.flatnonzero(hit)[bad]] = -1
                 th[bad] = np.inf
             t[hit] = th
-        return face, t
+        return t
 
 
 @dataclass
@@ -155,22 +166,41 @@ def _deflection(survey: Survey, t: np.ndarray):
     return np.where(forward, -half + 2 * half * frac, half - 2 * half * frac), scan_line, forward
 
 
-class _Pulses:
-    """Pulse times and scan angles for pulse indices `j` of a line (1-D, cheap); rays for
-    any subset on demand (origins and directions in float64, local frame)."""
+def _fov_runs(survey: Survey, line: FlightLine, j0: int, j1: int):
+    """Runs of pulse indices lo[i]..hi[i] within [j0, j1) that may lie inside the FOV (with
+    one pulse of margin either side).
 
-    def __init__(self, survey: Survey, line: FlightLine, j: np.ndarray, local_origin: np.ndarray):
-        t = line.t_start + j / survey.pulse_rate_hz
-        theta, scan_line, forward = _deflection(survey, t)
+    A rotating polygon spends most of its sweep outside the FOV (paper preset: 120° of
+    330°); the FOV part of every scan line is a contiguous run of pulses found from the
+    line's phase window, so the pulses outside are never generated."""
+    if survey.deflector != "rotating_polygon" or survey.fov_fraction >= 1 or j1 <= j0:
+        return np.array([j0], np.int64), np.array([j1 - 1], np.int64)
+    prr, rate, g0 = survey.pulse_rate_hz, survey.scan_rate_hz, survey.gps_start_s
+    f0, f1 = 0.5 - survey.fov_fraction / 2, 0.5 + survey.fov_fraction / 2
+    t_a, t_b = line.t_start + j0 / prr, line.t_start + (j1 - 1) / prr
+    scan_lines = np.arange(math.floor((t_a - g0) * rate), math.floor((t_b - g0) * rate) + 1)
+    lo = np.ceil((g0 + (scan_lines + f0) / rate - line.t_start) * prr).astype(np.int64) - 1
+    hi = np.floor((g0 + (scan_lines + f1) / rate - line.t_start) * prr).astype(np.int64) + 1
+    return np.maximum(lo, j0), np.minimum(hi, j1 - 1)
+
+
+class _Pulses:
+    """The pulses of line `line` with indices in [j0, j1) that leave the scanner inside the
+    FOV: times, scan angles and flags (1-D, cheap); rays for any subset on demand."""
+
+    def __init__(self, survey: Survey, line: FlightLine, j0: int, j1: int, local_origin: np.ndarray,
+                 fast: bool = True):
+        lo, hi = _fov_runs(survey, line, j0, j1)
         half_fov = math.radians(survey.fov_deg) / 2 + 1e-12
-        keep = np.abs(theta) <= half_fov
-        if not keep.all():
-            j, t, theta, scan_line, forward = j[keep], t[keep], theta[keep], scan_line[keep], forward[keep]
-        self.j, self.t, self.theta, self.forward = j, t, theta, forward
+        if fast:
+            from ._scan_kernels import fov_pulses
+
+            self.j, self.t, self.theta, self.forward, self.edge = fov_pulses(
+                lo, hi, line.t_start, survey.pulse_rate_hz, survey.scan_rate_hz, survey.gps_start_s,
+                survey.sweep_rad / 2, half_fov, survey.deflector == "oscillating_mirror")
+        else:
+            self._numpy_pulses(survey, line, lo, hi, half_fov)
         self.line = line
-        # Edge of flight line: the next pulse starts a new scan line or leaves the FOV.
-        next_theta, next_line, _ = _deflection(survey, t + 1.0 / survey.pulse_rate_hz)
-        self.edge = (next_line != scan_line) | (np.abs(next_theta) > half_fov)
         h = line.heading
         pitch = math.radians(survey.scan_pitch_deg)
         self.down = np.array([0.0, 0.0, -1.0]) * math.cos(pitch) + h * math.sin(pitch)
@@ -179,11 +209,27 @@ class _Pulses:
         self.start_local = line.start - local_origin
         self.velocity = h * line.speed_m_s
 
+    def _numpy_pulses(self, survey, line, lo, hi, half_fov):
+        """Numpy reference of `_scan_kernels.fov_pulses`."""
+        counts = np.maximum(hi - lo + 1, 0)
+        j = np.repeat(lo, counts) + np.arange(int(counts.sum())) - np.repeat(np.cumsum(counts) - counts, counts)
+        t = line.t_start + j / survey.pulse_rate_hz
+        theta, scan_line, forward = _deflection(survey, t)
+        keep = np.abs(theta) <= half_fov
+        self.j, self.t, self.theta, self.forward = j[keep], t[keep], theta[keep], forward[keep]
+        next_theta, next_line, _ = _deflection(survey, self.t + 1.0 / survey.pulse_rate_hz)
+        self.edge = (next_line != scan_line[keep]) | (np.abs(next_theta) > half_fov)
+
     def __len__(self):
         return len(self.j)
 
-    def rays(self, sel: np.ndarray):
-        """(origins, directions), each (len(sel), 3) float64, filled column by column."""
+    def rays(self, sel: np.ndarray, fast: bool = True):
+        """(origins, directions, origins32, directions32) of pulses `sel`, local frame."""
+        if fast:
+            from ._scan_kernels import pulse_rays
+
+            return pulse_rays(self.t[sel], self.theta[sel], self.line.t_start, self.start_local,
+                              self.velocity, self.down, self.right)
         dt = self.t[sel] - self.line.t_start
         c, s = np.cos(self.theta[sel]), np.sin(self.theta[sel])
         o = np.empty((len(sel), 3))
@@ -191,7 +237,7 @@ class _Pulses:
         for k in range(3):
             o[:, k] = self.start_local[k] + dt * self.velocity[k]
             d[:, k] = c * self.down[k] + s * self.right[k]
-        return o, d
+        return o, d, o.astype(np.float32), d.astype(np.float32)
 
     def aimed_at(self, box: np.ndarray) -> np.ndarray:
         """Indices of the pulses whose scan angle can reach the box (conservative).
@@ -214,14 +260,15 @@ class _Pulses:
 
 
 class _Simulator:
-    def __init__(self, caster: RayCaster, survey: Survey, seed: int, shift=None, pack=None):
-        """`shift` turns local coordinates into LAS-offset coordinates; `pack` (a
-        LasChunkWriter.pack) makes workers return packed records instead of chunks."""
+    def __init__(self, caster: RayCaster, survey: Survey, seed: int, shift=None, header=None, fast=True):
+        """`shift` turns local coordinates into LAS-offset coordinates; with a LAS `header`
+        batches come back as packed records; `fast=False` runs the numpy reference."""
         self.caster = caster
         self.survey = survey
         self.seed = seed
-        self.shift = caster.local_origin if shift is None else shift
-        self.pack = pack
+        self.shift = np.asarray(caster.local_origin if shift is None else shift, dtype=np.float64)
+        self.header = header
+        self.fast = fast
         # neighbour at the same angle in the next scan line, counted in in-FOV pulses
         self.ppl = max(1, int(round(survey.pulses_per_line * survey.fov_fraction)))
         self.ppl_raw = max(1, int(round(survey.pulses_per_line)))
@@ -256,91 +303,154 @@ class _Simulator:
         w = np.array(weights)
         self.sub_weights = w / w.sum()
 
+    def pulses(self, line: FlightLine, j0: int, j1: int) -> _Pulses:
+        return _Pulses(self.survey, line, j0, j1, self.caster.local_origin, self.fast)
+
     # --- one batch -------------------------------------------------------------------
     def run_batch(self, batch: _Batch):
-        """Simulate one batch; returns (packed LAS record or PointChunk, stats)."""
+        """Simulate one batch. Returns (packed LAS record or PointChunk, stats)."""
         s = self.survey
-        rng = np.random.default_rng([self.seed, batch.line.index, batch.number])
-        pulses = _Pulses(s, batch.line, np.arange(batch.j0, batch.j1), self.caster.local_origin)
-        stats = {"pulses_swept": batch.j1 - batch.j0, "pulses_emitted": len(pulses), "pulses_cast": 0, "rays_cast": 0, "pulses_with_sub_rays": 0}
+        pulses = self.pulses(batch.line, batch.j0, batch.j1)
+        stats = {"pulses_swept": batch.j1 - batch.j0, "pulses_emitted": len(pulses), "pulses_cast": 0,
+                 "rays_cast": 0, "pulses_with_sub_rays": 0}
         aimed = pulses.aimed_at(self.box)
         stats["pulses_cast"] = len(aimed)
-        origins, dirs = pulses.rays(aimed)
+        o, d, o32, d32 = pulses.rays(aimed, self.fast)
+        # Every output point: a ray (row of o/d: the pulse's central ray) and a pulse index.
         if s.beam == "single":
-            face, t = self.caster.cast(origins, dirs, s.max_range_m)
+            face, t = self.caster.cast(o, d, s.max_range_m, o32, d32, self.fast)
             stats["rays_cast"] = len(aimed)
-            hit = face >= 0
-            idx, face, rng_m = aimed[hit], face[hit], t[hit]
-            origins, dirs = origins[hit], dirs[hit]
-            ret = nret = np.ones(len(idx), np.uint8)
+            ray = np.flatnonzero(face >= 0)
+            face, rng_m = face[ray], t[ray]
+            ret = nret = np.ones(len(ray), np.uint8)
         elif s.beam == "full":
-            sel, face, rng_m, ret, nret = self._full_beam(origins, dirs, pulses.plane_normal, stats)
-            idx, origins, dirs = aimed[sel], origins[sel], dirs[sel]
+            ray, face, rng_m, ret, nret = self._full_beam(o, d, pulses.plane_normal, stats)
         else:
-            idx, face, rng_m, ret, nret = self._adaptive(batch, pulses, aimed, origins, dirs, stats)
-            origins, dirs = pulses.rays(idx)
-        if s.range_noise_sigma_m > 0 and len(idx):
-            rng_m = rng_m + rng.normal(0.0, s.range_noise_sigma_m, len(idx))
-        xyz_local = origins + dirs * rng_m[:, None]
-        chunk = self._chunk(pulses, idx, face, xyz_local, ret, nret, batch.line.index)
-        stats["points"] = len(chunk)
-        stats["by_return"] = np.bincount(ret, minlength=16)[:16]
-        stats["by_surface"] = np.bincount(chunk.surface, minlength=256)[:256]
-        stats["by_building"] = np.unique(chunk.building_id, return_counts=True)
-        return (self.pack(chunk) if self.pack else chunk), stats
+            ray, face, rng_m, ret, nret = self._adaptive(batch, pulses, aimed, o, d, o32, d32, stats)
+        pulse = aimed[ray]
+        # Noise drawn per batch from (seed, line, batch): reproducible whatever the threads.
+        # Standard normal noise in float32 (plenty for centimetre noise, half the cost), drawn
+        # per batch from (seed, line, batch): reproducible whatever the number of threads.
+        rng = np.random.default_rng([self.seed, batch.line.index, batch.number])
+        noise = (rng.standard_normal(len(ray), dtype=np.float32) if s.range_noise_sigma_m > 0
+                 else np.zeros(len(ray), np.float32))
+        stats["points"] = len(ray)
+        out = self._output(pulses, batch.line.index, ray, pulse, face, rng_m, noise, ret, nret, o, d, stats)
+        return out, stats
 
-    def _adaptive(self, batch: _Batch, pulses: _Pulses, aimed, origins, dirs, stats):
+    def _output(self, pulses, line_index, ray, pulse, face, rng_m, noise, ret, nret, o, d, stats):
+        """Points → a packed LAS record (when the simulator has a header) or a PointChunk;
+        fills stats with counts by return and by face, and the record's bounds."""
+        c, sigma = self.caster, self.survey.range_noise_sigma_m
+        n_faces = len(c.face_surface)
+        if self.header is not None and self.fast:
+            import laspy
+
+            from ._scan_kernels import pack_points
+
+            h = self.header
+            # np.empty, not zeros: the kernel writes every byte of every point
+            a = np.empty(len(ray), dtype=h.point_format.dtype())
+            rec = laspy.ScaleAwarePointRecord(a, h.point_format, h.scales, h.offsets)
+            ok, mins, maxs, by_return, by_face = pack_points(
+                ray, pulse, face, rng_m, noise, sigma, ret.astype(np.uint8), nret.astype(np.uint8), o, d,
+                self.shift, SCALE, pulses.t, pulses.theta, pulses.forward, pulses.edge, np.uint16(line_index + 1),
+                c.face_building, c.face_grade, c.face_surface, c.face_class,
+                a["X"], a["Y"], a["Z"], a["intensity"], a["gps_time"], a["scan_angle"], a["bit_fields"],
+                a["classification_flags"], a["classification"], a["user_data"], a["point_source_id"],
+                a["building_id"], a["grade"], a["surface"])
+            if not ok:
+                raise PointCloudError("point coordinates lie more than 2 147 km from the LAS offset")
+            stats["by_return"], stats["by_face"] = by_return, by_face
+            if len(ray):
+                offsets = np.asarray(self.header.offsets)
+                stats["las_bounds"] = (mins * SCALE + offsets, maxs * SCALE + offsets, by_return[1:16])
+            return rec if len(ray) else None
+        stats["by_return"] = np.bincount(ret, minlength=16)[:16]
+        stats["by_face"] = np.bincount(face, minlength=n_faces)
+        chunk = PointChunk(
+            xyz=o[ray] + d[ray] * (rng_m + sigma * noise.astype(np.float64))[:, None] + self.shift,
+            gps_time=pulses.t[pulse],
+            scan_angle_deg=np.degrees(pulses.theta[pulse]),
+            return_number=ret, number_of_returns=nret,
+            classification=c.face_class[face], building_id=c.face_building[face],
+            grade=c.face_grade[face], surface=c.face_surface[face],
+            point_source_id=np.full(len(ray), line_index + 1, np.uint16),
+            scan_direction=pulses.forward[pulse],
+            edge_of_flight_line=pulses.edge[pulse],
+        )
+        if self.header is None:
+            return chunk
+        from .pointcloud import pack_points, record_bounds
+
+        rec = pack_points(self.header, chunk)
+        if rec is not None:
+            stats["las_bounds"] = record_bounds(rec)
+        return rec
+
+    def _adaptive(self, batch: _Batch, pulses: _Pulses, aimed, o, d, o32, d32, stats):
+        """Returns (ray, face, range, return, returns) like the other beam models, with
+        `ray` indexing the rows of o/d (the aimed pulses)."""
         s, line = self.survey, batch.line
         n_line = _pulse_count(s, line)
-        halo = self.halo_raw
         # Central rays of the batch plus a halo of scan lines on each side, so that the
         # across-line neighbours of the batch's first and last scan lines are known.
-        before = _Pulses(s, line, np.arange(max(0, batch.j0 - halo), batch.j0), self.caster.local_origin)
-        after = _Pulses(s, line, np.arange(batch.j1, min(n_line, batch.j1 + halo)), self.caster.local_origin)
+        before = self.pulses(line, max(0, batch.j0 - self.halo_raw), batch.j0)
+        after = self.pulses(line, batch.j1, min(n_line, batch.j1 + self.halo_raw))
         n_ext = len(before) + len(pulses) + len(after)
-        face = np.full(n_ext, -1, np.int64)
-        t = np.full(n_ext, np.inf)
-        p = np.zeros((n_ext, 3))
         base = len(before)
-        for part, offset, sel, o, d in ((before, 0, None, None, None), (pulses, base, aimed, origins, dirs),
-                                        (after, base + len(pulses), None, None, None)):
+        segments = []
+        for part, offset, sel, rays in ((before, 0, None, None), (pulses, base, aimed, (o, d, o32, d32)),
+                                        (after, base + len(pulses), None, None)):
             if sel is None:
                 sel = part.aimed_at(self.box)
-                o, d = part.rays(sel)
-            f_, t_ = self.caster.cast(o, d, s.max_range_m)
+                rays = part.rays(sel, self.fast)
+            f_, t_ = self.caster.cast(rays[0], rays[1], s.max_range_m, rays[2], rays[3], self.fast)
             stats["rays_cast"] += len(sel)
-            face[offset + sel], t[offset + sel] = f_, t_
-            h_ = f_ >= 0
-            p[offset + sel[h_]] = o[h_] + d[h_] * t_[h_, None]
+            segments.append((offset + sel, rays[0], rays[1], np.where(f_ >= 0, t_, 0.0), f_))
+        offsets = np.array(self.neighbour_offsets, np.int64)
+        if self.fast:
+            from ._scan_kernels import flag_discontinuities_rows
+
+            flag = flag_discontinuities_rows(n_ext, tuple(segments), offsets, self.caster.normals,
+                                             s.adaptive_edge_m)[1]
+        else:
+            flag = self._flag_reference(n_ext, segments, offsets)[1]
+        face, t = segments[1][4], np.where(segments[1][4] >= 0, segments[1][3], np.inf)
+        flagged = np.flatnonzero(flag)
+        stats["pulses_with_sub_rays"] += len(flagged)
+        plain = np.flatnonzero(~flag & (face >= 0))
+        f_ray, f_face, f_rng, f_ret, f_nret = self._full_beam(o[flagged], d[flagged], pulses.plane_normal, stats,
+                                                              count=False)
+        ray = np.concatenate([plain, flagged[f_ray]])
+        order = np.argsort(ray, kind="stable")  # back to scan order
+        ones = np.ones(len(plain), np.uint8)
+        return (ray[order], np.concatenate([face[plain], f_face])[order],
+                np.concatenate([t[plain], f_rng])[order], np.concatenate([ones, f_ret])[order],
+                np.concatenate([ones, f_nret])[order])
+
+    def _flag_reference(self, n_ext, segments, offsets):
+        """Numpy reference of `_scan_kernels.flag_discontinuities_rows`."""
+        s = self.survey
+        face = np.full(n_ext, -1, np.int64)
+        p = np.zeros((n_ext, 3))
+        for pos, o, d, t, f in segments:
+            face[pos] = f
+            p[pos] = o + d * t[:, None]
         hit = face >= 0
         nrm = self.caster.normals[np.where(hit, face, 0)]
         flag = np.zeros(n_ext, bool)
-        for step in self.neighbour_offsets:
+        for step in offsets:
             a = np.arange(n_ext - step)
             b = a + step
-            both = hit[a] & hit[b]
             diff = p[b] - p[a]
             off_a = np.abs(np.einsum("ij,ij->i", nrm[a], diff))
             off_b = np.abs(np.einsum("ij,ij->i", nrm[b], diff))
+            both = hit[a] & hit[b]
             edge = (hit[a] != hit[b]) | (both & ((off_a > s.adaptive_edge_m) | (off_b > s.adaptive_edge_m)))
             flag[a] |= edge
             flag[b] |= edge
-        core = slice(base, base + len(pulses))
-        flag, face, t = flag[core], face[core], t[core]
-        in_aimed = np.zeros(len(pulses), bool)
-        in_aimed[aimed] = True
-        flagged = np.flatnonzero(flag & in_aimed)
-        stats["pulses_with_sub_rays"] += len(flagged)
-        s_idx = np.flatnonzero(~flag & (face >= 0))
-        fo, fd = pulses.rays(flagged)
-        sel, f_face, f_rng, f_ret, f_nret = self._full_beam(fo, fd, pulses.plane_normal, stats, count=False)
-        f_idx = flagged[sel]
-        idx = np.concatenate([s_idx, f_idx])
-        order = np.argsort(idx, kind="stable")  # back to scan order
-        ones = np.ones(len(s_idx), np.uint8)
-        return (idx[order], np.concatenate([face[s_idx], f_face])[order],
-                np.concatenate([t[s_idx], f_rng])[order], np.concatenate([ones, f_ret])[order],
-                np.concatenate([ones, f_nret])[order])
+        return [flag[pos] for pos, *_ in segments]
 
     def _full_beam(self, origins, dirs, plane_normal, stats, count=True):
         """Sub-rays over the footprints of the given pulses; returns formed per pulse.
@@ -349,23 +459,37 @@ class _Simulator:
         pulse-major and return-minor (scan order); `pulse` indexes the given rays."""
         s = self.survey
         n, k = len(dirs), len(self.sub_weights)
-        empty = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros(0, np.uint8),
-                 np.zeros(0, np.uint8))
         if n == 0:
-            return empty
+            return (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros(0, np.uint8),
+                    np.zeros(0, np.uint8))
+        if self.fast:
+            from ._scan_kernels import form_returns, sub_rays
+
+            sub = sub_rays(dirs, plane_normal, self.sub_offsets)
+        else:
+            sub = self._sub_rays_reference(dirs, plane_normal)
+        org = np.repeat(origins, k, axis=0)
+        face, t = self.caster.cast(org, sub, s.max_range_m, fast=self.fast)
+        stats["rays_cast"] += n * k
+        if count:
+            stats["pulses_with_sub_rays"] += n
+        face, t = face.reshape(n, k), t.reshape(n, k)
+        if self.fast:
+            return form_returns(t, face, self.sub_weights, s.echo_separation_m, s.min_echo_energy, s.max_returns)
+        return self._returns_reference(t, face)
+
+    def _sub_rays_reference(self, dirs, plane_normal):
         e1 = np.broadcast_to(plane_normal, dirs.shape)
         e2 = np.cross(dirs, e1)
         sub = (dirs[:, None, :] + self.sub_offsets[None, :, 0, None] * e1[:, None, :]
                + self.sub_offsets[None, :, 1, None] * e2[:, None, :])
-        sub /= np.linalg.norm(sub, axis=2, keepdims=True)
-        org = np.repeat(origins, k, axis=0)
-        face, t = self.caster.cast(org, sub.reshape(-1, 3), s.max_range_m)
-        stats["rays_cast"] += n * k
-        if count:
-            stats["pulses_with_sub_rays"] += n
-        face = face.reshape(n, k)
-        t = t.reshape(n, k)
-        # Sort each pulse's sub-rays by range; a gap > echo separation starts a new return.
+        sub /= np.sqrt((sub * sub).sum(axis=2, keepdims=True))
+        return sub.reshape(-1, 3)
+
+    def _returns_reference(self, t, face):
+        """Numpy reference of `_scan_kernels.form_returns`."""
+        s = self.survey
+        n = len(t)
         order = np.argsort(t, axis=1, kind="stable")
         t = np.take_along_axis(t, order, 1)
         face = np.take_along_axis(face, order, 1)
@@ -379,40 +503,29 @@ class _Simulator:
         kmax = int(echo[finite].max()) + 1 if finite.any() else 0
         for e in range(kmax):
             m = finite & (echo == e)
-            energy = (w * m).sum(axis=1)
+            energy = np.zeros(n)
+            weighted = np.zeros(n)
+            for j in range(m.shape[1]):  # sequential sums, in the kernel's order
+                energy += np.where(m[:, j], w[:, j], 0.0)
+                weighted += np.where(m[:, j], w[:, j] * np.where(m[:, j], t[:, j], 0.0), 0.0)
             ok = (energy >= s.min_echo_energy) & (energy > 0) & (det_count < s.max_returns)
             if not ok.any():
                 continue
-            rng_e = (w * np.where(m, t, 0.0)).sum(axis=1)[ok] / energy[ok]
-            strongest = np.argmax(np.where(m, w, -1.0), axis=1)[ok]
             okr = np.flatnonzero(ok)
             rows_i.append(okr)
             rows_ret.append(det_count[okr] + 1)
-            rows_face.append(face[okr, strongest])
-            rows_rng.append(rng_e)
+            rows_face.append(face[okr, np.argmax(np.where(m, w, -1.0), axis=1)[ok]])
+            rows_rng.append(weighted[ok] / energy[ok])
             det_count[okr] += 1
         if not rows_i:
-            return empty
+            return (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros(0, np.uint8),
+                    np.zeros(0, np.uint8))
         pi = np.concatenate(rows_i)
         ret = np.concatenate(rows_ret)
         order = np.lexsort((ret, pi))  # pulse-major, return-minor: scan order
         pi, ret = pi[order], ret[order]
         return (pi, np.concatenate(rows_face)[order], np.concatenate(rows_rng)[order],
                 ret.astype(np.uint8), det_count[pi].astype(np.uint8))
-
-    def _chunk(self, pulses, idx, face, xyz_local, ret, nret, line_index) -> PointChunk:
-        c = self.caster
-        return PointChunk(
-            xyz=xyz_local + self.shift,
-            gps_time=pulses.t[idx],
-            scan_angle_deg=np.degrees(pulses.theta[idx]),
-            return_number=ret, number_of_returns=nret,
-            classification=c.face_class[face], building_id=c.face_building[face],
-            grade=c.face_grade[face], surface=c.face_surface[face],
-            point_source_id=np.full(len(idx), line_index + 1, np.uint16),
-            scan_direction=pulses.forward[idx],
-            edge_of_flight_line=pulses.edge[idx],
-        )
 
 
 def _pulse_count(survey: Survey, line: FlightLine) -> int:
@@ -450,12 +563,13 @@ def check_scannable(scene: Scene, source="scene") -> None:
 def scan(scene: Scene, survey: Survey, out_path: str | os.PathLike, seed: int = 0,
          threads: int | None = None, batch_rays: int = DEFAULT_BATCH_RAYS,
          lines: list | None = None, progress=None, source: str = "scene",
-         require_buildings: bool = True) -> ScanSummary:
+         require_buildings: bool = True, fast: bool = True) -> ScanSummary:
     """Scan `scene` with `survey` and write the point cloud to `out_path` (.las / .laz).
 
     `lines` replaces the planned flight lines (tests use a single line); `progress` is
     called with (pulses_done, pulses_total). Same scene, survey and seed give the same
-    bytes, whatever the number of threads.
+    bytes, whatever the number of threads. `fast=False` runs the numpy reference of the
+    compiled loops (same bytes, slower).
     """
     started = time.perf_counter()
     if require_buildings:
@@ -473,20 +587,17 @@ def scan(scene: Scene, survey: Survey, out_path: str | os.PathLike, seed: int = 
     total = sum(_pulse_count(survey, ln) for ln in plan.lines)
     offset, shift = _las_offset(scene, caster)
     by_return = np.zeros(16, np.int64)
-    by_surface = np.zeros(256, np.int64)
-    by_building: dict[int, int] = {}
+    by_face = np.zeros(len(scene.faces), np.int64)
     with LasChunkWriter(out_path, offset, scene.crs, survey.acquisition_date) as writer, \
             ThreadPoolExecutor(max_workers=threads) as pool:
-        sim = _Simulator(caster, survey, seed, shift=shift, pack=writer.pack)
+        sim = _Simulator(caster, survey, seed, shift=shift, header=writer.header, fast=fast)
         pending: deque = deque()
 
         def consume(future):
             record, stats = future.result()
-            writer.write(record)
+            writer.write_record(record, stats.pop("las_bounds", None))
             by_return[:] += stats.pop("by_return")
-            by_surface[:] += stats.pop("by_surface")
-            for i, c in zip(*(a.tolist() for a in stats.pop("by_building"))):
-                by_building[i] = by_building.get(i, 0) + c
+            by_face[:] += stats.pop("by_face")
             for k, v in stats.items():
                 setattr(summary, k, getattr(summary, k) + v)
             if progress:
@@ -504,10 +615,11 @@ def scan(scene: Scene, survey: Survey, out_path: str | os.PathLike, seed: int = 
             raise SurveyError(f"{source}: the survey recorded no points: its flight lines miss the scene "
                               f"or every surface is beyond max_range_m={survey.max_range_m}")
     summary.points_by_return = {str(r): int(c) for r, c in enumerate(by_return) if c}
-    from .scene import SURFACE_NAMES
+    by_surface = np.bincount(caster.face_surface, weights=by_face, minlength=5)
     summary.points_by_surface = {SURFACE_NAMES.get(k, str(k)): int(c) for k, c in enumerate(by_surface) if c}
-    summary.points_by_building = {k: v for k, v in by_building.items() if k > 0}
-    missing = [b.id for b in scene.buildings if b.id not in by_building]
+    by_building = np.bincount(caster.face_building, weights=by_face)
+    summary.points_by_building = {int(k): int(by_building[k]) for k in np.flatnonzero(by_building) if k > 0}
+    missing = [b.id for b in scene.buildings if b.id not in summary.points_by_building]
     if missing:
         log.warning("%s: %d buildings got no points: %s", source, len(missing), missing[:10])
     summary.wall_time_s = time.perf_counter() - started
