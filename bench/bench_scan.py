@@ -92,8 +92,8 @@ def raw_embree(scene, max_rays=4_000_000) -> list:
     plan = plan_flight(survey, scene.bounds(), ground_level(scene))
     o_parts, d_parts, n = [], [], 0
     for b in _batches(survey, plan, 1 << 20):
-        p = _Pulses(survey, b.line, b.j0, b.j1, caster.local_origin)
-        _, _, o, d = p.rays(p.aimed_at(sim.box))
+        p = _Pulses(survey, b.line, b.j0, b.j1, caster.local_origin, sim.box)
+        _, _, o, d = p.rays()
         o_parts.append(o)
         d_parts.append(d)
         n += len(o)

@@ -126,10 +126,12 @@ def _deflect(t, g0, rate, half_sweep, oscillating):
 
 
 @njit(**_JIT)
-def fov_pulses(lo, hi, t_start, prr, rate, g0, half_sweep, half_fov, oscillating):
-    """Pulses j in the runs lo[i]..hi[i] whose scan angle lies inside the FOV: index, time,
-    angle, sweep direction and edge-of-line flag (the next pulse starts a new scan line
-    or leaves the FOV). Same arithmetic as `scan._deflection`."""
+def fov_pulses(lo, hi, t_start, prr, rate, g0, half_sweep, half_fov, oscillating, aim_lo, aim_hi):
+    """Pulses j in the runs lo[i]..hi[i] whose scan angle lies inside the FOV and inside the
+    aimed window [aim_lo, aim_hi]: index, time, angle, sweep direction, edge-of-line flag
+    (the next pulse starts a new scan line or leaves the FOV) and the pulse's rank among
+    all pulses inside the FOV. Also returns that count. Same arithmetic as
+    `scan._deflection`."""
     n_max = 0
     for i in range(lo.shape[0]):
         n_max += max(hi[i] - lo[i] + 1, 0)
@@ -138,7 +140,9 @@ def fov_pulses(lo, hi, t_start, prr, rate, g0, half_sweep, half_fov, oscillating
     th_out = np.empty(n_max)
     fw_out = np.empty(n_max, np.bool_)
     edge_out = np.empty(n_max, np.bool_)
+    rank_out = np.empty(n_max, np.int64)
     n = 0
+    n_fov = 0
     for i in range(lo.shape[0]):
         prev_kept = False  # was pulse j-1 kept (its edge flag waits for pulse j)?
         prev_line = 0.0
@@ -148,17 +152,21 @@ def fov_pulses(lo, hi, t_start, prr, rate, g0, half_sweep, half_fov, oscillating
             inside = abs(th) <= half_fov
             if prev_kept:
                 edge_out[n - 1] = line != prev_line or not inside
+            prev_kept = False
             if j > hi[i] or not inside:
-                prev_kept = False
+                continue
+            n_fov += 1
+            if th < aim_lo or th > aim_hi:
                 continue
             j_out[n] = j
             t_out[n] = t
             th_out[n] = th
             fw_out[n] = fw
+            rank_out[n] = n_fov - 1
             prev_kept = True
             prev_line = line
             n += 1
-    return j_out[:n], t_out[:n], th_out[:n], fw_out[:n], edge_out[:n]
+    return j_out[:n], t_out[:n], th_out[:n], fw_out[:n], edge_out[:n], rank_out[:n], n_fov
 
 
 @njit(**_JIT)

@@ -93,16 +93,11 @@ class LasChunkWriter:
         self._writer = laspy.open(self.tmp, mode="w", header=self.header, do_compress=self._compress, **kwargs)
         return self
 
-    def pack(self, chunk: PointChunk):
-        """Chunk → packed LAS record. Thread-safe: workers pack, the writer only writes."""
-        return pack_points(self.header, chunk, self.path)
-
-    def write(self, chunk_or_record) -> None:
-        rec = chunk_or_record if not isinstance(chunk_or_record, PointChunk) else self.pack(chunk_or_record)
-        if rec is None or len(rec) == 0:
-            return
-        bounds = record_bounds(rec) if len(rec) else None
-        self.write_record(rec, bounds)
+    def write(self, chunk: PointChunk) -> None:
+        """Pack and write a chunk of points (xyz relative to the offset)."""
+        rec = pack_points(self.header, chunk, self.path)
+        if rec is not None:
+            self.write_record(rec, record_bounds(rec))
 
     def write_record(self, rec, bounds) -> None:
         """Write a packed record whose `record_bounds` the caller computed (a worker can).

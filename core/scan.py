@@ -186,20 +186,12 @@ def _fov_runs(survey: Survey, line: FlightLine, j0: int, j1: int):
 
 class _Pulses:
     """The pulses of line `line` with indices in [j0, j1) that leave the scanner inside the
-    FOV: times, scan angles and flags (1-D, cheap); rays for any subset on demand."""
+    FOV and can reach the scene's box: times, scan angles, flags and their rank among all
+    pulses inside the FOV (1-D, cheap); their rays on demand. `n_fov` counts all pulses
+    inside the FOV, aimed at the scene or not."""
 
     def __init__(self, survey: Survey, line: FlightLine, j0: int, j1: int, local_origin: np.ndarray,
-                 fast: bool = True):
-        lo, hi = _fov_runs(survey, line, j0, j1)
-        half_fov = math.radians(survey.fov_deg) / 2 + 1e-12
-        if fast:
-            from ._scan_kernels import fov_pulses
-
-            self.j, self.t, self.theta, self.forward, self.edge = fov_pulses(
-                lo, hi, line.t_start, survey.pulse_rate_hz, survey.scan_rate_hz, survey.gps_start_s,
-                survey.sweep_rad / 2, half_fov, survey.deflector == "oscillating_mirror")
-        else:
-            self._numpy_pulses(survey, line, lo, hi, half_fov)
+                 box: np.ndarray, fast: bool = True):
         self.line = line
         h = line.heading
         pitch = math.radians(survey.scan_pitch_deg)
@@ -208,55 +200,68 @@ class _Pulses:
         self.plane_normal = np.cross(self.down, self.right)  # perpendicular to every ray of the line
         self.start_local = line.start - local_origin
         self.velocity = h * line.speed_m_s
+        lo, hi = _fov_runs(survey, line, j0, j1)
+        half_fov = math.radians(survey.fov_deg) / 2 + 1e-12
+        aim_lo, aim_hi = self._angle_window(box, line.t_start + j0 / survey.pulse_rate_hz,
+                                            line.t_start + (j1 - 1) / survey.pulse_rate_hz) if j1 > j0 else (0, 0)
+        if fast:
+            from ._scan_kernels import fov_pulses
 
-    def _numpy_pulses(self, survey, line, lo, hi, half_fov):
+            self.j, self.t, self.theta, self.forward, self.edge, self.rank, self.n_fov = fov_pulses(
+                lo, hi, line.t_start, survey.pulse_rate_hz, survey.scan_rate_hz, survey.gps_start_s,
+                survey.sweep_rad / 2, half_fov, survey.deflector == "oscillating_mirror", aim_lo, aim_hi)
+        else:
+            self._numpy_pulses(survey, line, lo, hi, half_fov, aim_lo, aim_hi)
+
+    def _angle_window(self, box: np.ndarray, t_first: float, t_last: float) -> tuple[float, float]:
+        """Scan angles that can reach the box from anywhere between two times (conservative).
+
+        A box corner's angle in the scan plane is monotonic in the platform's position along
+        the line, so the corners seen from the first and last positions bound the window.
+        When the box is not entirely below the scanner every angle is kept."""
+        corners = np.array([[x, y, z] for x in box[:, 0] for y in box[:, 1] for z in box[:, 2]])
+        angles = []
+        for t in (t_first, t_last):
+            rel = corners - (self.start_local + (t - self.line.t_start) * self.velocity)
+            depth = rel @ self.down
+            if (depth <= 0).any():
+                return -math.inf, math.inf
+            angles.append(np.arctan2(rel @ self.right, depth))
+        angles = np.concatenate(angles)
+        return float(angles.min()), float(angles.max())
+
+    def _numpy_pulses(self, survey, line, lo, hi, half_fov, aim_lo, aim_hi):
         """Numpy reference of `_scan_kernels.fov_pulses`."""
         counts = np.maximum(hi - lo + 1, 0)
         j = np.repeat(lo, counts) + np.arange(int(counts.sum())) - np.repeat(np.cumsum(counts) - counts, counts)
         t = line.t_start + j / survey.pulse_rate_hz
         theta, scan_line, forward = _deflection(survey, t)
-        keep = np.abs(theta) <= half_fov
+        inside = np.abs(theta) <= half_fov
+        next_theta, next_line, _ = _deflection(survey, t + 1.0 / survey.pulse_rate_hz)
+        edge = (next_line != scan_line) | (np.abs(next_theta) > half_fov)
+        rank = np.cumsum(inside) - 1
+        keep = inside & (theta >= aim_lo) & (theta <= aim_hi)
         self.j, self.t, self.theta, self.forward = j[keep], t[keep], theta[keep], forward[keep]
-        next_theta, next_line, _ = _deflection(survey, self.t + 1.0 / survey.pulse_rate_hz)
-        self.edge = (next_line != scan_line[keep]) | (np.abs(next_theta) > half_fov)
+        self.edge, self.rank, self.n_fov = edge[keep], rank[keep], int(inside.sum())
 
     def __len__(self):
         return len(self.j)
 
-    def rays(self, sel: np.ndarray, fast: bool = True):
-        """(origins, directions, origins32, directions32) of pulses `sel`, local frame."""
+    def rays(self, fast: bool = True):
+        """(origins, directions, origins32, directions32) of the pulses, local frame."""
         if fast:
             from ._scan_kernels import pulse_rays
 
-            return pulse_rays(self.t[sel], self.theta[sel], self.line.t_start, self.start_local,
+            return pulse_rays(self.t, self.theta, self.line.t_start, self.start_local,
                               self.velocity, self.down, self.right)
-        dt = self.t[sel] - self.line.t_start
-        c, s = np.cos(self.theta[sel]), np.sin(self.theta[sel])
-        o = np.empty((len(sel), 3))
-        d = np.empty((len(sel), 3))
+        dt = self.t - self.line.t_start
+        c, s = np.cos(self.theta), np.sin(self.theta)
+        o = np.empty((len(dt), 3))
+        d = np.empty((len(dt), 3))
         for k in range(3):
             o[:, k] = self.start_local[k] + dt * self.velocity[k]
             d[:, k] = c * self.down[k] + s * self.right[k]
         return o, d, o.astype(np.float32), d.astype(np.float32)
-
-    def aimed_at(self, box: np.ndarray) -> np.ndarray:
-        """Indices of the pulses whose scan angle can reach the box (conservative).
-
-        A box corner's angle in the scan plane is monotonic in the platform's position along
-        the line, so the corners seen from the batch's first and last positions bound the
-        window. When the box is not entirely below the scanner every pulse is kept."""
-        if len(self.j) == 0:
-            return np.zeros(0, np.int64)
-        corners = np.array([[x, y, z] for x in box[:, 0] for y in box[:, 1] for z in box[:, 2]])
-        angles = []
-        for t in (self.t[0], self.t[-1]):
-            rel = corners - (self.start_local + (t - self.line.t_start) * self.velocity)
-            depth = rel @ self.down
-            if (depth <= 0).any():
-                return np.arange(len(self.j))
-            angles.append(np.arctan2(rel @ self.right, depth))
-        angles = np.concatenate(angles)
-        return np.flatnonzero((self.theta >= angles.min()) & (self.theta <= angles.max()))
 
 
 class _Simulator:
@@ -304,30 +309,28 @@ class _Simulator:
         self.sub_weights = w / w.sum()
 
     def pulses(self, line: FlightLine, j0: int, j1: int) -> _Pulses:
-        return _Pulses(self.survey, line, j0, j1, self.caster.local_origin, self.fast)
+        return _Pulses(self.survey, line, j0, j1, self.caster.local_origin, self.box, self.fast)
 
     # --- one batch -------------------------------------------------------------------
     def run_batch(self, batch: _Batch):
         """Simulate one batch. Returns (packed LAS record or PointChunk, stats)."""
         s = self.survey
         pulses = self.pulses(batch.line, batch.j0, batch.j1)
-        stats = {"pulses_swept": batch.j1 - batch.j0, "pulses_emitted": len(pulses), "pulses_cast": 0,
+        stats = {"pulses_swept": batch.j1 - batch.j0, "pulses_emitted": pulses.n_fov, "pulses_cast": len(pulses),
                  "rays_cast": 0, "pulses_with_sub_rays": 0}
-        aimed = pulses.aimed_at(self.box)
-        stats["pulses_cast"] = len(aimed)
-        o, d, o32, d32 = pulses.rays(aimed, self.fast)
+        o, d, o32, d32 = pulses.rays(self.fast)
         # Every output point: a ray (row of o/d: the pulse's central ray) and a pulse index.
         if s.beam == "single":
             face, t = self.caster.cast(o, d, s.max_range_m, o32, d32, self.fast)
-            stats["rays_cast"] = len(aimed)
+            stats["rays_cast"] = len(pulses)
             ray = np.flatnonzero(face >= 0)
             face, rng_m = face[ray], t[ray]
             ret = nret = np.ones(len(ray), np.uint8)
         elif s.beam == "full":
             ray, face, rng_m, ret, nret = self._full_beam(o, d, pulses.plane_normal, stats)
         else:
-            ray, face, rng_m, ret, nret = self._adaptive(batch, pulses, aimed, o, d, o32, d32, stats)
-        pulse = aimed[ray]
+            ray, face, rng_m, ret, nret = self._adaptive(batch, pulses, o, d, o32, d32, stats)
+        pulse = ray  # rays are the batch's pulses, in order
         # Noise drawn per batch from (seed, line, batch): reproducible whatever the threads.
         # Standard normal noise in float32 (plenty for centimetre noise, half the cost), drawn
         # per batch from (seed, line, batch): reproducible whatever the number of threads.
@@ -388,26 +391,25 @@ class _Simulator:
             stats["las_bounds"] = record_bounds(rec)
         return rec
 
-    def _adaptive(self, batch: _Batch, pulses: _Pulses, aimed, o, d, o32, d32, stats):
+    def _adaptive(self, batch: _Batch, pulses: _Pulses, o, d, o32, d32, stats):
         """Returns (ray, face, range, return, returns) like the other beam models, with
-        `ray` indexing the rows of o/d (the aimed pulses)."""
+        `ray` indexing the rows of o/d (the batch's pulses)."""
         s, line = self.survey, batch.line
         n_line = _pulse_count(s, line)
         # Central rays of the batch plus a halo of scan lines on each side, so that the
         # across-line neighbours of the batch's first and last scan lines are known.
+        # Neighbours are counted in pulses inside the FOV (`rank`).
         before = self.pulses(line, max(0, batch.j0 - self.halo_raw), batch.j0)
         after = self.pulses(line, batch.j1, min(n_line, batch.j1 + self.halo_raw))
-        n_ext = len(before) + len(pulses) + len(after)
-        base = len(before)
+        n_ext = before.n_fov + pulses.n_fov + after.n_fov
         segments = []
-        for part, offset, sel, rays in ((before, 0, None, None), (pulses, base, aimed, (o, d, o32, d32)),
-                                        (after, base + len(pulses), None, None)):
-            if sel is None:
-                sel = part.aimed_at(self.box)
-                rays = part.rays(sel, self.fast)
+        for part, offset, rays in ((before, 0, None), (pulses, before.n_fov, (o, d, o32, d32)),
+                                   (after, before.n_fov + pulses.n_fov, None)):
+            if rays is None:
+                rays = part.rays(self.fast)
             f_, t_ = self.caster.cast(rays[0], rays[1], s.max_range_m, rays[2], rays[3], self.fast)
-            stats["rays_cast"] += len(sel)
-            segments.append((offset + sel, rays[0], rays[1], np.where(f_ >= 0, t_, 0.0), f_))
+            stats["rays_cast"] += len(part)
+            segments.append((offset + part.rank, rays[0], rays[1], np.where(f_ >= 0, t_, 0.0), f_))
         offsets = np.array(self.neighbour_offsets, np.int64)
         if self.fast:
             from ._scan_kernels import flag_discontinuities_rows

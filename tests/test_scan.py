@@ -114,6 +114,11 @@ def test_las_follows_the_contract(tmp_path):
     assert dims["building_id"].dtype == np.uint32
     assert dims["grade"].dtype == np.uint8 and dims["surface"].dtype == np.uint8
     assert h.parse_crs().to_epsg() == 2056
+    # header bookkeeping written from the workers' bounds
+    np.testing.assert_allclose(h.mins, [las.x.min(), las.y.min(), las.z.min()])
+    np.testing.assert_allclose(h.maxs, [las.x.max(), las.y.max(), las.z.max()])
+    assert h.point_count == len(las.x)
+    assert h.number_of_points_by_return[0] == len(las.x)
     assert las.gps_time.min() >= 0 and np.all(np.diff(las.gps_time) >= 0)  # scan order
     assert set(np.unique(las.point_source_id)) == {1, 2}  # flight line numbers
     assert np.abs(las.scan_angle).max() * 0.006 <= 60.0 + 1e-9
