@@ -310,3 +310,22 @@ def test_oscillating_mirror_sweeps_both_ways(tmp_path):
     step = np.diff(a)[same]
     fwd = flags[1:][same] == 1
     assert (step[fwd] >= 0).all() and (step[~fwd] <= 0).all()
+
+
+def test_crosshatch_sees_the_walls_facing_along_track(tmp_path):
+    """A vertical scan plane across the track cannot see walls facing along the track;
+    the crosshatch pattern (a second set of lines at 90°) can."""
+    scene = box_city(rows=1, cols=1)
+    counts = {}
+    for pattern in ("parallel", "crosshatch"):
+        out = tmp_path / f"{pattern}.las"
+        scan(scene, EXACT.replace(pattern=pattern, pulse_rate_hz=100_000.0), out)
+        las, xyz = _read(out)
+        wall = (np.asarray(las.surface) == WALL) & (np.asarray(las.building_id) == 1)
+        facing_x = wall & ((np.abs(xyz[:, 0]) < 1e-3) | (np.abs(xyz[:, 0] - 12.0) < 1e-3))
+        facing_y = wall & ~facing_x
+        counts[pattern] = (facing_x.sum(), facing_y.sum())
+        lines = set(np.unique(las.point_source_id))
+        assert len(lines) == (2 if pattern == "parallel" else 4)
+    assert counts["parallel"][0] < 0.01 * counts["parallel"][1]
+    assert counts["crosshatch"][0] > 0.3 * counts["crosshatch"][1]
