@@ -1,0 +1,223 @@
+#!/usr/bin/env python3
+"""Generate labelled pre-/post-event scene bundles of a procedural city, headless.
+
+Run inside Blender or with the bpy module:
+
+    blender -b --factory-startup --python-exit-code 1 -P blender_scripts/generate_scenes.py -- \\
+        --set generic --dataset paper --buildings 112 --seed 1 --out out/generic
+    python blender_scripts/generate_scenes.py --set region --dataset mixed --buildings 40 --seed 2 --out out/region
+
+--dataset paper writes DIR/pre and DIR/post_heavy, DIR/post_extreme, DIR/post_destruction
+(every building at EMS-98 grade 3, 4 and 5: the seed paper's design); --dataset mixed
+writes DIR/pre and DIR/post with grades drawn per building (0-5).
+
+Each scene is a bundle (scene.json + mesh.ply, DESIGN.md "Scene bundle"). Bundles are
+written to a temporary folder and renamed into place, so DIR/<scene> is either complete or
+absent. A complete bundle made with the same settings is skipped (resume after an
+interruption); one made with other settings stops the run unless --force. The same
+settings give the same bytes. Progress goes to stderr.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import sys
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parent.parent
+GENERATOR_VERSION = 1
+PROG = "generate_scenes.py"
+
+
+def log(msg: str) -> None:
+    print(f"[{PROG}] {msg}", file=sys.stderr, flush=True)
+
+
+def _script_argv(argv):
+    """Arguments meant for this script: after '--' when Blender runs it."""
+    if "--" in argv:
+        return argv[argv.index("--") + 1:]
+    return argv[1:]
+
+
+def _positive_int(text):
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {v}")
+    return v
+
+
+def _seed(text):
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer seed, got {text!r}") from None
+    if not 0 <= v < 2 ** 32:
+        raise argparse.ArgumentTypeError(f"seed must be in 0..2^32-1, got {v}")
+    return v
+
+
+def parse_args(argv):
+    p = argparse.ArgumentParser(prog=PROG, description="Generate labelled pre-/post-event scene bundles "
+                                "(scene.json + mesh.ply) of a procedural city with EMS-98 damage.")
+    p.add_argument("--set", dest="set_name", required=True, choices=("generic", "region"),
+                   help="generic European town or L'Aquila-like historic centre")
+    p.add_argument("--dataset", required=True, choices=("paper", "mixed"),
+                   help="paper: pre + one post scene per grade 3/4/5; mixed: pre + post with mixed grades")
+    p.add_argument("--buildings", type=_positive_int, default=112, help="number of buildings (default 112)")
+    p.add_argument("--seed", type=_seed, default=0, help="random seed (default 0)")
+    p.add_argument("--out", required=True, help="output folder (created)")
+    p.add_argument("--force", action="store_true", help="regenerate bundles made with other settings")
+    return p.parse_args(argv)
+
+
+def scene_list(dataset, ids, seed):
+    from addon import citygen
+    if dataset == "paper":
+        return [("pre", None)] + [(name, g) for name, g in citygen.PAPER_SCENES]
+    return [("pre", None), ("post", citygen.mixed_grades(ids, seed))]
+
+
+def generator_info(args, scene_name):
+    return {"script": PROG, "version": GENERATOR_VERSION, "set": args.set_name, "dataset": args.dataset,
+            "buildings": args.buildings, "seed": args.seed, "scene": scene_name}
+
+
+def bundle_state(folder: Path, info: dict) -> str:
+    """'missing', 'done' (same settings) or 'different'."""
+    manifest = folder / "scene.json"
+    if not manifest.is_file():
+        return "missing"
+    try:
+        gen = json.loads(manifest.read_text()).get("generator")
+    except (json.JSONDecodeError, OSError):
+        return "different"
+    return "done" if gen == info else "different"
+
+
+def _swap_into_place(tmp: Path, final: Path):
+    old = None
+    if final.exists():
+        old = final.with_name(f".{final.name}.old-{os.getpid()}")
+        os.replace(final, old)
+    os.replace(tmp, final)
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
+
+
+def run(args) -> int:
+    t_start = time.perf_counter()
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        log(f"error: --out {out} exists and is not a folder")
+        return 2
+    try:
+        import bpy  # noqa: F401
+    except ImportError:
+        log("error: bpy is not available: run inside Blender (blender -b --factory-startup "
+            "--python-exit-code 1 -P blender_scripts/generate_scenes.py -- ...) or install the bpy module "
+            "(pip install bpy==5.0.1)")
+        return 1
+    if str(REPO) not in sys.path:
+        sys.path.insert(0, str(REPO))
+    import bpy
+    import addon
+    from addon import citygen, io_export, scene_tools
+    from addon.geometry.shell import ShellSpec
+
+    if not hasattr(bpy.types.Object, "qs_building"):
+        addon.register()
+
+    plan = citygen.city_plan(args.set_name, args.buildings, args.seed)
+    ids = [b.id for b in plan.buildings]
+    scenes = scene_list(args.dataset, ids, args.seed)
+    todo = []
+    for name, grades in scenes:
+        info = generator_info(args, name)
+        state = bundle_state(out / name, info)
+        if state == "done":
+            log(f"{name}: complete bundle with the same settings exists, skipped")
+            continue
+        if state == "different" and not args.force:
+            log(f"error: {out / name} holds a bundle made with other settings; use another --out or --force")
+            return 1
+        todo.append((name, grades, info))
+    if not todo:
+        log("nothing to do")
+        return 0
+    out.mkdir(parents=True, exist_ok=True)
+
+    scene = bpy.data.scenes.new("quakescan_generate")
+    pre = bpy.data.collections.new("pre")
+    scene.collection.children.link(pre)
+    created_collections = [pre]
+    try:
+        t0 = time.perf_counter()
+        x0, y0, x1, y1 = plan.bounds
+        scene_tools.create_terrain_object(pre, x0, y0, x1, y1)
+        n = len(plan.buildings)
+        step = max(1, n // 10)
+        for k, b in enumerate(plan.buildings):
+            spec = ShellSpec(**b.shell)
+            scene_tools.create_building_object(pre, spec, b.id, location=(b.location[0], b.location[1], 0.0),
+                                               rotation_z=b.rotation, vulnerability_class=b.vulnerability_class,
+                                               seed=b.seed)
+            if (k + 1) % step == 0 or k + 1 == n:
+                log(f"pre: built {k + 1}/{n} buildings")
+        pre_objs = scene_tools.scene_objects(pre)
+        log(f"pre: {n} buildings built in {time.perf_counter() - t0:.1f} s")
+        for name, grades, info in todo:
+            t0 = time.perf_counter()
+            tmp = out / f".{name}.tmp-{os.getpid()}"
+            shutil.rmtree(tmp, ignore_errors=True)
+            if name == "pre":
+                objs = pre_objs
+                coll = None
+            else:
+                coll = bpy.data.collections.new(name)
+                scene.collection.children.link(coll)
+                created_collections.append(coll)
+
+                def progress(i, total, name=name):
+                    if i % max(1, total // 10) == 0 or i == total:
+                        log(f"{name}: damaged {i}/{total} objects")
+                scene_tools.make_post_scene(pre_objs, coll, grades=grades, on_progress=progress)
+                objs = scene_tools.scene_objects(coll)
+            rep = io_export.export_objects(tmp, objs, epoch="pre" if name == "pre" else "post",
+                                           origin=(0.0, 0.0, 0.0), crs=None, extra={"generator": info})
+            _swap_into_place(tmp, out / name)
+            log(f"{name}: wrote {out / name} ({rep['buildings']} buildings, {rep['faces']} faces) "
+                f"in {time.perf_counter() - t0:.1f} s")
+            if coll is not None:
+                scene_tools.remove_collection_objects(coll)
+    finally:
+        for coll in created_collections:
+            scene_tools.remove_collection_objects(coll)
+            bpy.data.collections.remove(coll)
+        bpy.data.scenes.remove(scene)
+        for p in out.glob(f".*.tmp-{os.getpid()}"):
+            shutil.rmtree(p, ignore_errors=True)
+    log(f"done in {time.perf_counter() - t_start:.1f} s")
+    return 0
+
+
+def main(argv=None) -> int:
+    """`argv`: the script's own arguments (default: from sys.argv, after '--' in Blender)."""
+    args = parse_args(_script_argv(sys.argv) if argv is None else list(argv))
+    try:
+        return run(args)
+    except Exception as e:  # report and fail with a non-zero status (also inside Blender)
+        log(f"error: {type(e).__name__}: {e}")
+        raise
+
+
+if __name__ == "__main__":
+    code = main()
+    if code:
+        sys.exit(code)

@@ -1,0 +1,143 @@
+"""blender_scripts/generate_scenes.py through the bpy module (in-process and as a script),
+and through a `blender` binary when one is on PATH."""
+import hashlib
+import importlib.util
+import subprocess
+import sys
+
+import pytest
+
+from conftest import BLENDER, HAVE_BPY, REPO
+
+SCRIPT = REPO / "blender_scripts" / "generate_scenes.py"
+needs_bpy = pytest.mark.skipif(not HAVE_BPY, reason="bpy module not installed")
+
+
+def _load():
+    spec = importlib.util.spec_from_file_location("generate_scenes", SCRIPT)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _digest(folder):
+    return {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+@pytest.fixture(scope="module")
+def gen():
+    return _load()
+
+
+def test_bad_arguments_exit_2(gen, capsys):
+    for argv in (["--set", "town", "--dataset", "paper", "--out", "x"],
+                 ["--set", "generic", "--dataset", "paper", "--buildings", "0", "--out", "x"],
+                 ["--set", "generic", "--dataset", "paper", "--buildings", "many", "--out", "x"],
+                 ["--set", "generic", "--dataset", "paper"]):
+        with pytest.raises(SystemExit) as e:
+            gen.main(argv)
+        assert e.value.code == 2
+    err = capsys.readouterr().err
+    assert "invalid choice: 'town'" in err and "must be at least 1" in err and "--out" in err
+
+
+def test_blender_style_arguments(gen):
+    a = gen.parse_args(gen._script_argv(["blender", "-b", "-P", "x.py", "--", "--set", "region", "--dataset",
+                                         "mixed", "--out", "o"]))
+    assert (a.set_name, a.dataset, a.buildings, a.seed) == ("region", "mixed", 112, 0)
+
+
+def test_out_is_a_file(gen, tmp_path):
+    f = tmp_path / "f"
+    f.write_text("x")
+    assert gen.main(["--set", "generic", "--dataset", "paper", "--buildings", "2", "--out", str(f)]) == 2
+
+
+@needs_bpy
+def test_paper_dataset_reads_back_and_resumes(gen, bpy_registered, tmp_path, capsys):
+    from core.scene import read_scene
+    out = tmp_path / "paper"
+    assert gen.main(["--set", "generic", "--dataset", "paper", "--buildings", "8", "--seed", "3",
+                     "--out", str(out)]) == 0
+    names = sorted(p.name for p in out.iterdir())
+    assert names == ["post_destruction", "post_extreme", "post_heavy", "pre"]
+    scenes = {n: read_scene(out / n) for n in names}
+    ids = [b.id for b in scenes["pre"].buildings]
+    assert ids == list(range(1, 9))
+    for n, g in (("post_heavy", 3), ("post_extreme", 4), ("post_destruction", 5)):
+        sc = scenes[n]
+        assert sc.epoch == "post" and [b.id for b in sc.buildings] == ids
+        assert {b.grade for b in sc.buildings} == {g}
+        assert all(b.patterns for b in sc.buildings)
+    assert scenes["pre"].epoch == "pre" and {b.grade for b in scenes["pre"].buildings} == {0}
+    assert (scenes["pre"].face_building == 0).any()  # terrain
+    err = capsys.readouterr().err
+    assert "pre: wrote" in err and "post_destruction: wrote" in err
+    # resume: finished bundles are skipped and left byte-identical
+    before = _digest(out)
+    mtimes = {p: p.stat().st_mtime_ns for p in out.rglob("*.ply")}
+    assert gen.main(["--set", "generic", "--dataset", "paper", "--buildings", "8", "--seed", "3",
+                     "--out", str(out)]) == 0
+    assert "skipped" in capsys.readouterr().err
+    assert _digest(out) == before and {p: p.stat().st_mtime_ns for p in out.rglob("*.ply")} == mtimes
+    # an interrupted run leaves a missing bundle: only that one is made again
+    import shutil
+    shutil.rmtree(out / "post_extreme")
+    assert gen.main(["--set", "generic", "--dataset", "paper", "--buildings", "8", "--seed", "3",
+                     "--out", str(out)]) == 0
+    assert _digest(out) == before
+    # other settings into the same folder: refused unless --force
+    assert gen.main(["--set", "generic", "--dataset", "paper", "--buildings", "8", "--seed", "4",
+                     "--out", str(out)]) == 1
+    assert "other settings" in capsys.readouterr().err
+    assert gen.main(["--set", "generic", "--dataset", "paper", "--buildings", "8", "--seed", "4",
+                     "--out", str(out), "--force"]) == 0
+    assert _digest(out) != before
+    assert not [p for p in out.iterdir() if p.name.startswith(".")]
+
+
+@needs_bpy
+def test_same_seed_same_bytes_mixed_region(gen, bpy_registered, tmp_path):
+    from core.scene import read_scene
+    a, b, c = tmp_path / "a", tmp_path / "b", tmp_path / "c"
+    for out, seed in ((a, 5), (b, 5), (c, 6)):
+        assert gen.main(["--set", "region", "--dataset", "mixed", "--buildings", "12", "--seed", str(seed),
+                         "--out", str(out)]) == 0
+    assert sorted(p.name for p in a.iterdir()) == ["post", "pre"]
+    assert _digest(a) == _digest(b)
+    assert _digest(a) != _digest(c)
+    post = read_scene(a / "post")
+    grades = [x.grade for x in post.buildings]
+    assert all(0 <= g <= 5 for g in grades)
+    for x in post.buildings:
+        if x.grade <= 1:
+            assert x.patterns == []
+    assert all(x.material in ("masonry", "reinforced_concrete") for x in post.buildings)
+
+
+@needs_bpy
+def test_script_runs_with_python_and_bpy_module(gen, bpy_registered, tmp_path):
+    args = ["--set", "region", "--dataset", "mixed", "--buildings", "5", "--seed", "1"]
+    r = subprocess.run([sys.executable, str(SCRIPT), *args, "--out", str(tmp_path / "o")],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert "done in" in r.stderr
+    assert (tmp_path / "o" / "post" / "scene.json").is_file()
+    # same bytes in another process (no hash-order or session dependence)
+    assert gen.main([*args, "--out", str(tmp_path / "i")]) == 0
+    assert _digest(tmp_path / "o") == _digest(tmp_path / "i")
+    r = subprocess.run([sys.executable, str(SCRIPT), "--set", "region", "--dataset", "bogus", "--out", "x"],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "invalid choice" in r.stderr
+
+
+@pytest.mark.skipif(BLENDER is None, reason="no blender binary on PATH")
+@pytest.mark.slow
+def test_script_runs_inside_blender(tmp_path):
+    cmd = [BLENDER, "-b", "--factory-startup", "--python-exit-code", "1", "-P", str(SCRIPT), "--",
+           "--set", "generic", "--dataset", "paper", "--buildings", "3", "--seed", "1", "--out", str(tmp_path / "o")]
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert (tmp_path / "o" / "post_destruction" / "scene.json").is_file()
+    bad = subprocess.run(cmd[:-2] + ["--buildings", "0"], capture_output=True, text=True, timeout=600)
+    assert bad.returncode != 0
