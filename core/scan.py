@@ -15,9 +15,10 @@ Beam model (`Survey.beam`):
   range, its labels come from its strongest sub-ray, and returns weaker than
   `min_echo_energy` of the pulse are not detected.
 - `adaptive`: the central ray of every pulse first; a pulse gets the full beam only when
-  a neighbouring pulse (previous/next in the scan line, same angle in the
-  previous/next line) misses where it hits (or the reverse) or hits a point farther than
-  `adaptive_edge_m` from the plane of its own hit: a depth discontinuity or a crease.
+  a neighbouring pulse whose footprint could overlap its own (in its scan line and in
+  the neighbouring lines, as far as the footprint reaches) misses where it hits (or the
+  reverse) or hits a point farther than `adaptive_edge_m` from the plane of its own
+  hit: a depth discontinuity or a crease.
   Elsewhere the footprint lies on one plane and the full beam would return the central
   hit within a fraction of a millimetre (measured in bench/bench_scan.py).
   Discontinuities narrower than the pulse spacing (wires, antennas) can be missed.
@@ -31,12 +32,10 @@ import time
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
-from .errors import SceneError, SurveyError
-from .errors import PointCloudError
+from .errors import PointCloudError, SceneError, SurveyError
 from .pointcloud import (BUILDING_CLASS, GRADE_UNKNOWN, GROUND_CLASS, SCALE, UNCLASSIFIED, LasChunkWriter,
                          PointChunk)
 from .scene import GROUND, SURFACE_NAMES, Scene

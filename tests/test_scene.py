@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from core.errors import SceneError
-from core.ply import MeshArrays, read_ply, write_ply
+from core.ply import read_ply, write_ply
 from core.scene import Building, read_scene, write_scene
 from core.synthetic import box_city
 
