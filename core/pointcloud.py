@@ -7,6 +7,7 @@ Coordinates are stored with scale 0.001 m and offset = scene origin.
 from __future__ import annotations
 
 import datetime
+import logging
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -15,6 +16,8 @@ import laspy
 import numpy as np
 
 from .errors import PointCloudError
+
+log = logging.getLogger(__name__)
 
 SCALE = 0.001
 POINT_FORMAT = 6
@@ -186,3 +189,79 @@ def read_las(path: str | os.PathLike) -> laspy.LasData:
         return laspy.read(path)
     except Exception as e:
         raise PointCloudError(f"{path}: cannot read as LAS/LAZ ({e})") from None
+
+
+@dataclass
+class Epoch:
+    """One epoch's points in a local frame: world = origin + xyz (float64 throughout)."""
+
+    xyz: np.ndarray  # (n, 3) float64, relative to origin
+    origin: np.ndarray  # (3,) float64
+    classification: np.ndarray  # (n,) uint8
+    building_id: np.ndarray | None = None  # (n,) int64, from the file or from footprints
+    grade: np.ndarray | None = None  # (n,) uint8, simulated data only
+    surface: np.ndarray | None = None
+    crs: str | None = None
+    source: str = "epoch"
+
+    def __len__(self):
+        return len(self.xyz)
+
+    def bounds_xy(self) -> np.ndarray:
+        """(2, 2) world min/max of x and y."""
+        if len(self.xyz) == 0:
+            return np.full((2, 2), np.nan)
+        return np.array([self.xyz[:, :2].min(axis=0), self.xyz[:, :2].max(axis=0)]) + self.origin[:2]
+
+
+def _crs_of(header, path) -> str | None:
+    try:
+        crs = header.parse_crs()
+    except Exception as e:
+        log.warning("%s: CRS in the header cannot be read (%s)", path, e)
+        return None
+    if crs is None:
+        return None
+    epsg = crs.to_epsg()
+    return f"EPSG:{epsg}" if epsg else crs.to_wkt()
+
+
+def read_epoch(path: str | os.PathLike, origin=None) -> Epoch:
+    """Read a LAS/LAZ epoch of any point format. Coordinates go from the file's integers to
+    float64 relative to `origin` (default: the file's offset, or its minimum corner when
+    the offset is zero) without passing through large absolute values in float32."""
+    path = Path(path)
+    las = read_las(path)
+    h = las.header
+    if origin is None:
+        origin = np.asarray(h.offsets, dtype=np.float64)
+        if not np.any(origin) and len(las.points):
+            origin = np.floor(np.asarray(h.mins, dtype=np.float64))
+    origin = np.asarray(origin, dtype=np.float64)
+    pts = las.points
+    xyz = np.empty((len(pts), 3))
+    for k, c in enumerate("XYZ"):
+        # integers × scale + (offset − origin): the large terms cancel before any rounding
+        xyz[:, k] = np.asarray(pts[c], dtype=np.float64) * h.scales[k] + (h.offsets[k] - origin[k])
+    names = set(las.point_format.dimension_names)
+
+    def extra(name, dtype):
+        return np.asarray(las[name], dtype=dtype) if name in names else None
+
+    return Epoch(xyz, origin, np.asarray(las.classification, dtype=np.uint8),
+                 building_id=extra("building_id", np.int64), grade=extra("grade", np.uint8),
+                 surface=extra("surface", np.uint8), crs=_crs_of(h, path), source=str(path))
+
+
+def check_pair(pre: Epoch, post: Epoch) -> None:
+    """Refuse a pre/post pair that cannot be compared: CRS differ, or no overlap in x/y."""
+    if pre.crs and post.crs and pre.crs != post.crs:
+        raise PointCloudError(f"{post.source}: CRS {post.crs} differs from the pre-event epoch's {pre.crs} "
+                              f"({pre.source}); reproject one of them first")
+    for e in (pre, post):
+        if len(e) == 0:
+            raise PointCloudError(f"{e.source}: the point cloud is empty")
+    a, b = pre.bounds_xy(), post.bounds_xy()
+    if a[1, 0] < b[0, 0] or b[1, 0] < a[0, 0] or a[1, 1] < b[0, 1] or b[1, 1] < a[0, 1]:
+        raise PointCloudError(f"{post.source}: no overlap with the pre-event epoch {pre.source} "
+                              f"(x/y extents {b.round(2).tolist()} vs {a.round(2).tolist()})")
