@@ -1,0 +1,181 @@
+"""Change between epochs: nearest-neighbour mapping, the changed/unchanged split, descriptors.
+
+Following Zahs et al. ("Object-specific change feature selection", "Coarse extraction of
+changed building parts"):
+1. every pre-event point is mapped to its nearest post-event point (kd-tree); the change
+   of a feature is post value − pre value, the change in height is z_post − z_pre, and
+   the distance to the nearest post point is kept too;
+2. per building, k-means with k = 2 on (change in curvature, change in height) splits the
+   points into changed and unchanged; a level of detection (LoD) gates the split so that
+   an undamaged building is not cut into two clusters of noise: a point can only be
+   "changed" if its change exceeds the LoD in height or in curvature, and a building
+   whose changed cluster holds no such point has no changed points ("no damage");
+3. per building, descriptors are statistics of the change features over its changed
+   points, plus the share of changed points.
+
+Buildings are processed one at a time: memory is bounded by the largest building.
+"""
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .errors import QuakeScanError
+
+log = logging.getLogger(__name__)
+
+STATISTICS = ("mean", "median", "std", "p10", "p90")
+
+
+class ChangeError(QuakeScanError):
+    """Epochs cannot be compared as given."""
+
+
+def morton_order(xyz: np.ndarray, bits: int = 16) -> np.ndarray:
+    """Permutation that sorts points along a 3-D Morton (Z-order) curve.
+
+    Queries in this order visit the kd-tree's nodes coherently (2-3× faster than random order
+    on a million points)."""
+    if len(xyz) == 0:
+        return np.zeros(0, np.int64)
+    lo = xyz.min(axis=0)
+    span = np.maximum(xyz.max(axis=0) - lo, 1e-9)
+    q = ((xyz - lo) / span * ((1 << bits) - 1)).astype(np.uint64)
+    code = np.zeros(len(xyz), np.uint64)
+    for b in range(bits):
+        for k in range(3):
+            code |= ((q[:, k] >> np.uint64(b)) & np.uint64(1)) << np.uint64(3 * b + k)
+    return np.argsort(code, kind="stable")
+
+
+def nearest_neighbours(pre_xyz: np.ndarray, post_xyz: np.ndarray, workers: int = -1):
+    """Index of the nearest post point for every pre point and the distance to it.
+
+    Both in the same local float64 frame. Queries run in Morton order on all cores."""
+    from scipy.spatial import cKDTree
+
+    if len(post_xyz) == 0:
+        raise ChangeError("the post-event epoch has no points to map to")
+    tree = cKDTree(post_xyz, balanced_tree=False, compact_nodes=False)
+    order = morton_order(pre_xyz)
+    dist = np.empty(len(pre_xyz))
+    idx = np.empty(len(pre_xyz), np.int64)
+    d, i = tree.query(pre_xyz[order], k=1, workers=workers)
+    dist[order], idx[order] = d, i
+    return idx, dist
+
+
+@dataclass
+class SplitSettings:
+    """Changed/unchanged split. LoDs in the units of the change (metres for height)."""
+
+    lod_height_m: float = 0.3
+    lod_curvature: float = 0.02
+    curvature_feature: str = "curvature"
+    seed: int = 0
+
+    def to_json(self) -> dict:
+        return dict(self.__dict__)
+
+
+@dataclass
+class BuildingChange:
+    building_id: int
+    n_pre: int
+    n_post: int
+    changed: np.ndarray  # (n_pre,) bool, per pre point of the building
+    share_changed: float
+    descriptors: dict = field(default_factory=dict)
+
+
+def split_changed(d_curv: np.ndarray, d_height: np.ndarray, settings: SplitSettings) -> np.ndarray:
+    """Changed mask for one building's points from k-means (k = 2) and the LoD gate.
+
+    Features are scaled by their LoDs, so "one LoD" weighs the same in both. The cluster
+    whose centre lies farther from zero change is the changed one; only its points that
+    exceed an LoD count as changed."""
+    from sklearn.cluster import KMeans
+
+    n = len(d_height)
+    beyond = (np.abs(d_height) > settings.lod_height_m) | (np.abs(d_curv) > settings.lod_curvature)
+    if n < 2 or not beyond.any():
+        return np.zeros(n, bool)
+    x = np.column_stack([d_curv / settings.lod_curvature, d_height / settings.lod_height_m])
+    x = np.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0)
+    if np.ptp(x, axis=0).max() == 0:
+        return np.zeros(n, bool)
+    km = KMeans(n_clusters=2, n_init=4, random_state=settings.seed).fit(x)
+    centre_norm = np.linalg.norm(km.cluster_centers_, axis=1)
+    changed_label = int(np.argmax(centre_norm))
+    return (km.labels_ == changed_label) & beyond
+
+
+def feature_changes(pre: dict, post: dict, nn: np.ndarray) -> dict:
+    """Change of every feature both epochs have: post[nn] − pre, (n_pre,) each."""
+    out = {}
+    for name, values in pre.items():
+        if name in post:
+            out[name] = np.asarray(post[name])[nn] - np.asarray(values)
+    return out
+
+
+def building_changes(pre_ids: np.ndarray, post_ids: np.ndarray, changes: dict, d_height: np.ndarray,
+                     distance: np.ndarray, settings: SplitSettings, min_points: int = 1) -> list[BuildingChange]:
+    """Split and describe every building with pre-event points (ID > 0)."""
+    if settings.curvature_feature not in changes:
+        raise ChangeError(f"the split needs the change of {settings.curvature_feature!r}; "
+                          f"available: {sorted(changes)}")
+    d_curv = changes[settings.curvature_feature]
+    order = np.argsort(pre_ids, kind="stable")
+    ids_sorted = pre_ids[order]
+    uniq, starts = np.unique(ids_sorted, return_index=True)
+    ends = np.append(starts[1:], len(order))
+    post_counts = dict(zip(*np.unique(post_ids, return_counts=True)))
+    result = []
+    for bid, a, b in zip(uniq, starts, ends):
+        if bid <= 0:
+            continue
+        rows = order[a:b]
+        if len(rows) < min_points:
+            continue
+        changed = split_changed(d_curv[rows], d_height[rows], settings)
+        share = float(changed.mean()) if len(rows) else 0.0
+        desc = {"share_changed": share}
+        sel = rows[changed]
+        columns = dict(changes)
+        columns["height"] = d_height
+        columns["distance"] = distance
+        for name, values in columns.items():
+            v = values[sel]
+            v = v[np.isfinite(v)]
+            for stat in STATISTICS:
+                desc[f"{name}_{stat}"] = _stat(v, stat)
+        result.append(BuildingChange(int(bid), len(rows), int(post_counts.get(bid, 0)), changed, share, desc))
+    return result
+
+
+def _stat(v: np.ndarray, stat: str) -> float:
+    """A statistic of the changed points; 0 when there are none (no change = no damage)."""
+    if len(v) == 0:
+        return 0.0
+    if stat == "mean":
+        return float(v.mean())
+    if stat == "median":
+        return float(np.median(v))
+    if stat == "std":
+        return float(v.std())
+    if stat == "p10":
+        return float(np.percentile(v, 10))
+    if stat == "p90":
+        return float(np.percentile(v, 90))
+    raise ValueError(stat)
+
+
+def lod_from_noise(sigma_registration_m: float, spacing_m: float, k: float = 1.96) -> float:
+    """Level of detection in height from the registration error and the sampling: two epochs
+    each sampled at `spacing_m` (a surface point is matched to a neighbour up to ~half the
+    spacing away) and misregistered by σ: k·√(2σ² + (spacing/2)²)."""
+    return k * math.sqrt(2 * sigma_registration_m ** 2 + (spacing_m / 2) ** 2)

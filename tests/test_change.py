@@ -1,0 +1,80 @@
+"""Change mapping and the changed/unchanged split on scans with known change."""
+import numpy as np
+import pytest
+
+from core.change import (ChangeError, SplitSettings, building_changes, feature_changes, lod_from_noise,
+                         morton_order, nearest_neighbours, split_changed)
+from core.pointcloud import read_epoch
+from core.scan import scan
+from core.survey import preset
+from core.synthetic import box_city
+
+
+def test_nearest_neighbours_match_brute_force():
+    rng = np.random.default_rng(1)
+    pre = rng.uniform(0, 10, (500, 3))
+    post = rng.uniform(0, 10, (400, 3))
+    idx, dist = nearest_neighbours(pre, post)
+    d_all = np.linalg.norm(pre[:, None, :] - post[None, :, :], axis=2)
+    np.testing.assert_array_equal(idx, d_all.argmin(axis=1))
+    np.testing.assert_allclose(dist, d_all.min(axis=1))
+    assert sorted(morton_order(pre)) == list(range(500))
+
+
+def test_empty_post_epoch_is_an_error():
+    with pytest.raises(ChangeError, match="no points"):
+        nearest_neighbours(np.zeros((3, 3)), np.zeros((0, 3)))
+
+
+def test_lod_from_noise_closed_form():
+    assert lod_from_noise(0.0, 0.1) == pytest.approx(1.96 * 0.05)
+    assert lod_from_noise(0.05, 0.0) == pytest.approx(1.96 * np.sqrt(2) * 0.05)
+
+
+def _epochs(tmp_path, heights_post, seed_post):
+    heights_pre = (9.0, 12.0, 9.0, 12.0)
+    s = preset("paper").replace(pulse_rate_hz=100_000.0)
+    pre_scene = box_city(rows=2, cols=2, height=heights_pre, origin=(500000.0, 5000000.0, 0.0))
+    post_scene = box_city(rows=2, cols=2, height=heights_post, origin=(500000.0, 5000000.0, 0.0), epoch="post")
+    scan(pre_scene, s, tmp_path / "pre.las", seed=1)
+    scan(post_scene, s, tmp_path / "post.las", seed=seed_post)
+    pre = read_epoch(tmp_path / "pre.las")
+    post = read_epoch(tmp_path / "post.las", origin=pre.origin)
+    return pre, post
+
+
+def _run(pre, post):
+    idx, dist = nearest_neighbours(pre.xyz, post.xyz)
+    zeros = {"curvature": np.zeros(len(pre))}
+    changes = feature_changes(zeros, {"curvature": np.zeros(len(post))}, idx)
+    d_height = post.xyz[idx, 2] - pre.xyz[:, 2]
+    return building_changes(pre.building_id, post.building_id, changes, d_height, dist, SplitSettings())
+
+
+def test_identical_city_rescanned_has_no_changed_building(tmp_path):
+    pre, post = _epochs(tmp_path, (9.0, 12.0, 9.0, 12.0), seed_post=2)  # new range noise only
+    result = _run(pre, post)
+    assert len(result) == 4
+    for b in result:
+        assert b.share_changed == 0.0 and not b.changed.any()
+        assert b.descriptors["height_mean"] == 0.0
+
+
+def test_collapsed_building_is_found_changed(tmp_path):
+    pre, post = _epochs(tmp_path, (9.0, 4.0, 9.0, 12.0), seed_post=2)  # building 2 loses 8 m
+    result = {b.building_id: b for b in _run(pre, post)}
+    assert result[2].share_changed > 0.3
+    assert result[2].descriptors["height_median"] < -5.0
+    for bid in (1, 3, 4):
+        assert result[bid].share_changed < 0.02
+
+
+def test_split_is_gated_by_the_lod():
+    rng = np.random.default_rng(0)
+    noise = rng.normal(0, 0.02, 1000)
+    s = SplitSettings()
+    assert not split_changed(np.zeros(1000), noise, s).any()  # two clusters of noise: nothing changed
+    d_h = noise.copy()
+    d_h[:100] -= 3.0
+    changed = split_changed(np.zeros(1000), d_h, s)
+    assert changed[:100].all() and not changed[100:].any()
