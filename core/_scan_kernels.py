@@ -329,3 +329,89 @@ def form_returns(t, face, weights, separation, min_energy, max_returns):
         for q in range(first, m):
             out_nret[q] = cnt
     return out_p[:m], out_f[:m], out_r[:m], out_ret[:m], out_nret[:m]
+
+
+@njit(**_JIT)
+def pulse_rays32(t, theta, t_start, start, velocity, down, right):
+    """Float32 rays for Embree plus each ray's (cos θ, sin θ) in float64, so that the float64
+    ray can be rebuilt later without another sin/cos and without storing it."""
+    n = t.shape[0]
+    o32 = np.empty((n, 3), np.float32)
+    d32 = np.empty((n, 3), np.float32)
+    cs = np.empty((n, 2))
+    for i in range(n):
+        dt = t[i] - t_start
+        c = math.cos(theta[i])
+        s = math.sin(theta[i])
+        cs[i, 0] = c
+        cs[i, 1] = s
+        for k in range(3):
+            o32[i, k] = start[k] + dt * velocity[k]
+            d32[i, k] = c * down[k] + s * right[k]
+    return o32, d32, cs
+
+
+@njit(**_JIT)
+def refine_and_pack(face, t, cs, t_start, start, velocity, down, right, normals, plane_d, max_range,
+                    noise, noise_sigma, shift, scale, theta, forward, edge, line_id,
+                    f_building, f_grade, f_surface, f_class,
+                    X, Y, Z, intensity, gps_time, scan_angle, bit_fields, class_flags, classification, user_data,
+                    point_source, building_id, grade, surface):
+    """Single-ray beam in one pass: for every ray Embree saw hit a face, rebuild the float64
+    ray, intersect it with the face's plane (dropping grazing or out-of-range hits, as
+    `refine_hits`), add noise and write the LAS point. Returns (points written, ok, int mins,
+    int maxs, points by return, points by face)."""
+    lo, hi = -2147483648.0, 2147483647.0
+    mins = np.full(3, np.iinfo(np.int64).max, np.int64)
+    maxs = np.full(3, np.iinfo(np.int64).min, np.int64)
+    by_return = np.zeros(16, np.int64)
+    by_face = np.zeros(f_class.shape[0], np.int64)
+    o = np.empty(3)
+    d = np.empty(3)
+    m = 0
+    for i in range(face.shape[0]):
+        f = face[i]
+        if f < 0:
+            continue
+        dt = t[i] - t_start
+        num = plane_d[f]
+        den = 0.0
+        for k in range(3):
+            o[k] = start[k] + dt * velocity[k]
+            d[k] = cs[i, 0] * down[k] + cs[i, 1] * right[k]
+            num -= normals[f, k] * o[k]
+            den += normals[f, k] * d[k]
+        if den == 0.0:
+            continue
+        ti = num / den
+        if not (ti >= 0.0 and ti <= max_range):
+            continue
+        dist = ti + noise_sigma * np.float64(noise[m])
+        for a in range(3):
+            v = np.rint((o[a] + d[a] * dist + shift[a]) / scale)
+            if v < lo or v > hi:
+                return m, False, mins, maxs, by_return, by_face
+            iv = np.int64(v)
+            mins[a] = min(mins[a], iv)
+            maxs[a] = max(maxs[a], iv)
+            if a == 0:
+                X[m] = np.int32(iv)
+            elif a == 1:
+                Y[m] = np.int32(iv)
+            else:
+                Z[m] = np.int32(iv)
+        intensity[m] = 0
+        user_data[m] = 0
+        gps_time[m] = t[i]
+        scan_angle[m] = np.int16(np.rint((theta[i] * (180.0 / math.pi)) / 0.006))
+        bit_fields[m] = 1 | (1 << 4)
+        class_flags[m] = (np.uint8(forward[i]) << 6) | (np.uint8(edge[i]) << 7)
+        classification[m] = f_class[f]
+        point_source[m] = line_id
+        building_id[m] = f_building[f]
+        grade[m] = f_grade[f]
+        surface[m] = f_surface[f]
+        by_return[1] += 1
+        by_face[f] += 1
+        m += 1
+    return m, True, mins, maxs, by_return, by_face

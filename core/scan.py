@@ -93,12 +93,16 @@ class RayCaster:
         """
         o32 = origins.astype(np.float32) if origins32 is None else origins32
         d32 = directions.astype(np.float32) if directions32 is None else directions32
-        face = np.asarray(self._embree.run(o32, d32, dists=float(max_range), output=0), dtype=np.int64)
+        face = self.embree_faces(o32, d32, max_range).astype(np.int64)
         if fast:
             from ._scan_kernels import refine_hits
 
             return face, refine_hits(origins, directions, face, self.normals, self.plane_d, float(max_range))
         return face, self._refine_reference(origins, directions, face, max_range)
+
+    def embree_faces(self, origins32: np.ndarray, directions32: np.ndarray, max_range: float) -> np.ndarray:
+        """Face hit by each float32 ray (int32, -1 = none); Embree alone, GIL released."""
+        return self._embree.run(origins32, directions32, dists=float(max_range), output=0)
 
     def _refine_reference(self, origins, directions, face, max_range):
         """Numpy reference of `_scan_kernels.refine_hits` (same results, more passes)."""
@@ -317,6 +321,8 @@ class _Simulator:
         pulses = self.pulses(batch.line, batch.j0, batch.j1)
         stats = {"pulses_swept": batch.j1 - batch.j0, "pulses_emitted": pulses.n_fov, "pulses_cast": len(pulses),
                  "rays_cast": 0, "pulses_with_sub_rays": 0}
+        if s.beam == "single" and self.fast and self.header is not None:
+            return self._single_fused(batch, pulses, stats)
         o, d, o32, d32 = pulses.rays(self.fast)
         # Every output point: a ray (row of o/d: the pulse's central ray) and a pulse index.
         if s.beam == "single":
@@ -339,6 +345,42 @@ class _Simulator:
         stats["points"] = len(ray)
         out = self._output(pulses, batch.line.index, ray, pulse, face, rng_m, noise, ret, nret, o, d, stats)
         return out, stats
+
+    def _single_fused(self, batch: _Batch, pulses: _Pulses, stats):
+        """The single-ray beam with the compiled loops: float32 rays → Embree → one pass that
+        refines, adds noise and packs (same bytes as the general path, fewer passes)."""
+        import laspy
+
+        from ._scan_kernels import pulse_rays32, refine_and_pack
+
+        s, c, h = self.survey, self.caster, self.header
+        ln = batch.line
+        o32, d32, cs = pulse_rays32(pulses.t, pulses.theta, ln.t_start, pulses.start_local, pulses.velocity,
+                                    pulses.down, pulses.right)
+        face = c.embree_faces(o32, d32, s.max_range_m)
+        stats["rays_cast"] = len(pulses)
+        hits = int(np.count_nonzero(face >= 0))
+        rng = np.random.default_rng([self.seed, ln.index, batch.number])
+        noise = (rng.standard_normal(hits, dtype=np.float32) if s.range_noise_sigma_m > 0
+                 else np.zeros(hits, np.float32))
+        a = np.empty(hits, dtype=h.point_format.dtype())
+        m, ok, mins, maxs, by_return, by_face = refine_and_pack(
+            face, pulses.t, cs, ln.t_start, pulses.start_local, pulses.velocity, pulses.down, pulses.right,
+            c.normals, c.plane_d, float(s.max_range_m), noise, s.range_noise_sigma_m, self.shift, SCALE,
+            pulses.theta, pulses.forward, pulses.edge, np.uint16(ln.index + 1),
+            c.face_building, c.face_grade, c.face_surface, c.face_class,
+            a["X"], a["Y"], a["Z"], a["intensity"], a["gps_time"], a["scan_angle"], a["bit_fields"],
+            a["classification_flags"], a["classification"], a["user_data"], a["point_source_id"],
+            a["building_id"], a["grade"], a["surface"])
+        if not ok:
+            raise PointCloudError("point coordinates lie more than 2 147 km from the LAS offset")
+        stats["points"] = m
+        stats["by_return"], stats["by_face"] = by_return, by_face
+        if m == 0:
+            return None, stats
+        offsets = np.asarray(h.offsets)
+        stats["las_bounds"] = (mins * SCALE + offsets, maxs * SCALE + offsets, by_return[1:16])
+        return laspy.ScaleAwarePointRecord(a[:m], h.point_format, h.scales, h.offsets), stats
 
     def _output(self, pulses, line_index, ray, pulse, face, rng_m, noise, ret, nret, o, d, stats):
         """Points → a packed LAS record (when the simulator has a header) or a PointChunk;
