@@ -1,0 +1,147 @@
+"""Evaluation as in Zahs et al.: per grade one-vs-rest OA / precision / recall / F1, damaged
+vs undamaged, confusion matrix.
+
+Result CSV (written by `classify`): one row per building with at least `building_id`,
+`predicted_grade` and `assessable` (1/0). Truth CSV: `building_id`, `grade`. Buildings
+that are not assessable are left out of the metrics and counted; EMS-98 grades 1–2 are
+geometrically "no damage" at UAV resolution (DESIGN.md) and count as undamaged.
+"""
+from __future__ import annotations
+
+import csv
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .errors import QuakeScanError
+
+TARGET_GRADES = (0, 3, 4, 5)
+GRADE_NAMES = {0: "no damage", 3: "heavy", 4: "extreme", 5: "destruction"}
+
+
+class EvaluationError(QuakeScanError):
+    """Result and truth tables cannot be compared."""
+
+
+def binary_metrics(truth: np.ndarray, pred: np.ndarray) -> dict:
+    """OA, precision, recall, F1 of boolean predictions; 0 where a ratio has no cases."""
+    truth, pred = np.asarray(truth, bool), np.asarray(pred, bool)
+    tp = int(np.sum(truth & pred))
+    tn = int(np.sum(~truth & ~pred))
+    fp = int(np.sum(~truth & pred))
+    fn = int(np.sum(truth & ~pred))
+    n = tp + tn + fp + fn
+    precision = tp / (tp + fp) if tp + fp else 0.0
+    recall = tp / (tp + fn) if tp + fn else 0.0
+    f1 = 2 * precision * recall / (precision + recall) if precision + recall else 0.0
+    return {"oa": (tp + tn) / n if n else 0.0, "precision": precision, "recall": recall, "f1": f1,
+            "tp": tp, "tn": tn, "fp": fp, "fn": fn}
+
+
+def to_target_grade(g: np.ndarray) -> np.ndarray:
+    """EMS-98 grade → the paper's classes: 1–2 become 0 (no visible damage)."""
+    g = np.asarray(g, dtype=np.int64)
+    return np.where(g <= 2, 0, g)
+
+
+@dataclass
+class Evaluation:
+    per_grade: dict  # grade → binary metrics (one vs rest)
+    damaged: dict  # any damage (3–5) vs none
+    confusion: np.ndarray  # rows truth, columns prediction, over TARGET_GRADES
+    n: int
+    not_assessable: int = 0
+    missing: list = field(default_factory=list)
+
+    def table(self) -> str:
+        rows = ["| class | OA | precision | recall | F1 |", "|---|---|---|---|---|"]
+        for g in TARGET_GRADES:
+            m = self.per_grade[g]
+            rows.append(f"| {GRADE_NAMES[g]} | {100 * m['oa']:.1f} % | {100 * m['precision']:.1f} % | "
+                        f"{100 * m['recall']:.1f} % | {100 * m['f1']:.1f} % |")
+        m = self.damaged
+        rows.append(f"| damaged vs undamaged | {100 * m['oa']:.1f} % | {100 * m['precision']:.1f} % | "
+                    f"{100 * m['recall']:.1f} % | {100 * m['f1']:.1f} % |")
+        return "\n".join(rows)
+
+
+def evaluate_grades(truth: np.ndarray, pred: np.ndarray) -> Evaluation:
+    t, p = to_target_grade(truth), to_target_grade(pred)
+    per = {g: binary_metrics(t == g, p == g) for g in TARGET_GRADES}
+    dmg = binary_metrics(t > 0, p > 0)
+    conf = np.zeros((len(TARGET_GRADES), len(TARGET_GRADES)), np.int64)
+    index = {g: i for i, g in enumerate(TARGET_GRADES)}
+    for a, b in zip(t, p):
+        conf[index[int(a)], index[int(b)]] += 1
+    return Evaluation(per, dmg, conf, len(t))
+
+
+def _read_csv(path: Path, needed: tuple) -> list[dict]:
+    try:
+        with open(path, newline="") as f:
+            rows = list(csv.DictReader(f))
+    except FileNotFoundError:
+        raise EvaluationError(f"{path}: file does not exist") from None
+    if not rows:
+        raise EvaluationError(f"{path}: no rows")
+    missing = [c for c in needed if c not in rows[0]]
+    if missing:
+        raise EvaluationError(f"{path}: missing columns {missing} (has {list(rows[0])})")
+    return rows
+
+
+def evaluate_files(result_csv: str | os.PathLike, truth_csv: str | os.PathLike) -> Evaluation:
+    """Join result and truth by building_id and evaluate the assessable buildings."""
+    result_csv, truth_csv = Path(result_csv), Path(truth_csv)
+    res = _read_csv(result_csv, ("building_id", "predicted_grade"))
+    tru = _read_csv(truth_csv, ("building_id", "grade"))
+    try:
+        truth = {int(r["building_id"]): int(r["grade"]) for r in tru}
+    except ValueError as e:
+        raise EvaluationError(f"{truth_csv}: building_id and grade must be integers ({e})") from None
+    t, p, not_assessable, seen = [], [], 0, set()
+    for r in res:
+        bid = int(r["building_id"])
+        seen.add(bid)
+        if bid not in truth:
+            continue
+        if str(r.get("assessable", "1")).strip() in ("0", "false", "False"):
+            not_assessable += 1
+            continue
+        t.append(truth[bid])
+        p.append(int(r["predicted_grade"]))
+    if not t:
+        raise EvaluationError(f"{result_csv}: no assessable building shares an ID with {truth_csv}")
+    ev = evaluate_grades(np.array(t), np.array(p))
+    ev.not_assessable = not_assessable
+    ev.missing = sorted(set(truth) - seen)
+    return ev
+
+
+def plot_confusion(ev: Evaluation, path: str | os.PathLike, title: str = "Damage grades") -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = [GRADE_NAMES[g] for g in TARGET_GRADES]
+    fig, ax = plt.subplots(figsize=(4.8, 4.2), dpi=120)
+    ax.imshow(ev.confusion, cmap="Blues")
+    for i in range(len(names)):
+        for j in range(len(names)):
+            v = ev.confusion[i, j]
+            ax.text(j, i, str(v), ha="center", va="center",
+                    color="white" if v > ev.confusion.max() / 2 else "black")
+    ax.set_xticks(range(len(names)), names, rotation=30, ha="right")
+    ax.set_yticks(range(len(names)), names)
+    ax.set_xlabel("predicted")
+    ax.set_ylabel("reference")
+    ax.set_title(title)
+    fig.tight_layout()
+    path = Path(path)
+    tmp = path.with_name(path.stem + ".tmp.png")
+    fig.savefig(tmp)
+    plt.close(fig)
+    os.replace(tmp, path)
