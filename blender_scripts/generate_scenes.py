@@ -11,6 +11,12 @@ Run inside Blender or with the bpy module:
 (every building at EMS-98 grade 3, 4 and 5: the seed paper's design); --dataset mixed
 writes DIR/pre and DIR/post with grades drawn per building (0-5).
 
+--set bundle --source SCENE_DIR takes the buildings and terrain of an existing scene bundle
+(e.g. one imported from CityJSON) instead of a procedural city; --buildings then picks a
+seeded sample of that many of its buildings (default: all), the others are left out. The
+output keeps the source's origin, CRS and float64 coordinates. Imported LoD2 shells are
+damaged as box-like buildings (see addon/io_import.py and the README for the limits).
+
 Each scene is a bundle (scene.json + mesh.ply, DESIGN.md "Scene bundle"). Bundles are
 written to a temporary folder and renamed into place, so DIR/<scene> is either complete or
 absent. A complete bundle made with the same settings is skipped (resume after an
@@ -66,15 +72,28 @@ def _seed(text):
 def parse_args(argv):
     p = argparse.ArgumentParser(prog=PROG, description="Generate labelled pre-/post-event scene bundles "
                                 "(scene.json + mesh.ply) of a procedural city with EMS-98 damage.")
-    p.add_argument("--set", dest="set_name", required=True, choices=("generic", "region"),
-                   help="generic European town or L'Aquila-like historic centre")
+    p.add_argument("--set", dest="set_name", required=True, choices=("generic", "region", "bundle"),
+                   help="generic European town, L'Aquila-like historic centre, or the buildings of an "
+                   "existing scene bundle (--source)")
+    p.add_argument("--source", help="--set bundle: scene bundle folder whose buildings and terrain are used "
+                   "(e.g. one imported from CityJSON); the output keeps its origin and CRS")
     p.add_argument("--dataset", required=True, choices=("paper", "mixed"),
                    help="paper: pre + one post scene per grade 3/4/5; mixed: pre + post with mixed grades")
-    p.add_argument("--buildings", type=_positive_int, default=112, help="number of buildings (default 112)")
+    p.add_argument("--buildings", type=_positive_int, default=None,
+                   help="number of buildings (default 112); --set bundle: use a seeded sample of this many of "
+                   "the source's buildings (default and values >= their number: all)")
     p.add_argument("--seed", type=_seed, default=0, help="random seed (default 0)")
     p.add_argument("--out", required=True, help="output folder (created)")
     p.add_argument("--force", action="store_true", help="regenerate bundles made with other settings")
-    return p.parse_args(argv)
+    args = p.parse_args(argv)
+    if args.set_name == "bundle" and not args.source:
+        p.error("--set bundle needs --source SCENE_DIR")
+    if args.set_name != "bundle":
+        if args.source:
+            p.error("--source is only used with --set bundle")
+        if args.buildings is None:
+            args.buildings = 112
+    return args
 
 
 def scene_list(dataset, ids, seed):
@@ -85,8 +104,11 @@ def scene_list(dataset, ids, seed):
 
 
 def generator_info(args, scene_name):
-    return {"script": PROG, "version": GENERATOR_VERSION, "set": args.set_name, "dataset": args.dataset,
+    info = {"script": PROG, "version": GENERATOR_VERSION, "set": args.set_name, "dataset": args.dataset,
             "buildings": args.buildings, "seed": args.seed, "scene": scene_name}
+    if args.set_name == "bundle":
+        info["source"] = {"name": Path(args.source).resolve().name, "sha256": getattr(args, "source_sha256", None)}
+    return info
 
 
 def bundle_state(folder: Path, info: dict) -> str:
@@ -109,6 +131,48 @@ def _swap_into_place(tmp: Path, final: Path):
     os.replace(tmp, final)
     if old is not None:
         shutil.rmtree(old, ignore_errors=True)
+
+
+def source_sha256(folder) -> str:
+    """Digest of a source bundle's scene.json and mesh (resume only when the source is the same)."""
+    import hashlib
+    h = hashlib.sha256()
+    folder = Path(folder)
+    manifest = folder / "scene.json"
+    h.update(manifest.read_bytes())
+    try:
+        mesh = json.loads(manifest.read_text()).get("mesh", "mesh.ply")
+    except (json.JSONDecodeError, AttributeError):
+        mesh = "mesh.ply"
+    if isinstance(mesh, str) and (folder / mesh).is_file():
+        h.update((folder / mesh).read_bytes())
+    return h.hexdigest()
+
+
+def bundle_ids(args, manifest) -> list:
+    """IDs of the source buildings used: all, or a seeded sample of --buildings of them."""
+    import numpy as np
+    ids = sorted(int(b["id"]) for b in manifest["buildings"])
+    if args.buildings is None or args.buildings >= len(ids):
+        return ids
+    rng = np.random.default_rng([args.seed, 404])
+    return sorted(int(i) for i in rng.choice(ids, size=args.buildings, replace=False))
+
+
+def build_bundle_pre(args, pre, manifest):
+    """Import the source's terrain and chosen buildings into `pre` and prepare them for damage
+    (labels, storey splits, coarse interiors; a per-building damage seed from --seed)."""
+    import numpy as np
+
+    from addon import io_import
+    ids = bundle_ids(args, manifest)
+    info = io_import.import_bundle(args.source, pre, building_ids=ids)
+    for obj in info["buildings"]:
+        io_import.prepare_for_damage(obj)
+        obj.qs_building.seed = int(np.random.default_rng([args.seed, 505, obj.qs_building.building_id])
+                                   .integers(0, 2 ** 31 - 1))
+        obj.qs_building.patterns_json = "[]"
+    return ids, info
 
 
 def run(args) -> int:
@@ -134,8 +198,20 @@ def run(args) -> int:
     if not hasattr(bpy.types.Object, "qs_building"):
         addon.register()
 
-    plan = citygen.city_plan(args.set_name, args.buildings, args.seed)
-    ids = [b.id for b in plan.buildings]
+    origin, crs, manifest, plan = (0.0, 0.0, 0.0), None, None, None
+    if args.set_name == "bundle":
+        from addon import io_import
+        try:
+            manifest = io_import.read_bundle(args.source)[0]  # the whole bundle is checked up front
+            args.source_sha256 = source_sha256(args.source)
+        except (io_import.BundleError, OSError) as e:
+            log(f"error: --source: {e}")
+            return 2
+        ids = bundle_ids(args, manifest)
+        origin, crs = manifest.get("origin", [0.0, 0.0, 0.0]), manifest.get("crs")
+    else:
+        plan = citygen.city_plan(args.set_name, args.buildings, args.seed)
+        ids = [b.id for b in plan.buildings]
     scenes = scene_list(args.dataset, ids, args.seed)
     todo = []
     for name, grades in scenes:
@@ -159,17 +235,21 @@ def run(args) -> int:
     created_collections = [pre]
     try:
         t0 = time.perf_counter()
-        x0, y0, x1, y1 = plan.bounds
-        scene_tools.create_terrain_object(pre, x0, y0, x1, y1)
-        n = len(plan.buildings)
-        step = max(1, n // 10)
-        for k, b in enumerate(plan.buildings):
-            spec = ShellSpec(**b.shell)
-            scene_tools.create_building_object(pre, spec, b.id, location=(b.location[0], b.location[1], 0.0),
-                                               rotation_z=b.rotation, vulnerability_class=b.vulnerability_class,
-                                               seed=b.seed)
-            if (k + 1) % step == 0 or k + 1 == n:
-                log(f"pre: built {k + 1}/{n} buildings")
+        if plan is None:
+            build_bundle_pre(args, pre, manifest)
+            n = len(ids)
+        else:
+            x0, y0, x1, y1 = plan.bounds
+            scene_tools.create_terrain_object(pre, x0, y0, x1, y1)
+            n = len(plan.buildings)
+            step = max(1, n // 10)
+            for k, b in enumerate(plan.buildings):
+                spec = ShellSpec(**b.shell)
+                scene_tools.create_building_object(pre, spec, b.id, location=(b.location[0], b.location[1], 0.0),
+                                                   rotation_z=b.rotation, vulnerability_class=b.vulnerability_class,
+                                                   seed=b.seed)
+                if (k + 1) % step == 0 or k + 1 == n:
+                    log(f"pre: built {k + 1}/{n} buildings")
         pre_objs = scene_tools.scene_objects(pre)
         log(f"pre: {n} buildings built in {time.perf_counter() - t0:.1f} s")
         for name, grades, info in todo:
@@ -189,8 +269,12 @@ def run(args) -> int:
                         log(f"{name}: damaged {i}/{total} objects")
                 scene_tools.make_post_scene(pre_objs, coll, grades=grades, on_progress=progress)
                 objs = scene_tools.scene_objects(coll)
-            rep = io_export.export_objects(tmp, objs, epoch="pre" if name == "pre" else "post",
-                                           origin=(0.0, 0.0, 0.0), crs=None, extra={"generator": info})
+            if plan is None:  # keeps the source's float64 coordinates, origin and CRS
+                rep = io_import.export_bundle(tmp, objs, epoch="pre" if name == "pre" else "post",
+                                              origin=origin, crs=crs, extra={"generator": info})
+            else:
+                rep = io_export.export_objects(tmp, objs, epoch="pre" if name == "pre" else "post",
+                                               origin=(0.0, 0.0, 0.0), crs=None, extra={"generator": info})
             _swap_into_place(tmp, out / name)
             log(f"{name}: wrote {out / name} ({rep['buildings']} buildings, {rep['faces']} faces) "
                 f"in {time.perf_counter() - t0:.1f} s")
