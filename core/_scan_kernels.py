@@ -62,51 +62,62 @@ def refine_hits(origins, directions, face, normals, plane_d, max_range):
     return t
 
 
+@njit(inline="always", **_JIT)
+def _write_point(cols, m, xyz_int, gps, theta, forward, edge, ret, nret, line_id, building, grade_, surface_,
+                 cls):
+    """Fill row m of the LAS columns (X, Y, Z, intensity, gps_time, scan_angle, bit_fields,
+    classification_flags, classification, user_data, point_source_id, building_id, grade, surface)."""
+    cols[0][m] = np.int32(xyz_int[0])
+    cols[1][m] = np.int32(xyz_int[1])
+    cols[2][m] = np.int32(xyz_int[2])
+    cols[3][m] = 0
+    cols[4][m] = gps
+    # LAS 1.4 scan angle: int16 in units of 0.006°
+    cols[5][m] = np.int16(np.rint((theta * (180.0 / math.pi)) / 0.006))
+    cols[6][m] = (ret & 15) | ((nret & 15) << 4)
+    cols[7][m] = (np.uint8(forward) << 6) | (np.uint8(edge) << 7)
+    cols[8][m] = cls
+    cols[9][m] = 0
+    cols[10][m] = line_id
+    cols[11][m] = building
+    cols[12][m] = grade_
+    cols[13][m] = surface_
+
+
+@njit(**_JIT)
+def _to_ints(o, d, dist, shift, scale, xyz_int, mins, maxs):
+    """Scaled integer coordinates of o + d·dist + shift; False when one leaves int32."""
+    for a in range(3):
+        v = np.rint((o[a] + d[a] * dist + shift[a]) / scale)
+        if v < -2147483648.0 or v > 2147483647.0:
+            return False
+        iv = np.int64(v)
+        xyz_int[a] = iv
+        mins[a] = min(mins[a], iv)
+        maxs[a] = max(maxs[a], iv)
+    return True
+
+
 @njit(**_JIT)
 def pack_points(ray, pulse, face, rng, noise, noise_sigma, ret, nret, origins, directions, shift, scale,
-                gps, theta, forward, edge, line_id, f_building, f_grade, f_surface, f_class,
-                X, Y, Z, intensity, gps_time, scan_angle, bit_fields, class_flags, classification, user_data,
-                point_source, building_id, grade, surface):
-    """Write point k (ray[k] of the batch's rays, pulse[k] of its pulses) into LAS columns;
-    the range is rng[k] + noise_sigma * noise[k].
+                gps, theta, forward, edge, line_id, f_building, f_grade, f_surface, f_class, cols):
+    """Write point k (ray[k] of the batch's rays, pulse[k] of its pulses) into the LAS columns
+    `cols` (see `_write_point`); the range is rng[k] + noise_sigma * noise[k].
 
     Returns (ok, int mins (3,), int maxs (3,), points by return number (16,), points by face):
     ok is False when a coordinate does not fit int32 at `scale` (the caller raises)."""
-    lo, hi = -2147483648.0, 2147483647.0
     mins = np.full(3, np.iinfo(np.int64).max, np.int64)
     maxs = np.full(3, np.iinfo(np.int64).min, np.int64)
     by_return = np.zeros(16, np.int64)
     by_face = np.zeros(f_class.shape[0], np.int64)
+    xyz_int = np.empty(3, np.int64)
     for k in range(ray.shape[0]):
-        r = ray[k]
-        p = pulse[k]
-        f = face[k]
-        dist = rng[k] + noise_sigma * np.float64(noise[k])
-        for a in range(3):
-            v = np.rint((origins[r, a] + directions[r, a] * dist + shift[a]) / scale)
-            if v < lo or v > hi:
-                return False, mins, maxs, by_return, by_face
-            iv = np.int64(v)
-            mins[a] = min(mins[a], iv)
-            maxs[a] = max(maxs[a], iv)
-            if a == 0:
-                X[k] = np.int32(iv)
-            elif a == 1:
-                Y[k] = np.int32(iv)
-            else:
-                Z[k] = np.int32(iv)
-        intensity[k] = 0
-        user_data[k] = 0
-        gps_time[k] = gps[p]
-        # LAS 1.4 scan angle: int16 in units of 0.006°
-        scan_angle[k] = np.int16(np.rint((theta[p] * (180.0 / math.pi)) / 0.006))
-        bit_fields[k] = (ret[k] & 15) | ((nret[k] & 15) << 4)
-        class_flags[k] = (np.uint8(forward[p]) << 6) | (np.uint8(edge[p]) << 7)
-        classification[k] = f_class[f]
-        point_source[k] = line_id
-        building_id[k] = f_building[f]
-        grade[k] = f_grade[f]
-        surface[k] = f_surface[f]
+        r, p, f = ray[k], pulse[k], face[k]
+        if not _to_ints(origins[r], directions[r], rng[k] + noise_sigma * np.float64(noise[k]), shift, scale,
+                        xyz_int, mins, maxs):
+            return False, mins, maxs, by_return, by_face
+        _write_point(cols, k, xyz_int, gps[p], theta[p], forward[p], edge[p], ret[k], nret[k], line_id,
+                     f_building[f], f_grade[f], f_surface[f], f_class[f])
         by_return[ret[k] & 15] += 1
         by_face[f] += 1
     return True, mins, maxs, by_return, by_face
@@ -354,18 +365,16 @@ def pulse_rays32(t, theta, t_start, start, velocity, down, right):
 @njit(**_JIT)
 def refine_and_pack(face, t, cs, t_start, start, velocity, down, right, normals, plane_d, max_range,
                     noise, noise_sigma, shift, scale, theta, forward, edge, line_id,
-                    f_building, f_grade, f_surface, f_class,
-                    X, Y, Z, intensity, gps_time, scan_angle, bit_fields, class_flags, classification, user_data,
-                    point_source, building_id, grade, surface):
+                    f_building, f_grade, f_surface, f_class, cols):
     """Single-ray beam in one pass: for every ray Embree saw hit a face, rebuild the float64
     ray, intersect it with the face's plane (dropping grazing or out-of-range hits, as
     `refine_hits`), add noise and write the LAS point. Returns (points written, ok, int mins,
     int maxs, points by return, points by face)."""
-    lo, hi = -2147483648.0, 2147483647.0
     mins = np.full(3, np.iinfo(np.int64).max, np.int64)
     maxs = np.full(3, np.iinfo(np.int64).min, np.int64)
     by_return = np.zeros(16, np.int64)
     by_face = np.zeros(f_class.shape[0], np.int64)
+    xyz_int = np.empty(3, np.int64)
     o = np.empty(3)
     d = np.empty(3)
     m = 0
@@ -386,31 +395,10 @@ def refine_and_pack(face, t, cs, t_start, start, velocity, down, right, normals,
         ti = num / den
         if not (ti >= 0.0 and ti <= max_range):
             continue
-        dist = ti + noise_sigma * np.float64(noise[m])
-        for a in range(3):
-            v = np.rint((o[a] + d[a] * dist + shift[a]) / scale)
-            if v < lo or v > hi:
-                return m, False, mins, maxs, by_return, by_face
-            iv = np.int64(v)
-            mins[a] = min(mins[a], iv)
-            maxs[a] = max(maxs[a], iv)
-            if a == 0:
-                X[m] = np.int32(iv)
-            elif a == 1:
-                Y[m] = np.int32(iv)
-            else:
-                Z[m] = np.int32(iv)
-        intensity[m] = 0
-        user_data[m] = 0
-        gps_time[m] = t[i]
-        scan_angle[m] = np.int16(np.rint((theta[i] * (180.0 / math.pi)) / 0.006))
-        bit_fields[m] = 1 | (1 << 4)
-        class_flags[m] = (np.uint8(forward[i]) << 6) | (np.uint8(edge[i]) << 7)
-        classification[m] = f_class[f]
-        point_source[m] = line_id
-        building_id[m] = f_building[f]
-        grade[m] = f_grade[f]
-        surface[m] = f_surface[f]
+        if not _to_ints(o, d, ti + noise_sigma * np.float64(noise[m]), shift, scale, xyz_int, mins, maxs):
+            return m, False, mins, maxs, by_return, by_face
+        _write_point(cols, m, xyz_int, t[i], theta[i], forward[i], edge[i], np.uint8(1), np.uint8(1), line_id,
+                     f_building[f], f_grade[f], f_surface[f], f_class[f])
         by_return[1] += 1
         by_face[f] += 1
         m += 1

@@ -349,7 +349,6 @@ class _Simulator:
     def _single_fused(self, batch: _Batch, pulses: _Pulses, stats):
         """The single-ray beam with the compiled loops: float32 rays → Embree → one pass that
         refines, adds noise and packs (same bytes as the general path, fewer passes)."""
-        import laspy
 
         from ._scan_kernels import pulse_rays32, refine_and_pack
 
@@ -369,18 +368,9 @@ class _Simulator:
             c.normals, c.plane_d, float(s.max_range_m), noise, s.range_noise_sigma_m, self.shift, SCALE,
             pulses.theta, pulses.forward, pulses.edge, np.uint16(ln.index + 1),
             c.face_building, c.face_grade, c.face_surface, c.face_class,
-            a["X"], a["Y"], a["Z"], a["intensity"], a["gps_time"], a["scan_angle"], a["bit_fields"],
-            a["classification_flags"], a["classification"], a["user_data"], a["point_source_id"],
-            a["building_id"], a["grade"], a["surface"])
-        if not ok:
-            raise PointCloudError("point coordinates lie more than 2 147 km from the LAS offset")
+            _las_columns(a))
         stats["points"] = m
-        stats["by_return"], stats["by_face"] = by_return, by_face
-        if m == 0:
-            return None, stats
-        offsets = np.asarray(h.offsets)
-        stats["las_bounds"] = (mins * SCALE + offsets, maxs * SCALE + offsets, by_return[1:16])
-        return laspy.ScaleAwarePointRecord(a[:m], h.point_format, h.scales, h.offsets), stats
+        return _kernel_record(h, a[:m], ok, mins, maxs, by_return, by_face, stats), stats
 
     def _output(self, pulses, line_index, ray, pulse, face, rng_m, noise, ret, nret, o, d, stats):
         """Points → a packed LAS record (when the simulator has a header) or a PointChunk;
@@ -388,28 +378,18 @@ class _Simulator:
         c, sigma = self.caster, self.survey.range_noise_sigma_m
         n_faces = len(c.face_surface)
         if self.header is not None and self.fast:
-            import laspy
 
             from ._scan_kernels import pack_points
 
             h = self.header
             # np.empty, not zeros: the kernel writes every byte of every point
             a = np.empty(len(ray), dtype=h.point_format.dtype())
-            rec = laspy.ScaleAwarePointRecord(a, h.point_format, h.scales, h.offsets)
             ok, mins, maxs, by_return, by_face = pack_points(
                 ray, pulse, face, rng_m, noise, sigma, ret.astype(np.uint8), nret.astype(np.uint8), o, d,
                 self.shift, SCALE, pulses.t, pulses.theta, pulses.forward, pulses.edge, np.uint16(line_index + 1),
                 c.face_building, c.face_grade, c.face_surface, c.face_class,
-                a["X"], a["Y"], a["Z"], a["intensity"], a["gps_time"], a["scan_angle"], a["bit_fields"],
-                a["classification_flags"], a["classification"], a["user_data"], a["point_source_id"],
-                a["building_id"], a["grade"], a["surface"])
-            if not ok:
-                raise PointCloudError("point coordinates lie more than 2 147 km from the LAS offset")
-            stats["by_return"], stats["by_face"] = by_return, by_face
-            if len(ray):
-                offsets = np.asarray(self.header.offsets)
-                stats["las_bounds"] = (mins * SCALE + offsets, maxs * SCALE + offsets, by_return[1:16])
-            return rec if len(ray) else None
+                _las_columns(a))
+            return _kernel_record(h, a, ok, mins, maxs, by_return, by_face, stats)
         stats["by_return"] = np.bincount(ret, minlength=16)[:16]
         stats["by_face"] = np.bincount(face, minlength=n_faces)
         chunk = PointChunk(
@@ -569,6 +549,27 @@ class _Simulator:
         pi, ret = pi[order], ret[order]
         return (pi, np.concatenate(rows_face)[order], np.concatenate(rows_rng)[order],
                 ret.astype(np.uint8), det_count[pi].astype(np.uint8))
+
+
+def _las_columns(a: np.ndarray) -> tuple:
+    """The 14 columns of a format-6 QuakeScan record, in `_scan_kernels._write_point`'s order."""
+    return tuple(a[n] for n in ("X", "Y", "Z", "intensity", "gps_time", "scan_angle", "bit_fields",
+                                "classification_flags", "classification", "user_data", "point_source_id",
+                                "building_id", "grade", "surface"))
+
+
+def _kernel_record(header, a, ok, mins, maxs, by_return, by_face, stats):
+    """A kernel's packed rows → a laspy record (None when empty); counts and bounds into stats."""
+    import laspy
+
+    if not ok:
+        raise PointCloudError("point coordinates lie more than 2 147 km from the LAS offset")
+    stats["by_return"], stats["by_face"] = by_return, by_face
+    if len(a) == 0:
+        return None
+    offsets = np.asarray(header.offsets)
+    stats["las_bounds"] = (mins * SCALE + offsets, maxs * SCALE + offsets, by_return[1:16])
+    return laspy.ScaleAwarePointRecord(a, header.point_format, header.scales, header.offsets)
 
 
 def _pulse_count(survey: Survey, line: FlightLine) -> int:
