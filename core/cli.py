@@ -210,8 +210,10 @@ def tune_allocator() -> None:
     """Keep freed batch buffers in the heap (glibc only).
 
     A scan allocates and frees ~100 MB per batch and thread; by default glibc returns such
-    blocks to the OS and the next batch page-faults them back. On the paper survey
-    (BENCHMARKS.md, single beam) this setting measured 15.5 → 18.9 M pulses/s. Done here, in the command, not in the library: it is a
+    blocks to the OS and the next batch page-faults them back. BENCHMARKS.md compares the
+    single-ray scan with and without it in the same run (the difference is within this
+    machine's run-to-run noise for the fused single-ray loop; it mattered for the older,
+    allocation-heavy path). Done here, in the command, not in the library: it is a
     process-wide setting."""
     import ctypes
     import ctypes.util
