@@ -17,7 +17,16 @@ def _classes():
     return (*ops_building.CLASSES, *ops_damage.CLASSES, *ops_scene.CLASSES, *ops_export.CLASSES, *ui.CLASSES)
 
 
+def _require_numpy():
+    try:
+        import numpy  # noqa: F401
+    except ImportError:
+        raise ImportError("QuakeScan Damage needs numpy in Blender's Python: Blender's own builds bundle it; "
+                          "for Debian's blender package install python3-numpy") from None
+
+
 def register():
+    _require_numpy()
     import bpy
     from . import props
     props.register()

@@ -188,6 +188,14 @@ def run(args) -> int:
             "--python-exit-code 1 -P blender_scripts/generate_scenes.py -- ...) or install the bpy module "
             "(pip install bpy==5.0.1)")
         return 1
+    try:
+        import numpy  # noqa: F401
+    except ImportError:
+        import bpy
+        log(f"error: numpy is not available to the Python {sys.version.split()[0]} of Blender "
+            f"{bpy.app.version_string}: Blender's own builds bundle it; for Debian's blender install "
+            "python3-numpy (apt-get install python3-numpy)")
+        return 1
     if str(REPO) not in sys.path:
         sys.path.insert(0, str(REPO))
     import bpy
