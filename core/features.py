@@ -1,0 +1,349 @@
+"""Per-point geometric features in a spherical neighbourhood (Zahs et al., "Object-specific
+change feature selection"; radii 1.0-4.0 m).
+
+    >>> feats = compute_features(xyz, radius=1.5, features=("planarity", "roughness"))
+    >>> feats["planarity"].shape        # (n,) float64
+
+Neighbourhood
+    All cloud points p with |p - q| <= r, the query point itself included when it belongs to
+    the cloud (N counts it). The whole cloud is shifted once to a local origin (its minimum
+    corner) and every neighbourhood is centred on its own mean before the covariance, so a
+    cloud at UTM coordinates gives the same features as at the origin.
+
+Definitions (CloudCompare / CCCoreLib "Geometric features"; jakteristics copies them)
+    C = (1/N) sum (p - mean)(p - mean)^T (population covariance, as CloudCompare; jakteristics
+    uses 1/(N-1)); eigenvalues l1 >= l2 >= l3 >= 0 (tiny negative round-off clipped to 0).
+    eigenvalue1/2/3, eigenvalue_sum : raw l1, l2, l3 and l1+l2+l3, in m^2.
+    linearity (l1-l2)/l1, planarity (l2-l3)/l1, sphericity l3/l1, anisotropy (l1-l3)/l1,
+    surface_variation l3/(l1+l2+l3) : ratios, unchanged by normalisation.
+    omnivariance (e1 e2 e3)^(1/3), eigenentropy -sum e_i ln e_i with e_i = l_i/(l1+l2+l3)
+    (normalised by the sum, as CloudCompare; 0 ln 0 := 0). jakteristics uses raw l_i here.
+    normal_x/y/z : unit eigenvector of l3, oriented n_z >= 0 (if n_z == 0 exactly: n_y >= 0,
+    then n_x >= 0). verticality 1 - |n_z| (wall 1, roof 0).
+    roughness : distance of the point to the least-squares plane of its neighbours *without
+    the point itself* (CloudCompare's Roughness). For core points not in the cloud, the plane
+    of all neighbours.
+    curvature : CloudCompare's mean curvature |H| in 1/m: a quadric h = a + bu + cv + du^2 +
+    euv + fv^2 fitted by least squares in the PCA frame (e1, e2, normal) of the neighbourhood
+    centred on its mean, evaluated at the query point's (u, v). A sphere of radius R gives
+    ~1/R; a plane 0. (The "change of curvature" l3/sum is `surface_variation`.)
+    num_neighbours N; surface_density N/(pi r^2); volume_density N/(4/3 pi r^3)
+    (CloudCompare's precise "Density": number of neighbours / surface / volume).
+    point_density : planimetric density N_cyl/(pi r^2), points per m^2 of ground, N_cyl =
+    points in the infinite vertical cylinder of radius r (the usual LiDAR "point density",
+    which differs from surface_density on walls and under vegetation).
+    echo_ratio : Hoefle et al. (2009) 100 * N / N_cyl in percent (sphere over vertical
+    cylinder of the same radius); meaningful when the cloud holds all echoes of the pulses.
+    z_range : max z - min z in the neighbourhood. z_rank : share of the other neighbours
+    strictly below the point, #{z_j < z_q}/(N-1) in [0, 1] (0 lowest, 1 highest); for a core
+    point not in the cloud #{z_j < z_q}/N.
+
+Degenerate neighbourhoods: one rule
+    counts, densities and echo ratio are always finite (echo ratio NaN only for a core point
+    with no cloud point in its cylinder). Everything else is NaN when
+      * N < 4 (MIN_POINTS, the point itself included);
+      * eigen features, normal, verticality, roughness, curvature: the neighbourhood has no
+        extent (l1 <= (1e-9 r)^2: all duplicates);
+      * normal, verticality, roughness, curvature: no plane is defined (collinear:
+        l2 <= 1e-10 l1; for roughness the same test on the neighbours without the point);
+      * curvature: the quadric's normal equations are singular (fewer than 6 points or a
+        degenerate layout; relative pivot 1e-12).
+    An exact plane (l3 = 0) is not degenerate: eigenentropy stays finite (0 ln 0 := 0),
+    sphericity and omnivariance are 0. No feature is ever silently inf.
+"""
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Sequence
+
+import numpy as np
+
+from .errors import QuakeScanError
+
+log = logging.getLogger(__name__)
+
+FEATURES = (
+    "linearity", "planarity", "omnivariance", "surface_variation", "curvature", "point_density",
+    "num_neighbours", "surface_density", "volume_density", "sphericity", "verticality",
+    "eigenentropy", "anisotropy", "eigenvalue1", "eigenvalue2", "eigenvalue3", "eigenvalue_sum",
+    "roughness", "z_rank", "z_range", "normal_x", "normal_y", "normal_z", "echo_ratio",
+)
+MIN_POINTS = 4
+_EIGEN = {"linearity", "planarity", "omnivariance", "surface_variation", "sphericity", "eigenentropy",
+          "anisotropy", "eigenvalue1", "eigenvalue2", "eigenvalue3", "eigenvalue_sum"}
+_NORMAL = {"verticality", "normal_x", "normal_y", "normal_z"}
+_Z = {"z_rank", "z_range"}
+_CYL = {"point_density", "echo_ratio"}
+
+
+class FeatureError(QuakeScanError):
+    """Features cannot be computed as asked (bad radius, names or coordinates)."""
+
+
+def _check(xyz, radius, features, core_points):
+    xyz = np.asarray(xyz, dtype=np.float64)
+    if xyz.ndim != 2 or xyz.shape[1] != 3:
+        raise FeatureError(f"xyz must be an (n, 3) array, got shape {xyz.shape}")
+    if not np.all(np.isfinite(xyz)):
+        raise FeatureError("xyz holds NaN or inf coordinates; drop those points first")
+    if not (isinstance(radius, (int, float, np.floating)) and math.isfinite(radius) and radius > 0):
+        raise FeatureError(f"radius must be a positive number of metres, got {radius!r}")
+    names = FEATURES if features is None else tuple(features)
+    unknown = [f for f in names if f not in FEATURES]
+    if unknown:
+        raise FeatureError(f"unknown features {unknown}; known: {', '.join(FEATURES)}")
+    if core_points is not None:
+        core_points = np.asarray(core_points, dtype=np.float64)
+        if core_points.ndim != 2 or core_points.shape[1] != 3 or not np.all(np.isfinite(core_points)):
+            raise FeatureError(f"core_points must be a finite (m, 3) array, got shape {core_points.shape}")
+    return xyz, float(radius), names, core_points
+
+
+def _derive(names, radius, count, lam, normal, rough, zrank, zrange, curv, ncyl):
+    """Feature arrays from the per-neighbourhood quantities (same for fast and reference)."""
+    out = {}
+    n = count.astype(np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        l1, l2, l3 = lam[:, 0], lam[:, 1], lam[:, 2]
+        s = l1 + l2 + l3
+        e = lam / s[:, None]
+        for name in names:
+            if name == "num_neighbours":
+                v = n
+            elif name == "surface_density":
+                v = n / (math.pi * radius ** 2)
+            elif name == "volume_density":
+                v = n / (4.0 / 3.0 * math.pi * radius ** 3)
+            elif name == "point_density":
+                v = ncyl / (math.pi * radius ** 2)
+            elif name == "echo_ratio":
+                v = np.where(ncyl > 0, 100.0 * n / np.maximum(ncyl, 1), np.nan)
+            elif name == "linearity":
+                v = (l1 - l2) / l1
+            elif name == "planarity":
+                v = (l2 - l3) / l1
+            elif name == "sphericity":
+                v = l3 / l1
+            elif name == "anisotropy":
+                v = (l1 - l3) / l1
+            elif name == "surface_variation":
+                v = l3 / s
+            elif name == "omnivariance":
+                v = np.cbrt(e[:, 0] * e[:, 1] * e[:, 2])
+            elif name == "eigenentropy":
+                v = -np.sum(np.where(e > 0, e * np.log(np.where(e > 0, e, 1.0)), 0.0), axis=1)
+                v[np.isnan(s)] = np.nan
+            elif name in ("eigenvalue1", "eigenvalue2", "eigenvalue3"):
+                v = lam[:, int(name[-1]) - 1].copy()
+            elif name == "eigenvalue_sum":
+                v = s
+            elif name == "verticality":
+                v = 1.0 - np.abs(normal[:, 2])
+            elif name in ("normal_x", "normal_y", "normal_z"):
+                v = normal[:, "xyz".index(name[-1])].copy()
+            elif name == "roughness":
+                v = rough
+            elif name == "z_rank":
+                v = zrank
+            elif name == "z_range":
+                v = zrange
+            elif name == "curvature":
+                v = curv
+            out[name] = np.asarray(v, dtype=np.float64)
+    return out
+
+
+def _needs(names):
+    names = set(names)
+    do_curv = "curvature" in names
+    do_rough = "roughness" in names
+    do_eig = bool(names & (_EIGEN | _NORMAL))
+    return do_eig, do_rough, bool(names & _Z), do_curv, bool(names & _CYL)
+
+
+def _grid_sort(p, radius, lo, dims):
+    cell = np.floor((p - lo) / radius).astype(np.int64)
+    np.clip(cell, 0, np.asarray(dims) - 1, out=cell)
+    key = (cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2]
+    order = np.argsort(key, kind="stable")
+    return order, key[order]
+
+
+def _fast(cloud, query, qself, radius, names, workers, planar=False):
+    """Run the numba kernel; cloud and query already in the local frame."""
+    from numba import get_num_threads, set_num_threads
+
+    from . import _feature_kernels as K
+
+    if planar:
+        cloud = np.column_stack([cloud[:, :2], np.zeros(len(cloud))])
+        query = np.column_stack([query[:, :2], np.zeros(len(query))])
+    lo = np.minimum(cloud.min(axis=0), query.min(axis=0))
+    hi = np.maximum(cloud.max(axis=0), query.max(axis=0))
+    dims = tuple(int(d) for d in np.floor((hi - lo) / radius).astype(np.int64) + 1)
+    if float(dims[0]) * dims[1] * dims[2] > 2.0 ** 62:
+        raise FeatureError(f"the cloud spans {hi - lo} m: too many cells of {radius} m; split it into tiles")
+    porder, pkeys = _grid_sort(cloud, radius, lo, dims)
+    qorder, qkeys = _grid_sort(query, radius, lo, dims)
+    inv = np.empty(len(cloud), np.int64)
+    inv[porder] = np.arange(len(cloud))
+    qs = qself[qorder]
+    qs = np.where(qs >= 0, inv[np.maximum(qs, 0)], -1)
+    brk = np.flatnonzero(np.diff(qkeys)) + 1
+    cell_start = np.concatenate([[0], brk, [len(qkeys)]]).astype(np.int64)
+    cell_key = qkeys[cell_start[:-1]]
+    ps = cloud[porder]
+    qq = query[qorder]
+    do_eig, do_rough, do_z, do_curv, _ = (False,) * 5 if planar else _needs(names)
+    m = len(query)
+    count = np.zeros(m, np.int64)
+    lam = np.full((m, 3), np.nan)
+    normal = np.full((m, 3), np.nan)
+    rough = np.full(m, np.nan)
+    zrank = np.full(m, np.nan)
+    zrange = np.full(m, np.nan)
+    curv = np.full(m, np.nan)
+    old = get_num_threads()
+    if workers is not None and workers > 0:
+        set_num_threads(min(workers, old))
+    try:
+        K.neighbourhoods(np.ascontiguousarray(ps[:, 0]), np.ascontiguousarray(ps[:, 1]),
+                         np.ascontiguousarray(ps[:, 2]), pkeys,
+                         np.ascontiguousarray(qq[:, 0]), np.ascontiguousarray(qq[:, 1]),
+                         np.ascontiguousarray(qq[:, 2]), qs, cell_start, cell_key, dims[1], dims[2],
+                         radius, MIN_POINTS, do_eig, do_rough, do_z, do_curv,
+                         count, lam, normal, rough, zrank, zrange, curv)
+    finally:
+        set_num_threads(old)
+    res = [count, lam, normal, rough, zrank, zrange, curv]
+    out = []
+    for a in res:
+        b = np.empty_like(a)
+        b[qorder] = a
+        out.append(b)
+    return out
+
+
+def compute_features(xyz, radius: float, features: Sequence[str] | None = None, core_points=None,
+                     workers: int | None = None, fast: bool = True) -> dict[str, np.ndarray]:
+    """Geometric features of every point (or of every core point) at a spherical radius.
+
+    Parameters
+    ----------
+    xyz : (n, 3) float64
+        The point cloud, world or local coordinates (shifted to a local origin internally).
+    radius : float
+        Neighbourhood radius r in metres (the paper uses 1.0-4.0).
+    features : sequence of str, optional
+        Names from `FEATURES`; default all. Only what they need is computed (no eigen
+        decomposition for densities or z features, no cylinder search without
+        point_density/echo_ratio, no quadric fit without curvature).
+    core_points : (m, 3) float64, optional
+        Where to evaluate; default the cloud's own points (then each neighbourhood includes
+        the point). Core points are not part of the cloud.
+    workers : int, optional
+        Threads for the compiled kernel (default: all of numba's).
+    fast : bool
+        False runs the plain numpy reference (slow; for tests).
+
+    Returns
+    -------
+    dict of str -> (n,) or (m,) float64
+        One array per requested feature, NaN where the degenerate rule of the module says so.
+    """
+    xyz, radius, names, core_points = _check(xyz, radius, features, core_points)
+    n = len(xyz)
+    m = n if core_points is None else len(core_points)
+    if m == 0 or n == 0:
+        nan = np.full(m, np.nan)
+        return {f: (np.zeros(m) if f in ("num_neighbours", "surface_density", "volume_density",
+                                         "point_density") else nan.copy()) for f in names}
+    origin = xyz.min(axis=0)
+    cloud = xyz - origin
+    if core_points is None:
+        query, qself = cloud, np.arange(n, dtype=np.int64)
+    else:
+        query, qself = core_points - origin, np.full(m, -1, np.int64)
+    need_cyl = bool(set(names) & _CYL)
+    if fast:
+        count, lam, normal, rough, zrank, zrange, curv = _fast(cloud, query, qself, radius, names, workers)
+        ncyl = _fast(cloud, query, qself, radius, (), workers, planar=True)[0].astype(np.float64) \
+            if need_cyl else None
+    else:
+        count, lam, normal, rough, zrank, zrange, curv, ncyl = _reference(cloud, query, qself, radius, names)
+    return _derive(names, radius, count, lam, normal, rough, zrank, zrange, curv, ncyl)
+
+
+def _reference(cloud, query, qself, radius, names):
+    """Plain numpy, one point at a time: the obvious reading of the module's definitions."""
+    from scipy.spatial import cKDTree
+
+    do_eig, do_rough, do_z, do_curv, do_cyl = _needs(names)
+    tree = cKDTree(cloud)
+    m = len(query)
+    count = np.zeros(m, np.int64)
+    lam = np.full((m, 3), np.nan)
+    normal = np.full((m, 3), np.nan)
+    rough, zrank, zrange, curv = (np.full(m, np.nan) for _ in range(4))
+    ncyl = None
+    if do_cyl:
+        ncyl = np.asarray(cKDTree(cloud[:, :2]).query_ball_point(query[:, :2], radius, return_length=True),
+                          dtype=np.float64)
+    tiny = (1e-9 * radius) ** 2
+    for i, q in enumerate(query):
+        idx = np.array(sorted(tree.query_ball_point(q, radius)), dtype=np.int64)
+        # query_ball_point tests the distance as scipy does; use the kernel's test exactly
+        d = cloud[idx] - q
+        idx = idx[np.sum(d * d, axis=1) <= radius * radius]
+        nb = cloud[idx]
+        k = len(idx)
+        count[i] = k
+        if k < MIN_POINTS:
+            continue
+        if do_z:
+            zrange[i] = nb[:, 2].max() - nb[:, 2].min()
+            below = np.sum(nb[:, 2] < q[2])
+            zrank[i] = below / (k - 1) if qself[i] >= 0 else below / k
+        if not (do_eig or do_rough or do_curv):
+            continue
+        mean = nb.mean(axis=0)
+        c = nb - mean
+        w, v = np.linalg.eigh(c.T @ c / k)
+        w = np.clip(w[::-1], 0.0, None)
+        v = v[:, ::-1]
+        if w[0] <= tiny:
+            continue
+        lam[i] = w
+        if w[1] <= 1e-10 * w[0]:
+            continue
+        nrm = v[:, 2] * (1 if (v[2, 2], v[1, 2], v[0, 2]) >= (0, 0, 0) else -1)
+        normal[i] = nrm
+        if do_rough:
+            if qself[i] >= 0:
+                others = nb[idx != qself[i]]
+                mo = others.mean(axis=0)
+                wo, vo = np.linalg.eigh((others - mo).T @ (others - mo) / len(others))
+                if wo[1] > 1e-10 * wo[2] and wo[2] > tiny:
+                    rough[i] = abs(vo[:, 0] @ (q - mo))
+            else:
+                rough[i] = abs(nrm @ (q - mean))
+        if do_curv and k >= 6:
+            u, vv, h = (c @ v / radius).T
+            X = np.column_stack([np.ones(k), u, vv, u * u, u * vv, vv * vv])
+            MtM = X.T @ X
+            if np.linalg.cond(MtM) < 1e12:
+                coef = np.linalg.solve(MtM, X.T @ h)
+                uq, vq = (q - mean) @ v[:, :2] / radius
+                fx = coef[1] + 2 * coef[3] * uq + coef[4] * vq
+                fy = coef[2] + coef[4] * uq + 2 * coef[5] * vq
+                fxx, fxy, fyy = 2 * coef[3], coef[4], 2 * coef[5]
+                g = 1 + fx * fx + fy * fy
+                curv[i] = abs(((1 + fy * fy) * fxx - 2 * fx * fy * fxy + (1 + fx * fx) * fyy)
+                              / (2 * g ** 1.5)) / radius
+    return count, lam, normal, rough, zrank, zrange, curv, ncyl
+
+
+def _reference_features(xyz, radius, features=None, core_points=None):
+    """The slow numpy reference of `compute_features` (same definitions, same NaN rule)."""
+    return compute_features(xyz, radius, features, core_points, fast=False)

@@ -1,0 +1,193 @@
+"""Per-point features: closed-form geometry, reference agreement, UTM invariance, degenerate rule."""
+import math
+
+import numpy as np
+import pytest
+
+from core import features as F
+from core.errors import QuakeScanError
+from core.features import FEATURES, compute_features
+
+
+def grid_plane(h=0.05, half=3.0):
+    k = int(round(half / h))
+    i, j = np.meshgrid(np.arange(-k, k + 1), np.arange(-k, k + 1), indexing="ij")
+    return np.column_stack([i.ravel() * h, j.ravel() * h, np.zeros(i.size)]), i.ravel(), j.ravel()
+
+
+def test_plane_disc_closed_form():
+    h, r = 0.05, 1.0 + 1e-6  # no lattice point on the sphere itself
+    xyz, i, j = grid_plane(h)
+    centre = np.flatnonzero((i == 0) & (j == 0))
+    f = compute_features(xyz, r, core_points=xyz[centre] + [0, 0, 0])
+    # lattice points of the disc: sum of i^2 over them, exact in integers
+    k = int(r / h) + 1
+    ii, jj = np.meshgrid(np.arange(-k, k + 1), np.arange(-k, k + 1), indexing="ij")
+    inside = (ii * h) ** 2 + (jj * h) ** 2 <= r * r
+    n = int(inside.sum())
+    lam = float((ii[inside] ** 2).sum()) * h * h / n  # isotropic by the 90° symmetry
+    assert f["num_neighbours"][0] == n
+    assert f["eigenvalue1"][0] == pytest.approx(lam, rel=1e-12)
+    assert f["eigenvalue2"][0] == pytest.approx(lam, rel=1e-12)
+    assert abs(f["eigenvalue3"][0]) < 1e-15
+    assert lam == pytest.approx(r * r / 4, rel=0.03)  # continuous disc: r^2/4
+    assert f["planarity"][0] == pytest.approx(1.0, abs=1e-10)
+    assert f["linearity"][0] == pytest.approx(0.0, abs=1e-10)
+    assert f["sphericity"][0] == pytest.approx(0.0, abs=1e-12)
+    assert f["eigenentropy"][0] == pytest.approx(math.log(2), rel=1e-10)  # 0 ln 0 := 0
+    assert f["omnivariance"][0] == pytest.approx(0.0, abs=1e-5)
+    assert abs(f["normal_z"][0]) == pytest.approx(1.0)
+    assert f["verticality"][0] == pytest.approx(0.0, abs=1e-12)  # roof
+    assert f["curvature"][0] == pytest.approx(0.0, abs=1e-9)
+    assert f["surface_density"][0] == pytest.approx(n / (math.pi * r * r))
+    assert f["volume_density"][0] == pytest.approx(n / (4 / 3 * math.pi * r ** 3))
+    assert f["point_density"][0] == pytest.approx(n / (math.pi * r * r))  # flat: cylinder = sphere
+    assert f["echo_ratio"][0] == pytest.approx(100.0)
+    assert f["z_range"][0] == 0.0
+
+
+def test_line_closed_form():
+    h, m = 0.1, 10
+    xyz = np.column_stack([np.arange(-50, 51) * h, np.zeros(101), np.zeros(101)])
+    f = compute_features(xyz, m * h + 1e-9)
+    c = 50
+    assert f["num_neighbours"][c] == 2 * m + 1
+    assert f["eigenvalue1"][c] == pytest.approx(h * h * m * (m + 1) / 3, rel=1e-12)
+    assert f["linearity"][c] == pytest.approx(1.0)
+    assert f["planarity"][c] == pytest.approx(0.0, abs=1e-12)
+    # collinear: no plane, so no normal, verticality, roughness, curvature (the rule)
+    for name in ("normal_x", "verticality", "roughness", "curvature"):
+        assert np.isnan(f[name][c])
+    assert np.isfinite(f["eigenentropy"][c]) and f["eigenentropy"][c] == pytest.approx(0.0, abs=1e-12)
+
+
+def test_tilted_plane_normal_zrange_and_wall():
+    xyz, _, _ = grid_plane(0.05, 2.5)
+    t = math.radians(30)
+    rot = np.array([[math.cos(t), 0, -math.sin(t)], [0, 1, 0], [math.sin(t), 0, math.cos(t)]])
+    tilted = xyz @ rot.T
+    q = np.array([[0.0, 0.0, 0.0]])
+    f = compute_features(tilted, 1.0 + 1e-6, core_points=q)
+    n = np.array([f["normal_x"][0], f["normal_y"][0], f["normal_z"][0]])
+    assert np.allclose(n, rot @ [0, 0, 1], atol=1e-9)
+    assert f["z_range"][0] == pytest.approx(2 * math.sin(t), rel=0.03)
+    assert f["verticality"][0] == pytest.approx(1 - math.cos(t), abs=1e-9)
+    assert f["roughness"][0] == pytest.approx(0.0, abs=1e-9)
+    wall = xyz[:, [0, 2, 1]]  # the plane x-z: a wall facing y
+    fw = compute_features(wall, 1.0, features=["verticality", "point_density", "surface_density"],
+                          core_points=q)
+    assert fw["verticality"][0] == pytest.approx(1.0)
+    assert fw["point_density"][0] > fw["surface_density"][0]  # a wall piles up in the cylinder
+
+
+def test_sphere_curvature_and_normal():
+    rng = np.random.default_rng(3)
+    R = 10.0
+    n = 40000
+    # uniform on the cap z > 0.85 R
+    zc = rng.uniform(0.85 * R, R, n)
+    phi = rng.uniform(0, 2 * math.pi, n)
+    rho = np.sqrt(R * R - zc * zc)
+    xyz = np.column_stack([rho * np.cos(phi), rho * np.sin(phi), zc])
+    d = np.array([0.3, 0.2, 0.0])
+    d[2] = math.sqrt(R * R - d @ d) * 0.999999
+    q = (d / np.linalg.norm(d) * R)[None, :]
+    f = compute_features(xyz, 1.5, core_points=q)
+    assert f["curvature"][0] == pytest.approx(1 / R, rel=0.03)
+    n_ = np.array([f["normal_x"][0], f["normal_y"][0], f["normal_z"][0]])
+    assert np.allclose(n_, q[0] / R, atol=0.01)
+
+
+def _same_normals(a, b):
+    """Walls (n_z ~ 0) have no preferred sign: align the reference's normals to ours."""
+    na = np.column_stack([a["normal_x"], a["normal_y"], a["normal_z"]])
+    nb = np.column_stack([b["normal_x"], b["normal_y"], b["normal_z"]])
+    flip = (np.abs(nb[:, 2]) < 1e-6) & (np.sum(na * nb, axis=1) < 0)
+    for k, c in enumerate("xyz"):
+        b[f"normal_{c}"] = np.where(flip, -nb[:, k], nb[:, k])
+
+
+def test_reference_agrees_with_fast():
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(0, 8, (2500, 2))
+    ground = np.column_stack([xy, 0.1 * xy[:, 0] + 0.02 * rng.normal(size=2500)])
+    wall = np.column_stack([rng.uniform(0, 8, 800), np.full(800, 4.0), rng.uniform(0, 3, 800)])
+    xyz = np.vstack([ground, wall, rng.uniform(0, 8, (300, 3)), ground[:5], [[20.0, 20, 20]]])
+    a = compute_features(xyz, 1.0)
+    b = F._reference_features(xyz, 1.0)
+    _same_normals(a, b)
+    for name in FEATURES:
+        assert np.array_equal(np.isnan(a[name]), np.isnan(b[name])), name
+        ok = ~np.isnan(b[name])
+        np.testing.assert_allclose(a[name][ok], b[name][ok], rtol=1e-6, atol=1e-9, err_msg=name)
+    core = rng.uniform(0, 8, (50, 3))
+    a = compute_features(xyz, 1.0, core_points=core)
+    b = F._reference_features(xyz, 1.0, core_points=core)
+    _same_normals(a, b)
+    for name in FEATURES:
+        ok = ~np.isnan(b[name])
+        assert np.array_equal(np.isnan(a[name]), ~ok), name
+        np.testing.assert_allclose(a[name][ok], b[name][ok], rtol=1e-6, atol=1e-9, err_msg=name)
+
+
+def test_utm_shift_invariance():
+    rng = np.random.default_rng(1)
+    # coordinates on a 1/1024 m lattice: exactly representable at UTM magnitudes too
+    xyz = np.round(rng.uniform(0, 10, (3000, 3)) * [1, 1, 0.1] * 1024) / 1024
+    shifted = xyz + [500000.0, 5000000.0, 200.0]
+    a = compute_features(xyz, 1.5)
+    b = compute_features(shifted, 1.5)
+    for name in FEATURES:
+        assert np.array_equal(np.isnan(a[name]), np.isnan(b[name])), name
+        ok = ~np.isnan(a[name])
+        np.testing.assert_allclose(b[name][ok], a[name][ok], rtol=1e-9, atol=1e-12, err_msg=name)
+
+
+def test_degenerate_rule():
+    two = np.array([[0.0, 0, 0], [0.1, 0, 0]])
+    f = compute_features(two, 1.0)
+    assert np.all(f["num_neighbours"] == 2) and np.all(np.isfinite(f["surface_density"]))
+    for name in set(FEATURES) - {"num_neighbours", "surface_density", "volume_density",
+                                  "point_density", "echo_ratio"}:
+        assert np.all(np.isnan(f[name])), name
+    dup = np.repeat([[1.0, 2.0, 3.0]], 10, axis=0) + [500000.0, 5000000.0, 0]
+    f = compute_features(dup, 1.0)
+    assert np.all(f["num_neighbours"] == 10)
+    for name in ("planarity", "eigenentropy", "normal_z", "roughness", "curvature"):
+        assert np.all(np.isnan(f[name])), name
+    assert np.all(f["z_range"] == 0)
+    square = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0], [0.5, 0.5, 0]])
+    f = compute_features(square, 2.0)
+    for name in FEATURES:
+        assert not np.any(np.isinf(f[name])), name
+    assert np.all(np.isfinite(f["eigenentropy"])) and np.all(f["sphericity"] == 0)
+    assert np.all(f["roughness"] == 0)
+
+
+def test_only_requested_features(monkeypatch):
+    xyz = np.random.default_rng(2).uniform(0, 5, (500, 3))
+    from core import _feature_kernels as K
+
+    seen = []
+    orig = K.neighbourhoods
+
+    def spy(*args):
+        seen.append(args[14:18])  # do_eig, do_rough, do_z, do_curv
+        return orig(*args)
+
+    monkeypatch.setattr(K, "neighbourhoods", spy)
+    f = compute_features(xyz, 1.0, features=["num_neighbours", "z_range"])
+    assert set(f) == {"num_neighbours", "z_range"}
+    assert seen == [(False, False, True, False)]  # no eigen, no cylinder pass
+    seen.clear()
+    compute_features(xyz, 1.0, features=["planarity"])
+    assert seen == [(True, False, False, False)]
+
+
+def test_bad_input():
+    with pytest.raises(QuakeScanError, match="unknown features"):
+        compute_features(np.zeros((3, 3)), 1.0, features=["nope"])
+    with pytest.raises(QuakeScanError, match="radius"):
+        compute_features(np.zeros((3, 3)), -1.0)
+    with pytest.raises(QuakeScanError, match=r"\(n, 3\)"):
+        compute_features(np.zeros((3, 2)), 1.0)
