@@ -1,0 +1,242 @@
+"""Per-building results: CSV round trip and evaluation, GeoJSON, PNG map, graded LAS."""
+import csv
+import json
+
+import laspy
+import numpy as np
+import pytest
+import shapely.geometry
+
+from core import results as R
+from core.evaluate import evaluate_files
+from core.footprints import Footprints, read_footprints
+from core.model import GRADE_LABELS
+
+CLASSES = [0, 3, 4, 5]
+ORIGIN = np.array([500000.0, 5000000.0, 40.0])
+
+
+def _rows():
+    return [
+        R.BuildingResult(7, 900, 850, True, grade=5, probabilities={0: 0.05, 3: 0.1, 4: 0.15, 5: 0.7},
+                         share_changed=0.8123456789, decided_by="model"),
+        R.BuildingResult(2, 12, 400, False, reason="12 pre-event points < 50"),
+        R.BuildingResult(3, 500, 510, True, grade=0, probabilities={0: 1.0, 3: 0.0, 4: 0.0, 5: 0.0},
+                         share_changed=0.0, decided_by="no change"),
+        R.BuildingResult(5, 700, 300, True, grade=4, probabilities={0: 0.1, 3: 0.2, 4: 0.4, 5: 0.3},
+                         share_changed=1 / 3, decided_by="model, with \"quotes\", commas"),
+    ]
+
+
+def _no_part(tmp_path):
+    assert not [p for p in tmp_path.rglob("*") if ".part" in p.name]
+
+
+def test_csv_round_trip(tmp_path):
+    path = tmp_path / "buildings.csv"
+    R.write_csv(_rows(), path, CLASSES)
+    back = R.read_csv(path)
+    assert [r.building_id for r in back] == [2, 3, 5, 7]  # sorted
+    want = {r.building_id: r for r in _rows()}
+    for r in back:
+        w = want[r.building_id]
+        assert (r.n_pre, r.n_post, r.assessable, r.grade, r.reason, r.decided_by) == \
+               (w.n_pre, w.n_post, w.assessable, w.grade, w.reason, w.decided_by)
+        assert r.probabilities == pytest.approx(w.probabilities, rel=1e-6)
+        assert (r.share_changed is None) == (w.share_changed is None)
+        if w.share_changed is not None:
+            assert r.share_changed == pytest.approx(w.share_changed, rel=1e-6)
+        assert r.label == w.label
+    assert back[-1].label == GRADE_LABELS[5]
+    _no_part(tmp_path)
+
+
+def test_csv_not_assessable_is_empty_never_a_guess(tmp_path):
+    path = tmp_path / "buildings.csv"
+    R.write_csv(_rows(), path, CLASSES)
+    with open(path, newline="") as f:
+        rows = {int(r["building_id"]): r for r in csv.DictReader(f)}
+    assert list(next(iter(rows.values()))) == R.csv_columns(CLASSES)
+    na = rows[2]
+    assert na["assessable"] == "0" and na["predicted_grade"] == "" and na["label"] == "not assessable"
+    assert all(na[f"p_{c}"] == "" for c in CLASSES)
+    assert na["reason"] == "12 pre-event points < 50" and na["n_pre"] == "12"
+    assert rows[7]["assessable"] == "1" and rows[7]["predicted_grade"] == "5" and rows[7]["p_5"] == "0.7"
+    assert rows[7]["share_changed"] == "0.812346"
+    # a not-assessable row whose caller forgot to clear a grade still writes no grade
+    R.write_csv([R.BuildingResult(1, 0, 0, False, "no point inside the footprint", grade=3,
+                                  probabilities={3: 1.0})], path, CLASSES)
+    (r,) = R.read_csv(path)
+    assert r.grade is None and r.probabilities == {} and r.label == "not assessable"
+
+
+def test_empty_csv_round_trip(tmp_path):
+    R.write_csv([], tmp_path / "b.csv", CLASSES)
+    assert R.read_csv(tmp_path / "b.csv") == []
+    with pytest.raises(R.ResultsError, match="does not exist"):
+        R.read_csv(tmp_path / "nope.csv")
+
+
+def test_evaluate_reads_the_csv(tmp_path):
+    path = tmp_path / "buildings.csv"
+    R.write_csv(_rows(), path, CLASSES)
+    truth = tmp_path / "truth.csv"
+    truth.write_text("building_id,grade\n2,5\n3,0\n5,3\n7,5\n99,0\n")
+    ev = evaluate_files(path, truth)
+    assert ev.n == 3 and ev.not_assessable == 1 and ev.missing == [99]
+    assert ev.overall_accuracy == pytest.approx(2 / 3)  # 3 → 0 right, 7 → 5 right, 5 → 4 wrong (truth 3)
+
+
+def _square(n=11, side=10.0, at=(1000.0, 2000.0)):
+    """Grid of points on a side × side square (local coordinates), area side²."""
+    g = np.linspace(0.0, side, n)
+    xx, yy = np.meshgrid(g, g)
+    return np.column_stack([xx.ravel(), yy.ravel()]) + np.asarray(at)
+
+
+def test_outlines_hull_in_world_coordinates_and_footprints():
+    rows = _rows()
+    fp_poly = shapely.geometry.box(501000.0, 5002000.0, 501012.0, 5002008.0)
+    fp = Footprints(np.array([7]), [fp_poly], "EPSG:32633")
+    xy = {3: _square(side=10.0, at=(1000.0, 2000.0)) + 0.0004,  # not on the mm grid on purpose
+          5: np.array([[1.0, 1.0], [1.0, 1.0]]),  # one distinct point
+          7: _square(at=(0.0, 0.0))}  # ignored: the footprint wins
+    out = R.building_outlines(rows, fp, xy, ORIGIN)
+    assert set(out) == {3, 5, 7}  # 2 has neither footprint nor points
+    assert out[7].source == R.OUTLINE_FOOTPRINT and out[7].geometry.equals(fp_poly)
+    hull = out[3]
+    assert hull.source == R.OUTLINE_HULL
+    assert abs(hull.geometry.area - 100.0) < 1e-6
+    minx, miny, maxx, maxy = hull.geometry.bounds
+    assert np.allclose([minx, miny, maxx, maxy],
+                       [501000.0004, 5002000.0004, 501010.0004, 5002010.0004], atol=1e-6)
+    assert out[5].source == R.OUTLINE_BUFFER
+    assert out[5].geometry.contains(shapely.geometry.Point(500001.0, 5000001.0))
+    # collinear points: a buffered line, not an empty "hull"
+    line = R.building_outlines([rows[0]], None, {7: np.array([[0.0, 0], [1, 0], [2, 0]])}, ORIGIN)[7]
+    assert line.source == R.OUTLINE_BUFFER and line.geometry.area > 0
+
+
+def test_geojson(tmp_path):
+    rows = _rows()
+    fp_poly = shapely.geometry.box(501000.0, 5002000.0, 501012.0, 5002008.0)
+    fp = Footprints(np.array([7]), [fp_poly], "EPSG:32633")
+    xy = {3: _square(side=10.0, at=(1000.0, 2000.0)) + 0.0004}
+    outlines = R.building_outlines(rows, fp, xy, ORIGIN)
+    path = tmp_path / "buildings.geojson"
+    R.write_geojson(rows, outlines, path, "EPSG:32633", CLASSES)
+    doc = json.loads(path.read_text())
+    assert doc["type"] == "FeatureCollection"
+    assert doc["crs"] == {"type": "name", "properties": {"name": "urn:ogc:def:crs:EPSG::32633"}}
+    feats = {f["properties"]["building_id"]: f for f in doc["features"]}
+    assert sorted(feats) == [2, 3, 5, 7] and len(doc["features"]) == len(rows)
+    assert feats[7]["properties"]["outline"] == "footprint"
+    assert shapely.geometry.shape(feats[7]["geometry"]).equals(fp_poly)
+    assert feats[7]["properties"]["colour"] == R.GRADE_COLOURS[5]
+    assert feats[7]["properties"]["predicted_grade"] == 5 and feats[7]["properties"]["p_5"] == 0.7
+    h = feats[3]
+    assert h["properties"]["outline"] == "convex hull of points"
+    coords = np.array(h["geometry"]["coordinates"][0])
+    assert np.all(np.abs(coords * 1000 - np.rint(coords * 1000)) < 1e-3)  # mm precision
+    assert abs(shapely.geometry.shape(h["geometry"]).area - 100.0) < 2 * 10 * 0.001  # edges within 1 mm
+    assert np.abs(coords.min(axis=0) - [501000.0, 5002000.0]).max() <= 0.001
+    na = feats[2]
+    assert na["geometry"] is None and na["properties"]["assessable"] is False
+    assert na["properties"]["predicted_grade"] is None and na["properties"]["p_0"] is None
+    assert na["properties"]["label"] == "not assessable"
+    assert na["properties"]["colour"] == R.NOT_ASSESSABLE_COLOUR
+    # the footprint reader takes it back, CRS included
+    back = read_footprints(path)
+    assert sorted(back.ids.tolist()) == [3, 7] and back.crs == "EPSG:32633"
+    _no_part(tmp_path)
+
+
+def test_geojson_crs_member():
+    assert R.geojson_crs_member(None) is None
+    assert R.geojson_crs_member("EPSG:28992")["properties"]["name"] == "urn:ogc:def:crs:EPSG::28992"
+    import pyproj
+
+    wkt = pyproj.CRS.from_epsg(28992).to_wkt()
+    assert R.geojson_crs_member(wkt)["properties"]["name"] == "urn:ogc:def:crs:EPSG::28992"
+
+
+def _hex_rgb(h):
+    return np.array(R._rgb8(h)) / 255.0
+
+
+def test_map_png(tmp_path):
+    a = shapely.geometry.box(500000.0, 5000000.0, 500020.0, 5000020.0)
+    b = shapely.geometry.box(500040.0, 5000000.0, 500060.0, 5000020.0)
+    rows = [R.BuildingResult(1, 10, 0, False, "no post-event points"),
+            R.BuildingResult(2, 100, 100, True, grade=5, probabilities={5: 1.0}, share_changed=1.0,
+                             decided_by="model")]
+    outlines = {1: R.Outline(a, R.OUTLINE_FOOTPRINT), 2: R.Outline(b, R.OUTLINE_HULL)}
+    pts = np.random.default_rng(0).uniform([499990, 4999990], [500070, 5000030], (2000, 2))
+    path = tmp_path / "damage_map.png"
+    R.write_map_png(rows, outlines, path, "test map", points_xy=pts, crs="EPSG:32633")
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    import matplotlib.image
+
+    img = matplotlib.image.imread(path)
+    w_px, h_px = (int(round(v * R.MAP_DPI)) for v in R.MAP_SIZE_IN)
+    assert img.shape[:2] == (h_px, w_px)
+    # where the map drew each building (same inputs → same layout)
+    fig, ax = R._draw_map(rows, outlines, "test map", pts, "EPSG:32633")
+    fig.canvas.draw()
+    for geom, colour in ((a, R.NOT_ASSESSABLE_COLOUR), (b, R.GRADE_COLOURS[5])):
+        c = geom.centroid
+        px, py = ax.transData.transform((c.x, c.y))
+        pixel = img[int(round(h_px - py)), int(round(px)), :3]
+        assert np.abs(pixel - _hex_rgb(colour)).max() < 2 / 255, (colour, pixel)
+    labels = [t.get_text() for t in ax.get_legend().get_texts()]
+    assert "destruction (1)" in labels and "not assessable (1)" in labels and "no damage (0)" in labels
+    _no_part(tmp_path)
+
+
+def test_grade_las(tmp_path):
+    rng = np.random.default_rng(1)
+    n = 3000
+    xyz = rng.uniform([0, 0, 0], [300, 300, 30], (n, 3)).round(3)  # local, on the mm grid
+    xyz[:5] += 0.0004  # and some not
+    ids = rng.integers(0, 5, n)
+    grades = {1: 0, 2: 5, 3: None, 4: 3}  # 3 not assessable, 0 no building
+    path = tmp_path / "post_grades.las"
+    R.write_grade_las(path, xyz, ORIGIN, "EPSG:32633", ids, grades)
+    las = laspy.read(path)
+    assert las.header.version.minor == 4 and las.point_format.id == 7
+    assert np.allclose(las.header.scales, 0.001) and np.allclose(las.header.offsets, ORIGIN)
+    assert las.header.parse_crs().to_epsg() == 32633
+    world = np.column_stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)])
+    assert np.abs(world - (xyz + ORIGIN)).max() <= 0.0005 + 1e-9
+    assert np.array_equal(np.asarray(las.building_id), ids)
+    want = np.array([255 if grades.get(int(i)) is None else grades[int(i)] for i in ids])
+    assert np.array_equal(np.asarray(las.predicted_grade), want)
+    rgb = np.column_stack([las.red, las.green, las.blue])
+    for b, colour in ((0, R.BACKGROUND_COLOUR), (1, R.GRADE_COLOURS[0]), (2, R.GRADE_COLOURS[5]),
+                      (3, R.NOT_ASSESSABLE_COLOUR), (4, R.GRADE_COLOURS[3])):
+        assert np.all(rgb[ids == b] == np.array(R._rgb8(colour)) * 257), b
+    _no_part(tmp_path)
+
+
+def test_grade_las_without_ids_or_crs_and_laz(tmp_path):
+    path = tmp_path / "g.laz"
+    R.write_grade_las(path, np.array([[1.0, 2.0, 3.0]]), ORIGIN, None, None, {1: 5})
+    las = laspy.read(path)
+    assert las.predicted_grade.tolist() == [255] and las.header.parse_crs() is None
+    with pytest.raises(R.ResultsError, match=".las or .laz"):
+        R.write_grade_las(tmp_path / "g.txt", np.zeros((1, 3)), ORIGIN, None, None, {})
+    _no_part(tmp_path)
+
+
+def test_failed_write_leaves_nothing(tmp_path):
+    path = tmp_path / "b.csv"
+
+    class Boom(R.BuildingResult):
+        @property
+        def label(self):
+            raise RuntimeError("boom")
+
+    with pytest.raises(RuntimeError):
+        R.write_csv([Boom(1, 1, 1, True, grade=0)], path, CLASSES)
+    assert not path.exists()
+    _no_part(tmp_path)
