@@ -55,6 +55,17 @@ class Evaluation:
     not_assessable: int = 0
     missing: list = field(default_factory=list)
 
+    @property
+    def overall_accuracy(self) -> float:
+        """Share of buildings whose grade (0/3/4/5) is right, over all classes at once."""
+        return float(np.trace(self.confusion) / self.n) if self.n else 0.0
+
+    def to_json(self) -> dict:
+        return {"n": self.n, "overall_accuracy": self.overall_accuracy,
+                "per_grade": {str(g): m for g, m in self.per_grade.items()}, "damaged_vs_undamaged": self.damaged,
+                "confusion": {"grades": list(TARGET_GRADES), "rows_truth_columns_prediction": self.confusion.tolist()},
+                "not_assessable": self.not_assessable, "missing": list(self.missing)}
+
     def table(self) -> str:
         rows = ["| class | OA | precision | recall | F1 |", "|---|---|---|---|---|"]
         for g in TARGET_GRADES:
@@ -92,15 +103,33 @@ def _read_csv(path: Path, needed: tuple) -> list[dict]:
     return rows
 
 
+def read_truth(path: str | os.PathLike) -> dict[int, int]:
+    """{building_id: grade} from a truth CSV (building_id, grade) or a post-event scene bundle
+    folder (the grades in its scene.json)."""
+    path = Path(path)
+    if path.is_dir():
+        import json
+
+        manifest = path / "scene.json"
+        try:
+            doc = json.loads(manifest.read_text())
+            return {int(b["id"]): int(b["grade"]) for b in doc["buildings"]}
+        except FileNotFoundError:
+            raise EvaluationError(f"{manifest}: a truth folder must be a scene bundle with scene.json") from None
+        except (ValueError, KeyError, TypeError) as e:
+            raise EvaluationError(f"{manifest}: cannot read building grades ({e!r})") from None
+    tru = _read_csv(path, ("building_id", "grade"))
+    try:
+        return {int(r["building_id"]): int(r["grade"]) for r in tru}
+    except ValueError as e:
+        raise EvaluationError(f"{path}: building_id and grade must be integers ({e})") from None
+
+
 def evaluate_files(result_csv: str | os.PathLike, truth_csv: str | os.PathLike) -> Evaluation:
     """Join result and truth by building_id and evaluate the assessable buildings."""
     result_csv, truth_csv = Path(result_csv), Path(truth_csv)
     res = _read_csv(result_csv, ("building_id", "predicted_grade"))
-    tru = _read_csv(truth_csv, ("building_id", "grade"))
-    try:
-        truth = {int(r["building_id"]): int(r["grade"]) for r in tru}
-    except ValueError as e:
-        raise EvaluationError(f"{truth_csv}: building_id and grade must be integers ({e})") from None
+    truth = read_truth(truth_csv)
     t, p, not_assessable, seen = [], [], 0, set()
     for r in res:
         bid = int(r["building_id"])
