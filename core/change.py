@@ -28,6 +28,7 @@ from .errors import QuakeScanError
 log = logging.getLogger(__name__)
 
 STATISTICS = ("mean", "median", "std", "p10", "p90")
+CLIP_LODS = 10.0
 
 
 class ChangeError(QuakeScanError):
@@ -114,7 +115,10 @@ def split_changed(d_curv: np.ndarray, d_height: np.ndarray, settings: SplitSetti
     if n < 2 or not beyond.any():
         return np.zeros(n, bool)
     x = np.column_stack([d_curv / settings.lod_curvature, d_height / settings.lod_height_m])
-    x = np.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0)
+    # Beyond CLIP_LODS a change is a change for sure; clipping keeps a handful of extreme
+    # values (curvature fitted to rubble reaches hundreds of LoDs) from taking a cluster of
+    # their own and leaving the bulk of a collapsed building "unchanged".
+    x = np.clip(np.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0), -CLIP_LODS, CLIP_LODS)
     if np.ptp(x, axis=0).max() == 0:
         return np.zeros(n, bool)
     km = KMeans(n_clusters=2, n_init=4, random_state=settings.seed).fit(x)

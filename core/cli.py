@@ -140,28 +140,129 @@ def cmd_survey_template(args) -> int:
     return 0
 
 
-def cmd_demo(args) -> int:
-    """The built-in default: a small box city, scanned with the paper's survey."""
-    from .scan import scan
-    from .scene import read_scene, write_scene
-    from .survey import preset
-    from .synthetic import box_city
+def _csv_list(text: str | None) -> tuple | None:
+    return None if text is None else tuple(t.strip() for t in text.split(",") if t.strip())
 
+
+def cmd_features(args) -> int:
+    """Features of every point as extra LAS dimensions (float32; CloudCompare shows them as
+    scalar fields). NaN marks the degenerate neighbourhoods of core.features."""
+    import laspy
+
+    from .features import FEATURES, compute_features
+    from .pointcloud import read_epoch, read_las
+
+    names = _csv_list(args.features) or FEATURES
+    src = Path(args.input)
     out = Path(args.output)
+    epoch = read_epoch(src)
+    las = read_las(src)
+    t0 = time.perf_counter()
+    feats = compute_features(epoch.xyz, args.radius, names, workers=args.threads)
+    dt = time.perf_counter() - t0
+    present = set(las.point_format.dimension_names)
+    clash = [n for n in names if n in present]
+    if clash:
+        raise QuakeScanError(f"{src}: already has dimensions {clash}; write features of another file or radius")
+    las.add_extra_dims([laspy.ExtraBytesParams(name=n, type=np.float32,
+                                               description=f"{n} r={args.radius:g} m"[:31]) for n in names])
+    for n in names:
+        las[n] = feats[n].astype(np.float32)
+    tmp = out.with_name(out.name + ".part")
+    las.write(tmp, do_compress=out.suffix.lower() == ".laz")
+    os.replace(tmp, out)
+    print(f"features: {len(names)} features of {len(epoch):,} points at r = {args.radius:g} m in {dt:.1f} s "
+          f"({len(epoch) / max(dt, 1e-9) / 1e3:,.0f} k points/s) -> {out}")
+    return 0
+
+
+def _pipeline_settings(args):
+    from .change import SplitSettings
+    from .pipeline import PAPER_FEATURES, PipelineSettings
+
+    split = SplitSettings(lod_height_m=args.lod_height, lod_curvature=args.lod_curvature, seed=args.seed)
+    return PipelineSettings(radius_m=args.radius, point_features=_csv_list(args.features) or PAPER_FEATURES,
+                            split=split)
+
+
+def cmd_train(args) -> int:
+    from .model import save_model
+    from .training import TrainingError, TrainingPair, train
+
+    if args.truth and len(args.truth) != len(args.pair):
+        raise TrainingError(f"{len(args.truth)} --truth files for {len(args.pair)} --pair: give one per pair "
+                            "or none (then grades come from the post epochs' grade dimension)")
+    pairs = [TrainingPair(pre, post, args.truth[k] if args.truth else None, args.footprints)
+             for k, (pre, post) in enumerate(args.pair)]
+    progress = _Progress("describe", args.progress or sys.stderr.isatty())
+    model, ev, table = train(pairs, _pipeline_settings(args), n_estimators=args.trees, max_depth=args.depth,
+                             test_size=args.test_size, seed=args.seed, workers=args.threads,
+                             progress=lambda name, d, t: progress(d, t),
+                             command="quakescan " + " ".join(sys.argv[1:]))
+    out = Path(args.output)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    save_model(model, out)
+    counts = dict(zip(*np.unique(table.y, return_counts=True)))
+    print(f"train: {len(table.y)} building rows from {len(pairs)} pairs, grades {counts}; "
+          f"{model.provenance['n_train']} train / {model.provenance['n_test']} test (grouped by building)")
+    if ev is not None:
+        print(f"held-out test: overall accuracy {100 * ev.overall_accuracy:.1f} % on {ev.n} buildings")
+        print(ev.table())
+    print(f"model -> {out}")
+    return 0
+
+
+def cmd_classify(args) -> int:
+    from .classify import classify
+
+    summary = classify(args.pre, args.post, args.output, model_path=args.model, footprints_path=args.footprints,
+                       id_field=args.id_field, align=args.align, workers=args.threads,
+                       progress=_Progress("classify", args.progress or sys.stderr.isatty()),
+                       write_las=not args.no_las)
+    out = Path(args.output)
+    if "alignment" in summary:
+        a = summary["alignment"]
+        print(f"alignment (ICP on stable areas): std {a['std_after_m']:.3f} m, rmse {a['rmse_before_m']:.3f} -> "
+              f"{a['rmse_after_m']:.3f} m")
+    labels = ", ".join(f"{k}: {v}" for k, v in sorted(summary["by_label"].items()))
+    print(f"classify: {summary['buildings']} buildings ({labels}) in {summary['seconds']['total']:.1f} s")
+    print(f"results -> {out / 'buildings.csv'}, {out / 'buildings.geojson'}, {out / 'damage_map.png'}"
+          + ("" if args.no_las else f", {out / 'post_grades.las'}"))
+    return 0
+
+
+def cmd_evaluate(args) -> int:
+    from .evaluate import evaluate_files, plot_confusion
+
+    ev = evaluate_files(args.result, args.truth)
+    print(f"evaluate: {ev.n} assessable buildings, overall accuracy {100 * ev.overall_accuracy:.1f} %"
+          + (f", {ev.not_assessable} not assessable" if ev.not_assessable else "")
+          + (f", {len(ev.missing)} in the truth but not in the result" if ev.missing else ""))
+    print(ev.table())
+    out = Path(args.output) if args.output else Path(args.result).parent
     out.mkdir(parents=True, exist_ok=True)
-    scene_dir = out / "scene_pre"
-    write_scene(box_city(rows=3, cols=4, footprint=14.0, street=12.0, height=(9.0, 12.0, 15.0, 6.0)),
-                scene_dir)
-    scene = read_scene(scene_dir)
-    survey = preset("paper")
-    las = out / "pre.las"
-    summary = scan(scene, survey, las, seed=args.seed, progress=_Progress("scan demo", sys.stderr.isatty()),
-                   source=str(scene_dir))
-    report = summary.to_json()
-    report["survey"] = survey.to_json()
-    _write_json_atomic(out / "pre.las.summary.json", report)
-    _print_summary(summary, scene)
-    print(f"demo: scene bundle {scene_dir}, point cloud {las}, summary {out / 'pre.las.summary.json'}")
+    plot_confusion(ev, out / "confusion.png")
+    _write_json_atomic(out / "evaluation.json", ev.to_json())
+    print(f"confusion matrix -> {out / 'confusion.png'}, metrics -> {out / 'evaluation.json'}")
+    return 0
+
+
+def cmd_demo(args) -> int:
+    """The built-in default: generate a small city, scan both epochs, classify, evaluate, map."""
+    from .demo import run_demo
+
+    show = args.progress or sys.stderr.isatty()
+    r = run_demo(args.output, seed=args.seed, buildings=args.buildings,
+                 progress_factory=lambda label: _Progress(label, show))
+    ev = r["evaluation"]
+    s = r["summary"]
+    labels = ", ".join(f"{k}: {v}" for k, v in sorted(s["by_label"].items()))
+    print(f"demo: {s['buildings']} buildings classified ({labels})")
+    print(f"demo: overall accuracy {100 * ev.overall_accuracy:.1f} % on {ev.n} assessable buildings")
+    print(ev.table())
+    res = r["result"]
+    print(f"demo: results in {res}/ (buildings.csv, buildings.geojson, damage_map.png, post_grades.las, "
+          "confusion.png, evaluation.json)")
     return 0
 
 
@@ -171,9 +272,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-v", "--verbose", action="store_true", help="log details to stderr")
     sub = p.add_subparsers(dest="command", required=True)
 
-    d = sub.add_parser("demo", help="run the built-in default end to end (box city → scan → LAS + summary)")
+    d = sub.add_parser("demo", help="run the whole chain on a built-in default: generate a small city, "
+                       "scan both epochs, classify with the shipped model, evaluate, draw the map")
     d.add_argument("-o", "--output", default="out/demo", help="output folder (default: out/demo)")
     d.add_argument("--seed", type=int, default=0)
+    d.add_argument("--buildings", type=int, default=30, help="buildings in the demo city (default 30)")
+    d.add_argument("--progress", action="store_true", help="show progress even when stderr is not a terminal")
     d.set_defaults(func=cmd_demo)
 
     s = sub.add_parser("scan", help="scan a scene bundle with a virtual UAV laser scanner")
@@ -203,6 +307,57 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("-o", "--output", required=True)
     t.add_argument("--preset", default="paper")
     t.set_defaults(func=cmd_survey_template)
+
+    f = sub.add_parser("features", help="per-point geometric features as extra LAS dimensions")
+    f.add_argument("input", help="LAS/LAZ point cloud")
+    f.add_argument("-o", "--output", required=True, help="output LAS/LAZ with one extra dimension per feature")
+    f.add_argument("--radius", type=float, required=True, help="spherical neighbourhood radius in m")
+    f.add_argument("--features", help="comma-separated names (default: all 24)")
+    f.add_argument("--threads", type=int, default=None)
+    f.set_defaults(func=cmd_features)
+
+    def pipeline_options(q):
+        q.add_argument("--radius", type=float, default=1.5, help="feature radius in m (default 1.5)")
+        q.add_argument("--features", help="point features whose change describes a building "
+                       "(default: the paper's robust set)")
+        q.add_argument("--lod-height", type=float, default=0.3, help="level of detection of height change, m")
+        q.add_argument("--lod-curvature", type=float, default=0.2, help="level of detection of curvature change, 1/m")
+
+    tr = sub.add_parser("train", help="train a random forest from labelled pre/post pairs")
+    tr.add_argument("--pair", nargs=2, action="append", required=True, metavar=("PRE", "POST"),
+                    help="a pre- and a post-event point cloud (repeat for more pairs)")
+    tr.add_argument("--truth", action="append", help="CSV building_id,grade per pair (default: the post "
+                    "epoch's grade dimension)")
+    tr.add_argument("--footprints", help="GeoJSON footprints when the clouds have no building_id")
+    pipeline_options(tr)
+    tr.add_argument("--trees", type=int, default=100)
+    tr.add_argument("--depth", type=int, default=5)
+    tr.add_argument("--test-size", type=float, default=0.3, help="held-out share of buildings (default 0.3)")
+    tr.add_argument("--seed", type=int, default=0)
+    tr.add_argument("--threads", type=int, default=-1)
+    tr.add_argument("--progress", action="store_true")
+    tr.add_argument("-o", "--output", required=True, help="model file (.skops)")
+    tr.set_defaults(func=cmd_train)
+
+    cl = sub.add_parser("classify", help="damage grade per building from a pre/post pair")
+    cl.add_argument("--pre", required=True, help="pre-event LAS/LAZ")
+    cl.add_argument("--post", required=True, help="post-event LAS/LAZ (same CRS)")
+    cl.add_argument("--footprints", help="GeoJSON building footprints in the clouds' CRS "
+                    "(default: the clouds' building_id dimension)")
+    cl.add_argument("--id-field", help="footprint property holding the building ID")
+    cl.add_argument("--model", help="model file (default: the shipped generic model)")
+    cl.add_argument("--align", action="store_true", help="ICP-align post to pre on stable areas first")
+    cl.add_argument("--no-las", action="store_true", help="skip the per-point LAS of predicted grades")
+    cl.add_argument("--threads", type=int, default=-1)
+    cl.add_argument("--progress", action="store_true")
+    cl.add_argument("-o", "--output", required=True, help="output folder")
+    cl.set_defaults(func=cmd_classify)
+
+    ev = sub.add_parser("evaluate", help="accuracy of a classification against the truth")
+    ev.add_argument("result", help="buildings.csv written by classify")
+    ev.add_argument("--truth", required=True, help="CSV building_id,grade or a post-event scene bundle folder")
+    ev.add_argument("-o", "--output", help="folder for confusion.png and evaluation.json (default: the result's)")
+    ev.set_defaults(func=cmd_evaluate)
     return p
 
 

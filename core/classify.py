@@ -1,0 +1,264 @@
+"""Damage grades for the buildings of a real or simulated pre-/post-event pair (`quakescan classify`).
+
+Reads both epochs into one float64 local frame, takes building IDs from the clouds'
+`building_id` dimension or from footprints, optionally aligns the post epoch to the pre
+epoch by ICP on stable areas, describes every building's change (`core.pipeline`, tile by
+tile) and applies a model: the shipped default unless one is given. A building with too
+few points is reported as not assessable, never guessed; a building without changed
+points is "no damage" by the paper's rule, without asking the forest.
+
+Long runs checkpoint every finished tile to OUT/.checkpoint.jsonl; a rerun with the same
+inputs and model continues from there. Every output is written under a temporary name and
+renamed.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .errors import QuakeScanError
+from .model import DamageModel, ModelError, load_model
+from .pipeline import BuildingRow, PipelineError, PipelineSettings, describe_pair, settings_for_descriptors
+from .pointcloud import Epoch, PointCloudError, check_pair, read_epoch
+
+log = logging.getLogger(__name__)
+
+DEFAULT_MODEL = Path(__file__).resolve().parent / "data" / "default_model.skops"
+
+
+class ClassifyError(QuakeScanError):
+    """Classification cannot run as asked."""
+
+
+def default_model_path() -> Path:
+    if not DEFAULT_MODEL.is_file():
+        raise ModelError(f"{DEFAULT_MODEL}: the shipped default model is missing; rebuild it with "
+                         "`python blender_scripts/make_default_model.py` or pass --model")
+    return DEFAULT_MODEL
+
+
+def model_settings(model: DamageModel, source: str = "model") -> PipelineSettings:
+    """The pipeline settings the model was trained with; refuses a model for other features."""
+    stored = model.split or {}
+    try:
+        settings = settings_for_descriptors(model.feature_names, model.radius_m, stored.get("split"),
+                                            min_points_pre=int(stored.get("min_points_pre", 50)),
+                                            min_points_post=int(stored.get("min_points_post", 10)),
+                                            tile_m=float(stored.get("tile_m", 150.0)))
+    except PipelineError as e:
+        raise ModelError(f"{source}: {e}") from None
+    if settings.descriptor_names() != list(model.feature_names):
+        raise ModelError(f"{source}: the model's descriptor columns are not in the order this QuakeScan "
+                         f"computes them ({model.feature_names[:4]}...): retrain it with `quakescan train`")
+    return settings
+
+
+@dataclass
+class PairData:
+    pre: Epoch
+    post: Epoch
+    footprints: object = None  # core.footprints.Footprints
+    footprint_ids_without_points: list = field(default_factory=list)
+
+
+def load_pair(pre_path, post_path, footprints_path=None, id_field: str | None = None) -> PairData:
+    """Both epochs in the pre epoch's local frame, with building IDs."""
+    pre = read_epoch(pre_path)
+    post = read_epoch(post_path, origin=pre.origin)
+    check_pair(pre, post)
+    if footprints_path is None:
+        for e in (pre, post):
+            if e.building_id is None:
+                raise ClassifyError(f"{e.source}: no building_id dimension; give building footprints "
+                                    "(--footprints F.geojson in the clouds' CRS)")
+        return PairData(pre, post)
+    from .footprints import assign_buildings, read_footprints
+
+    fp = read_footprints(footprints_path, id_field)
+    if fp.crs and pre.crs and fp.crs != pre.crs:
+        raise ClassifyError(f"{footprints_path}: footprints are in {fp.crs} but the point clouds in {pre.crs}; "
+                            "reproject the footprints")
+    if fp.crs and not pre.crs and not post.crs:
+        log.info("%s: the point clouds name no CRS; taking the footprints' %s", pre.source, fp.crs)
+        pre.crs = post.crs = fp.crs  # footprints that hit the points share their CRS
+    for e in (pre, post):
+        e.building_id = assign_buildings(e.xyz[:, 0] + e.origin[0], e.xyz[:, 1] + e.origin[1], fp)
+    if not (pre.building_id > 0).any():
+        b = fp.bounds()
+        raise ClassifyError(f"{footprints_path}: no footprint contains a pre-event point (footprints span "
+                            f"x {b[:, 0].min():.1f}..{b[:, 2].max():.1f}, y {b[:, 1].min():.1f}..{b[:, 3].max():.1f}; "
+                            f"points x {pre.bounds_xy()[:, 0].round(1).tolist()}); wrong CRS?")
+    hit = set(np.unique(pre.building_id).tolist()) | set(np.unique(post.building_id).tolist())
+    empty = sorted(int(i) for i in fp.ids if int(i) not in hit)
+    return PairData(pre, post, fp, empty)
+
+
+def _fingerprint(paths, model_path, align: bool) -> str:
+    h = hashlib.sha256()
+    for p in paths:
+        if p is None:
+            h.update(b"-")
+            continue
+        st = os.stat(p)
+        h.update(f"{os.path.realpath(p)}|{st.st_size}|{st.st_mtime_ns}".encode())
+    h.update(hashlib.sha256(Path(model_path).read_bytes()).digest())
+    h.update(b"align" if align else b"")
+    return h.hexdigest()[:16]
+
+
+class _Checkpoint:
+    """Rows of finished tiles, one JSON line each, valid for one fingerprint."""
+
+    def __init__(self, path: Path, fingerprint: str):
+        self.path, self.fp = path, fingerprint
+        self.rows: dict[int, BuildingRow] = {}
+        if path.is_file():
+            lines = path.read_text().splitlines()
+            if lines and json.loads(lines[0]).get("fingerprint") == fingerprint:
+                for line in lines[1:]:
+                    try:
+                        d = json.loads(line)
+                    except json.JSONDecodeError:
+                        break  # a line cut by the interruption: that tile is redone
+                    r = BuildingRow(d["building_id"], d["n_pre"], d["n_post"], True, "", d["descriptors"],
+                                    tuple(d["centre_xy"]))
+                    self.rows[r.building_id] = r
+            else:
+                path.unlink()
+        if not path.is_file():
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_text(json.dumps({"fingerprint": fingerprint}) + "\n")
+
+    def add(self, rows):
+        with open(self.path, "a") as f:
+            for r in rows:
+                f.write(json.dumps({"building_id": r.building_id, "n_pre": r.n_pre, "n_post": r.n_post,
+                                    "descriptors": r.descriptors, "centre_xy": list(r.centre_xy)}) + "\n")
+            f.flush()
+            os.fsync(f.fileno())
+
+
+def predict_rows(rows, model: DamageModel) -> list:
+    """BuildingResults: not assessable stays so; no changed points → no damage; else the forest."""
+    from .results import BuildingResult
+
+    classes = model.classes
+    out, ask = [], []
+    for r in rows:
+        if not r.assessable:
+            out.append(BuildingResult(r.building_id, r.n_pre, r.n_post, False, r.reason))
+            continue
+        share = float(r.descriptors["share_changed"])
+        res = BuildingResult(r.building_id, r.n_pre, r.n_post, True, "", share_changed=share)
+        if share == 0.0:
+            res.grade = 0
+            res.probabilities = {c: float(c == 0) for c in classes}
+            res.decided_by = "no change"
+        else:
+            ask.append((res, r))
+        out.append(res)
+    if ask:
+        table = {n: np.array([r.descriptors[n] for _, r in ask]) for n in model.feature_names}
+        proba = model.predict_proba(table)
+        for (res, _), p in zip(ask, proba):
+            res.probabilities = {c: float(v) for c, v in zip(classes, p)}
+            res.grade = int(classes[int(np.argmax(p))])
+            res.decided_by = "model"
+    return out
+
+
+def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=None, id_field=None,
+             align: bool = False, workers: int = -1, progress=None, write_las: bool = True) -> dict:
+    """Run the whole classification and write OUT/buildings.csv, .geojson, damage_map.png,
+    post_grades.las and summary.json. Returns the summary."""
+    from . import results
+
+    t0 = time.perf_counter()
+    out = Path(out_dir)
+    model_path = Path(model_path) if model_path else default_model_path()
+    model = load_model(model_path)
+    settings = model_settings(model, str(model_path))
+    data = load_pair(pre_path, post_path, footprints_path, id_field)
+    pre, post = data.pre, data.post
+    summary: dict = {"pre": str(pre_path), "post": str(post_path), "model": str(model_path),
+                     "model_provenance": model.provenance, "settings": settings.to_json(),
+                     "points": {"pre": len(pre), "post": len(post)}, "crs": pre.crs}
+    if align:
+        from .align import align_epochs, format_alignment, stable_mask
+
+        a = align_epochs(pre.xyz, post.xyz, stable_mask(pre.classification, pre.building_id),
+                         stable_mask(post.classification, post.building_id))
+        post.xyz = a.apply(post.xyz)
+        summary["alignment"] = a.to_json()
+        log.warning("alignment: %s", format_alignment(a))
+        if a.std_after_m * 1.96 > settings.split.lod_height_m:
+            log.warning("the alignment's noise (std %.3f m) exceeds what the model's level of detection "
+                        "(%.2f m) tolerates: expect undamaged buildings to look changed",
+                        a.std_after_m, settings.split.lod_height_m)
+    t_read = time.perf_counter()
+    ckpt = _Checkpoint(out / ".checkpoint.jsonl",
+                       _fingerprint([pre_path, post_path, footprints_path], model_path, align))
+    resumed = len(ckpt.rows)
+    if resumed:
+        log.warning("%s: resuming, %d buildings already described", out, resumed)
+    rows = describe_pair(pre, post, settings, workers=workers, progress=progress, done=ckpt.rows,
+                         on_tile=ckpt.add)
+    rows += [BuildingRow(int(b), 0, 0, False, "no point inside the footprint")
+             for b in data.footprint_ids_without_points]
+    rows.sort(key=lambda r: r.building_id)
+    t_describe = time.perf_counter()
+    res = predict_rows(rows, model)
+    classes = model.classes
+    out.mkdir(parents=True, exist_ok=True)
+    results.write_csv(res, out / "buildings.csv", classes)
+    xy_by = None
+    if data.footprints is None:
+        xy_by = _xy_by_building(pre)
+    outlines = results.building_outlines(res, data.footprints, xy_by, pre.origin)
+    results.write_geojson(res, outlines, out / "buildings.geojson", pre.crs, classes)
+    sub = pre.xyz[:: max(1, len(pre) // 200_000), :2] + pre.origin[:2]
+    results.write_map_png(res, outlines, out / "damage_map.png",
+                          f"Damage grades: {Path(post_path).name}", points_xy=sub)
+    if write_las:
+        results.write_grade_las(out / "post_grades.las", post.xyz, post.origin, post.crs, post.building_id,
+                                {r.building_id: r.grade for r in res})
+    counts: dict[str, int] = {}
+    for r in res:
+        counts[r.label] = counts.get(r.label, 0) + 1
+    summary.update({"buildings": len(res), "by_label": counts, "resumed_buildings": resumed,
+                    "seconds": {"read": round(t_read - t0, 2), "describe": round(t_describe - t_read, 2),
+                                "total": round(time.perf_counter() - t0, 2)}})
+    tmp = out / "summary.json.part"
+    tmp.write_text(json.dumps(summary, indent=1, default=_json_default))
+    os.replace(tmp, out / "summary.json")
+    ckpt.path.unlink(missing_ok=True)
+    return summary
+
+
+def _json_default(o):
+    if isinstance(o, (np.integer,)):
+        return int(o)
+    if isinstance(o, (np.floating,)):
+        return float(o)
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    raise TypeError(type(o))
+
+
+def _xy_by_building(e: Epoch) -> dict:
+    ids = e.building_id
+    order = np.argsort(ids, kind="stable")
+    u, s = np.unique(ids[order], return_index=True)
+    ends = np.append(s[1:], len(order))
+    return {int(b): e.xyz[order[a:z], :2] for b, a, z in zip(u, s, ends) if b > 0}
+
+
+__all__ = ["ClassifyError", "PointCloudError", "classify", "default_model_path", "load_pair", "model_settings",
+           "predict_rows"]

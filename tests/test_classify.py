@@ -1,0 +1,152 @@
+"""Train → classify → evaluate on scans with known damage, the command line, and bad input."""
+import csv
+import json
+
+import laspy
+import numpy as np
+import pytest
+
+from core.classify import classify, model_settings
+from core.cli import main
+from core.model import ModelError, load_model, save_model
+from core.pipeline import PipelineSettings
+from core.scan import scan
+from core.survey import preset
+from core.synthetic import box_city
+from core.training import TrainingError, TrainingPair, grades_from_epoch, read_truth_csv, train
+
+UTM = (500000.0, 5000000.0, 0.0)
+HEIGHTS = (9.0, 12.0, 9.0, 12.0, 9.0, 12.0)
+
+
+@pytest.fixture(scope="module")
+def city(tmp_path_factory):
+    """pre; post where building 4 collapsed to 3 m and building 2 to 4 m (grade 5)."""
+    d = tmp_path_factory.mktemp("city")
+    s = preset("paper").replace(pulse_rate_hz=100_000.0)
+    post_h = (9.0, 4.0, 9.0, 3.0, 9.0, 12.0)
+    grades = tuple(5 if a != b else 0 for a, b in zip(HEIGHTS, post_h))
+    scan(box_city(rows=2, cols=3, height=HEIGHTS, origin=UTM), s, d / "pre.las", seed=1)
+    scan(box_city(rows=2, cols=3, height=post_h, origin=UTM, epoch="post", grades=grades), s, d / "post.las", seed=2)
+    model, ev, table = train([TrainingPair(str(d / "pre.las"), str(d / "post.las"))], PipelineSettings(),
+                             n_estimators=10, test_size=0.0)
+    save_model(model, d / "model.skops")
+    truth = d / "truth.csv"
+    truth.write_text("building_id,grade\n" + "".join(f"{i + 1},{g}\n" for i, g in enumerate(grades)))
+    return d, grades
+
+
+def test_grades_come_from_the_post_epoch(city):
+    from core.pointcloud import read_epoch
+
+    d, grades = city
+    assert grades_from_epoch(read_epoch(d / "post.las")) == {i + 1: g for i, g in enumerate(grades)}
+    assert read_truth_csv(d / "truth.csv") == {i + 1: g for i, g in enumerate(grades)}
+
+
+def test_classify_finds_the_collapsed_buildings(city, tmp_path):
+    d, grades = city
+    summary = classify(d / "pre.las", d / "post.las", tmp_path / "res", model_path=d / "model.skops")
+    with open(tmp_path / "res" / "buildings.csv", newline="") as f:
+        rows = {int(r["building_id"]): r for r in csv.DictReader(f)}
+    assert sorted(rows) == [1, 2, 3, 4, 5, 6]
+    for bid, g in enumerate(grades, start=1):
+        assert int(rows[bid]["predicted_grade"]) == g, bid
+        assert rows[bid]["decided_by"] == ("model" if g else "no change")
+    assert float(rows[4]["share_changed"]) > 0.5
+    assert summary["by_label"] == {"no damage": 4, "destruction": 2}
+    gj = json.loads((tmp_path / "res" / "buildings.geojson").read_text())
+    assert len(gj["features"]) == 6
+    assert (tmp_path / "res" / "damage_map.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    las = laspy.read(tmp_path / "res" / "post_grades.las")
+    g = np.asarray(las["predicted_grade"])
+    assert set(np.unique(g[np.asarray(las["building_id"]) == 4])) == {5}
+    assert not (tmp_path / "res" / ".checkpoint.jsonl").exists()
+
+
+def test_cli_train_classify_evaluate(city, tmp_path, capsys):
+    d, grades = city
+    model = tmp_path / "m.skops"
+    assert main(["train", "--pair", str(d / "pre.las"), str(d / "post.las"), "--truth", str(d / "truth.csv"),
+                 "--trees", "10", "--test-size", "0", "-o", str(model)]) == 0
+    assert load_model(model).provenance["n_rows"] == 6
+    assert main(["classify", "--pre", str(d / "pre.las"), "--post", str(d / "post.las"), "--model", str(model),
+                 "--no-las", "-o", str(tmp_path / "r")]) == 0
+    assert main(["evaluate", str(tmp_path / "r" / "buildings.csv"), "--truth", str(d / "truth.csv")]) == 0
+    out = capsys.readouterr().out
+    assert "6 assessable buildings, overall accuracy 100.0 %" in out
+    ev = json.loads((tmp_path / "r" / "evaluation.json").read_text())
+    assert ev["damaged_vs_undamaged"]["f1"] == 1.0
+
+
+def test_identical_epochs_flag_no_building(city, tmp_path):
+    d, _ = city
+    summary = classify(d / "pre.las", d / "pre.las", tmp_path / "same", model_path=d / "model.skops",
+                       write_las=False)
+    assert summary["by_label"] == {"no damage": 6}
+
+
+def test_interrupted_classification_resumes(city, tmp_path, monkeypatch):
+    import core.classify as C
+
+    d, _ = city
+    out = tmp_path / "res"
+    calls = []
+    real = C.describe_pair
+
+    def interrupted(*a, on_tile=None, **kw):
+        def once(rows):
+            on_tile(rows)
+            calls.append(len(rows))
+            raise KeyboardInterrupt
+        return real(*a, on_tile=once, **kw)
+
+    monkeypatch.setattr(C, "describe_pair", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        classify(d / "pre.las", d / "post.las", out, model_path=d / "model.skops", write_las=False)
+    assert (out / ".checkpoint.jsonl").is_file() and not (out / "buildings.csv").exists()
+    monkeypatch.setattr(C, "describe_pair", real)
+    summary = classify(d / "pre.las", d / "post.las", out, model_path=d / "model.skops", write_las=False)
+    assert summary["resumed_buildings"] == calls[0] > 0
+    assert summary["by_label"] == {"no damage": 4, "destruction": 2}
+
+
+def test_model_for_other_features_is_refused(city, tmp_path):
+    d, _ = city
+    m = load_model(d / "model.skops")
+    m.feature_names = [n.replace("planarity", "wetness") for n in m.feature_names]
+    with pytest.raises(ModelError, match="wetness"):
+        model_settings(m, "m.skops")
+
+
+def test_bad_training_input(city, tmp_path, capsys):
+    d, _ = city
+    with pytest.raises(TrainingError, match="two grades"):
+        train([TrainingPair(str(d / "pre.las"), str(d / "pre.las"))], PipelineSettings(), test_size=0.0)
+    bad = tmp_path / "t.csv"
+    bad.write_text("building_id,grade\n1,7\n")
+    with pytest.raises(TrainingError, match="line 2: grade 7"):
+        read_truth_csv(bad)
+    assert main(["train", "--pair", str(d / "pre.las"), str(d / "post.las"), "--truth", str(bad), "--truth",
+                 str(bad), "-o", str(tmp_path / "m.skops")]) == 2
+    assert "2 --truth files for 1 --pair" in capsys.readouterr().err
+
+
+def test_no_overlap_and_missing_ids_are_errors(city, tmp_path, capsys):
+    d, _ = city
+    far = tmp_path / "far.las"
+    las = laspy.read(d / "post.las")
+    las.x = np.asarray(las.x) + 5000.0
+    las.write(far)
+    assert main(["classify", "--pre", str(d / "pre.las"), "--post", str(far), "--model", str(d / "model.skops"),
+                 "-o", str(tmp_path / "x")]) == 2
+    assert "no overlap" in capsys.readouterr().err
+    bare = tmp_path / "bare.las"
+    las = laspy.read(d / "post.las")
+    plain = laspy.create(point_format=6, file_version="1.4")
+    plain.header.offsets, plain.header.scales = las.header.offsets, las.header.scales
+    plain.x, plain.y, plain.z = np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)
+    plain.write(bare)
+    assert main(["classify", "--pre", str(d / "pre.las"), "--post", str(bare), "--model", str(d / "model.skops"),
+                 "-o", str(tmp_path / "y")]) == 2
+    assert "bare.las: no building_id dimension" in capsys.readouterr().err

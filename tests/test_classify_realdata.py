@@ -1,0 +1,95 @@
+"""The real-world input path: AHN3 Delft (LAS 1.2 format 1, RD New) with BGT footprints."""
+import csv
+import json
+
+import laspy
+import numpy as np
+import pytest
+
+from core.classify import classify, load_pair
+from core.cli import main
+
+pytestmark = pytest.mark.realdata
+
+
+def _rows(path):
+    with open(path, newline="") as f:
+        return {int(r["building_id"]): r for r in csv.DictReader(f)}
+
+
+@pytest.fixture(scope="module")
+def ahn3(tmp_path_factory):
+    from tests.conftest import SHARED_DATA
+
+    if not SHARED_DATA.is_dir():
+        pytest.skip(f"real data folder {SHARED_DATA} is absent")
+    return SHARED_DATA / "ahn3_cropped_1.laz", SHARED_DATA / "ahn3_footprints_rd.geojson"
+
+
+@pytest.fixture(scope="module")
+def same_tile_result(ahn3, tmp_path_factory):
+    las, fp = ahn3
+    out = tmp_path_factory.mktemp("ahn3") / "res"
+    summary = classify(las, las, out, footprints_path=fp)
+    return summary, _rows(out / "buildings.csv"), out
+
+
+def test_footprint_assignment_counts(ahn3):
+    las, fp = ahn3
+    data = load_pair(las, las, fp)
+    ids = data.pre.building_id
+    assert len(data.pre) == 640_510 and data.pre.crs == "EPSG:28992"
+    assert len(np.unique(ids[ids > 0])) == 139  # of the 160 footprints; 21 lie off this tile
+    assert len(data.footprint_ids_without_points) == 21
+    assert (data.pre.classification[ids > 0] == 6).mean() > 0.9
+
+
+def test_same_tile_as_both_epochs_is_undamaged_everywhere(same_tile_result):
+    summary, rows, out = same_tile_result
+    assert len(rows) == 160
+    assessable = [r for r in rows.values() if r["assessable"] == "1"]
+    assert len(assessable) > 100
+    assert {r["label"] for r in assessable} == {"no damage"}
+    assert {r["decided_by"] for r in assessable} == {"no change"}
+    off_tile = [r for r in rows.values() if r["assessable"] == "0"]
+    assert all(r["predicted_grade"] == "" and r["reason"] for r in off_tile)
+    gj = json.loads((out / "buildings.geojson").read_text())
+    assert gj["crs"]["properties"]["name"].endswith("28992")
+    assert {f["properties"]["outline"] for f in gj["features"]} == {"footprint"}
+
+
+def test_shifted_post_epoch_is_aligned_and_a_real_collapse_is_found(ahn3, tmp_path):
+    """Post = the same tile moved by (0.4, -0.3, 0.15) m, with the largest building
+    pancaked: every non-ground point within 2 m of its footprint (eaves and walls overhang
+    the BGT outline) squashed into a 0-2 m layer above the ground. ICP on the ground
+    removes the shift, the collapsed building is found damaged, the rest stay undamaged."""
+    import shapely
+
+    from core.footprints import read_footprints
+
+    las_path, fp = ahn3
+    las = laspy.read(las_path)
+    pre = load_pair(las_path, las_path, fp).pre
+    ids, counts = np.unique(pre.building_id[pre.building_id > 0], return_counts=True)
+    target = int(ids[np.argmax(counts)])
+    footprints = read_footprints(fp)
+    outline = footprints.polygons[int(np.flatnonzero(footprints.ids == target)[0])].buffer(2.0)
+    x, y, z = np.asarray(las.x), np.asarray(las.y), np.asarray(las.z).copy()
+    m = shapely.contains_xy(outline, x, y) & (pre.classification != 2)
+    ground = np.median(z[shapely.contains_xy(outline.buffer(5.0), x, y) & (pre.classification == 2)])
+    z[m] = ground + np.random.default_rng(0).uniform(0.0, 2.0, m.sum())
+    las.x = np.asarray(las.x) + 0.4
+    las.y = np.asarray(las.y) - 0.3
+    las.z = z + 0.15
+    post = tmp_path / "post.laz"
+    las.write(post)
+    assert main(["classify", "--pre", str(las_path), "--post", str(post), "--footprints", str(fp), "--align",
+                 "--no-las", "-o", str(tmp_path / "res")]) == 0
+    summary = json.loads((tmp_path / "res" / "summary.json").read_text())
+    a = summary["alignment"]
+    assert a["std_after_m"] < 0.1 and a["rmse_after_m"] < a["rmse_before_m"]
+    rows = _rows(tmp_path / "res" / "buildings.csv")
+    assert int(rows[target]["predicted_grade"]) >= 3 and float(rows[target]["share_changed"]) > 0.3
+    others = [r for b, r in rows.items() if b != target and r["assessable"] == "1"]
+    undamaged = sum(r["label"] == "no damage" for r in others) / len(others)
+    assert undamaged > 0.95, undamaged

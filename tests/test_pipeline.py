@@ -1,0 +1,147 @@
+"""Pair → per-building descriptors: tiling, exact nearest neighbours, the split on real scans."""
+import numpy as np
+import pytest
+
+from core.change import SplitSettings, nearest_neighbours
+from core.pipeline import (PAPER_FEATURES, GridIndex, PipelineError, PipelineSettings, _exact_nearest,
+                           describe_pair, settings_for_descriptors)
+from core.pointcloud import Epoch, read_epoch
+from core.scan import scan
+from core.survey import preset
+from core.synthetic import box_city
+
+UTM = (500000.0, 5000000.0, 0.0)
+HEIGHTS = (9.0, 12.0, 9.0, 12.0, 9.0, 12.0)
+
+
+def _scan_pair(folder, origin, post_heights, seed_post=2):
+    s = preset("paper").replace(pulse_rate_hz=100_000.0)
+    scan(box_city(rows=2, cols=3, height=HEIGHTS, origin=origin), s, folder / "pre.las", seed=1)
+    grades = tuple(5 if a != b else 0 for a, b in zip(HEIGHTS, post_heights))
+    scan(box_city(rows=2, cols=3, height=post_heights, origin=origin, epoch="post", grades=grades), s,
+         folder / "post.las", seed=seed_post)
+    pre = read_epoch(folder / "pre.las")
+    return pre, read_epoch(folder / "post.las", origin=pre.origin)
+
+
+@pytest.fixture(scope="module")
+def collapse_pair(tmp_path_factory):
+    """Building 4 loses 9 of its 12 m; the others are scanned again with new range noise."""
+    return _scan_pair(tmp_path_factory.mktemp("collapse"), UTM, (9.0, 12.0, 9.0, 3.0, 9.0, 12.0))
+
+
+def test_grid_index_box_query_matches_brute_force():
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(-50, 250, (20000, 2))
+    index = GridIndex(xy, 17.0)
+    for box in ([[0, 0], [30, 40]], [[-100, -100], [-60, -60]], [[100.5, -3], [101, 300]], [[-60, -60], [300, 300]]):
+        box = np.array(box, float)
+        want = np.flatnonzero(np.all((xy >= box[0]) & (xy <= box[1]), axis=1))
+        np.testing.assert_array_equal(index.query(xy, box), want)
+
+
+def test_nearest_neighbour_is_exact_although_searched_in_a_box():
+    """A pre point whose post neighbour lies far outside the tile (a collapsed wall fell
+    40 m away, say) still gets the true nearest neighbour."""
+    rng = np.random.default_rng(1)
+    post_xyz = np.vstack([rng.uniform(0, 10, (500, 3)) + [60, 0, 0], rng.uniform(0, 200, (3000, 3))])
+    post_xyz = post_xyz[(post_xyz[:, 0] > 40) | (post_xyz[:, 1] > 150)]  # nothing near the queries
+    pre_q = rng.uniform(0, 10, (300, 3))
+    post = Epoch(post_xyz, np.zeros(3), np.zeros(len(post_xyz), np.uint8))
+    idx, dist = _exact_nearest(pre_q, post, GridIndex(post_xyz[:, :2], 5.0), np.array([[0, 0], [10, 10.0]]), 1)
+    want_i, want_d = nearest_neighbours(pre_q, post_xyz)
+    np.testing.assert_array_equal(idx, want_i)
+    np.testing.assert_allclose(dist, want_d)
+
+
+def test_rescanned_buildings_have_no_change_and_collapse_is_found(collapse_pair):
+    pre, post = collapse_pair
+    rows = {r.building_id: r for r in describe_pair(pre, post, PipelineSettings())}
+    assert sorted(rows) == [1, 2, 3, 4, 5, 6] and all(r.assessable for r in rows.values())
+    for bid in (1, 2, 3, 5, 6):  # new range noise only: nothing beyond the level of detection
+        assert rows[bid].descriptors["share_changed"] == 0.0
+        assert rows[bid].descriptors["height_median"] == 0.0
+    d = rows[4].descriptors
+    assert d["share_changed"] > 0.5  # roof and upper walls
+    assert d["height_median"] == pytest.approx(-9.0, abs=0.2)
+    assert set(d) == set(PipelineSettings().descriptor_names())
+
+
+def test_identical_epochs_give_zero_change(collapse_pair):
+    pre, _ = collapse_pair
+    rows = describe_pair(pre, pre, PipelineSettings())
+    for r in rows:
+        assert all(v == 0.0 for v in r.descriptors.values()), r.building_id
+
+
+def test_tiling_does_not_change_the_answer(collapse_pair):
+    pre, post = collapse_pair
+    small = describe_pair(pre, post, PipelineSettings(tile_m=20.0))  # one building per tile
+    big = describe_pair(pre, post, PipelineSettings(tile_m=500.0))   # all in one tile
+    for a, b in zip(small, big):
+        assert a.building_id == b.building_id
+        for k in a.descriptors:
+            assert a.descriptors[k] == pytest.approx(b.descriptors[k], rel=1e-9, abs=1e-12), k
+
+
+@pytest.mark.xfail(strict=True, reason="neighbours at exactly r on the mm grid flip with the frame's rounding")
+def test_world_coordinates_give_the_same_descriptors(collapse_pair):
+    """The same points as float64 world coordinates (x≈500 000, y≈5 000 000, origin 0) and in
+    the local frame: features centre their own neighbourhoods, so the answers agree."""
+    pre, post = collapse_pair
+    world = [Epoch(e.xyz + e.origin, np.zeros(3), e.classification, e.building_id) for e in (pre, post)]
+    local = describe_pair(pre, post, PipelineSettings())
+    utm = describe_pair(*world, PipelineSettings())
+    for a, b in zip(local, utm):
+        for k in a.descriptors:
+            assert a.descriptors[k] == pytest.approx(b.descriptors[k], rel=1e-6, abs=1e-7), (a.building_id, k)
+
+
+def test_resume_skips_finished_tiles(collapse_pair):
+    pre, post = collapse_pair
+    s = PipelineSettings(tile_m=20.0)
+    first, seen = [], []
+    full = describe_pair(pre, post, s, on_tile=first.extend)
+    done = {r.building_id: r for r in first[:3]}
+    again = describe_pair(pre, post, s, done=done, on_tile=seen.extend)
+    assert sorted(r.building_id for r in seen) == [r.building_id for r in full if r.building_id not in done]
+    assert [r.descriptors for r in again] == [r.descriptors for r in full]
+
+
+def test_too_few_points_is_not_assessable(collapse_pair):
+    pre, post = collapse_pair
+    rows = describe_pair(pre, post, PipelineSettings(min_points_pre=7000))
+    small = [r for r in rows if r.n_pre < 7000]
+    assert small and all(not r.assessable and "pre-event points < 7000" in r.reason and not r.descriptors
+                         for r in small)
+
+
+def test_missing_building_ids_and_frames_are_refused(collapse_pair):
+    pre, post = collapse_pair
+    bare = Epoch(post.xyz, post.origin, post.classification, None, source="bare.las")
+    with pytest.raises(PipelineError, match="bare.las.*no building IDs"):
+        describe_pair(pre, bare, PipelineSettings())
+    moved = Epoch(post.xyz, post.origin + 1, post.classification, post.building_id, source="moved.las")
+    with pytest.raises(PipelineError, match="different local frames"):
+        describe_pair(pre, moved, PipelineSettings())
+    nobody = Epoch(pre.xyz, pre.origin, pre.classification, np.zeros(len(pre), np.int64), source="nobody.las")
+    with pytest.raises(PipelineError, match="no point belongs to a building"):
+        describe_pair(nobody, nobody, PipelineSettings())
+
+
+def test_settings_round_trip_and_descriptor_columns():
+    s = PipelineSettings(radius_m=2.0, split=SplitSettings(lod_height_m=0.5))
+    again = PipelineSettings.from_json(s.to_json())
+    assert again == s
+    assert again.computed_features == (*PAPER_FEATURES, "curvature")
+    back = settings_for_descriptors(s.descriptor_names(), 2.0, s.split.to_json())
+    assert back.point_features == PAPER_FEATURES and back.descriptor_names() == s.descriptor_names()
+
+
+def test_a_model_for_unknown_features_is_refused():
+    with pytest.raises(PipelineError, match="wetness_mean"):
+        settings_for_descriptors(["share_changed", "planarity_mean", "wetness_mean"], 1.5)
+    with pytest.raises(PipelineError, match="radius"):
+        PipelineSettings(radius_m=float("nan"))
+    with pytest.raises(PipelineError, match="unknown point features"):
+        PipelineSettings(point_features=("planarity", "colour"))
