@@ -150,3 +150,30 @@ def test_no_overlap_and_missing_ids_are_errors(city, tmp_path, capsys):
     assert main(["classify", "--pre", str(d / "pre.las"), "--post", str(bare), "--model", str(d / "model.skops"),
                  "-o", str(tmp_path / "y")]) == 2
     assert "bare.las: no building_id dimension" in capsys.readouterr().err
+
+
+def test_footprints_that_hit_nothing_or_some_buildings(city, tmp_path, capsys):
+    d, _ = city
+
+    def square(x0, y0, bid):
+        ring = [[x0, y0], [x0 + 12, y0], [x0 + 12, y0 + 12], [x0, y0 + 12], [x0, y0]]
+        return {"type": "Feature", "properties": {"building_id": bid},
+                "geometry": {"type": "Polygon", "coordinates": [ring]}}
+
+    far = tmp_path / "far.geojson"
+    far.write_text(json.dumps({"type": "FeatureCollection", "features": [square(0.0, 0.0, 1)]}))
+    assert main(["classify", "--pre", str(d / "pre.las"), "--post", str(d / "post.las"), "--footprints", str(far),
+                 "--model", str(d / "model.skops"), "-o", str(tmp_path / "x")]) == 2
+    assert "no footprint contains a pre-event point" in capsys.readouterr().err
+    # building 1's footprint (box_city: 12 m squares from the origin) and one on open ground
+    fp = tmp_path / "fp.geojson"
+    fp.write_text(json.dumps({"type": "FeatureCollection", "features": [
+        square(UTM[0], UTM[1], 1), square(UTM[0] - 19.0, UTM[1] - 19.0, 99)]}))
+    classify(d / "pre.las", d / "post.las", tmp_path / "y", model_path=d / "model.skops", footprints_path=fp,
+             write_las=False)
+    with open(tmp_path / "y" / "buildings.csv", newline="") as f:
+        rows = {int(r["building_id"]): r for r in csv.DictReader(f)}
+    assert rows[1]["label"] == "no damage" and int(rows[1]["n_pre"]) > 1000
+    # a footprint on open ground: its (ground) points did not change
+    assert rows[99]["assessable"] == "1" and rows[99]["decided_by"] == "no change"
+    assert sorted(rows) == [1, 99]  # IDs come from the footprints, not from the LAS
