@@ -7,8 +7,12 @@ change feature selection"; radii 1.0-4.0 m).
 Neighbourhood
     All cloud points p with |p - q| <= r, the query point itself included when it belongs to
     the cloud (N counts it). The whole cloud is shifted once to a local origin (its minimum
-    corner) and every neighbourhood is centred on its own mean before the covariance, so a
-    cloud at UTM coordinates gives the same features as at the origin.
+    corner), so a cloud at UTM coordinates gives the same features as at the origin. The
+    compiled kernel sums the moments of d = p - q relative to the query point in one pass
+    (|d| <= r, error <= ~3 (N + 3) eps r^2 on every eigenvalue) and redoes, centred on the
+    neighbourhood's own mean (two passes), every neighbourhood where a small eigenvalue
+    decides: l1 <= 1e-4 r^2, l2 <= 1e-6 l1 or l3 <= 1e-6 l1 (near-collinear, near-exact
+    planes); see `core._feature_kernels`. The numpy reference always centres on the mean.
 
 Definitions (CloudCompare / CCCoreLib "Geometric features"; jakteristics copies them)
     C = (1/N) sum (p - mean)(p - mean)^T (population covariance, as CloudCompare; jakteristics
@@ -69,11 +73,19 @@ FEATURES = (
     "eigenentropy", "anisotropy", "eigenvalue1", "eigenvalue2", "eigenvalue3", "eigenvalue_sum",
     "roughness", "z_rank", "z_range", "normal_x", "normal_y", "normal_z", "echo_ratio",
 )
+# what the damage pipeline computes by default: the paper's robust set plus curvature (the
+# changed/unchanged split needs it)
+DEFAULT_PIPELINE_FEATURES = (
+    "planarity", "surface_variation", "point_density", "num_neighbours", "surface_density",
+    "volume_density", "roughness", "z_rank", "z_range", "normal_x", "normal_y", "normal_z", "curvature",
+)
 MIN_POINTS = 4
 _EIGEN = {"linearity", "planarity", "omnivariance", "surface_variation", "sphericity", "eigenentropy",
           "anisotropy", "eigenvalue1", "eigenvalue2", "eigenvalue3", "eigenvalue_sum"}
 _NORMAL = {"verticality", "normal_x", "normal_y", "normal_z"}
 _Z = {"z_rank", "z_range"}
+_EIG_CODES = {"linearity": 0, "planarity": 1, "sphericity": 2, "anisotropy": 3, "surface_variation": 4,
+              "omnivariance": 5, "eigenentropy": 6, "eigenvalue_sum": 7}
 _CYL = {"point_density", "echo_ratio"}
 
 
@@ -104,11 +116,17 @@ def _derive(names, radius, count, lam, normal, rough, zrank, zrange, curv, ncyl)
     """Feature arrays from the per-neighbourhood quantities (same for fast and reference)."""
     out = {}
     n = count.astype(np.float64)
+    eig = [f for f in _EIG_CODES if f in names]
+    if eig:  # the ratios in one compiled parallel pass (numpy's temporaries cost more than the kernel)
+        from . import _feature_kernels as K
+
+        arr = np.empty((len(eig), len(count)))
+        K.eigen_features(np.ascontiguousarray(lam), np.array([_EIG_CODES[f] for f in eig], np.int64), arr)
+        out.update(zip(eig, arr))
     with np.errstate(divide="ignore", invalid="ignore"):
-        l1, l2, l3 = lam[:, 0], lam[:, 1], lam[:, 2]
-        s = l1 + l2 + l3
-        e = lam / s[:, None]
         for name in names:
+            if name in out:
+                continue
             if name == "num_neighbours":
                 v = n
             elif name == "surface_density":
@@ -119,25 +137,8 @@ def _derive(names, radius, count, lam, normal, rough, zrank, zrange, curv, ncyl)
                 v = ncyl / (math.pi * radius ** 2)
             elif name == "echo_ratio":
                 v = np.where(ncyl > 0, 100.0 * n / np.maximum(ncyl, 1), np.nan)
-            elif name == "linearity":
-                v = (l1 - l2) / l1
-            elif name == "planarity":
-                v = (l2 - l3) / l1
-            elif name == "sphericity":
-                v = l3 / l1
-            elif name == "anisotropy":
-                v = (l1 - l3) / l1
-            elif name == "surface_variation":
-                v = l3 / s
-            elif name == "omnivariance":
-                v = np.cbrt(e[:, 0] * e[:, 1] * e[:, 2])
-            elif name == "eigenentropy":
-                v = -np.sum(np.where(e > 0, e * np.log(np.where(e > 0, e, 1.0)), 0.0), axis=1)
-                v[np.isnan(s)] = np.nan
             elif name in ("eigenvalue1", "eigenvalue2", "eigenvalue3"):
                 v = lam[:, int(name[-1]) - 1].copy()
-            elif name == "eigenvalue_sum":
-                v = s
             elif name == "verticality":
                 v = 1.0 - np.abs(normal[:, 2])
             elif name in ("normal_x", "normal_y", "normal_z"):
@@ -162,67 +163,96 @@ def _needs(names):
     return do_eig, do_rough, bool(names & _Z), do_curv, bool(names & _CYL)
 
 
-def _grid_sort(p, radius, lo, dims):
-    cell = np.floor((p - lo) / radius).astype(np.int64)
-    np.clip(cell, 0, np.asarray(dims) - 1, out=cell)
-    key = (cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2]
-    order = np.argsort(key, kind="stable")
-    return order, key[order]
+CELLS_PER_RADIUS = 3  # grid columns of side r/3: ~1.5x the sphere's points tested (27 cells of r: ~3x)
+_BLOCK = 8  # query groups per prange block (blocks are interleaved over the threads)
 
 
-def _fast(cloud, query, qself, radius, names, workers, planar=False):
-    """Run the numba kernel; cloud and query already in the local frame."""
+def _fast(cloud, query, radius, names, workers, cells_per_radius=None, stats=None):
+    """Run the numba kernel. cloud: (x, y, z) contiguous arrays in the local frame (z >= 0);
+    query: the same for core points, or None for the cloud's own points.
+
+    Returns count, lam, normal, rough, zrank, zrange, curv, ncyl (None where not asked for)."""
     from numba import get_num_threads, set_num_threads
 
     from . import _feature_kernels as K
 
-    if planar:
-        cloud = np.column_stack([cloud[:, :2], np.zeros(len(cloud))])
-        query = np.column_stack([query[:, :2], np.zeros(len(query))])
-    lo = np.minimum(cloud.min(axis=0), query.min(axis=0))
-    hi = np.maximum(cloud.max(axis=0), query.max(axis=0))
-    dims = tuple(int(d) for d in np.floor((hi - lo) / radius).astype(np.int64) + 1)
-    if float(dims[0]) * dims[1] * dims[2] > 2.0 ** 62:
-        raise FeatureError(f"the cloud spans {hi - lo} m: too many cells of {radius} m; split it into tiles")
-    porder, pkeys = _grid_sort(cloud, radius, lo, dims)
-    qorder, qkeys = _grid_sort(query, radius, lo, dims)
-    inv = np.empty(len(cloud), np.int64)
-    inv[porder] = np.arange(len(cloud))
-    qs = qself[qorder]
-    qs = np.where(qs >= 0, inv[np.maximum(qs, 0)], -1)
-    brk = np.flatnonzero(np.diff(qkeys)) + 1
-    cell_start = np.concatenate([[0], brk, [len(qkeys)]]).astype(np.int64)
-    cell_key = qkeys[cell_start[:-1]]
-    ps = cloud[porder]
-    qq = query[qorder]
-    do_eig, do_rough, do_z, do_curv, _ = (False,) * 5 if planar else _needs(names)
-    m = len(query)
-    count = np.zeros(m, np.int64)
-    lam = np.full((m, 3), np.nan)
-    normal = np.full((m, 3), np.nan)
-    rough = np.full(m, np.nan)
-    zrank = np.full(m, np.nan)
-    zrange = np.full(m, np.nan)
-    curv = np.full(m, np.nan)
+    k = CELLS_PER_RADIUS if cells_per_radius is None else int(cells_per_radius)
+    s = radius / k
+    lo = np.array([min(float(c.min()), float(qc.min()) if query is not None else np.inf)
+                   for c, qc in zip(cloud, query if query is not None else cloud)])
+    hi = np.array([max(float(c.max()), float(qc.max()) if query is not None else -np.inf)
+                   for c, qc in zip(cloud, query if query is not None else cloud)])
+    nxc, nyc = (int(d) for d in np.floor((hi[:2] - lo[:2]) / s).astype(np.int64) + 1)
+    colbits = max(int(nxc * nyc - 1).bit_length(), 1)
+    zbits = min(62 - colbits, 40)
+    if zbits < 8:
+        raise FeatureError(f"the cloud spans {hi - lo} m: too many cells of {s} m; split it into tiles")
+    q = s / 64.0  # z order within a column, to 1/64 of a cell (the kernel cuts z runs on it)
+    zext = max(float(hi[2]), 0.0)
+    sh = 6
+    if zext / q >= 2.0 ** zbits - 2:
+        q, sh = zext / (2.0 ** zbits - 2), 0
+
+    def sort(x, y, z):
+        keys = np.empty(len(x), np.int64)
+        K.grid_keys(x, y, z, lo[0], lo[1], s, q, nxc, nyc, zbits, keys)
+        order = np.argsort(keys)
+        keys = keys[order]
+        out = [np.empty(len(x)) for _ in range(3)]
+        K.gather_shifted(x, y, z, order, lo[0], lo[1], *out)
+        return order, keys, out
+
+    porder, pkeys, (px, py, pz) = sort(*cloud)
+    pcol = pkeys >> zbits
+    brk = np.flatnonzero(pcol[1:] != pcol[:-1]) + 1
+    cstart = np.concatenate([[0], brk, [len(pcol)]]).astype(np.int64)
+    ucol = pcol[cstart[:-1]]
+    del pcol, brk
+    if query is None:
+        qorder, qkeys, (qx, qy, qz) = porder, pkeys, (px, py, pz)
+        qs = np.arange(len(px), dtype=np.int64)  # query i of the sorted order is cloud point i
+    else:
+        qorder, qkeys, (qx, qy, qz) = sort(*query)
+        qs = np.full(len(qx), -1, np.int64)
+    # groups: one column, one z slab of height s (sh = 6: 64 q) -- or of q if z spans too much
+    gkey = qkeys >> sh
+    gstart = np.concatenate([[0], np.flatnonzero(gkey[1:] != gkey[:-1]) + 1, [len(gkey)]]).astype(np.int64)
+    gcol = qkeys[gstart[:-1]] >> zbits
+    del gkey
+    do_eig, do_rough, do_z, do_curv, do_cyl = _needs(names)
+    do_mom = do_eig or do_rough or do_curv
+    m = len(qx)
+    empty1, empty3 = np.empty(0), np.empty((0, 3))
+    count = np.empty(m, np.int64)
+    lam = np.empty((m, 3)) if do_mom else empty3
+    normal = np.empty((m, 3)) if do_mom else empty3
+    rough = np.empty(m) if do_rough else empty1
+    zrank = np.empty(m) if do_z else empty1
+    zrange = np.empty(m) if do_z else empty1
+    curv = np.empty(m) if do_curv else empty1
+    ncyl = np.empty(m if do_cyl else 0, np.int64)
+    nexact = np.empty(m, np.int8)
+    kcols = int(np.floor(radius / s * (1 + 1e-9))) + 1
     old = get_num_threads()
     if workers is not None and workers > 0:
         set_num_threads(min(workers, old))
     try:
-        K.neighbourhoods(np.ascontiguousarray(ps[:, 0]), np.ascontiguousarray(ps[:, 1]),
-                         np.ascontiguousarray(ps[:, 2]), pkeys,
-                         np.ascontiguousarray(qq[:, 0]), np.ascontiguousarray(qq[:, 1]),
-                         np.ascontiguousarray(qq[:, 2]), qs, cell_start, cell_key, dims[1], dims[2],
-                         radius, MIN_POINTS, do_eig, do_rough, do_z, do_curv,
-                         count, lam, normal, rough, zrank, zrange, curv)
+        threads = get_num_threads()
+        nb = -(-len(gcol) // _BLOCK)
+        blocks = np.concatenate([np.arange(t, nb, threads) for t in range(threads)]).astype(np.int64)
+        K.neighbourhoods(px, py, pz, pkeys, zbits, q, ucol, cstart, qx, qy, qz, qorder, qs, gstart, gcol,
+                         blocks, _BLOCK, nxc, nyc, s, kcols, radius, MIN_POINTS,
+                         do_eig, do_rough, do_z, do_curv, do_cyl,
+                         count, lam, normal, rough, zrank, zrange, curv, ncyl, nexact)
     finally:
         set_num_threads(old)
-    res = [count, lam, normal, rough, zrank, zrange, curv]
-    out = []
-    for a in res:
-        b = np.empty_like(a)
-        b[qorder] = a
-        out.append(b)
-    return out
+    if stats is not None:
+        stats["exact_share"] = float(nexact.mean()) if m else 0.0
+        stats["groups"] = len(gcol)
+    nan1 = np.full(m, np.nan)
+    return (count, lam if do_mom else np.full((m, 3), np.nan), normal if do_mom else np.full((m, 3), np.nan),
+            rough if do_rough else nan1, zrank if do_z else nan1, zrange if do_z else nan1,
+            curv if do_curv else nan1, ncyl if do_cyl else None)
 
 
 def compute_features(xyz, radius: float, features: Sequence[str] | None = None, core_points=None,
@@ -243,7 +273,8 @@ def compute_features(xyz, radius: float, features: Sequence[str] | None = None, 
         Where to evaluate; default the cloud's own points (then each neighbourhood includes
         the point). Core points are not part of the cloud.
     workers : int, optional
-        Threads for the compiled kernel (default: all of numba's).
+        Threads for the compiled kernel (default: all of numba's). Load is balanced by
+        handing the threads interleaved blocks of query groups.
     fast : bool
         False runs the plain numpy reference (slow; for tests).
 
@@ -259,18 +290,20 @@ def compute_features(xyz, radius: float, features: Sequence[str] | None = None, 
         nan = np.full(m, np.nan)
         return {f: (np.zeros(m) if f in ("num_neighbours", "surface_density", "volume_density",
                                          "point_density") else nan.copy()) for f in names}
-    origin = xyz.min(axis=0)
-    cloud = xyz - origin
-    if core_points is None:
-        query, qself = cloud, np.arange(n, dtype=np.int64)
-    else:
-        query, qself = core_points - origin, np.full(m, -1, np.int64)
+    cols = [np.ascontiguousarray(xyz[:, k]) for k in range(3)]
+    origin = np.array([c.min() for c in cols])
     need_cyl = bool(set(names) & _CYL)
     if fast:
-        count, lam, normal, rough, zrank, zrange, curv = _fast(cloud, query, qself, radius, names, workers)
-        ncyl = _fast(cloud, query, qself, radius, (), workers, planar=True)[0].astype(np.float64) \
-            if need_cyl else None
+        cloud = [c - o for c, o in zip(cols, origin)]
+        query = None if core_points is None else [core_points[:, k] - origin[k] for k in range(3)]
+        count, lam, normal, rough, zrank, zrange, curv, ncyl = _fast(cloud, query, radius, names, workers)
+        ncyl = ncyl.astype(np.float64) if need_cyl else None
     else:
+        cloud = xyz - origin
+        if core_points is None:
+            query, qself = cloud, np.arange(n, dtype=np.int64)
+        else:
+            query, qself = core_points - origin, np.full(m, -1, np.int64)
         count, lam, normal, rough, zrank, zrange, curv, ncyl = _reference(cloud, query, qself, radius, names)
     return _derive(names, radius, count, lam, normal, rough, zrank, zrange, curv, ncyl)
 

@@ -172,16 +172,19 @@ def test_only_requested_features(monkeypatch):
     orig = K.neighbourhoods
 
     def spy(*args):
-        seen.append(args[14:18])  # do_eig, do_rough, do_z, do_curv
+        seen.append(args[23:28])  # do_eig, do_rough, do_z, do_curv, do_cyl
         return orig(*args)
 
     monkeypatch.setattr(K, "neighbourhoods", spy)
     f = compute_features(xyz, 1.0, features=["num_neighbours", "z_range"])
     assert set(f) == {"num_neighbours", "z_range"}
-    assert seen == [(False, False, True, False)]  # no eigen, no cylinder pass
+    assert seen == [(False, False, True, False, False)]  # no eigen, no cylinder count
     seen.clear()
     compute_features(xyz, 1.0, features=["planarity"])
-    assert seen == [(True, False, False, False)]
+    assert seen == [(True, False, False, False, False)]
+    seen.clear()
+    compute_features(xyz, 1.0, features=["point_density", "curvature"])
+    assert seen == [(False, False, False, True, True)]  # one kernel run for both
 
 
 def test_bad_input():
@@ -191,3 +194,95 @@ def test_bad_input():
         compute_features(np.zeros((3, 3)), -1.0)
     with pytest.raises(QuakeScanError, match=r"\(n, 3\)"):
         compute_features(np.zeros((3, 2)), 1.0)
+
+
+def _local(xyz):
+    o = xyz.min(axis=0)
+    return [np.ascontiguousarray(xyz[:, k] - o[k]) for k in range(3)]
+
+
+def _assert_same(a, b, names=FEATURES, rtol=1e-6, atol=1e-9):
+    if "normal_x" in a:
+        _same_normals(a, b)
+    for name in names:
+        assert np.array_equal(np.isnan(a[name]), np.isnan(b[name])), name
+        ok = ~np.isnan(b[name])
+        np.testing.assert_allclose(a[name][ok], b[name][ok], rtol=rtol, atol=atol, err_msg=name)
+
+
+def test_default_pipeline_features():
+    assert set(F.DEFAULT_PIPELINE_FEATURES) <= set(FEATURES)
+    assert "curvature" in F.DEFAULT_PIPELINE_FEATURES and len(set(F.DEFAULT_PIPELINE_FEATURES)) == 13
+
+
+def test_exact_fallback_planes_and_lines_at_utm():
+    """Near-exact planes and collinear points at UTM coordinates take the two-pass path and
+    give the reference's answers (sphericity 0 / finite eigenentropy on planes, NaN normals,
+    roughness and curvature on lines)."""
+    rng = np.random.default_rng(5)
+    utm = np.array([500000.0, 5000000.0, 200.0])
+    g, _, _ = grid_plane(0.1, 2.0)
+    flat = g + utm  # exact horizontal plane: l3 = 0 exactly
+    t = rng.uniform(-2, 2, 400)
+    tilted = np.column_stack([t, rng.uniform(-2, 2, 400), np.zeros(400)])
+    tilted[:, 2] = 0.3 * tilted[:, 0] - 0.2 * tilted[:, 1]  # a plane up to rounding at UTM
+    tilted += utm + [10.0, 0, 0]
+    line = utm + [0, 10.0, 0] + np.outer(np.linspace(-2, 2, 300), [1.0, 2.0, 0.5])
+    for xyz in (flat, tilted, line):
+        st = {}
+        F._fast(_local(xyz), None, 1.0, FEATURES, None, stats=st)
+        assert st["exact_share"] > 0.9
+        a = compute_features(xyz, 1.0)
+        b = F._reference_features(xyz, 1.0)
+        # omnivariance = cbrt(e1 e2 e3) turns l3 ~ 1e-18 of UTM round-off into ~1e-6 that
+        # no two eigen solvers share: only its size is compared on the rounded plane
+        _assert_same(a, b, [f for f in FEATURES if f != "omnivariance"])
+        assert np.nanmax(np.abs(a["omnivariance"] - b["omnivariance"])) < 1e-4
+    f = compute_features(flat, 1.0)
+    assert np.all(f["sphericity"] == 0) and np.all(np.isfinite(f["eigenentropy"]))
+    f = compute_features(line, 1.0)
+    for name in ("normal_z", "verticality", "roughness", "curvature"):
+        assert np.all(np.isnan(f[name])), name
+    assert np.all(np.isfinite(f["linearity"]))
+
+
+def test_one_pass_is_used_on_noisy_surfaces_and_agrees():
+    rng = np.random.default_rng(6)
+    xy = rng.uniform(0, 6, (3000, 2))
+    xyz = np.column_stack([xy, 0.2 * np.sin(xy[:, 0]) + 0.01 * rng.normal(size=3000)]) + [500000.0, 5000000.0, 0]
+    st = {}
+    F._fast(_local(xyz), None, 1.0, FEATURES, None, stats=st)
+    assert st["exact_share"] < 0.01
+    _assert_same(compute_features(xyz, 1.0), F._reference_features(xyz, 1.0))
+
+
+@pytest.mark.parametrize("cells", [1, 2, 3, 5])
+def test_cell_size_gives_identical_neighbourhoods(cells, monkeypatch):
+    """Finer grid columns (with per-query culling) find exactly the reference's neighbours,
+    also on an integer lattice where many points lie exactly at distance r."""
+    monkeypatch.setattr(F, "CELLS_PER_RADIUS", cells)
+    rng = np.random.default_rng(7)
+    lattice = np.stack(np.meshgrid(*[np.arange(7.0)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    blob = np.column_stack([rng.uniform(0, 9, (2000, 2)), rng.uniform(0, 1, 2000)])
+    wall = np.column_stack([rng.uniform(0, 9, 600), np.full(600, 4.0), rng.uniform(0, 6, 600)])
+    for xyz, r in ((lattice, 2.0), (np.vstack([blob, wall]), 1.3)):
+        names = ("num_neighbours", "point_density", "echo_ratio", "z_rank", "z_range", "planarity", "roughness")
+        a = compute_features(xyz, r, features=names)
+        b = F._reference_features(xyz, r, features=names)
+        for name in ("num_neighbours", "point_density", "z_rank", "z_range"):
+            assert np.array_equal(a[name], b[name]), name
+        _assert_same(a, b, names)
+        core = np.vstack([rng.uniform(-2, 11, (200, 3)), [[-5.0, -5, -5], [20.0, 20, 20]]])
+        a = compute_features(xyz, r, features=names, core_points=core)
+        b = F._reference_features(xyz, r, features=names, core_points=core)
+        for name in ("num_neighbours", "point_density", "z_rank", "z_range"):
+            assert np.array_equal(a[name], b[name], equal_nan=True), name
+        _assert_same(a, b, names)
+
+
+def test_threads_give_identical_results():
+    xyz = np.random.default_rng(8).uniform(0, 6, (4000, 3)) * [1, 1, 0.2]
+    a = compute_features(xyz, 1.0, workers=1)
+    b = compute_features(xyz, 1.0, workers=2)
+    for name in FEATURES:
+        assert np.array_equal(a[name], b[name], equal_nan=True), name
