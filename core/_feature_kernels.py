@@ -1,12 +1,14 @@
 """Compiled inner loop of `core.features` (numba, GIL released, parallel over query groups).
 
 Grid: vertical columns of side s = r / CELLS_PER_RADIUS (default 3), column key ix*ny + iy;
-points sorted by (column, z), so a column is one contiguous run sorted by z. Queries are
-grouped by column and z slab of height s. Per group: the columns whose box comes within r
-of the group's column (found with one binary search per x row of columns), each cut to the
-z run [zmin - r, zmax + r] of the group by binary search on z. Per query, columns whose x/y
-box is farther than r are skipped, so the candidates tested are ~1.5x the sphere's points
-on a surface (3x with 27 cells of side r).
+points sorted by one int64 key (column << zbits | floor(z / (s/64))), so a column is one
+contiguous run ordered by z (to 1/64 of a cell). Queries are grouped by column and z slab of
+height s. Per group: the columns whose box comes within r of the group's column (one binary
+search per x row of columns), each cut by binary search on the key to the z run
+[zmin - r, zmax + r] of the group, and copied into one contiguous buffer, row by row. Per
+query and row, the columns whose x/y box comes within r form one run of that buffer. On the
+2.8 M-point ULS city at r = 1.5 m this tests 1.45x the sphere's points (columns of side r:
+2.5x; the former 27 cells of side r: ~3x).
 
 One pass per query, fused with the distance test and branch-free (0/1 mask) so that LLVM
 vectorises it: relative to the query point, d = p - q (|d| <= r), accumulate n, sum d,
@@ -22,8 +24,9 @@ answers: l1 <= 1e-4 r^2 (compact: the l1 "no extent" test), l2 <= 1e-6 l1 (near
 collinear: the "no plane" test), l3 <= 1e-6 l1 (near-exact planes: sphericity 0,
 eigenentropy finite), and for roughness the same l1/l2 tests on the neighbours without
 the point. Beyond those thresholds the bound is > 1e4 times smaller than the quantity.
-The distance test itself (`_d2`) is compiled without fast-math, the same expression as
-`_reference`, so neighbour sets are identical; only the sums are reassociated.
+The distance test itself (`_mask`, `_count_xy`) runs in the strict kernel, the same
+expression as `_reference`, so neighbour sets are identical; only the sums, in fast-math
+helpers that read its 0/1 mask, are reassociated and fused.
 
 Roughness: the point contributes d = 0 to every sum, so the moments of the other n - 1
 neighbours are the same sums with n - 1. Curvature (quadric in the PCA frame) needs a
@@ -40,8 +43,9 @@ import numpy as np
 from numba import njit, prange
 
 _JIT = {"nogil": True, "cache": True, "error_model": "numpy"}
-# sums may be reassociated (vectorised); no contraction, no NaN/inf assumptions
-_FAST = {**_JIT, "fastmath": {"reassoc", "nsz"}}
+# sums may be reassociated (vectorised) and fused (FMA); no NaN/inf assumptions. Numba compiles
+# a callee with its caller's flags: the distance test must only be called from strict code
+_FAST = {**_JIT, "fastmath": {"reassoc", "nsz", "contract"}}
 _IMAX = np.int64(0x7FFFFFFFFFFFFFFF)
 
 
@@ -251,7 +255,7 @@ def _cov_from_buffer(buf, n, px, py, pz, qx, qy, qz, self_j, C):
 
 @njit(**_JIT)
 def _d2(dx, dy, dz):
-    """Squared distance, strict IEEE (no fast-math): the same test as the reference."""
+    """Squared distance, the reference's expression (call it from strict code only)."""
     return dx * dx + dy * dy + dz * dz
 
 
@@ -284,47 +288,61 @@ def _upper_bound(a, lo, hi, v):
     return lo
 
 
-@njit(**_FAST)
-def _scan_count(px, py, pz, lo, hi, x, y, z, r2, n):
+@njit(**_JIT)
+def _mask(px, py, pz, mask, lo, hi, x, y, z, r2):
+    """mask[lo:hi] = 1.0 where the point is within r of (x, y, z), else 0.0; their number.
+    Strict IEEE: numba compiles a callee with its caller's fast-math flags, so the distance
+    test lives here, called from the strict kernel, and the fast-math sums read the mask."""
     bx = px[lo:hi]
     by = py[lo:hi]
     bz = pz[lo:hi]
+    bm = mask[lo:hi]
+    k = 0
     for t in range(bx.shape[0]):
-        d2 = _d2(bx[t] - x, by[t] - y, bz[t] - z)
-        n += 1 if d2 <= r2 else 0
-    return n
+        inside = _d2(bx[t] - x, by[t] - y, bz[t] - z) <= r2
+        bm[t] = 1.0 if inside else 0.0
+        k += 1 if inside else 0
+    return k
+
+
+@njit(**_JIT)
+def _count_xy(px, py, lo, hi, x, y, r2):
+    bx = px[lo:hi]
+    by = py[lo:hi]
+    k = 0
+    for t in range(bx.shape[0]):
+        k += 1 if _d2xy(bx[t] - x, by[t] - y) <= r2 else 0
+    return k
 
 
 @njit(**_FAST)
-def _scan_z(px, py, pz, pzi, lo, hi, x, y, z, r2, n, zmin, zmax, below):
+def _scan_z(pz, pzi, mask, lo, hi, z, zmin, zmax, below):
     """zmin/zmax are taken over pzi, the int64 bits of z (z >= 0: same order as the floats),
     because integer min/max reductions vectorise and float ones do not."""
-    bx = px[lo:hi]
-    by = py[lo:hi]
     bz = pz[lo:hi]
     bi = pzi[lo:hi]
-    for t in range(bx.shape[0]):
-        dz = bz[t] - z
-        inside = _d2(bx[t] - x, by[t] - y, dz) <= r2
-        n += 1.0 if inside else 0.0
-        below += 1.0 if (inside and dz < 0.0) else 0.0
+    bm = mask[lo:hi]
+    for t in range(bz.shape[0]):
+        m = bm[t]
+        below += m if bz[t] < z else 0.0  # no `and`: its branch stops the vectoriser
         zi = bi[t]
+        inside = m != 0.0
         zmin = min(zmin, zi if inside else _IMAX)
         zmax = max(zmax, zi if inside else -1)
-    return n, zmin, zmax, below
+    return zmin, zmax, below
 
 
 @njit(**_FAST)
-def _scan_mom(px, py, pz, lo, hi, x, y, z, r2, n, sx, sy, sz, sxx, sxy, sxz, syy, syz, szz):
+def _scan_mom(px, py, pz, mask, lo, hi, x, y, z, sx, sy, sz, sxx, sxy, sxz, syy, syz, szz):
     bx = px[lo:hi]
     by = py[lo:hi]
     bz = pz[lo:hi]
+    bm = mask[lo:hi]
     for t in range(bx.shape[0]):
         dx = bx[t] - x
         dy = by[t] - y
         dz = bz[t] - z
-        m = 1.0 if _d2(dx, dy, dz) <= r2 else 0.0
-        n += m
+        m = bm[t]
         ax = m * dx
         ay = m * dy
         az = m * dz
@@ -337,21 +355,12 @@ def _scan_mom(px, py, pz, lo, hi, x, y, z, r2, n, sx, sy, sz, sxx, sxy, sxz, syy
         syy += ay * dy
         syz += ay * dz
         szz += az * dz
-    return n, sx, sy, sz, sxx, sxy, sxz, syy, syz, szz
+    return sx, sy, sz, sxx, sxy, sxz, syy, syz, szz
 
 
 @njit(**_FAST)
-def _scan_cyl(px, py, lo, hi, x, y, r2, n):
-    bx = px[lo:hi]
-    by = py[lo:hi]
-    for t in range(bx.shape[0]):
-        n += 1 if _d2xy(bx[t] - x, by[t] - y) <= r2 else 0
-    return n
-
-
-@njit(**_FAST)
-def _scan_quad(px, py, pz, lo, hi, x, y, z, r2, ox, oy, oz, V, inv, acc):
-    """Quadric moments in the PCA frame: (u, v, h) = V^T (d - mean) / r, masked by the
+def _scan_quad(px, py, pz, mask, lo, hi, x, y, z, ox, oy, oz, V, inv, acc):
+    """Quadric moments in the PCA frame: (u, v, h) = V^T (d - mean) / r, masked (0/1) by the
     distance test. acc: 20 sums u, v, uu, uv, vv, uuu, uuv, uvv, vvv, u4, u3v, u2v2, uv3, v4,
     h, uh, vh, uuh, uvh, vvh."""
     e00 = V[0, 0] * inv
@@ -368,11 +377,12 @@ def _scan_quad(px, py, pz, lo, hi, x, y, z, r2, ox, oy, oz, V, inv, acc):
     bx = px[lo:hi]
     by = py[lo:hi]
     bz = pz[lo:hi]
+    bm = mask[lo:hi]
     for t in range(bx.shape[0]):
         dx = bx[t] - x
         dy = by[t] - y
         dz = bz[t] - z
-        m = 1.0 if _d2(dx, dy, dz) <= r2 else 0.0
+        m = bm[t]
         ex = dx - ox
         ey = dy - oy
         ez = dz - oz
@@ -619,6 +629,7 @@ def neighbourhoods(px, py, pz, pkeys, zbits, zq, ucol, cstart, qx, qy, qz, qidx,
         gy_ = np.empty(cap)
         gz_ = np.empty(cap)
         gzi = gz_.view(np.int64)
+        gm = np.empty(cap)
         buf = np.empty(0, np.int64)
         g0 = blocks[bi] * block
         for g in range(g0, min(g0 + block, ngroup)):
@@ -692,6 +703,7 @@ def neighbourhoods(px, py, pz, pkeys, zbits, zq, ucol, cstart, qx, qy, qz, qidx,
                 gy_ = np.empty(cap)
                 gz_ = np.empty(cap)
                 gzi = gz_.view(np.int64)
+                gm = np.empty(cap)
             for c in range(ncol):
                 o = off[c] - clo[c]
                 for j in range(clo[c], chi[c]):
@@ -737,23 +749,18 @@ def neighbourhoods(px, py, pz, pkeys, zbits, zq, ucol, cstart, qx, qy, qz, qidx,
                     lo = doff[rw, t0]
                     hi = doff[rw, t1 + 1]
                     if do_cyl:
-                        cyl = _scan_cyl(px, py, dcs[rw, t0], dcs[rw, t1 + 1], x, y, r2, cyl)
+                        cyl += _count_xy(px, py, dcs[rw, t0], dcs[rw, t1 + 1], x, y, r2)
                     if hi <= lo:
                         continue
                     rlo[nrun] = lo
                     rhi[nrun] = hi
                     nrun += 1
+                    n += _mask(gx_, gy_, gz_, gm, lo, hi, x, y, z, r2)
                     if do_mom:
-                        n, sx, sy, sz, sxx, sxy, sxz, syy, syz, szz = _scan_mom(
-                            gx_, gy_, gz_, lo, hi, x, y, z, r2, n, sx, sy, sz, sxx, sxy, sxz, syy, syz, szz)
-                        if do_z:  # a second loop over the same run (L1): one fused loop does not vectorise
-                            _, izmin, izmax, below = _scan_z(gx_, gy_, gz_, gzi, lo, hi, x, y, z, r2, 0.0,
-                                                             izmin, izmax, below)
-                    elif do_z:
-                        n, izmin, izmax, below = _scan_z(gx_, gy_, gz_, gzi, lo, hi, x, y, z, r2, n,
-                                                         izmin, izmax, below)
-                    else:
-                        n = _scan_count(gx_, gy_, gz_, lo, hi, x, y, z, r2, n)
+                        sx, sy, sz, sxx, sxy, sxz, syy, syz, szz = _scan_mom(
+                            gx_, gy_, gz_, gm, lo, hi, x, y, z, sx, sy, sz, sxx, sxy, sxz, syy, syz, szz)
+                    if do_z:
+                        izmin, izmax, below = _scan_z(gz_, gzi, gm, lo, hi, z, izmin, izmax, below)
                 if do_cyl:
                     ncyl[oi] = cyl
                 nn = int(n)
@@ -820,7 +827,7 @@ def neighbourhoods(px, py, pz, pkeys, zbits, zq, ucol, cstart, qx, qy, qz, qidx,
                     for a in range(20):
                         acc[a] = 0.0
                     for ru in range(nrun):
-                        _scan_quad(gx_, gy_, gz_, rlo[ru], rhi[ru], x, y, z, r2, mx, my, mz, V, inv, acc)
+                        _scan_quad(gx_, gy_, gz_, gm, rlo[ru], rhi[ru], x, y, z, mx, my, mz, V, inv, acc)
                     _fill_quad(M, bb, n, acc)
                     curv[oi] = _curvature(M, bb, xx, V, mx, my, mz, inv)
 

@@ -163,7 +163,7 @@ def _needs(names):
     return do_eig, do_rough, bool(names & _Z), do_curv, bool(names & _CYL)
 
 
-CELLS_PER_RADIUS = 3  # grid columns of side r/3: ~1.5x the sphere's points tested (27 cells of r: ~3x)
+CELLS_PER_RADIUS = 3  # grid columns of side r/3: 1.45x the sphere's points tested (side r: 2.5x)
 _BLOCK = 8  # query groups per prange block (blocks are interleaved over the threads)
 
 
