@@ -29,6 +29,7 @@ log = logging.getLogger(__name__)
 
 STATISTICS = ("mean", "median", "std", "p10", "p90")
 CLIP_LODS = 10.0
+MAX_RING = 2  # rings of grid columns searched before a query goes to the kd-tree
 
 
 class ChangeError(QuakeScanError):
@@ -55,7 +56,49 @@ def morton_order(xyz: np.ndarray, bits: int = 16) -> np.ndarray:
 def nearest_neighbours(pre_xyz: np.ndarray, post_xyz: np.ndarray, workers: int = -1):
     """Index of the nearest post point for every pre point and the distance to it.
 
-    Both in the same local float64 frame. Queries run in Morton order on all cores."""
+    Both in the same local float64 frame. A compiled column-grid search (`_nn_kernels`),
+    exact; queries whose neighbour lies beyond MAX_RING rings of columns (collapsed
+    parts: metres away) go to a kd-tree over the post points. BENCHMARKS.md compares it
+    with `nearest_neighbours_reference`, the kd-tree alone, which the tests check it against."""
+    from . import _nn_kernels as K
+
+    pre_xyz = np.ascontiguousarray(pre_xyz, dtype=np.float64)
+    post_xyz = np.ascontiguousarray(post_xyz, dtype=np.float64)
+    if len(post_xyz) == 0:
+        raise ChangeError("the post-event epoch has no points to map to")
+    if len(pre_xyz) == 0:
+        return np.zeros(0, np.int64), np.zeros(0)
+    bx = K.bounds_xy(post_xyz)
+    lo, span = bx[:2], np.maximum(bx[2:] - bx[:2], 1e-9)
+    # ~4 points per column on a single surface: few candidates, short rings
+    cell = max(math.sqrt(span[0] * span[1] * 4.0 / len(post_xyz)), 1e-6)
+    nx, ny = int(span[0] // cell) + 1, int(span[1] // cell) + 1
+    while nx * ny > 4 * len(post_xyz) + 1024:  # a long thin cloud: keep the column table small
+        cell *= 2
+        nx, ny = int(span[0] // cell) + 1, int(span[1] // cell) + 1
+    from numba import get_num_threads, set_num_threads
+
+    old = get_num_threads()
+    if workers is not None and workers > 0:
+        set_num_threads(min(workers, old))
+    try:
+        order, starts = K.counting_sort(K.column_index(post_xyz, lo[0], lo[1], cell, nx, ny), nx * ny)
+        px, py, pz = K.sort_columns_by_z(order, starts, post_xyz)
+        # queries in their own order: scans are coherent along scan lines already
+        idx = np.empty(len(pre_xyz), np.int64)
+        dist = np.empty(len(pre_xyz))
+        K.nearest(pre_xyz, px, py, pz, order, starts, lo[0], lo[1], cell, nx, ny, MAX_RING, idx, dist)
+    finally:
+        set_num_threads(old)
+    q = pre_xyz
+    far = np.flatnonzero(idx < 0)
+    if len(far):
+        idx[far], dist[far] = nearest_neighbours_reference(q[far], post_xyz, workers=workers)
+    return idx, dist
+
+
+def nearest_neighbours_reference(pre_xyz: np.ndarray, post_xyz: np.ndarray, workers: int = -1):
+    """The same with scipy's kd-tree, queries in Morton order (the previous implementation)."""
     from scipy.spatial import cKDTree
 
     if len(post_xyz) == 0:

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from core.change import (ChangeError, SplitSettings, building_changes, feature_changes, lod_from_noise,
-                         morton_order, nearest_neighbours, split_changed)
+                         morton_order, nearest_neighbours, nearest_neighbours_reference, split_changed)
 from core.pointcloud import read_epoch
 from core.scan import scan
 from core.survey import preset
@@ -19,6 +19,49 @@ def test_nearest_neighbours_match_brute_force():
     np.testing.assert_array_equal(idx, d_all.argmin(axis=1))
     np.testing.assert_allclose(dist, d_all.min(axis=1))
     assert sorted(morton_order(pre)) == list(range(500))
+
+
+@pytest.mark.parametrize("case", ["flat post, queries off the grid", "mm grid with ties", "far: collapse",
+                                  "one column", "duplicates"])
+def test_grid_nearest_neighbours_are_exact(case):
+    """The column-grid search finds a point at the brute-force minimum distance in the
+    cases that stress it (far queries go through the kd-tree fallback, which may pick
+    another of several equally near points)."""
+    rng = np.random.default_rng(7)
+    pre = rng.uniform(0, 10, (2000, 3))
+    post = rng.uniform(0, 10, (1500, 3))
+    if case == "flat post, queries off the grid":
+        post[:, 2] = 0.0
+        pre[:500, 0] += 30.0
+        pre[500:1000, 1] -= 25.0
+    elif case == "mm grid with ties":
+        post, pre = np.round(post, 1), np.round(pre, 1)
+    elif case == "far: collapse":
+        pre[:, 2] += 12.0  # every neighbour metres away: beyond the rings
+    elif case == "one column":
+        post[:, :2] = 5.0
+    elif case == "duplicates":
+        post[750:] = post[:750]
+    idx, dist = nearest_neighbours(pre, post)
+    d2 = ((pre[:, None, :] - post[None, :, :]) ** 2).sum(axis=2)
+    np.testing.assert_array_equal(d2[np.arange(len(pre)), idx], d2.min(axis=1))
+    if case != "far: collapse":
+        near = np.sqrt(d2.min(axis=1)) < 0.5  # resolved inside the grid: lower index wins ties
+        np.testing.assert_array_equal(idx[near], d2.argmin(axis=1)[near])
+    np.testing.assert_allclose(dist, np.sqrt(d2.min(axis=1)), rtol=1e-12)
+    ref_i, ref_d = nearest_neighbours_reference(pre, post)
+    np.testing.assert_allclose(dist, ref_d, rtol=1e-12)
+
+
+def test_nearest_neighbours_at_utm_coordinates_match_the_local_frame():
+    rng = np.random.default_rng(3)
+    pre = rng.uniform(0, 50, (3000, 3))
+    post = pre + rng.normal(0, 0.01, pre.shape)
+    shift = np.array([500000.0, 5000000.0, 0.0])
+    a = nearest_neighbours(pre, post)
+    b = nearest_neighbours(pre + shift, post + shift)
+    np.testing.assert_array_equal(a[0], b[0])
+    np.testing.assert_allclose(a[1], b[1], atol=1e-9)
 
 
 def test_empty_post_epoch_is_an_error():
