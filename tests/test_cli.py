@@ -110,3 +110,28 @@ def test_import_cityjson_then_scan(tmp_path, shared_data):
     # real projected coordinates kept: the file's translate is the LAS offset
     meta = json.loads((scene_dir / "scene.json").read_text())
     assert list(las.header.offsets) == meta["origin"]
+
+
+def test_features_command_adds_readable_dimensions(tmp_path, capsys):
+    from core.features import compute_features
+    from core.pointcloud import read_epoch
+    from core.scan import scan
+
+    scan(box_city(rows=1, cols=2, origin=(500000.0, 5000000.0, 0.0)), preset("paper").replace(pulse_rate_hz=50_000.0),
+         tmp_path / "in.las", seed=1)
+    out = tmp_path / "feat.las"
+    assert main(["features", str(tmp_path / "in.las"), "-o", str(out), "--radius", "1.5",
+                 "--features", "planarity,z_rank,num_neighbours"]) == 0
+    las = laspy.read(out)
+    want = compute_features(read_epoch(tmp_path / "in.las").xyz, 1.5, ("planarity", "z_rank", "num_neighbours"))
+    for name in ("planarity", "z_rank", "num_neighbours"):
+        np.testing.assert_allclose(np.asarray(las[name], dtype=np.float64), want[name].astype(np.float32),
+                                   rtol=0, atol=0, equal_nan=True)
+    assert np.asarray(las["building_id"]).max() == 2  # the input's dimensions are kept
+    assert "3 features of" in capsys.readouterr().out
+    assert main(["features", str(out), "-o", str(tmp_path / "again.las"), "--radius", "1.5",
+                 "--features", "planarity"]) == 2
+    assert "already has dimensions ['planarity']" in capsys.readouterr().err
+    assert main(["features", str(tmp_path / "in.las"), "-o", str(tmp_path / "x.las"), "--radius", "1.5",
+                 "--features", "wetness"]) == 2
+    assert "unknown features" in capsys.readouterr().err
