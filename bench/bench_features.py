@@ -8,8 +8,9 @@ LAS (>= 1 M points). Exact features at r = 1.5 m: the set jakteristics also has 
 normal, verticality, number of neighbours) for ours and jakteristics on the same points, the damage
 pipeline's default set (`DEFAULT_PIPELINE_FEATURES`), all 24 of ours, densities + z only.
 Core-point subsampling (features at every k-th point, mapped to all points by nearest core point)
-with its error against exact. Nearest-neighbour mapping (`core.change.nearest_neighbours`, kd-tree
-build + queries) of the cloud onto a second scan of the same city (new noise).
+with its error against exact. Nearest-neighbour mapping (`core.change.nearest_neighbours`, index
+build + queries) of the cloud onto a second scan of the same city (new noise); the row says which
+core/change.py it measured (committed or not).
 """
 from __future__ import annotations
 
@@ -23,8 +24,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench._report import machine, peak_rss_mb, table, write_section  # noqa: E402
-from core.features import DEFAULT_PIPELINE_FEATURES, compute_features  # noqa: E402
+from bench._report import machine, peak_rss_mb, table, write_section
+from core.features import DEFAULT_PIPELINE_FEATURES, compute_features
 
 COMMON = ("linearity", "planarity", "omnivariance", "surface_variation", "sphericity", "verticality",
           "eigenentropy", "anisotropy", "eigenvalue1", "eigenvalue2", "eigenvalue3", "eigenvalue_sum",
@@ -55,6 +56,14 @@ def cloud(min_points: int, seed: int = 1) -> np.ndarray:
         if len(xyz) >= min_points:
             return xyz
         rows += 2
+
+
+def _head() -> str:
+    import subprocess
+
+    out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=Path(__file__).resolve().parents[1],
+                         capture_output=True, text=True, check=False)
+    return out.stdout.strip() or "unknown commit"
 
 
 def timed(fn, repeat=1):
@@ -112,7 +121,7 @@ def main():
 
     order = morton_order(xyz - xyz.min(axis=0))
     for k in (4, 16):
-        def approx():
+        def approx(k=k):
             core = xyz[order[::k]]
             fc = compute_features(xyz, r, core_points=core)
             _, idx = cKDTree(core - xyz.min(axis=0)).query(xyz - xyz.min(axis=0), workers=-1)
@@ -132,14 +141,19 @@ def main():
     pre_l, post_l = xyz - o, post - o
     nearest_neighbours(pre_l[:1000], post_l[:1000])
     t_nn, (_, dist) = timed(lambda: nearest_neighbours(pre_l, post_l), repeat=2)
-    rows.append([f"NN mapping onto a second scan ({len(post):,} points), kd-tree build + queries",
+    import subprocess
+
+    dirty = subprocess.run(["git", "diff", "--quiet", "HEAD", "--", "core/change.py"],
+                           cwd=Path(__file__).resolve().parents[1], check=False).returncode != 0
+    what = "uncommitted core/change.py" if dirty else f"core/change.py at {_head()}"
+    rows.append([f"NN mapping onto a second scan ({len(post):,} points), index build + queries ({what})",
                  f"{t_nn:.2f}", f"{n / t_nn / 1e3:.0f}", f"exact; distance median {np.median(dist):.3f} m"])
     nn = exact["num_neighbours"]
     text = "\n".join([
         "## Per-point features (`bench/bench_features.py`)",
         "",
-        f"Machine: {machine()}. Cloud: virtual ULS of a box city at UTM coordinates, {n:,} points, "
-        f"neighbours at r = {r} m: median {np.median(nn):.0f}, p99 {np.quantile(nn, 0.99):.0f}.",
+        (f"Machine: {machine()}. Cloud: virtual ULS of a box city at UTM coordinates, {n:,} points, "
+         f"neighbours at r = {r} m: median {np.median(nn):.0f}, p99 {np.quantile(nn, 0.99):.0f}."),
         "",
         table(["run", "wall s (best of 2; approx.: 1)", "k points/s", "accuracy"], rows),
         "",

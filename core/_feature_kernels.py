@@ -580,13 +580,14 @@ def _fill_quad(M, bb, n, acc):
 
 @njit(parallel=True, **_JIT)
 def neighbourhoods(px, py, pz, pkeys, zbits, zq, ucol, cstart, qx, qy, qz, qidx, qself, gstart, gcol,
-                   blocks, block, nxc, nyc, s, kcols, radius, min_points, do_eig, do_rough, do_z, do_curv, do_cyl,
+                   blocks, block, nxc, nyc, s, gox, goy, kcols, radius, min_points, do_eig, do_rough, do_z, do_curv, do_cyl,
                    count, lam, normal, rough, zrank, zrange, curv, ncyl, nexact):
     """Per query: neighbour count and, as asked, eigenvalues/normal, roughness, z rank/range,
     curvature, cylinder count.
 
-    px.. cloud sorted by pkeys = (column << zbits) | floor(z / zq), x and y shifted so that
-    column (ix, iy) is [ix s, (ix+1) s) x [iy s, (iy+1) s); columns ucol (sorted) start at
+    px.. cloud sorted by pkeys = (column << zbits) | floor(z / zq), column (ix, iy) being
+    [gox + ix s, gox + (ix+1) s) x [goy + iy s, ...) (up to rounding: boxes get a margin);
+    coordinates as given (no shift: distances are the reference's to the last bit); columns ucol (sorted) start at
     cstart; qx.. queries sorted the same way, group g = queries gstart[g]:gstart[g+1], all
     in column gcol[g]. blocks: order in which blocks of `block` groups are handed to prange
     (interleaved, for load balance). qself[i] = index of the query in the sorted cloud or -1.
@@ -736,14 +737,14 @@ def neighbourhoods(px, py, pz, pkeys, zbits, zq, ucol, cstart, qx, qy, qz, qidx,
                 cyl = 0
                 nrun = 0
                 for rw in range(nrow):
-                    x0 = rowx[rw] * s
+                    x0 = gox + rowx[rw] * s
                     ex = max(x0 - x, 0.0, x - (x0 + s))
                     if ex > radius + marg:
                         continue
                     # columns of the row within r: the slots meeting [y - h, y + h]
                     h = math.sqrt(max(r2 - ex * ex, 0.0)) + marg
-                    t0 = max(math.floor((y - h) / s) - (iy - kcols), 0)
-                    t1 = min(math.floor((y + h) / s) - (iy - kcols), side - 1)
+                    t0 = max(math.floor((y - goy - h) / s) - (iy - kcols), 0)
+                    t1 = min(math.floor((y - goy + h) / s) - (iy - kcols), side - 1)
                     if t0 > t1:
                         continue
                     lo = doff[rw, t0]
@@ -845,12 +846,12 @@ def grid_keys(x, y, z, sx, sy, s, q, nxc, nyc, zbits, keys):
 
 
 @njit(parallel=True, **_JIT)
-def gather_shifted(x, y, z, order, sx, sy, ox, oy, oz):
-    """ox[i] = x[order[i]] - sx etc. (the kernel's frame: grid columns start at 0)."""
+def gather(x, y, z, order, ox, oy, oz):
+    """ox[i] = x[order[i]] etc."""
     for i in prange(order.shape[0]):
         j = order[i]
-        ox[i] = x[j] - sx
-        oy[i] = y[j] - sy
+        ox[i] = x[j]
+        oy[i] = y[j]
         oz[i] = z[j]
 
 

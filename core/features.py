@@ -193,55 +193,55 @@ def _fast(cloud, query, radius, names, workers, cells_per_radius=None, stats=Non
     if zext / q >= 2.0 ** zbits - 2:
         q, sh = zext / (2.0 ** zbits - 2), 0
 
-    def sort(x, y, z):
-        keys = np.empty(len(x), np.int64)
-        K.grid_keys(x, y, z, lo[0], lo[1], s, q, nxc, nyc, zbits, keys)
-        order = np.argsort(keys)
-        keys = keys[order]
-        out = [np.empty(len(x)) for _ in range(3)]
-        K.gather_shifted(x, y, z, order, lo[0], lo[1], *out)
-        return order, keys, out
-
-    porder, pkeys, (px, py, pz) = sort(*cloud)
-    pcol = pkeys >> zbits
-    brk = np.flatnonzero(pcol[1:] != pcol[:-1]) + 1
-    cstart = np.concatenate([[0], brk, [len(pcol)]]).astype(np.int64)
-    ucol = pcol[cstart[:-1]]
-    del pcol, brk
-    if query is None:
-        qorder, qkeys, (qx, qy, qz) = porder, pkeys, (px, py, pz)
-        qs = np.arange(len(px), dtype=np.int64)  # query i of the sorted order is cloud point i
-    else:
-        qorder, qkeys, (qx, qy, qz) = sort(*query)
-        qs = np.full(len(qx), -1, np.int64)
-    # groups: one column, one z slab of height s (sh = 6: 64 q) -- or of q if z spans too much
-    gkey = qkeys >> sh
-    gstart = np.concatenate([[0], np.flatnonzero(gkey[1:] != gkey[:-1]) + 1, [len(gkey)]]).astype(np.int64)
-    gcol = qkeys[gstart[:-1]] >> zbits
-    del gkey
-    do_eig, do_rough, do_z, do_curv, do_cyl = _needs(names)
-    do_mom = do_eig or do_rough or do_curv
-    m = len(qx)
-    empty1, empty3 = np.empty(0), np.empty((0, 3))
-    count = np.empty(m, np.int64)
-    lam = np.empty((m, 3)) if do_mom else empty3
-    normal = np.empty((m, 3)) if do_mom else empty3
-    rough = np.empty(m) if do_rough else empty1
-    zrank = np.empty(m) if do_z else empty1
-    zrange = np.empty(m) if do_z else empty1
-    curv = np.empty(m) if do_curv else empty1
-    ncyl = np.empty(m if do_cyl else 0, np.int64)
-    nexact = np.empty(m, np.int8)
-    kcols = int(np.floor(radius / s * (1 + 1e-9))) + 1
     old = get_num_threads()
     if workers is not None and workers > 0:
-        set_num_threads(min(workers, old))
+        set_num_threads(min(workers, old))  # for the sort and the kernel
     try:
+        def sort(x, y, z):
+            keys = np.empty(len(x), np.int64)
+            K.grid_keys(x, y, z, lo[0], lo[1], s, q, nxc, nyc, zbits, keys)
+            order = np.argsort(keys)
+            keys = keys[order]
+            out = [np.empty(len(x)) for _ in range(3)]
+            K.gather(x, y, z, order, *out)
+            return order, keys, out
+
+        porder, pkeys, (px, py, pz) = sort(*cloud)
+        pcol = pkeys >> zbits
+        brk = np.flatnonzero(pcol[1:] != pcol[:-1]) + 1
+        cstart = np.concatenate([[0], brk, [len(pcol)]]).astype(np.int64)
+        ucol = pcol[cstart[:-1]]
+        del pcol, brk
+        if query is None:
+            qorder, qkeys, (qx, qy, qz) = porder, pkeys, (px, py, pz)
+            qs = np.arange(len(px), dtype=np.int64)  # query i of the sorted order is cloud point i
+        else:
+            qorder, qkeys, (qx, qy, qz) = sort(*query)
+            qs = np.full(len(qx), -1, np.int64)
+        # groups: one column, one z slab of height s (sh = 6: 64 q) -- or of q if z spans too much
+        gkey = qkeys >> sh
+        gstart = np.concatenate([[0], np.flatnonzero(gkey[1:] != gkey[:-1]) + 1, [len(gkey)]]).astype(np.int64)
+        gcol = qkeys[gstart[:-1]] >> zbits
+        del gkey
+        do_eig, do_rough, do_z, do_curv, do_cyl = _needs(names)
+        do_mom = do_eig or do_rough or do_curv
+        m = len(qx)
+        empty1, empty3 = np.empty(0), np.empty((0, 3))
+        count = np.empty(m, np.int64)
+        lam = np.empty((m, 3)) if do_mom else empty3
+        normal = np.empty((m, 3)) if do_mom else empty3
+        rough = np.empty(m) if do_rough else empty1
+        zrank = np.empty(m) if do_z else empty1
+        zrange = np.empty(m) if do_z else empty1
+        curv = np.empty(m) if do_curv else empty1
+        ncyl = np.empty(m if do_cyl else 0, np.int64)
+        nexact = np.empty(m, np.int8)
+        kcols = int(np.floor(radius / s * (1 + 1e-9))) + 1
         threads = get_num_threads()
         nb = -(-len(gcol) // _BLOCK)
         blocks = np.concatenate([np.arange(t, nb, threads) for t in range(threads)]).astype(np.int64)
         K.neighbourhoods(px, py, pz, pkeys, zbits, q, ucol, cstart, qx, qy, qz, qorder, qs, gstart, gcol,
-                         blocks, _BLOCK, nxc, nyc, s, kcols, radius, MIN_POINTS,
+                         blocks, _BLOCK, nxc, nyc, s, lo[0], lo[1], kcols, radius, MIN_POINTS,
                          do_eig, do_rough, do_z, do_curv, do_cyl,
                          count, lam, normal, rough, zrank, zrange, curv, ncyl, nexact)
     finally:

@@ -10,7 +10,7 @@ from core.features import FEATURES, compute_features
 
 
 def grid_plane(h=0.05, half=3.0):
-    k = int(round(half / h))
+    k = round(half / h)
     i, j = np.meshgrid(np.arange(-k, k + 1), np.arange(-k, k + 1), indexing="ij")
     return np.column_stack([i.ravel() * h, j.ravel() * h, np.zeros(i.size)]), i.ravel(), j.ravel()
 
@@ -172,7 +172,7 @@ def test_only_requested_features(monkeypatch):
     orig = K.neighbourhoods
 
     def spy(*args):
-        seen.append(args[23:28])  # do_eig, do_rough, do_z, do_curv, do_cyl
+        seen.append(args[25:30])  # do_eig, do_rough, do_z, do_curv, do_cyl
         return orig(*args)
 
     monkeypatch.setattr(K, "neighbourhoods", spy)
@@ -286,3 +286,24 @@ def test_threads_give_identical_results():
     b = compute_features(xyz, 1.0, workers=2)
     for name in FEATURES:
         assert np.array_equal(a[name], b[name], equal_nan=True), name
+
+
+def test_points_on_the_sphere_counted_as_the_reference():
+    """Points within an ulp of distance r: the kernel's distance test is the reference's
+    expression, evaluated strictly (no fast-math reassociation or FMA), so counts agree."""
+    rng = np.random.default_rng(9)
+    u = rng.normal(size=(20000, 3))
+    u /= np.linalg.norm(u, axis=1)[:, None]
+    q = np.array([[3.3, 4.4, 5.5]])
+    r = 1.7
+    xyz = np.vstack([q, q + r * u, q + 2 * r * u[:500]])
+    o = xyz.min(axis=0)
+    d = (xyz - o) - (q - o)  # the reference's frame and test
+    inside = np.sum(d * d, axis=1) <= r * r
+    assert 1000 < (~inside[:20001]).sum() < 19000  # many rounded just outside, many inside
+    assert F._reference_features(xyz, r, ("num_neighbours",), core_points=q)["num_neighbours"][0] == inside.sum()
+    for names in (("num_neighbours",), ("planarity", "z_range"), ("curvature", "point_density")):
+        a = compute_features(xyz, r, features=(*names, "num_neighbours"), core_points=q)
+        assert a["num_neighbours"][0] == inside.sum()
+        f = compute_features(xyz, r, features=(*names, "num_neighbours"))
+        assert f["num_neighbours"][0] == inside.sum()  # the point itself: d = 0, inside either way
