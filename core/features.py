@@ -6,8 +6,10 @@ change feature selection"; radii 1.0-4.0 m).
 
 Neighbourhood
     All cloud points p with |p - q| <= r, the query point itself included when it belongs to
-    the cloud (N counts it). The whole cloud is shifted once to a local origin (its minimum
-    corner), so a cloud at UTM coordinates gives the same features as at the origin. The
+    the cloud (N counts it), up to a relative 1e-9 (`RADIUS_TOLERANCE`: ties at exactly r,
+    common on the mm grid of LAS files, stay neighbours in any frame). The whole cloud is
+    shifted once to a local origin (its minimum corner), so a cloud at UTM coordinates
+    gives the same features as at the origin. The
     compiled kernel sums the moments of d = p - q relative to the query point in one pass
     (|d| <= r, error <= ~3 (N + 3) eps r^2 on every eigenvalue) and redoes, centred on the
     neighbourhood's own mean (two passes), every neighbourhood where a small eigenvalue
@@ -112,6 +114,14 @@ def _check(xyz, radius, features, core_points):
     return xyz, float(radius), names, core_points
 
 
+# Neighbours are the points with |p - q| <= r (1 + RADIUS_TOLERANCE). On the millimetre grid
+# of LAS files many points lie at exactly r from a query; the same points in a local frame
+# and at UTM coordinates differ by ~1e-10 m of rounding, which would flip such ties in or
+# out. The next distance a mm grid allows beyond r is ~1e-6 relative away, so 1e-9 keeps
+# every tie inside in any frame and admits nothing else.
+RADIUS_TOLERANCE = 1e-9
+
+
 def _derive(names, radius, count, lam, normal, rough, zrank, zrange, curv, ncyl):
     """Feature arrays from the per-neighbourhood quantities (same for fast and reference)."""
     out = {}
@@ -167,9 +177,10 @@ CELLS_PER_RADIUS = 3  # grid columns of side r/3: 1.45x the sphere's points test
 _BLOCK = 8  # query groups per prange block (blocks are interleaved over the threads)
 
 
-def _fast(cloud, query, radius, names, workers, cells_per_radius=None, stats=None):
+def _fast(cloud, query, radius, names, workers, cells_per_radius=None, stats=None, query_index=None):
     """Run the numba kernel. cloud: (x, y, z) contiguous arrays in the local frame (z >= 0);
-    query: the same for core points, or None for the cloud's own points.
+    query: the same for core points, or None for the cloud's own points (all of them, or
+    those in `query_index`).
 
     Returns count, lam, normal, rough, zrank, zrange, curv, ncyl (None where not asked for)."""
     from numba import get_num_threads, set_num_threads
@@ -212,9 +223,17 @@ def _fast(cloud, query, radius, names, workers, cells_per_radius=None, stats=Non
         cstart = np.concatenate([[0], brk, [len(pcol)]]).astype(np.int64)
         ucol = pcol[cstart[:-1]]
         del pcol, brk
-        if query is None:
+        if query is None and query_index is None:
             qorder, qkeys, (qx, qy, qz) = porder, pkeys, (px, py, pz)
             qs = np.arange(len(px), dtype=np.int64)  # query i of the sorted order is cloud point i
+        elif query is None:
+            # a subset of the cloud's own points: their places in the sorted cloud, in key order
+            inv = np.empty(len(porder), np.int64)
+            inv[porder] = np.arange(len(porder))
+            sp = inv[query_index]
+            qorder = np.argsort(sp, kind="stable")  # query i -> output position qorder[i]
+            qs = sp[qorder]
+            qkeys, qx, qy, qz = pkeys[qs], px[qs], py[qs], pz[qs]
         else:
             qorder, qkeys, (qx, qy, qz) = sort(*query)
             qs = np.full(len(qx), -1, np.int64)
@@ -256,7 +275,7 @@ def _fast(cloud, query, radius, names, workers, cells_per_radius=None, stats=Non
 
 
 def compute_features(xyz, radius: float, features: Sequence[str] | None = None, core_points=None,
-                     workers: int | None = None, fast: bool = True) -> dict[str, np.ndarray]:
+                     workers: int | None = None, fast: bool = True, query_index=None) -> dict[str, np.ndarray]:
     """Geometric features of every point (or of every core point) at a spherical radius.
 
     Parameters
@@ -272,6 +291,9 @@ def compute_features(xyz, radius: float, features: Sequence[str] | None = None, 
     core_points : (m, 3) float64, optional
         Where to evaluate; default the cloud's own points (then each neighbourhood includes
         the point). Core points are not part of the cloud.
+    query_index : (m,) int, optional
+        Evaluate only at these points of the cloud (neighbourhoods from the whole cloud,
+        the point itself included, as for the default); results in this order.
     workers : int, optional
         Threads for the compiled kernel (default: all of numba's). Load is balanced by
         handing the threads interleaved blocks of query groups.
@@ -285,26 +307,39 @@ def compute_features(xyz, radius: float, features: Sequence[str] | None = None, 
     """
     xyz, radius, names, core_points = _check(xyz, radius, features, core_points)
     n = len(xyz)
+    if query_index is not None:
+        if core_points is not None:
+            raise FeatureError("give core_points or query_index, not both")
+        query_index = np.asarray(query_index, dtype=np.int64)
+        if query_index.ndim != 1 or (len(query_index) and (query_index.min() < 0 or query_index.max() >= n)):
+            raise FeatureError(f"query_index must index the {n} points of the cloud")
     m = n if core_points is None else len(core_points)
+    if query_index is not None:
+        m = len(query_index)
     if m == 0 or n == 0:
         nan = np.full(m, np.nan)
         return {f: (np.zeros(m) if f in ("num_neighbours", "surface_density", "volume_density",
                                          "point_density") else nan.copy()) for f in names}
-    cols = [np.ascontiguousarray(xyz[:, k]) for k in range(3)]
-    origin = np.array([c.min() for c in cols])
+    origin = xyz.min(axis=0)
+    cols = [np.ascontiguousarray(xyz[:, k] - origin[k]) for k in range(3)]
+    r_test = radius * (1.0 + RADIUS_TOLERANCE)
     need_cyl = bool(set(names) & _CYL)
     if fast:
-        cloud = [c - o for c, o in zip(cols, origin)]
-        query = None if core_points is None else [core_points[:, k] - origin[k] for k in range(3)]
-        count, lam, normal, rough, zrank, zrange, curv, ncyl = _fast(cloud, query, radius, names, workers)
+        query = None if core_points is None else [np.ascontiguousarray(core_points[:, k] - origin[k])
+                                                  for k in range(3)]
+        count, lam, normal, rough, zrank, zrange, curv, ncyl = _fast(cols, query, r_test, names, workers,
+                                                                     query_index=query_index)
         ncyl = ncyl.astype(np.float64) if need_cyl else None
     else:
-        cloud = xyz - origin
-        if core_points is None:
-            query, qself = cloud, np.arange(n, dtype=np.int64)
+        cloud = np.column_stack(cols)
+        if core_points is not None:
+            query = core_points - origin
+            qself = np.full(m, -1, np.int64)
+        elif query_index is not None:
+            query, qself = cloud[query_index], query_index
         else:
-            query, qself = core_points - origin, np.full(m, -1, np.int64)
-        count, lam, normal, rough, zrank, zrange, curv, ncyl = _reference(cloud, query, qself, radius, names)
+            query, qself = cloud, np.arange(n, dtype=np.int64)
+        count, lam, normal, rough, zrank, zrange, curv, ncyl = _reference(cloud, query, qself, r_test, names)
     return _derive(names, radius, count, lam, normal, rough, zrank, zrange, curv, ncyl)
 
 
@@ -377,6 +412,6 @@ def _reference(cloud, query, qself, radius, names):
     return count, lam, normal, rough, zrank, zrange, curv, ncyl
 
 
-def _reference_features(xyz, radius, features=None, core_points=None):
+def _reference_features(xyz, radius, features=None, core_points=None, query_index=None):
     """The slow numpy reference of `compute_features` (same definitions, same NaN rule)."""
-    return compute_features(xyz, radius, features, core_points, fast=False)
+    return compute_features(xyz, radius, features, core_points, fast=False, query_index=query_index)

@@ -207,15 +207,7 @@ def _features_at(epoch: Epoch, index: GridIndex, at: np.ndarray, settings: Pipel
     xy = epoch.xyz[:, :2]
     cloud_idx = index.query(xy, _box(xy[at], r * 1.0001))
     pos = np.searchsorted(cloud_idx, at)
-    return _compute_at(epoch.xyz[cloud_idx], r, settings.computed_features, pos, workers)
-
-
-def _compute_at(cloud, r, names, pos, workers):
-    import inspect
-    if "query_index" in inspect.signature(compute_features).parameters:
-        return compute_features(cloud, r, names, query_index=pos, workers=workers)
-    full = compute_features(cloud, r, names, workers=workers)  # TEMPORARY until query_index lands
-    return {k: v[pos] for k, v in full.items()}
+    return compute_features(epoch.xyz[cloud_idx], r, settings.computed_features, query_index=pos, workers=workers)
 
 
 def describe_pair(pre: Epoch, post: Epoch, settings: PipelineSettings, *, workers: int = -1,

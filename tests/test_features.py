@@ -289,21 +289,43 @@ def test_threads_give_identical_results():
 
 
 def test_points_on_the_sphere_counted_as_the_reference():
-    """Points within an ulp of distance r: the kernel's distance test is the reference's
-    expression, evaluated strictly (no fast-math reassociation or FMA), so counts agree."""
+    """Points within an ulp of distance r are neighbours (the tolerance of 1e-9 r keeps such
+    ties inside in any frame), points 1e-7 r beyond are not: kernel and reference agree."""
     rng = np.random.default_rng(9)
     u = rng.normal(size=(20000, 3))
     u /= np.linalg.norm(u, axis=1)[:, None]
     q = np.array([[3.3, 4.4, 5.5]])
     r = 1.7
-    xyz = np.vstack([q, q + r * u, q + 2 * r * u[:500]])
+    xyz = np.vstack([q, q + r * u, q + r * (1 + 1e-7) * u[:3000], q + 2 * r * u[:500]])
     o = xyz.min(axis=0)
     d = (xyz - o) - (q - o)  # the reference's frame and test
-    inside = np.sum(d * d, axis=1) <= r * r
-    assert 1000 < (~inside[:20001]).sum() < 19000  # many rounded just outside, many inside
-    assert F._reference_features(xyz, r, ("num_neighbours",), core_points=q)["num_neighbours"][0] == inside.sum()
+    strict = np.sum(d * d, axis=1) <= r * r
+    assert 1000 < (~strict[:20001]).sum() < 19000  # without the tolerance many would fall outside
+    want = 20001
+    assert F._reference_features(xyz, r, ("num_neighbours",), core_points=q)["num_neighbours"][0] == want
     for names in (("num_neighbours",), ("planarity", "z_range"), ("curvature", "point_density")):
         a = compute_features(xyz, r, features=(*names, "num_neighbours"), core_points=q)
-        assert a["num_neighbours"][0] == inside.sum()
+        assert a["num_neighbours"][0] == want
         f = compute_features(xyz, r, features=(*names, "num_neighbours"))
-        assert f["num_neighbours"][0] == inside.sum()  # the point itself: d = 0, inside either way
+        assert f["num_neighbours"][0] == want  # the point itself: d = 0, inside either way
+
+
+
+
+def test_query_index_equals_the_full_cloud_subset():
+    """Features at some of the cloud's points (the pipeline's building points) equal the
+    same points' features computed for the whole cloud, fast and reference."""
+    rng = np.random.default_rng(4)
+    xyz = np.column_stack([rng.uniform(0, 8, 6000), rng.uniform(0, 8, 6000), rng.normal(0, 0.05, 6000)])
+    xyz[:2000, 2] += 3.0 * (xyz[:2000, 0] > 4)  # a step: some varied neighbourhoods
+    xyz += [500000.0, 5000000.0, 10.0]
+    pick = rng.choice(6000, 700, replace=False)
+    names = ("planarity", "roughness", "z_rank", "point_density", "curvature", "num_neighbours")
+    full = compute_features(xyz, 1.0, names)
+    part = compute_features(xyz, 1.0, names, query_index=pick)
+    ref = F._reference_features(xyz, 1.0, names, query_index=pick)
+    for name in names:
+        np.testing.assert_array_equal(part[name], full[name][pick])
+        np.testing.assert_allclose(part[name], ref[name], rtol=1e-9, atol=1e-12, equal_nan=True)
+    with pytest.raises(F.FeatureError, match="query_index"):
+        compute_features(xyz, 1.0, names, query_index=[6000])

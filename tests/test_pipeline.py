@@ -84,7 +84,6 @@ def test_tiling_does_not_change_the_answer(collapse_pair):
             assert a.descriptors[k] == pytest.approx(b.descriptors[k], rel=1e-9, abs=1e-12), k
 
 
-@pytest.mark.xfail(strict=True, reason="neighbours at exactly r on the mm grid flip with the frame's rounding")
 def test_world_coordinates_give_the_same_descriptors(collapse_pair):
     """The same points as float64 world coordinates (x≈500 000, y≈5 000 000, origin 0) and in
     the local frame: features centre their own neighbourhoods, so the answers agree."""
