@@ -788,8 +788,9 @@ def simulate_dim(scene: Scene, photo_survey: PhotoSurvey, out_path: str | os.Pat
     face = pieces.face[g]
     summary.points = len(pts)
     offset, shift = _las_offset(scene, caster)
-    with LasChunkWriter(out_path, offset, scene.crs, s.acquisition_date) as writer:
-        writer.header.system_identifier = "QuakeScan virtual DIM"
+    writer = LasChunkWriter(out_path, offset, scene.crs, s.acquisition_date)
+    writer.header.system_identifier = "QuakeScan virtual DIM"
+    with writer:
         for i in range(0, len(pts), _WRITE_CHUNK):
             sl = slice(i, i + _WRITE_CHUNK)
             f = face[sl]

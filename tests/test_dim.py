@@ -127,7 +127,9 @@ def test_paper_preset_spacing_matches_the_lAquila_dim_clouds(tmp_path):
 
 def test_same_seed_same_bytes(tmp_path):
     scene = box_city(rows=1, cols=2)
-    simulate_dim(scene, QUICK, tmp_path / "a.las", seed=3, threads=2)
+    calls = []
+    simulate_dim(scene, QUICK, tmp_path / "a.las", seed=3, threads=2, progress=lambda d, t: calls.append((d, t)))
+    assert calls and calls[-1][0] == calls[-1][1]
     simulate_dim(scene, QUICK, tmp_path / "b.las", seed=3, threads=1)
     simulate_dim(scene, QUICK, tmp_path / "c.las", seed=4, threads=2)
     a, b, c = ((tmp_path / f"{k}.las").read_bytes() for k in "abc")
@@ -266,3 +268,27 @@ def test_bad_input_gives_clear_errors(tmp_path):
         simulate_dim(box_city(rows=1, cols=1), QUICK.replace(oblique_cameras=0, max_incidence_deg=0.5),
                      tmp_path / "e.las")
     assert not (tmp_path / "e.las").exists()
+
+
+def test_las_follows_the_contract(tmp_path):
+    scene = box_city(rows=1, cols=2, origin=(2600000.0, 1200000.0, 400.0))
+    scene.crs = "EPSG:2056"
+    out = tmp_path / "c.laz"
+    summary = simulate_dim(scene, QUICK, out)
+    las = laspy.read(out)
+    h = las.header
+    assert str(h.version) == "1.4" and h.point_format.id == 6
+    assert h.system_identifier == "QuakeScan virtual DIM"
+    np.testing.assert_array_equal(h.scales, [0.001] * 3)
+    np.testing.assert_array_equal(h.offsets, scene.origin)
+    dims = {d.name: d for d in h.point_format.extra_dimensions}
+    assert dims["building_id"].dtype == np.uint32
+    assert dims["grade"].dtype == np.uint8 and dims["surface"].dtype == np.uint8
+    assert h.parse_crs().to_epsg() == 2056
+    assert h.point_count == len(las.x) == summary.points
+    np.testing.assert_allclose(h.mins, [las.x.min(), las.y.min(), las.z.min()])
+    assert (np.asarray(las.scan_angle) == 0).all()
+    assert las.gps_time.min() >= QUICK.gps_start_s
+    assert np.asarray(las.point_source_id).min() >= 1
+    assert summary.points_by_surface["roof"] + summary.points_by_surface["wall"] + \
+        summary.points_by_surface["ground"] == summary.points
