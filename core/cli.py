@@ -247,6 +247,32 @@ def cmd_evaluate(args) -> int:
     return 0
 
 
+def cmd_dim(args) -> int:
+    """A photogrammetric (dense image matching) point cloud of a scene bundle."""
+    from .dim import load_photo_survey, simulate_dim
+    from .scene import read_scene
+
+    scene_dir = Path(args.scene)
+    out = Path(args.output)
+    survey = load_photo_survey(args.survey)
+    summary = simulate_dim(read_scene(scene_dir), survey, out, seed=args.seed, threads=args.threads,
+                           progress=_Progress("dim", args.progress or sys.stderr.isatty()), source=str(scene_dir))
+    report = summary.to_json()
+    report["photo_survey"] = survey.to_json()
+    _write_json_atomic(out.with_name(out.name + ".summary.json"), report)
+    print(f"dim: {summary.points:,} points from {summary.cameras:,} images (nadir GSD {100 * summary.gsd_nadir_m:.1f} cm) "
+          f"in {summary.wall_time_s:.1f} s -> {out}")
+    return 0
+
+
+def cmd_dim_survey_template(args) -> int:
+    from .dim import preset_dim, write_photo_survey_template
+
+    write_photo_survey_template(args.output, preset_dim(args.preset))
+    print(f"photo survey template ({args.preset}) -> {args.output}")
+    return 0
+
+
 def cmd_demo(args) -> int:
     """The built-in default: generate a small city, scan both epochs, classify, evaluate, map."""
     from .demo import run_demo
@@ -307,6 +333,20 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("-o", "--output", required=True)
     t.add_argument("--preset", default="paper")
     t.set_defaults(func=cmd_survey_template)
+
+    dm = sub.add_parser("dim", help="simulate a photogrammetric (DIM) point cloud of a scene bundle")
+    dm.add_argument("scene", help="scene bundle folder (scene.json + mesh.ply)")
+    dm.add_argument("-o", "--output", required=True, help="output point cloud, .las or .laz")
+    dm.add_argument("--survey", default="paper", help="photo survey preset (paper) or JSON file")
+    dm.add_argument("--seed", type=int, default=0, help="seed of sampling and noise (same seed, same bytes)")
+    dm.add_argument("--threads", type=int, default=None)
+    dm.add_argument("--progress", action="store_true")
+    dm.set_defaults(func=cmd_dim)
+
+    dt = sub.add_parser("dim-survey-template", help="write a documented photo survey JSON file to edit")
+    dt.add_argument("-o", "--output", required=True)
+    dt.add_argument("--preset", default="paper")
+    dt.set_defaults(func=cmd_dim_survey_template)
 
     f = sub.add_parser("features", help="per-point geometric features as extra LAS dimensions")
     f.add_argument("input", help="LAS/LAZ point cloud")

@@ -135,3 +135,17 @@ def test_features_command_adds_readable_dimensions(tmp_path, capsys):
     assert main(["features", str(tmp_path / "in.las"), "-o", str(tmp_path / "x.las"), "--radius", "1.5",
                  "--features", "wetness"]) == 2
     assert "unknown features" in capsys.readouterr().err
+
+
+def test_dim_command_writes_cloud_and_summary(tmp_path, capsys):
+    scene_dir = write_scene(box_city(rows=1, cols=2), tmp_path / "scene")
+    out = tmp_path / "dim.las"
+    assert main(["dim", str(scene_dir), "-o", str(out), "--seed", "2"]) == 0
+    las = laspy.read(out)
+    summary = json.loads((tmp_path / "dim.las.summary.json").read_text())
+    assert len(las.x) == summary["points"] > 10_000 and summary["photo_survey"]["min_views"] == 2
+    assert set(np.unique(las["building_id"])) == {0, 1, 2}
+    assert "dim:" in capsys.readouterr().out
+    assert main(["dim-survey-template", "-o", str(tmp_path / "photo.json")]) == 0
+    assert main(["dim", str(scene_dir), "-o", str(tmp_path / "x.las"), "--survey", str(tmp_path / "nope.json")]) == 2
+    assert "nope.json" in capsys.readouterr().err
