@@ -180,7 +180,8 @@ def _pipeline_settings(args):
     from .change import SplitSettings
     from .pipeline import PAPER_FEATURES, PipelineSettings
 
-    split = SplitSettings(lod_height_m=args.lod_height, lod_curvature=args.lod_curvature, seed=args.seed)
+    split = SplitSettings(lod_height_m=args.lod_height, lod_curvature=args.lod_curvature,
+                          min_changed_share=args.min_changed_share, seed=args.seed)
     return PipelineSettings(radius_m=args.radius, point_features=_csv_list(args.features) or PAPER_FEATURES,
                             split=split)
 
@@ -362,6 +363,8 @@ def build_parser() -> argparse.ArgumentParser:
                        "(default: the paper's robust set)")
         q.add_argument("--lod-height", type=float, default=0.3, help="level of detection of height change, m")
         q.add_argument("--lod-curvature", type=float, default=0.2, help="level of detection of curvature change, 1/m")
+        q.add_argument("--min-changed-share", type=float, default=0.003,
+                       help="fewer changed points than this share of a building: unchanged (default 0.003)")
 
     tr = sub.add_parser("train", help="train a random forest from labelled pre/post pairs")
     tr.add_argument("--pair", nargs=2, action="append", required=True, metavar=("PRE", "POST"),

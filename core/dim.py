@@ -71,7 +71,7 @@ from numba import njit, prange
 
 from .errors import SurveyError
 from .pointcloud import LasChunkWriter, PointChunk
-from .scene import SURFACE_NAMES, Scene
+from .scene import Scene
 
 log = logging.getLogger(__name__)
 
@@ -743,7 +743,7 @@ def simulate_dim(scene: Scene, photo_survey: PhotoSurvey, out_path: str | os.Pat
 
     `progress` is called with (chunks_done, chunks_total). Same scene, survey and seed give
     the same bytes whatever `threads`."""
-    from .scan import RayCaster, _las_offset, check_scannable, ground_level
+    from .scan import RayCaster, _las_offset, check_scannable, ground_level, label_counts
 
     started = time.perf_counter()
     s = photo_survey
@@ -802,12 +802,7 @@ def simulate_dim(scene: Scene, photo_survey: PhotoSurvey, out_path: str | os.Pat
                 grade=caster.face_grade[f], surface=caster.face_surface[f],
                 point_source_id=(cams.line[cam[sl]] + 1).astype(np.uint16)))
     by_face = np.bincount(face, minlength=len(scene.faces))
-    by_surface = np.bincount(caster.face_surface, weights=by_face, minlength=5)
-    summary.points_by_surface = {SURFACE_NAMES.get(k, str(k)): int(c) for k, c in enumerate(by_surface) if c}
-    by_building = np.bincount(caster.face_building, weights=by_face)
-    summary.points_by_building = {int(k): int(by_building[k]) for k in np.flatnonzero(by_building) if k > 0}
-    missing = [b.id for b in scene.buildings if b.id not in summary.points_by_building]
-    if missing:
-        log.warning("%s: %d buildings got no DIM points: %s", source, len(missing), missing[:10])
+    summary.points_by_surface, summary.points_by_building = label_counts(scene, caster, by_face, source,
+                                                                          "DIM points")
     summary.wall_time_s = time.perf_counter() - started
     return summary

@@ -659,15 +659,23 @@ def scan(scene: Scene, survey: Survey, out_path: str | os.PathLike, seed: int = 
             raise SurveyError(f"{source}: the survey recorded no points: its flight lines miss the scene "
                               f"or every surface is beyond max_range_m={survey.max_range_m}")
     summary.points_by_return = {str(r): int(c) for r, c in enumerate(by_return) if c}
-    by_surface = np.bincount(caster.face_surface, weights=by_face, minlength=5)
-    summary.points_by_surface = {SURFACE_NAMES.get(k, str(k)): int(c) for k, c in enumerate(by_surface) if c}
-    by_building = np.bincount(caster.face_building, weights=by_face)
-    summary.points_by_building = {int(k): int(by_building[k]) for k in np.flatnonzero(by_building) if k > 0}
-    missing = [b.id for b in scene.buildings if b.id not in summary.points_by_building]
-    if missing:
-        log.warning("%s: %d buildings got no points: %s", source, len(missing), missing[:10])
+    summary.points_by_surface, summary.points_by_building = label_counts(scene, caster, by_face, source)
     summary.wall_time_s = time.perf_counter() - started
     return summary
+
+
+def label_counts(scene: Scene, caster: RayCaster, points_by_face: np.ndarray, source: str = "scene",
+                 kind: str = "points") -> tuple[dict, dict]:
+    """Points per surface name and per building ID from points per face; warns about
+    buildings that got none (shared by the ULS and DIM simulators)."""
+    by_surface = np.bincount(caster.face_surface, weights=points_by_face, minlength=5)
+    surfaces = {SURFACE_NAMES.get(k, str(k)): int(c) for k, c in enumerate(by_surface) if c}
+    by_building = np.bincount(caster.face_building, weights=points_by_face)
+    buildings = {int(k): int(by_building[k]) for k in np.flatnonzero(by_building) if k > 0}
+    missing = [b.id for b in scene.buildings if b.id not in buildings]
+    if missing:
+        log.warning("%s: %d buildings got no %s: %s", source, len(missing), kind, missing[:10])
+    return surfaces, buildings
 
 
 def _las_offset(scene: Scene, caster: RayCaster):

@@ -6,7 +6,6 @@ import math
 import laspy
 import numpy as np
 import pytest
-from scipy.spatial import cKDTree
 
 from core.dim import (
     FIELD_DOC,
@@ -21,6 +20,7 @@ from core.errors import SceneError, SurveyError
 from core.scan import RayCaster, ground_level
 from core.scene import GROUND, ROOF, WALL, Building, Scene
 from core.synthetic import _MeshBuilder, box_city, box_mesh, ground_mesh
+from tests.spacing import nearest_neighbour_spacing
 
 # A smaller flight for the quick tests: the obliques still reach a small city's facades.
 QUICK = preset_dim("paper").replace(margin_m=60.0)
@@ -112,12 +112,7 @@ def test_paper_preset_spacing_matches_the_lAquila_dim_clouds(tmp_path):
     las, xyz = _read(out)
     bid, surf = np.asarray(las.building_id), np.asarray(las.surface)
     for code, mean, std in ((ROOF, 0.09, 0.03), (WALL, 0.12, 0.04)):
-        nn = []
-        for b in np.unique(bid[bid > 0]):
-            p = xyz[(bid == b) & (surf == code)]
-            d, _ = cKDTree(p).query(p, k=2)
-            nn.append(d[:, 1])
-        nn = np.concatenate(nn)
+        nn = nearest_neighbour_spacing(xyz, bid, surf, code)
         assert abs(nn.mean() - mean) <= std, (code, nn.mean())
         assert abs(nn.std() - std) <= 0.02, (code, nn.std())
     assert set(summary.points_by_building) == set(range(1, 13))

@@ -4,13 +4,13 @@ import math
 import laspy
 import numpy as np
 import pytest
-from scipy.spatial import cKDTree
 
 from core.errors import SceneError, SurveyError
 from core.scan import RayCaster, ground_level, scan
-from core.scene import ROOF, WALL, GROUND, Scene
+from core.scene import GROUND, ROOF, WALL, Scene
 from core.survey import FlightLine, plan_flight, preset
 from core.synthetic import box_city, flat_ground
+from tests.spacing import nearest_neighbour_spacing
 
 EXACT = preset("paper").replace(range_noise_sigma_m=0.0)
 
@@ -143,12 +143,7 @@ def test_paper_survey_point_spacing_matches_the_paper(tmp_path):
     las, xyz = _read(out)
     bid, surf = np.asarray(las.building_id), np.asarray(las.surface)
     for code, mean, std in ((ROOF, 0.07, 0.03), (WALL, 0.11, 0.04)):
-        nn = []
-        for b in np.unique(bid[bid > 0]):
-            p = xyz[(bid == b) & (surf == code)]
-            d, _ = cKDTree(p).query(p, k=2)
-            nn.append(d[:, 1])
-        nn = np.concatenate(nn)
+        nn = nearest_neighbour_spacing(xyz, bid, surf, code)
         assert abs(nn.mean() - mean) <= std, (code, nn.mean())
 
 
