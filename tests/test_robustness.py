@@ -1,0 +1,253 @@
+"""Robust change-feature selection: closed-form relative changes, ULS == DIM gives zero
+difference, a small simulated ULS vs DIM collapse scene end to end, the comparison with the
+paper's set and bad input."""
+import csv
+import json
+import math
+
+import numpy as np
+import pytest
+
+from core.dim import preset_dim
+from core.pointcloud import Epoch
+from core.robustness import (
+    NORMAL,
+    PAPER_SET,
+    REPORT_FEATURES,
+    THRESHOLDS,
+    RobustnessError,
+    RobustnessResult,
+    compare_with_paper,
+    normal_change,
+    relative_change,
+    relative_changes,
+    robustness,
+    run_experiment,
+    write_report,
+)
+from core.scene import write_scene
+from core.survey import preset
+from core.synthetic import box_city
+
+PNG = b"\x89PNG\r\n\x1a\n"
+
+
+def _box_points(rng, spacing=0.25, noise=0.01):
+    """Ground (id 0) and a 6 x 6 x 4 m box (id 1: roof and four walls), noisy."""
+    g = np.arange(-6.0, 12.0 + 1e-9, spacing)
+    gx, gy = np.meshgrid(g, g)
+    ground = np.column_stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)])
+    ground = ground[~((ground[:, 0] >= 0) & (ground[:, 0] <= 6) & (ground[:, 1] >= 0) & (ground[:, 1] <= 6))]
+    s = np.arange(0.0, 6.0 + 1e-9, spacing)
+    h = np.arange(0.0, 4.0 + 1e-9, spacing)
+    rx, ry = np.meshgrid(s, s)
+    roof = np.column_stack([rx.ravel(), ry.ravel(), np.full(rx.size, 4.0)])
+    a, z = np.meshgrid(s, h)
+    a, z = a.ravel(), z.ravel()
+    walls = np.concatenate([np.column_stack([a, np.zeros_like(a), z]), np.column_stack([a, np.full_like(a, 6.0), z]),
+                            np.column_stack([np.zeros_like(a), a, z]), np.column_stack([np.full_like(a, 6.0), a, z])])
+    bld = np.concatenate([roof, walls])
+    xyz = np.concatenate([ground, bld]) + rng.normal(0, noise, (len(ground) + len(bld), 3))
+    ids = np.concatenate([np.zeros(len(ground), np.int64), np.ones(len(bld), np.int64)])
+    return xyz, ids
+
+
+def _epoch(xyz, ids, source):
+    return Epoch(xyz=np.asarray(xyz, float), origin=np.zeros(3), classification=np.zeros(len(xyz), np.uint8),
+                 building_id=np.asarray(ids, np.int64), source=source)
+
+
+@pytest.fixture(scope="module")
+def box_pair():
+    rng = np.random.default_rng(0)
+    xyz, ids = _box_points(rng)
+    return _epoch(xyz, ids, "pre.las"), xyz, ids
+
+
+# (1) closed form ------------------------------------------------------------------------------
+
+def test_relative_change_definition():
+    # |median| well above the IQR: scale = |median pre|
+    assert relative_change([10.0, 10.0, 10.0], [15.0, 15.0, 15.0]) == pytest.approx(50.0)
+    assert relative_change([-4.0, -4.0, -4.0], [-2.0, -2.0, -2.0]) == pytest.approx(50.0)  # |median| as scale
+    # NaN pairs are dropped on both sides
+    assert relative_change([10.0, np.nan, 10.0, 10.0], [12.0, 1e9, np.nan, 12.0]) == pytest.approx(20.0)
+    assert math.isnan(relative_change([np.nan], [1.0]))
+    # centred at 0: the IQR is the scale (median 0, IQR 1 -> a shift of 0.5 is 50 %)
+    pre = np.array([-1.0, -0.5, 0.0, 0.5, 1.0])
+    q1, q3 = np.percentile(pre, [25, 75])
+    assert relative_change(pre, pre + 0.5) == pytest.approx(100 * 0.5 / (q3 - q1))
+    # constant zero feature: 0 % if unchanged, NaN (never robust) if changed
+    assert relative_change([0.0, 0.0], [0.0, 0.0]) == 0.0
+    assert math.isnan(relative_change([0.0, 0.0], [1.0, 1.0]))
+
+
+def test_normal_change_angle_sign_free():
+    n = np.array([[0.0, 0.0, 1.0]] * 5)
+    assert normal_change(n, -n) == pytest.approx(0.0)
+    assert normal_change(n, np.array([[1.0, 0.0, 0.0]] * 5)) == pytest.approx(100.0)
+    c = math.cos(math.radians(45)), math.sin(math.radians(45))
+    assert normal_change(n, np.array([[c[1], 0.0, c[0]]] * 5)) == pytest.approx(50.0)
+
+
+def test_identical_epochs_change_nothing(box_pair):
+    pre, xyz, ids = box_pair
+    post = _epoch(xyz.copy(), ids, "post.las")
+    ch = relative_changes(pre, post, 1.0, workers=2)
+    assert set(ch) == set(REPORT_FEATURES) and NORMAL in ch and "normal_x" not in ch
+    for f, v in ch.items():
+        assert v == pytest.approx(0.0, abs=1e-9), f
+
+
+def test_duplicated_points_double_the_counts(box_pair):
+    pre, xyz, ids = box_pair
+    post = _epoch(np.concatenate([xyz, xyz]), np.concatenate([ids, ids]), "post.las")
+    ch = relative_changes(pre, post, 1.0, workers=2,
+                          features=("num_neighbours", "surface_density", "volume_density", "point_density",
+                                    "planarity", "linearity", "eigenvalue_sum", "normal_x"))
+    for f in ("num_neighbours", "surface_density", "volume_density", "point_density"):
+        assert ch[f] == pytest.approx(100.0), f
+    for f in ("planarity", "linearity", "eigenvalue_sum", NORMAL):  # population covariance: unchanged
+        assert ch[f] == pytest.approx(0.0, abs=1e-6), f
+
+
+# (2) the same pair as ULS and DIM ----------------------------------------------------------------
+
+def test_same_pair_is_robust_everywhere(box_pair):
+    pre, xyz, ids = box_pair
+    lower = xyz.copy()
+    lower[(ids > 0) & (lower[:, 2] > 3.0), 2] -= 1.0  # the roof drops by a metre
+    post = _epoch(lower, ids, "post.las")
+    res = robustness(pre, post, pre, post, radii=(2.0, 1.0), workers=2)
+    assert res.radii == [1.0, 2.0]
+    for r in res.radii:
+        for f in res.features:
+            assert res.difference[r][f] == 0.0 or math.isnan(res.uls[r][f]), (r, f)
+    finite_everywhere = [f for f in res.features if all(math.isfinite(res.uls[r][f]) for r in res.radii)]
+    assert res.robust == [f for f in res.features if math.isfinite(res.difference[1.0][f])]
+    assert len(finite_everywhere) >= len(res.features) - 1
+    # tie in count and in mean difference (0): the smallest radius
+    assert res.best_radius == 1.0
+    assert all(c == len(res.robust) for c in res.counts_by_threshold.values())
+    # something did change
+    assert abs(res.uls[1.0]["z_range"]) > 1.0
+
+
+def test_best_radius_rule():
+    feats = ["a", "b", "c"]
+    d = {1.0: {"a": 1.0, "b": 20.0, "c": 30.0},   # 1 robust
+         2.0: {"a": 5.0, "b": 9.0, "c": 40.0},    # 2 robust, mean 18
+         3.0: {"a": 2.0, "b": 8.0, "c": 35.0}}    # 2 robust, mean 15 -> best
+    from core import robustness as R
+
+    def key(r):
+        n = sum(R._le(d[r][f], 10.0) for f in feats)
+        return (-n, float(np.mean(list(d[r].values()))), r)
+    assert min(d, key=key) == 3.0
+
+
+# (3) simulated ULS vs DIM of a small collapse scene --------------------------------------------
+
+@pytest.fixture(scope="module")
+def experiment(tmp_path_factory):
+    root = tmp_path_factory.mktemp("rob")
+    pre = box_city(rows=1, cols=2, footprint=10.0, street=8.0, height=9.0, margin=12.0)
+    post = box_city(rows=1, cols=2, footprint=10.0, street=8.0, height=(9.0, 4.0), margin=12.0,
+                    epoch="post", grades=[0, 5])
+    write_scene(pre, root / "pre")
+    write_scene(post, root / "post")
+    uls = preset("paper").replace(pulse_rate_hz=50_000.0)
+    dim = preset_dim("paper").replace(margin_m=40.0, point_step_px=16.0)
+    calls = []
+    res = run_experiment(root / "pre", root / "post", root / "out", radii=(1.0, 2.0), seed=1, workers=2,
+                         survey=uls, photo_survey=dim, sample=3000, progress=lambda d, t: calls.append((d, t)))
+    return root, res, calls, (uls, dim)
+
+
+def test_simulated_experiment(experiment):
+    root, res, calls, _ = experiment
+    assert res.radii == [1.0, 2.0] and res.best_radius in res.radii
+    assert calls[-1] == (8, 8)
+    finite = [res.difference[r][f] for r in res.radii for f in res.features if math.isfinite(res.difference[r][f])]
+    assert len(finite) >= 0.8 * len(res.radii) * len(res.features)
+    # a lowered building: some features change clearly on both sources
+    for r in res.radii:
+        assert max(min(abs(res.uls[r][f]), abs(res.dim[r][f])) for f in res.features) > 5.0
+    counts = [res.counts_by_threshold[t] for t in THRESHOLDS]
+    assert counts == sorted(counts) and counts[int(res.threshold_pct)] == len(res.robust)
+    assert set(res.robust) <= set(res.features)
+    out = root / "out"
+    for name in ("features_vs_threshold.png", "difference_heatmap.png"):
+        assert (out / name).read_bytes()[:8] == PNG
+    js = json.loads((out / "robustness.json").read_text())
+    assert js["best_radius_m"] == res.best_radius and js["robust"] == res.robust
+    rows = list(csv.DictReader((out / "robustness.csv").open()))
+    assert len(rows) == len(res.radii) * len(res.features)
+    assert "Comparison with the paper" in (out / "README.md").read_text()
+    assert not list(out.rglob("*.part*"))
+    assert sorted(p.name for p in (out / "clouds").iterdir()) == ["dim_post.las", "dim_pre.las",
+                                                                   "uls_post.las", "uls_pre.las"]
+
+
+def test_experiment_resumes_from_existing_clouds(experiment, monkeypatch):
+    root, res, _, (uls, dim) = experiment
+    import core.dim
+    import core.scan
+
+    def boom(*a, **k):
+        raise AssertionError("rescanned although the cloud exists")
+    monkeypatch.setattr(core.scan, "scan", boom)
+    monkeypatch.setattr(core.dim, "simulate_dim", boom)
+    # same out_dir: every cloud is kept, the numbers are reproduced
+    again = run_experiment(root / "pre", root / "post", root / "out", radii=(1.0, 2.0), seed=1, workers=2,
+                           survey=uls, photo_survey=dim, sample=3000)
+    assert again.difference == res.difference or all(
+        (math.isnan(a) and math.isnan(b)) or a == b
+        for r in res.radii for a, b in zip(again.difference[r].values(), res.difference[r].values()))
+
+
+# (4) comparison with the paper ---------------------------------------------------------------------
+
+def _result(robust, features=REPORT_FEATURES):
+    d = {1.0: {f: (0.0 if f in robust else 50.0) for f in features}}
+    return RobustnessResult(radii=[1.0], features=list(features), uls=d, dim=d, difference=d, best_radius=1.0,
+                            threshold_pct=10.0, robust=list(robust), counts_by_threshold={})
+
+
+def test_compare_with_paper():
+    cmp = compare_with_paper(_result(list(PAPER_SET)))
+    assert cmp["both"] == sorted(PAPER_SET) and not cmp["only_ours"] and not cmp["only_paper"]
+    assert cmp["agreement"] == 1.0 and len(PAPER_SET) == 10 and NORMAL in PAPER_SET
+    cmp = compare_with_paper(_result(["planarity", "curvature", "echo_ratio"]))
+    assert cmp["both"] == ["planarity"]
+    assert cmp["only_ours"] == ["curvature", "echo_ratio"]
+    assert set(cmp["only_paper"]) == set(PAPER_SET) - {"planarity"}
+    assert cmp["agreement"] == pytest.approx(1 / 12, abs=1e-4)
+    # features not looked at are not counted against us
+    cmp = compare_with_paper(_result(["planarity"], features=("planarity", "curvature")))
+    assert cmp["only_paper"] == [] and "roughness" in cmp["not_tested"]
+
+
+def test_write_report_minimal(tmp_path):
+    res = _result(["planarity"])
+    res.counts_by_threshold = {t: 1 for t in THRESHOLDS}
+    write_report(res, tmp_path / "rep")
+    assert (tmp_path / "rep" / "features_vs_threshold.png").read_bytes()[:8] == PNG
+
+
+# (5) bad input ---------------------------------------------------------------------------------------
+
+def test_no_building_points_names_the_file(box_pair):
+    pre, xyz, ids = box_pair
+    ground_only = _epoch(xyz, np.zeros_like(ids), "/data/post_ground.las")
+    with pytest.raises(RobustnessError, match="post_ground.las.*no building points"):
+        relative_changes(pre, ground_only, 1.0)
+    with pytest.raises(RobustnessError, match="post_ground.las"):
+        robustness(pre, pre, ground_only, pre, radii=(1.0,))
+    no_ids = Epoch(xyz=xyz, origin=np.zeros(3), classification=np.zeros(len(xyz), np.uint8), source="x.las")
+    with pytest.raises(RobustnessError, match="x.las.*building_id"):
+        relative_changes(no_ids, pre, 1.0)
+    with pytest.raises(RobustnessError, match="radius"):
+        relative_changes(pre, pre, -1.0)
+    with pytest.raises(RobustnessError, match="unknown feature"):
+        relative_changes(pre, pre, 1.0, features=("bogus",))
