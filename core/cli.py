@@ -274,6 +274,21 @@ def cmd_dim_survey_template(args) -> int:
     return 0
 
 
+def cmd_robustness(args) -> int:
+    """The paper's robust-feature selection: relative change per feature on ULS vs DIM clouds."""
+    from .robustness import run_experiment
+
+    radii = tuple(float(r) for r in args.radii.split(",")) if args.radii else None
+    kw = {"radii": radii} if radii else {}
+    res = run_experiment(args.pre, args.post, args.output, seed=args.seed, workers=args.threads,
+                         progress=_Progress("robustness", args.progress or sys.stderr.isatty()),
+                         threshold_pct=args.threshold, **kw)
+    print(f"robustness: best radius {res.best_radius:g} m, {len(res.robust)} robust features at "
+          f"<= {args.threshold:g} %: {', '.join(res.robust)}")
+    print(f"report -> {Path(args.output) / 'README.md'}")
+    return 0
+
+
 def cmd_demo(args) -> int:
     """The built-in default: generate a small city, scan both epochs, classify, evaluate, map."""
     from .demo import run_demo
@@ -348,6 +363,18 @@ def build_parser() -> argparse.ArgumentParser:
     dt.add_argument("-o", "--output", required=True)
     dt.add_argument("--preset", default="paper")
     dt.set_defaults(func=cmd_dim_survey_template)
+
+    rb = sub.add_parser("robustness", help="which change features agree between ULS and DIM clouds (paper's "
+                        "robust-feature selection)")
+    rb.add_argument("pre", help="pre-event scene bundle folder")
+    rb.add_argument("post", help="post-event scene bundle folder of the same buildings")
+    rb.add_argument("-o", "--output", required=True, help="report folder (clouds are kept in OUTPUT/clouds)")
+    rb.add_argument("--radii", help="comma-separated radii in m (default 1.0,1.5,...,4.0)")
+    rb.add_argument("--threshold", type=float, default=10.0, help="robust if ULS and DIM differ by <= this, %%")
+    rb.add_argument("--seed", type=int, default=0)
+    rb.add_argument("--threads", type=int, default=None)
+    rb.add_argument("--progress", action="store_true")
+    rb.set_defaults(func=cmd_robustness)
 
     f = sub.add_parser("features", help="per-point geometric features as extra LAS dimensions")
     f.add_argument("input", help="LAS/LAZ point cloud")

@@ -149,3 +149,16 @@ def test_dim_command_writes_cloud_and_summary(tmp_path, capsys):
     assert main(["dim-survey-template", "-o", str(tmp_path / "photo.json")]) == 0
     assert main(["dim", str(scene_dir), "-o", str(tmp_path / "x.las"), "--survey", str(tmp_path / "nope.json")]) == 2
     assert "nope.json" in capsys.readouterr().err
+
+
+def test_robustness_command_writes_the_report(tmp_path, capsys):
+    pre = write_scene(box_city(rows=1, cols=2, height=9.0), tmp_path / "pre")
+    post = write_scene(box_city(rows=1, cols=2, height=(9.0, 4.0), epoch="post", grades=(0, 5)), tmp_path / "post")
+    out = tmp_path / "rob"
+    assert main(["robustness", str(pre), str(post), "-o", str(out), "--radii", "1.0,2.0"]) == 0
+    text = capsys.readouterr().out
+    assert "best radius" in text
+    report = json.loads((out / "robustness.json").read_text())
+    assert report["radii_m"] == [1.0, 2.0] and report["best_radius_m"] in (1.0, 2.0)
+    for name in ("README.md", "robustness.csv", "features_vs_threshold.png", "difference_heatmap.png"):
+        assert (out / name).is_file(), name
