@@ -299,6 +299,17 @@ def mixed_grades(ids, seed: int) -> dict:
     return {int(i): int(g[k]) for i, k in zip(ids, draws)}
 
 
+def exact_grades(ids, mix: dict, seed: int) -> dict:
+    """Grades with exact counts per grade (`mix`: grade -> count, summing to len(ids)),
+    assigned to the buildings in a seeded random order."""
+    grades = [g for g, n in sorted(mix.items()) for _ in range(n)]
+    if len(grades) != len(ids):
+        raise ValueError(f"grade mix sums to {len(grades)} but there are {len(ids)} buildings")
+    rng = np.random.default_rng([seed, 304])
+    order = rng.permutation(len(ids))
+    return {int(ids[k]): int(grades[j]) for j, k in enumerate(order)}
+
+
 def overlaps(plan: CityPlan, tol=0.01) -> list:
     """Pairs of buildings whose rotated footprints overlap by more than `tol` metres
     (separating-axis test on convex hulls); for tests."""

@@ -82,12 +82,22 @@ def parse_args(argv):
     p.add_argument("--buildings", type=_positive_int, default=None,
                    help="number of buildings (default 112); --set bundle: use a seeded sample of this many of "
                    "the source's buildings (default and values >= their number: all)")
+    p.add_argument("--grade-mix", type=_grade_mix, default=None,
+                   help="--dataset mixed: exact counts per grade instead of random draws, e.g. "
+                   "0:35,3:19,4:32,5:35 (the paper's L'Aquila evaluation set); sets --buildings to their sum")
     p.add_argument("--seed", type=_seed, default=0, help="random seed (default 0)")
     p.add_argument("--out", required=True, help="output folder (created)")
     p.add_argument("--force", action="store_true", help="regenerate bundles made with other settings")
     args = p.parse_args(argv)
     if args.set_name == "bundle" and not args.source:
         p.error("--set bundle needs --source SCENE_DIR")
+    if args.grade_mix is not None:
+        if args.dataset != "mixed":
+            p.error("--grade-mix is only used with --dataset mixed")
+        total = sum(args.grade_mix.values())
+        if args.buildings is not None and args.buildings != total:
+            p.error(f"--buildings {args.buildings} disagrees with --grade-mix, which sums to {total}")
+        args.buildings = total
     if args.set_name != "bundle":
         if args.source:
             p.error("--source is only used with --set bundle")
@@ -96,16 +106,33 @@ def parse_args(argv):
     return args
 
 
-def scene_list(dataset, ids, seed):
+def _grade_mix(text):
+    mix = {}
+    try:
+        for part in text.split(","):
+            g, n = part.split(":")
+            mix[int(g)] = int(n)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected GRADE:COUNT,... e.g. 0:35,3:19, got {text!r}") from None
+    if not mix or any(not 0 <= g <= 5 for g in mix) or any(n < 0 for n in mix.values()) or sum(mix.values()) < 1:
+        raise argparse.ArgumentTypeError(f"grades must be 0-5 with counts >= 0 summing to >= 1, got {text!r}")
+    return mix
+
+
+def scene_list(dataset, ids, seed, grade_mix=None):
     from addon import citygen
     if dataset == "paper":
         return [("pre", None)] + [(name, g) for name, g in citygen.PAPER_SCENES]
+    if grade_mix:
+        return [("pre", None), ("post", citygen.exact_grades(ids, grade_mix, seed))]
     return [("pre", None), ("post", citygen.mixed_grades(ids, seed))]
 
 
 def generator_info(args, scene_name):
     info = {"script": PROG, "version": GENERATOR_VERSION, "set": args.set_name, "dataset": args.dataset,
             "buildings": args.buildings, "seed": args.seed, "scene": scene_name}
+    if getattr(args, "grade_mix", None):
+        info["grade_mix"] = {str(g): n for g, n in sorted(args.grade_mix.items())}
     if args.set_name == "bundle":
         info["source"] = {"name": Path(args.source).resolve().name, "sha256": getattr(args, "source_sha256", None)}
     return info
@@ -220,7 +247,7 @@ def run(args) -> int:
     else:
         plan = citygen.city_plan(args.set_name, args.buildings, args.seed)
         ids = [b.id for b in plan.buildings]
-    scenes = scene_list(args.dataset, ids, args.seed)
+    scenes = scene_list(args.dataset, ids, args.seed, args.grade_mix)
     todo = []
     for name, grades in scenes:
         info = generator_info(args, name)

@@ -141,3 +141,25 @@ def test_script_runs_inside_blender(tmp_path):
     assert (tmp_path / "o" / "post_destruction" / "scene.json").is_file()
     bad = subprocess.run(cmd[:-2] + ["--buildings", "0"], capture_output=True, text=True, timeout=600)
     assert bad.returncode != 0
+
+
+def test_grade_mix_gives_exact_counts(gen, bpy_registered, tmp_path):
+    """--grade-mix: the paper's evaluation set has exact class counts, not random draws."""
+    import collections
+    import json
+
+    out = tmp_path / "mix"
+    assert gen.main(["--set", "region", "--dataset", "mixed", "--grade-mix", "0:3,3:2,4:2,5:3", "--seed", "4",
+                     "--out", str(out)]) == 0
+    doc = json.loads((out / "post" / "scene.json").read_text())
+    assert collections.Counter(b["grade"] for b in doc["buildings"]) == {0: 3, 3: 2, 4: 2, 5: 3}
+    assert doc["generator"]["grade_mix"] == {"0": 3, "3": 2, "4": 2, "5": 3}
+
+
+@pytest.mark.parametrize("argv", [["--dataset", "paper", "--grade-mix", "0:3"],
+                                  ["--dataset", "mixed", "--grade-mix", "0:3,9:1"],
+                                  ["--dataset", "mixed", "--grade-mix", "0:3", "--buildings", "5"]])
+def test_bad_grade_mix_exits_2(gen, argv, tmp_path):
+    with pytest.raises(SystemExit) as e:
+        gen.main(["--set", "region", *argv, "--out", str(tmp_path / "x")])
+    assert e.value.code == 2
