@@ -25,7 +25,13 @@ import numpy as np
 
 from .errors import QuakeScanError
 from .model import DamageModel, ModelError, load_model
-from .pipeline import BuildingRow, PipelineError, PipelineSettings, describe_pair, settings_for_descriptors
+from .pipeline import (
+    BuildingRow,
+    PipelineError,
+    PipelineSettings,
+    describe_pair,
+    settings_for_descriptors,
+)
 from .pointcloud import Epoch, PointCloudError, check_pair, read_epoch
 
 log = logging.getLogger(__name__)

@@ -228,7 +228,7 @@ def describe_pair(pre: Epoch, post: Epoch, settings: PipelineSettings, *, worker
         raise PipelineError(f"{post.source}: epochs are in different local frames; read the post epoch "
                             "with the pre epoch's origin")
     pre_ids, post_ids = pre.building_id, post.building_id
-    uniq_pre, first, n_pre = np.unique(pre_ids, return_index=True, return_counts=True)
+    uniq_pre, n_pre = np.unique(pre_ids, return_counts=True)
     uniq_post, n_post = np.unique(post_ids, return_counts=True)
     n_pre_of = dict(zip(uniq_pre.tolist(), n_pre.tolist()))
     n_post_of = dict(zip(uniq_post.tolist(), n_post.tolist()))

@@ -20,11 +20,11 @@ from pathlib import Path
 
 import numpy as np
 
+from .classify import load_pair
 from .errors import QuakeScanError
 from .evaluate import Evaluation, evaluate_grades, to_target_grade
 from .model import DamageModel, grouped_split, train_forest
 from .pipeline import PipelineSettings, describe_pair, descriptor_matrix
-from .classify import load_pair
 from .pointcloud import GRADE_UNKNOWN, Epoch
 
 log = logging.getLogger(__name__)

@@ -13,7 +13,13 @@ from core.pipeline import PipelineSettings
 from core.scan import scan
 from core.survey import preset
 from core.synthetic import box_city
-from core.training import TrainingError, TrainingPair, grades_from_epoch, read_truth_csv, train
+from core.training import (
+    TrainingError,
+    TrainingPair,
+    grades_from_epoch,
+    read_truth_csv,
+    train,
+)
 
 UTM = (500000.0, 5000000.0, 0.0)
 HEIGHTS = (9.0, 12.0, 9.0, 12.0, 9.0, 12.0)

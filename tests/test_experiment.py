@@ -4,7 +4,7 @@ import json
 import pytest
 
 from core.cli import main
-from core.experiment import CLASSIFIERS, PAPER_TABLE, comparison_table
+from core.experiment import CLASSIFIERS, PAPER_TABLE
 
 
 @pytest.mark.slow

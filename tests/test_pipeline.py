@@ -3,8 +3,15 @@ import numpy as np
 import pytest
 
 from core.change import SplitSettings, nearest_neighbours
-from core.pipeline import (PAPER_FEATURES, GridIndex, PipelineError, PipelineSettings, _exact_nearest,
-                           describe_pair, settings_for_descriptors)
+from core.pipeline import (
+    PAPER_FEATURES,
+    GridIndex,
+    PipelineError,
+    PipelineSettings,
+    _exact_nearest,
+    describe_pair,
+    settings_for_descriptors,
+)
 from core.pointcloud import Epoch, read_epoch
 from core.scan import scan
 from core.survey import preset
