@@ -299,7 +299,8 @@ def cmd_experiment(args) -> int:
             mix = {int(g): int(n) for g, n in (p.split(":") for p in args.test_mix.split(","))}
         except ValueError:
             raise QuakeScanError(f"--test-mix: expected GRADE:COUNT,..., got {args.test_mix!r}") from None
-    settings = ExperimentSettings(buildings=args.buildings, test_mix=mix, seed=args.seed, n_estimators=args.trees)
+    settings = ExperimentSettings(buildings=args.buildings, test_mix=mix, seed=args.seed, n_estimators=args.trees,
+                                  lod_height_m=args.lod_height, lod_curvature=args.lod_curvature)
     results = run_paper_experiment(args.output, settings, workers=args.threads,
                                    say=lambda m: print(m, flush=True))
     for name, ev in results.items():
@@ -402,6 +403,8 @@ def build_parser() -> argparse.ArgumentParser:
     ex.add_argument("--buildings", type=int, default=112, help="buildings per training dataset (default 112)")
     ex.add_argument("--test-mix", help="test city grade counts (default the paper's 0:35,3:19,4:32,5:35)")
     ex.add_argument("--trees", type=int, default=100)
+    ex.add_argument("--lod-height", type=float, default=0.3, help="level of detection of height change, m")
+    ex.add_argument("--lod-curvature", type=float, default=0.2, help="level of detection of curvature change, 1/m")
     ex.add_argument("--seed", type=int, default=0)
     ex.add_argument("--threads", type=int, default=-1)
     ex.set_defaults(func=cmd_experiment)
