@@ -458,10 +458,13 @@ def export_bundle(folder, objects, epoch="pre", origin=(0.0, 0.0, 0.0), crs=None
                 raise io_export.ExportError(f"object {obj.name!r} is a building without an ID")
             rec = io_export.building_record(obj, epoch)
             try:
-                for k, val in json.loads(obj.get(EXTRA_PROP, "{}")).items():
-                    rec.setdefault(k, val)
-            except (json.JSONDecodeError, AttributeError):
-                pass
+                items = json.loads(obj.get(EXTRA_PROP, "{}")).items()
+            except (json.JSONDecodeError, TypeError, AttributeError):
+                # the source bundle's extra keys would be lost without a word: refuse instead
+                raise io_export.ExportError(f"object {obj.name!r}: property {EXTRA_PROP!r} is not a JSON "
+                                            f"object ({str(obj.get(EXTRA_PROP))[:60]!r})") from None
+            for k, val in items:
+                rec.setdefault(k, val)
             if b in recs:
                 raise io_export.ExportError(f"building {b} is on more than one object ({obj.name!r})")
             recs[b] = rec

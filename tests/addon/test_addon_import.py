@@ -270,3 +270,19 @@ def test_generate_bundle_from_an_addon_scene_with_interiors(bpy_registered, tmp_
     # interiors are not doubled
     assert (pre.face_surface == INTERIOR).sum() == (src.face_surface == INTERIOR).sum()
     assert [b.grade for b in read_scene(tmp_path / "b" / "post_extreme").buildings] == [4, 4, 4]
+
+
+def test_unreadable_extra_keys_refuse_export(blank, tmp_path):
+    """An imported building's extra keys that no longer parse are not dropped silently."""
+    from addon import io_export, io_import, scene_tools
+    from core.scene import write_scene
+    from core.synthetic import box_city
+    write_scene(box_city(1, 1), tmp_path / "src")
+    coll = blank.data.collections.new("imported")
+    blank.context.scene.collection.children.link(coll)
+    info = io_import.import_bundle(tmp_path / "src", coll, scene=blank.context.scene)
+    obj = info["buildings"][0]
+    obj[io_import.EXTRA_PROP] = "{not json"
+    with pytest.raises(io_export.ExportError, match="is not a JSON object"):
+        io_import.export_bundle(tmp_path / "out", scene_tools.scene_objects(coll))
+    assert not (tmp_path / "out" / "scene.json").exists()
