@@ -109,6 +109,24 @@ def sort_columns_by_z(order, starts, xyz):
 
 
 @njit(inline="always", **_JIT)
+def _walk(qx, qy, qz, j, stop, step, px, py, pz, orig, best_d2, best_i):
+    """From sorted position j towards `stop` (exclusive) in direction step (+1 up, -1 down),
+    until the height gap alone exceeds the best distance."""
+    while j != stop:
+        dz = pz[j] - qz
+        if dz * dz > best_d2:
+            break
+        dx = px[j] - qx
+        dy = py[j] - qy
+        d2 = dx * dx + dy * dy + dz * dz
+        if d2 < best_d2 or (d2 == best_d2 and orig[j] < orig[best_i]):
+            best_d2 = d2
+            best_i = j
+        j += step
+    return best_d2, best_i
+
+
+@njit(inline="always", **_JIT)
 def _scan_column(qx, qy, qz, a, b, px, py, pz, orig, best_d2, best_i):
     """Best (d², index) after looking at the column's points a:b (sorted by z)."""
     lo = a
@@ -119,31 +137,8 @@ def _scan_column(qx, qy, qz, a, b, px, py, pz, orig, best_d2, best_i):
             lo = mid + 1
         else:
             hi = mid
-    j = lo
-    while j < b:
-        dz = pz[j] - qz
-        if dz * dz > best_d2:
-            break
-        dx = px[j] - qx
-        dy = py[j] - qy
-        d2 = dx * dx + dy * dy + dz * dz
-        if d2 < best_d2 or (d2 == best_d2 and orig[j] < orig[best_i]):
-            best_d2 = d2
-            best_i = j
-        j += 1
-    j = lo - 1
-    while j >= a:
-        dz = qz - pz[j]
-        if dz * dz > best_d2:
-            break
-        dx = px[j] - qx
-        dy = py[j] - qy
-        d2 = dx * dx + dy * dy + dz * dz
-        if d2 < best_d2 or (d2 == best_d2 and orig[j] < orig[best_i]):
-            best_d2 = d2
-            best_i = j
-        j -= 1
-    return best_d2, best_i
+    best_d2, best_i = _walk(qx, qy, qz, lo, b, 1, px, py, pz, orig, best_d2, best_i)
+    return _walk(qx, qy, qz, lo - 1, a - 1, -1, px, py, pz, orig, best_d2, best_i)
 
 
 @njit(parallel=True, **_JIT)

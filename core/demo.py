@@ -42,9 +42,15 @@ def generator_command(args: list[str]) -> list[str]:
                     "`blender` binary on PATH")
 
 
-def generate(set_name: str, dataset: str, buildings: int, seed: int, out: Path) -> None:
-    cmd = generator_command(["--set", set_name, "--dataset", dataset, "--buildings", str(buildings),
-                             "--seed", str(seed), "--out", str(out)])
+def generate(set_name: str, dataset: str, buildings: int | None, seed: int, out: Path,
+             grade_mix: dict | None = None) -> None:
+    """Run the add-on's scene generator; `grade_mix` (grade -> count) fixes a mixed city's grades."""
+    args = ["--set", set_name, "--dataset", dataset, "--seed", str(seed), "--out", str(out)]
+    if grade_mix:
+        args += ["--grade-mix", ",".join(f"{g}:{n}" for g, n in sorted(grade_mix.items()))]
+    elif buildings is not None:
+        args += ["--buildings", str(buildings)]
+    cmd = generator_command(args)
     proc = subprocess.run(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     if proc.returncode != 0:
         tail = "\n".join(proc.stderr.strip().splitlines()[-8:])

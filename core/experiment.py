@@ -22,7 +22,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import subprocess
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -30,8 +29,6 @@ from pathlib import Path
 
 import numpy as np
 
-from .demo import generator_command
-from .errors import QuakeScanError
 from .evaluate import (
     TARGET_GRADES,
     Evaluation,
@@ -63,10 +60,6 @@ CLASSIFIERS = {
 PAPER_TEST_MIX = {0: 35, 3: 19, 4: 32, 5: 35}
 TRAINING_SCENES = (("pre_rescan", "pre", 0), ("post_heavy", "post_heavy", 3), ("post_extreme", "post_extreme", 4),
                    ("post_destruction", "post_destruction", 5))
-
-
-class ExperimentError(QuakeScanError):
-    """The experiment cannot run as asked."""
 
 
 @dataclass
@@ -149,12 +142,7 @@ def run_paper_experiment(out_dir, settings: ExperimentSettings | None = None, *,
         f"and the test city {s.test_mix}")
     generate("generic", "paper", s.buildings, s.seed, data / "generic")
     generate("region", "paper", s.buildings, s.seed + 1, data / "region")
-    mix = ",".join(f"{g}:{n}" for g, n in sorted(s.test_mix.items()))
-    cmd = generator_command(["--set", "region", "--dataset", "mixed", "--grade-mix", mix, "--seed",
-                             str(s.seed + 2), "--out", str(data / "test")])
-    proc = subprocess.run(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    if proc.returncode:
-        raise ExperimentError(f"generating the test city failed: {proc.stderr.strip().splitlines()[-1:]}")
+    generate("region", "mixed", None, s.seed + 2, data / "test", grade_mix=s.test_mix)
     step("generate")
 
     say("experiment 2/5: acquiring the clouds (ULS: paper survey; DIM: paper photo flight)")
@@ -261,5 +249,5 @@ def _atomic_text(path: Path, text: str) -> None:
     os.replace(tmp, path)
 
 
-__all__ = ["CLASSIFIERS", "PAPER_TABLE", "Evaluation", "ExperimentError", "ExperimentSettings", "comparison_table",
+__all__ = ["CLASSIFIERS", "PAPER_TABLE", "Evaluation", "ExperimentSettings", "comparison_table",
            "run_paper_experiment"]

@@ -139,12 +139,12 @@ class GridIndex:
     def __init__(self, xy: np.ndarray, cell: float):
         self.cell = float(cell)
         if len(xy) == 0:
-            self.lo = np.zeros(2)
+            self.lo = self.hi = np.zeros(2)
             self.dims = (1, 1)
             self.order = np.zeros(0, np.int64)
             self.starts = np.zeros(2, np.int64)
             return
-        self.lo = xy.min(axis=0)
+        self.lo, self.hi = xy.min(axis=0), xy.max(axis=0)
         ij = np.floor((xy - self.lo) / self.cell).astype(np.int64)
         self.dims = (int(ij[:, 0].max()) + 1, int(ij[:, 1].max()) + 1)
         key = ij[:, 0] * self.dims[1] + ij[:, 1]
@@ -181,12 +181,13 @@ def _exact_nearest(pre_q: np.ndarray, post: Epoch, post_index: GridIndex, box: n
     dist = np.full(len(pre_q), np.inf)
     todo = np.arange(len(pre_q))
     grow = 0.0
-    whole = np.array([pxy.min(axis=0), pxy.max(axis=0)])
     while len(todo):
         b = np.array([box[0] - grow, box[1] + grow])
-        covers_all = bool(np.all(b[0] <= whole[0]) and np.all(b[1] >= whole[1]))
+        covers_all = bool(np.all(b[0] <= post_index.lo) and np.all(b[1] >= post_index.hi))
         cand = post_index.query(pxy, b)
         if len(cand) == 0:
+            if covers_all:
+                raise PipelineError(f"{post.source}: the post-event epoch has no points to map to")
             grow = max(2 * grow, 10.0)
             continue
         i, d = nearest_neighbours(pre_q[todo], post.xyz[cand], workers=workers)

@@ -10,9 +10,6 @@ from core.classify import classify, model_settings
 from core.cli import main
 from core.model import ModelError, load_model, save_model
 from core.pipeline import PipelineSettings
-from core.scan import scan
-from core.survey import preset
-from core.synthetic import box_city
 from core.training import (
     TrainingError,
     TrainingPair,
@@ -20,20 +17,14 @@ from core.training import (
     read_truth_csv,
     train,
 )
-
-UTM = (500000.0, 5000000.0, 0.0)
-HEIGHTS = (9.0, 12.0, 9.0, 12.0, 9.0, 12.0)
+from tests.scenes import UTM, scan_box_pair
 
 
 @pytest.fixture(scope="module")
 def city(tmp_path_factory):
     """pre; post where building 4 collapsed to 3 m and building 2 to 4 m (grade 5)."""
     d = tmp_path_factory.mktemp("city")
-    s = preset("paper").replace(pulse_rate_hz=100_000.0)
-    post_h = (9.0, 4.0, 9.0, 3.0, 9.0, 12.0)
-    grades = tuple(5 if a != b else 0 for a, b in zip(HEIGHTS, post_h))
-    scan(box_city(rows=2, cols=3, height=HEIGHTS, origin=UTM), s, d / "pre.las", seed=1)
-    scan(box_city(rows=2, cols=3, height=post_h, origin=UTM, epoch="post", grades=grades), s, d / "post.las", seed=2)
+    grades = scan_box_pair(d, (9.0, 4.0, 9.0, 3.0, 9.0, 12.0))
     model, ev, table = train([TrainingPair(str(d / "pre.las"), str(d / "post.las"))], PipelineSettings(),
                              n_estimators=10, test_size=0.0)
     save_model(model, d / "model.skops")

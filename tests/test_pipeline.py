@@ -13,20 +13,11 @@ from core.pipeline import (
     settings_for_descriptors,
 )
 from core.pointcloud import Epoch, read_epoch
-from core.scan import scan
-from core.survey import preset
-from core.synthetic import box_city
-
-UTM = (500000.0, 5000000.0, 0.0)
-HEIGHTS = (9.0, 12.0, 9.0, 12.0, 9.0, 12.0)
+from tests.scenes import UTM, scan_box_pair
 
 
 def _scan_pair(folder, origin, post_heights, seed_post=2):
-    s = preset("paper").replace(pulse_rate_hz=100_000.0)
-    scan(box_city(rows=2, cols=3, height=HEIGHTS, origin=origin), s, folder / "pre.las", seed=1)
-    grades = tuple(5 if a != b else 0 for a, b in zip(HEIGHTS, post_heights))
-    scan(box_city(rows=2, cols=3, height=post_heights, origin=origin, epoch="post", grades=grades), s,
-         folder / "post.las", seed=seed_post)
+    scan_box_pair(folder, post_heights, origin, seed_post)
     pre = read_epoch(folder / "pre.las")
     return pre, read_epoch(folder / "post.las", origin=pre.origin)
 
