@@ -55,6 +55,9 @@ class PipelineSettings:
     min_points_pre: int = 50   # fewer pre-event points: not assessable
     min_points_post: int = 10  # fewer post-event points: not covered by the post-event flight
     tile_m: float = 150.0
+    # > 1: changes only at every k-th pre-event point of each building (neighbourhoods, nearest
+    # neighbours and the point counts still use the full clouds): approximate, k times fewer queries
+    core_point_step: int = 1
 
     def __post_init__(self):
         if not (math.isfinite(self.radius_m) and self.radius_m > 0):
@@ -64,6 +67,9 @@ class PipelineSettings:
             raise PipelineError(f"unknown point features {unknown}; known: {', '.join(FEATURES)}")
         if not self.tile_m > 2 * self.radius_m:
             raise PipelineError(f"tile size {self.tile_m} m must exceed twice the radius {self.radius_m} m")
+        k = self.core_point_step
+        if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 1:
+            raise PipelineError(f"core point step must be a positive integer (1 = every point), got {k!r}")
 
     @property
     def computed_features(self) -> tuple:
@@ -83,14 +89,16 @@ class PipelineSettings:
     def to_json(self) -> dict:
         return {"radius_m": self.radius_m, "point_features": list(self.point_features),
                 "split": self.split.to_json(), "min_points_pre": self.min_points_pre,
-                "min_points_post": self.min_points_post, "tile_m": self.tile_m}
+                "min_points_post": self.min_points_post, "tile_m": self.tile_m,
+                "core_point_step": int(self.core_point_step)}
 
     @classmethod
     def from_json(cls, d: dict) -> PipelineSettings:
         try:
             return cls(radius_m=float(d["radius_m"]), point_features=tuple(d["point_features"]),
                        split=SplitSettings(**d["split"]), min_points_pre=int(d["min_points_pre"]),
-                       min_points_post=int(d["min_points_post"]), tile_m=float(d.get("tile_m", 150.0)))
+                       min_points_post=int(d["min_points_post"]), tile_m=float(d.get("tile_m", 150.0)),
+                       core_point_step=int(d.get("core_point_step", 1)))  # absent in older models
         except (KeyError, TypeError, ValueError) as e:
             raise PipelineError(f"incomplete pipeline settings ({e!r}): {d}") from None
 
@@ -276,7 +284,10 @@ def describe_pair(pre: Epoch, post: Epoch, settings: PipelineSettings, *, worker
             if progress:
                 progress(finished, total)
             continue
-        q = np.sort(np.concatenate([order[where[b][0]:where[b][1]] for b in bids])).astype(np.int64)
+        # every k-th point of each building (its indices ascend: `order` is a stable sort), so no
+        # building is left without query points whatever k
+        k = settings.core_point_step
+        q = np.sort(np.concatenate([order[where[b][0]:where[b][1]:k] for b in bids])).astype(np.int64)
         pre_f = _features_at(pre, pre_index, q, settings, workers)
         box = _box(pre.xyz[q, :2], settings.radius_m)
         nn, dist = _exact_nearest(pre.xyz[q], post, post_index, box, workers)
