@@ -186,6 +186,26 @@ def _pipeline_settings(args):
                             split=split)
 
 
+def cmd_calibrate_lod(args) -> int:
+    """Levels of detection of the split from two acquisitions of the same undamaged buildings."""
+    from .lod import calibrate
+    from .pointcloud import read_epoch
+
+    first = read_epoch(args.first)
+    lod = calibrate(first, read_epoch(args.second, origin=first.origin), radius_m=args.radius,
+                    quantile=args.quantile, seed=args.seed, workers=args.threads)
+    print(f"calibrate-lod: {lod.points:,} building points; at the {100 * args.quantile:g}th percentile "
+          f"|Δheight| {lod.height_at_quantile_m:.3f} m, |Δcurvature| {lod.curvature_at_quantile:.3f} 1/m")
+    print(f"levels of detection: --lod-height {lod.lod_height_m:.3f} --lod-curvature {lod.lod_curvature:.3f}")
+    if args.output:
+        out = Path(args.output)
+        tmp = out.with_name(out.name + ".part")
+        tmp.write_text(json.dumps(lod.to_json(), indent=1))
+        os.replace(tmp, out)
+        print(f"-> {out}")
+    return 0
+
+
 def cmd_train(args) -> int:
     from .model import save_model
     from .training import TrainingError, TrainingPair, train
@@ -300,7 +320,8 @@ def cmd_experiment(args) -> int:
         except ValueError:
             raise QuakeScanError(f"--test-mix: expected GRADE:COUNT,..., got {args.test_mix!r}") from None
     settings = ExperimentSettings(buildings=args.buildings, test_mix=mix, seed=args.seed, n_estimators=args.trees,
-                                  lod_height_m=args.lod_height, lod_curvature=args.lod_curvature)
+                                  lod_height_m=args.lod_height, lod_curvature=args.lod_curvature,
+                                  training=args.training)
     results = run_paper_experiment(args.output, settings, workers=args.threads,
                                    say=lambda m: print(m, flush=True))
     for name, ev in results.items():
@@ -403,8 +424,12 @@ def build_parser() -> argparse.ArgumentParser:
     ex.add_argument("--buildings", type=int, default=112, help="buildings per training dataset (default 112)")
     ex.add_argument("--test-mix", help="test city grade counts (default the paper's 0:35,3:19,4:32,5:35)")
     ex.add_argument("--trees", type=int, default=100)
-    ex.add_argument("--lod-height", type=float, default=0.3, help="level of detection of height change, m")
-    ex.add_argument("--lod-curvature", type=float, default=0.2, help="level of detection of curvature change, 1/m")
+    ex.add_argument("--training", choices=("paper", "paper+mixed"), default="paper+mixed",
+                    help="training sets: the paper's design only, or with a mixed city each (default)")
+    ex.add_argument("--lod-height", type=float, default=None,
+                    help="level of detection of height change, m (default: measured on a DIM rescan)")
+    ex.add_argument("--lod-curvature", type=float, default=None,
+                    help="level of detection of curvature change, 1/m (default: measured on a DIM rescan)")
     ex.add_argument("--seed", type=int, default=0)
     ex.add_argument("--threads", type=int, default=-1)
     ex.set_defaults(func=cmd_experiment)
@@ -416,6 +441,17 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--features", help="comma-separated names (default: all 24)")
     f.add_argument("--threads", type=int, default=None)
     f.set_defaults(func=cmd_features)
+
+    lc = sub.add_parser("calibrate-lod", help="levels of detection of the changed/unchanged split, measured on "
+                        "two acquisitions of the same undamaged buildings (use them with train --lod-*)")
+    lc.add_argument("first", help="LAS/LAZ of undamaged buildings with building IDs")
+    lc.add_argument("second", help="the same buildings acquired again with the same scanner or camera")
+    lc.add_argument("-o", "--output", help="also write the levels as JSON")
+    lc.add_argument("--radius", type=float, default=1.5, help="feature radius in m (default 1.5)")
+    lc.add_argument("--quantile", type=float, default=0.999, help="quantile of |change| (default 0.999)")
+    lc.add_argument("--seed", type=int, default=0)
+    lc.add_argument("--threads", type=int, default=-1)
+    lc.set_defaults(func=cmd_calibrate_lod)
 
     def pipeline_options(q):
         q.add_argument("--radius", type=float, default=1.5, help="feature radius in m (default 1.5)")

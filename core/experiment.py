@@ -12,10 +12,19 @@ region-specific (L'Aquila-like) set:
 
 Each training set is the paper's dataset design: N buildings pre-event and, in three
 post-event scenes, every building heavy, extreme or destroyed; the undamaged class comes
-from the pre-event scene acquired a second time (new noise). The test city is a separate
-region-specific mixed city with the paper's exact class mix, acquired as DIM. Descriptor
-tables are computed once per dataset and shared between classifiers; every step skips
-outputs that exist (resumable) and everything is seeded (reproducible).
+from the pre-event scene acquired a second time (new noise). With `training="paper+mixed"`
+(the default) each set also holds a mixed city of N buildings, a quarter per grade, where
+undamaged buildings stand beside damaged ones: the paper's design never shows the
+classifier an undamaged building next to a collapse (debris on its walls, a neighbour's
+newly exposed party wall), and the test city is full of them. The test city is a separate
+region-specific mixed city with the paper's exact class mix, acquired as DIM.
+
+Levels of detection of the changed/unchanged split (`core.lod`): by default measured on
+the region-specific pre-event scene acquired twice as DIM (the source the classifiers are
+applied to) and used for every training table and the test alike; explicit values
+override. Descriptor tables are computed once per dataset and split settings and shared
+between classifiers; every step skips outputs that exist (resumable) and everything is
+seeded (reproducible).
 """
 from __future__ import annotations
 
@@ -60,6 +69,7 @@ CLASSIFIERS = {
 PAPER_TEST_MIX = {0: 35, 3: 19, 4: 32, 5: 35}
 TRAINING_SCENES = (("pre_rescan", "pre", 0), ("post_heavy", "post_heavy", 3), ("post_extreme", "post_extreme", 4),
                    ("post_destruction", "post_destruction", 5))
+TRAINING_LAYOUTS = ("paper", "paper+mixed")
 
 
 @dataclass
@@ -69,12 +79,24 @@ class ExperimentSettings:
     seed: int = 0
     n_estimators: int = 100
     max_depth: int = 5
-    lod_height_m: float = 0.3
-    lod_curvature: float = 0.2
+    lod_height_m: float | None = None  # None: calibrated on the DIM rescan (core.lod)
+    lod_curvature: float | None = None
+    training: str = "paper+mixed"
 
     def __post_init__(self):
+        from .errors import QuakeScanError
+
         if self.test_mix is None:
             self.test_mix = dict(PAPER_TEST_MIX)
+        if self.training not in TRAINING_LAYOUTS:
+            raise QuakeScanError(f"training layout must be one of {TRAINING_LAYOUTS}, got {self.training!r}")
+        if self.buildings < 4:
+            raise QuakeScanError(f"buildings per training dataset must be >= 4, got {self.buildings}")
+
+    @property
+    def mixed_training_mix(self) -> dict:
+        """Grades of each training set's mixed city: a quarter of the buildings per grade."""
+        return {g: self.buildings // 4 for g in TARGET_GRADES}
 
 
 def _acquire(kind: str, scene_dir: Path, out: Path, seed: int) -> Path:
@@ -95,7 +117,10 @@ def _acquire(kind: str, scene_dir: Path, out: Path, seed: int) -> Path:
 
 
 def _table(pre: Path, posts: list, cache: Path, settings, workers) -> dict:
-    """Descriptor rows {X, y, ids} of the training pairs (pre, post) with their grades, cached."""
+    """Descriptor rows {X, y, ids} of the training pairs (pre, post), cached.
+
+    `posts`: (post cloud, grade) where grade is one grade for every building or a
+    {building ID: grade} truth (a mixed city)."""
     from .classify import load_pair
     from .pipeline import describe_pair, descriptor_matrix
 
@@ -107,14 +132,34 @@ def _table(pre: Path, posts: list, cache: Path, settings, workers) -> dict:
     for post, grade in posts:
         data = load_pair(pre, post)
         rows = [r for r in describe_pair(data.pre, data.post, settings, workers=workers) if r.assessable]
+        if isinstance(grade, dict):
+            rows = [r for r in rows if r.building_id in grade]
         xs.append(descriptor_matrix(rows, names))
-        ys += [grade] * len(rows)
+        ys += [grade[r.building_id] if isinstance(grade, dict) else grade for r in rows]
         ids += [r.building_id for r in rows]
     out = {"x": np.vstack(xs), "y": np.array(ys), "ids": np.array(ids)}
     tmp = cache.with_name(cache.name + ".part.npz")
     np.savez(tmp, **out)
     os.replace(tmp, cache)
     return out
+
+
+def _levels_of_detection(s: ExperimentSettings, pre: Path, rescan: Path, cache: Path, workers):
+    """The split's LoDs: explicit ones, or measured on the DIM rescan (cached as JSON)."""
+    from .lod import LevelsOfDetection, calibrate
+    from .pointcloud import read_epoch
+
+    if cache.is_file():
+        lod = LevelsOfDetection(**json.loads(cache.read_text()))
+    else:
+        a = read_epoch(pre)
+        lod = calibrate(a, read_epoch(rescan, origin=a.origin), seed=s.seed, workers=workers)
+        _atomic_text(cache, json.dumps(lod.to_json(), indent=1))
+    if s.lod_height_m is not None:
+        lod.lod_height_m = s.lod_height_m
+    if s.lod_curvature is not None:
+        lod.lod_curvature = s.lod_curvature
+    return lod
 
 
 def run_paper_experiment(out_dir, settings: ExperimentSettings | None = None, *, workers: int = -1,
@@ -126,23 +171,24 @@ def run_paper_experiment(out_dir, settings: ExperimentSettings | None = None, *,
     from .pipeline import PipelineSettings, describe_pair
 
     s = settings or ExperimentSettings()
+    mixed = s.training == "paper+mixed"
     out = Path(out_dir)
     data = out / "data"
     data.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     timings = {}
-    from .change import SplitSettings
-
-    pipe = PipelineSettings(split=SplitSettings(lod_height_m=s.lod_height_m, lod_curvature=s.lod_curvature))
 
     def step(label):
         timings[label] = round(time.perf_counter() - t0 - sum(timings.values()), 1)
 
-    say(f"experiment 1/5: generating the generic and region-specific datasets ({s.buildings} buildings each) "
-        f"and the test city {s.test_mix}")
+    say(f"experiment 1/5: generating the generic and region-specific datasets ({s.buildings} buildings each"
+        + (f", and a mixed city {s.mixed_training_mix} each" if mixed else "") + f") and the test city {s.test_mix}")
     generate("generic", "paper", s.buildings, s.seed, data / "generic")
     generate("region", "paper", s.buildings, s.seed + 1, data / "region")
     generate("region", "mixed", None, s.seed + 2, data / "test", grade_mix=s.test_mix)
+    if mixed:
+        generate("generic", "mixed", None, s.seed + 3, data / "generic_mixed", grade_mix=s.mixed_training_mix)
+        generate("region", "mixed", None, s.seed + 4, data / "region_mixed", grade_mix=s.mixed_training_mix)
     step("generate")
 
     say("experiment 2/5: acquiring the clouds (ULS: paper survey; DIM: paper photo flight)")
@@ -153,19 +199,33 @@ def run_paper_experiment(out_dir, settings: ExperimentSettings | None = None, *,
         for name, scene, _ in (("pre", "pre", None), *TRAINING_SCENES):
             k += 1
             c[name] = _acquire(kind, data / dataset / scene, data / f"{dataset}_{kind}_{name}.las", s.seed * 100 + k)
+        if mixed:
+            for ep in ("pre", "post"):
+                k += 1
+                c[f"mixed_{ep}"] = _acquire(kind, data / f"{dataset}_mixed" / ep,
+                                            data / f"{dataset}_mixed_{kind}_{ep}.las", s.seed * 100 + 50 + k)
         clouds[(dataset, kind)] = c
     test_pre = _acquire("dim", data / "test" / "pre", data / "test_dim_pre.las", s.seed * 100 + 90)
     test_post = _acquire("dim", data / "test" / "post", data / "test_dim_post.las", s.seed * 100 + 91)
     step("acquire")
 
-    say("experiment 3/5: change descriptors of every training pair (one table per dataset, shared)")
+    dim = clouds[("region", "dim")]
+    lod = _levels_of_detection(s, dim["pre"], dim["pre_rescan"], data / "lod_region_dim.json", workers)
+    pipe = PipelineSettings(split=lod.split())
+    say(f"experiment 3/5: change descriptors of every training pair (levels of detection {lod.lod_height_m:.2f} m, "
+        f"{lod.lod_curvature:.2f} 1/m; one table per dataset, shared)")
     # the tables depend on the pipeline settings: a cache made with others is not reused
     settings_tag = hashlib.sha256(json.dumps(pipe.to_json(), sort_keys=True).encode()).hexdigest()[:10]
     tables = {}
     for key in sorted(clouds):
         c = clouds[key]
-        tables[key] = _table(c["pre"], [(c[name], g) for name, _, g in TRAINING_SCENES],
-                             data / f"table_{key[0]}_{key[1]}_{settings_tag}.npz", pipe, workers)
+        parts = [_table(c["pre"], [(c[name], g) for name, _, g in TRAINING_SCENES],
+                        data / f"table_{key[0]}_{key[1]}_{settings_tag}.npz", pipe, workers)]
+        if mixed:
+            truth = read_truth(data / f"{key[0]}_mixed" / "post")
+            parts.append(_table(c["mixed_pre"], [(c["mixed_post"], truth)],
+                                data / f"table_{key[0]}_mixed_{key[1]}_{settings_tag}.npz", pipe, workers))
+        tables[key] = {"x": np.vstack([p["x"] for p in parts]), "y": np.concatenate([p["y"] for p in parts])}
     step("describe training")
 
     say("experiment 4/5: training the four classifiers and classifying the held-out DIM test city")
@@ -178,7 +238,7 @@ def run_paper_experiment(out_dir, settings: ExperimentSettings | None = None, *,
         y = np.concatenate([tables[p]["y"] for p in parts])
         est = train_forest(x, y, n_estimators=s.n_estimators, max_depth=s.max_depth, seed=s.seed)
         model = DamageModel(est, pipe.descriptor_names(), pipe.radius_m, split=pipe.to_json(),
-                            provenance={"classifier": name, "rows": int(len(y))})
+                            provenance={"classifier": name, "rows": len(y)})
         pred = predict_rows(test_rows, model)
         assessed = [r for r in pred if r.assessable and r.building_id in truth]
         ev = evaluate_grades(np.array([truth[r.building_id] for r in assessed]), np.array([r.grade for r in assessed]))
@@ -187,7 +247,7 @@ def run_paper_experiment(out_dir, settings: ExperimentSettings | None = None, *,
     step("train + classify")
 
     say(f"experiment 5/5: report -> {out}")
-    write_report(out, results, s, timings, time.perf_counter() - t0)
+    write_report(out, results, s, lod, timings, time.perf_counter() - t0)
     return results
 
 
@@ -208,29 +268,51 @@ def comparison_table(results: dict) -> str:
     return "\n".join(lines)
 
 
-def write_report(out: Path, results: dict, s: ExperimentSettings, timings: dict, total_s: float) -> None:
+def _command(out: Path, s: ExperimentSettings) -> str:
+    defaults = ExperimentSettings()
+    args = [f"quakescan experiment paper -o {out}"]
+    for flag, value, default in (("--buildings", s.buildings, defaults.buildings), ("--seed", s.seed, defaults.seed),
+                                 ("--trees", s.n_estimators, defaults.n_estimators),
+                                 ("--training", s.training, defaults.training),
+                                 ("--lod-height", s.lod_height_m, None), ("--lod-curvature", s.lod_curvature, None)):
+        if value != default:
+            args.append(f"{flag} {value}")
+    if s.test_mix != PAPER_TEST_MIX:
+        args.append("--test-mix " + ",".join(f"{g}:{n}" for g, n in sorted(s.test_mix.items())))
+    return " ".join(args)
+
+
+def write_report(out: Path, results: dict, s: ExperimentSettings, lod, timings: dict, total_s: float) -> None:
     out.mkdir(parents=True, exist_ok=True)
     for name, ev in results.items():
         slug = name.lower().replace(" + ", "_plus_").replace(" ", "_")
         plot_confusion(ev, out / f"confusion_{slug}.png", title=f"{name} → region DIM test city")
     doc = {"settings": {"buildings": s.buildings, "test_mix": {str(g): n for g, n in s.test_mix.items()},
                         "seed": s.seed, "n_estimators": s.n_estimators, "max_depth": s.max_depth,
-                        "lod_height_m": s.lod_height_m, "lod_curvature": s.lod_curvature},
+                        "training": s.training, "lod_height_m": s.lod_height_m, "lod_curvature": s.lod_curvature},
+           "levels_of_detection": lod.to_json(),
            "seconds": {**timings, "total": round(total_s, 1)},
            "results": {name: ev.to_json() for name, ev in results.items()},
            "paper": {name: {str(k): v for k, v in t.items()} for name, t in PAPER_TABLE.items()}}
     _atomic_text(out / "results.json", json.dumps(doc, indent=1))
     n = next(iter(results.values())).n if results else 0
+    measured = s.lod_height_m is None or s.lod_curvature is None
+    lod_text = (f"levels of detection of the split {lod.lod_height_m:.2f} m (height) and {lod.lod_curvature:.2f} 1/m "
+                f"(curvature)" + (f", measured on the region-specific pre-event scene acquired twice as DIM "
+                                  f"({lod.points} points; 99.9th percentiles {lod.height_at_quantile_m:.3f} m and "
+                                  f"{lod.curvature_at_quantile:.3f} 1/m, floors 0.30 m and 0.20 1/m)" if measured else ""))
+    mixed = (f" Each set also holds a mixed city ({', '.join(f'{v} × grade {k}' for k, v in s.mixed_training_mix.items())}),"
+             " where undamaged buildings stand beside damaged ones." if s.training == "paper+mixed" else "")
     text = f"""# The paper's experiment, simulated
 
-Command: `quakescan experiment paper -o {out}` (seed {s.seed}, levels of detection {s.lod_height_m} m and
-{s.lod_curvature} 1/m); {total_s / 60:.1f} min on this machine
+Command: `{_command(out, s)}`; {total_s / 60:.1f} min on this machine
 (stages: {", ".join(f"{k} {v} s" for k, v in timings.items())}).
 
 Training sets: the generic and the region-specific (L'Aquila-like) dataset, {s.buildings} buildings each,
-pre-event scanned twice (no damage) and every building heavy, extreme and destroyed. Test: a separate
+pre-event acquired twice (no damage) and every building heavy, extreme and destroyed.{mixed} Test: a separate
 region-specific city with {", ".join(f"{v} × grade {k}" for k, v in sorted(s.test_mix.items()))}, acquired
 as simulated DIM ({n} assessable buildings). The paper's "real-world DIM" is simulated DIM here.
+Random forests of {s.n_estimators} trees, depth {s.max_depth}; {lod_text}.
 
 Each cell: ours (the paper's), in %.
 

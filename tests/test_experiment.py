@@ -10,7 +10,7 @@ from core.experiment import CLASSIFIERS, PAPER_TABLE
 @pytest.mark.slow
 def test_tiny_paper_experiment_writes_the_report(tmp_path, capsys):
     out = tmp_path / "exp"
-    args = ["experiment", "paper", "-o", str(out), "--buildings", "3", "--test-mix", "0:2,3:1,4:1,5:2",
+    args = ["experiment", "paper", "-o", str(out), "--buildings", "4", "--test-mix", "0:2,3:1,4:1,5:2",
             "--trees", "10", "--seed", "1"]
     assert main(args) == 0
     doc = json.loads((out / "results.json").read_text())
@@ -20,6 +20,10 @@ def test_tiny_paper_experiment_writes_the_report(tmp_path, capsys):
         assert 0.0 <= res["overall_accuracy"] <= 1.0
     text = (out / "README.md").read_text()
     assert text.count("| generic ULS |") == 1 and "(95.1)" in text  # the paper's number beside ours
+    assert "mixed city (1 × grade 0, 1 × grade 3" in text
+    lod = doc["levels_of_detection"]  # measured on the region DIM rescan, never below the floors
+    assert lod["lod_height_m"] >= 0.3 and lod["lod_curvature"] >= 0.2 and lod["points"] > 1000
+    assert f"{lod['lod_curvature']:.2f} 1/m (curvature), measured" in text
     for slug in ("generic_uls", "region_uls", "generic_uls_plus_region_dim", "region_dim"):
         assert (out / f"confusion_{slug}.png").read_bytes()[:4] == b"\x89PNG"
     first = (out / "results.json").read_text()
@@ -47,3 +51,8 @@ def test_paper_table_is_transcribed_faithfully():
 def test_bad_test_mix_is_refused(tmp_path, capsys):
     assert main(["experiment", "paper", "-o", str(tmp_path / "x"), "--test-mix", "0-35"]) == 2
     assert "--test-mix" in capsys.readouterr().err
+
+
+def test_too_few_training_buildings_for_a_mixed_city_are_refused(tmp_path, capsys):
+    assert main(["experiment", "paper", "-o", str(tmp_path / "x"), "--buildings", "3"]) == 2
+    assert "buildings per training dataset must be >= 4, got 3" in capsys.readouterr().err
