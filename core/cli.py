@@ -296,15 +296,27 @@ def cmd_dim_survey_template(args) -> int:
 
 def cmd_robustness(args) -> int:
     """The paper's robust-feature selection: relative change per feature on ULS vs DIM clouds."""
-    from .robustness import run_experiment
+    from .robustness import DEFAULT_SAMPLE, check_spacing, run_experiment
 
-    radii = tuple(float(r) for r in args.radii.split(",")) if args.radii else None
+    try:
+        radii = tuple(float(r) for r in args.radii.split(",")) if args.radii else None
+    except ValueError:
+        raise QuakeScanError(f"--radii: expected comma-separated numbers of metres, got {args.radii!r}") from None
     kw = {"radii": radii} if radii else {}
-    res = run_experiment(args.pre, args.post, args.output, seed=args.seed, workers=args.threads,
+    try:
+        spacing = check_spacing(args.spacing)
+    except QuakeScanError as e:
+        raise QuakeScanError(f"--spacing {args.spacing}: {e}") from None
+    sample = DEFAULT_SAMPLE if args.sample is None else (None if args.sample == 0 else args.sample)
+    if sample is not None and sample < 0:
+        raise QuakeScanError(f"--sample: expected a number of points >= 0 (0 = all), got {args.sample}")
+    post = args.post[0] if len(args.post) == 1 else args.post
+    res = run_experiment(args.pre, post, args.output, seed=args.seed, workers=args.threads,
                          progress=_Progress("robustness", args.progress or sys.stderr.isatty()),
-                         threshold_pct=args.threshold, **kw)
+                         threshold_pct=args.threshold, spacing=spacing, sample=sample, **kw)
+    stages = f" over {len(res.stages)} stages" if len(res.stages) > 1 else ""
     print(f"robustness: best radius {res.best_radius:g} m, {len(res.robust)} robust features at "
-          f"<= {args.threshold:g} %: {', '.join(res.robust)}")
+          f"<= {args.threshold:g} %{stages}: {', '.join(res.robust)}")
     print(f"report -> {Path(args.output) / 'README.md'}")
     return 0
 
@@ -409,10 +421,15 @@ def build_parser() -> argparse.ArgumentParser:
     rb = sub.add_parser("robustness", help="which change features agree between ULS and DIM clouds (paper's "
                         "robust-feature selection)")
     rb.add_argument("pre", help="pre-event scene bundle folder")
-    rb.add_argument("post", help="post-event scene bundle folder of the same buildings")
+    rb.add_argument("post", nargs="+", help="post-event scene bundle folder(s) of the same buildings; several: "
+                    "demolition stages in order (robust = ULS and DIM agree at every stage)")
     rb.add_argument("-o", "--output", required=True, help="report folder (clouds are kept in OUTPUT/clouds)")
     rb.add_argument("--radii", help="comma-separated radii in m (default 1.0,1.5,...,4.0)")
     rb.add_argument("--threshold", type=float, default=10.0, help="robust if ULS and DIM differ by <= this, %%")
+    rb.add_argument("--spacing", type=str, default=None, help="thin every cloud to about this point spacing in m "
+                    "first (voxel grid, one seeded random point per cell; the paper: 0.1); default: no thinning")
+    rb.add_argument("--sample", type=int, default=None, help="pre-event building points used (seeded sample; "
+                    "default 20000, 0 = all)")
     rb.add_argument("--seed", type=int, default=0)
     rb.add_argument("--threads", type=int, default=None)
     rb.add_argument("--progress", action="store_true")

@@ -1,13 +1,15 @@
 """Robust change-feature selection: closed-form relative changes, ULS == DIM gives zero
 difference, a small simulated ULS vs DIM collapse scene end to end, the comparison with the
-paper's set and bad input."""
+paper's set, several demolition stages, voxel thinning, the CLI and bad input."""
 import csv
 import json
 import math
+import shutil
 
 import numpy as np
 import pytest
 
+from core.cli import main
 from core.dim import preset_dim
 from core.pointcloud import Epoch
 from core.robustness import (
@@ -19,10 +21,13 @@ from core.robustness import (
     RobustnessResult,
     compare_with_paper,
     normal_change,
+    quiet_features,
     relative_change,
     relative_changes,
     robustness,
     run_experiment,
+    thin,
+    thin_index,
     write_report,
 )
 from core.scene import write_scene
@@ -228,6 +233,15 @@ def test_compare_with_paper():
     assert cmp["only_paper"] == [] and "roughness" in cmp["not_tested"]
 
 
+def test_quiet_features_agree_on_no_change():
+    res = _result(["planarity", "curvature"])
+    assert quiet_features(res) == ["planarity", "curvature"]  # 0 % on both sources
+    res.uls = {1.0: dict(res.uls[1.0], curvature=30.0)}
+    res.dim = {1.0: dict(res.dim[1.0], curvature=25.0)}
+    res.difference = {1.0: dict(res.difference[1.0], curvature=5.0)}
+    assert quiet_features(res) == ["planarity"]  # curvature is robust and does change
+
+
 def test_write_report_minimal(tmp_path):
     res = _result(["planarity"])
     res.counts_by_threshold = {t: 1 for t in THRESHOLDS}
@@ -251,3 +265,108 @@ def test_no_building_points_names_the_file(box_pair):
         relative_changes(pre, pre, -1.0)
     with pytest.raises(RobustnessError, match="unknown feature"):
         relative_changes(pre, pre, 1.0, features=("bogus",))
+
+
+# (6) several stages ---------------------------------------------------------------------------------
+
+def test_stages_robust_only_when_every_stage_agrees(box_pair):
+    pre, xyz, ids = box_pair
+    lower = xyz.copy()
+    lower[(ids > 0) & (lower[:, 2] > 3.0), 2] -= 1.0
+    stage1 = _epoch(lower, ids, "post1.las")  # the same change on both sources: all agree
+    unchanged = _epoch(xyz.copy(), ids, "post2_uls.las")
+    doubled = _epoch(np.concatenate([xyz, xyz]), np.concatenate([ids, ids]), "post2_dim.las")
+    feats = ("num_neighbours", "planarity", "eigenvalue_sum", "normal_x")
+    res = robustness(pre, [stage1, unchanged], pre, [stage1, doubled], radii=(1.0,), features=feats, workers=2)
+    assert res.stages == ["post1", "post2"]
+    # stage 1 agrees everywhere, stage 2 only on the shape features (duplicates change counts only)
+    assert res.stage_robust_at("post1", 1.0) == list(res.features)
+    assert "num_neighbours" not in res.stage_robust_at("post2", 1.0)
+    assert res.stage_difference["post2"][1.0]["num_neighbours"] == pytest.approx(100.0)
+    assert res.stage_difference["post1"][1.0]["num_neighbours"] == 0.0
+    # robust = robust at every stage; the difference is the largest over the stages
+    assert "num_neighbours" not in res.robust and {"planarity", "eigenvalue_sum", NORMAL} <= set(res.robust)
+    assert res.difference[1.0]["num_neighbours"] == pytest.approx(100.0)
+    assert res.deciding_stage[1.0]["num_neighbours"] == "post2"
+    for f in res.features:  # uls/dim are the deciding stage's values: difference = |uls - dim|
+        assert res.difference[1.0][f] == pytest.approx(abs(res.uls[1.0][f] - res.dim[1.0][f]))
+        assert res.difference[1.0][f] == pytest.approx(max(res.stage_difference[s][1.0][f] for s in res.stages))
+    js = res.to_json()
+    assert set(js["per_stage"]) == {"post1", "post2"}
+    assert "num_neighbours" in js["per_stage"]["post1"]["robust_by_radius"]["1"]
+    assert "num_neighbours" not in js["per_stage"]["post2"]["robust_by_radius"]["1"]
+    # one stage given as a list is the two-epoch design
+    one = robustness(pre, [stage1], pre, stage1, radii=(1.0,), features=feats, workers=2)
+    assert one.stages == ["post"] and one.robust == list(one.features)
+    with pytest.raises(RobustnessError, match="2 ULS post-event epochs but 1 DIM"):
+        robustness(pre, [stage1, unchanged], pre, [stage1], radii=(1.0,), features=feats)
+
+
+# (7) thinning ------------------------------------------------------------------------------------------
+
+def _grid(step, n, z=0.05):
+    g = (np.arange(n) + 0.5) * step  # cell-centred: no point on a voxel boundary
+    gx, gy = np.meshgrid(g, g)
+    return np.column_stack([gx.ravel(), gy.ravel(), np.full(gx.size, z)])
+
+
+def test_thinning_gives_the_spacing_on_a_grid():
+    # a 4 x 4 m plane sampled every 0.025 m (1600 pts/m^2) inside one voxel layer: exactly one
+    # point per 0.1 m cell stays, 100 pts/m^2, i.e. spacing sqrt(area / n) = 0.1 m
+    xyz = _grid(0.025, 160)
+    idx = thin_index(xyz, 0.1, seed=3)
+    assert len(idx) == 40 * 40 and np.all(np.diff(idx) > 0)
+    cells = np.floor(xyz[idx] / 0.1).astype(int)
+    assert len(np.unique(cells, axis=0)) == len(idx)  # one per cell, every cell kept
+    assert math.sqrt(16.0 / len(idx)) == pytest.approx(0.1)
+    # deterministic for a seed, another seed draws other points of the same cells
+    assert np.array_equal(idx, thin_index(xyz, 0.1, seed=3))
+    other = thin_index(xyz, 0.1, seed=4)
+    assert len(other) == len(idx) and not np.array_equal(other, idx)
+    # a sparser input (0.2 m grid) is left alone; 0.05 m keeps 2 x 2 of the 0.025 m grid's 4 x 4 per cell
+    sparse = _grid(0.2, 20)
+    assert len(thin_index(sparse, 0.1)) == len(sparse)
+    assert len(thin_index(xyz, 0.05)) == 80 * 80
+
+
+def test_thin_keeps_attributes(box_pair):
+    pre, _, _ = box_pair
+    t = thin(pre, 0.5, seed=1)
+    assert 0 < len(t) < len(pre) and t.source == pre.source
+    idx = thin_index(pre.xyz, 0.5, seed=1)
+    assert np.array_equal(t.xyz, pre.xyz[idx]) and np.array_equal(t.building_id, pre.building_id[idx])
+    assert thin(pre, None) is pre
+    for bad in (0, -0.1, float("nan"), "x"):
+        with pytest.raises(RobustnessError, match="spacing"):
+            thin(pre, bad)
+    res = robustness(pre, pre, pre, pre, radii=(1.0,), features=("planarity",), spacing=0.5, workers=2)
+    assert res.spacing_m == 0.5 and res.clouds["uls_pre"]["points"] == len(t)
+    assert res.clouds["uls_pre"]["points_in"] == len(pre)
+
+
+# (8) command line ----------------------------------------------------------------------------------------
+
+def test_cli_two_stages_and_bad_spacing(experiment, tmp_path, capsys):
+    root, _, _, _ = experiment
+    out = tmp_path / "cli"
+    clouds = out / "clouds"
+    clouds.mkdir(parents=True)
+    src = root / "out" / "clouds"
+    for s in ("uls", "dim"):  # the clouds exist, so nothing is scanned: stage 2 = an unchanged rescan
+        shutil.copy(src / f"{s}_pre.las", clouds / f"{s}_pre.las")
+        shutil.copy(src / f"{s}_post.las", clouds / f"{s}_post1.las")
+        shutil.copy(src / f"{s}_pre.las", clouds / f"{s}_post2.las")
+    args = ["robustness", str(root / "pre"), str(root / "post"), str(root / "pre"), "-o", str(out),
+            "--radii", "1,2", "--threads", "2", "--sample", "2000"]
+    assert main(args + ["--spacing", "0.2"]) == 0
+    assert "over 2 stages" in capsys.readouterr().out
+    js = json.loads((out / "robustness.json").read_text())
+    assert js["stages"] == ["post1", "post2"] and js["spacing_m"] == 0.2
+    assert set(js["per_stage"]) == {"post1", "post2"}
+    rows = list(csv.DictReader((out / "robustness_stages.csv").open()))
+    assert {r["stage"] for r in rows} == {"post1", "post2"} and len(rows) == 2 * 2 * len(REPORT_FEATURES)
+    assert "robust at post2" in (out / "README.md").read_text()
+    for bad in ("-0.5", "abc", "0"):
+        assert main(args + ["--spacing", bad]) == 2
+        err = capsys.readouterr().err
+        assert f"--spacing {bad}" in err and "spacing must be" in err
