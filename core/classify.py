@@ -155,7 +155,7 @@ def predict_rows(rows, model: DamageModel) -> list:
     """BuildingResults: not assessable stays so; no changed points → no damage; else the forest."""
     from .results import BuildingResult
 
-    classes = model.classes
+    classes, grades = model.classes, model.grades
     out, ask = [], []
     for r in rows:
         if not r.assessable:
@@ -165,7 +165,7 @@ def predict_rows(rows, model: DamageModel) -> list:
         res = BuildingResult(r.building_id, r.n_pre, r.n_post, True, "", share_changed=share)
         if share == 0.0:
             res.grade = 0
-            res.probabilities = {c: float(c == 0) for c in classes}
+            res.probabilities = {c: float(c == 0) for c in grades}
             res.decided_by = "no change"
         else:
             ask.append((res, r))
@@ -174,7 +174,8 @@ def predict_rows(rows, model: DamageModel) -> list:
         table = {n: np.array([r.descriptors[n] for _, r in ask]) for n in model.feature_names}
         proba = model.predict_proba(table)
         for (res, _), p in zip(ask, proba):
-            res.probabilities = {c: float(v) for c, v in zip(classes, p)}
+            res.probabilities = {c: 0.0 for c in grades}
+            res.probabilities.update({c: float(v) for c, v in zip(classes, p)})
             res.grade = int(classes[int(np.argmax(p))])
             res.decided_by = "model"
     return out
@@ -221,7 +222,7 @@ def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=N
     rows.sort(key=lambda r: r.building_id)
     t_describe = time.perf_counter()
     res = predict_rows(rows, model)
-    classes = model.classes
+    classes = model.grades
     out.mkdir(parents=True, exist_ok=True)
     results.write_csv(res, out / "buildings.csv", classes)
     xy_by = None

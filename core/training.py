@@ -23,7 +23,7 @@ import numpy as np
 from .classify import load_pair
 from .errors import QuakeScanError
 from .evaluate import Evaluation, evaluate_grades, to_target_grade
-from .model import DamageModel, grouped_split, train_forest
+from .model import DamageModel, grouped_split, predict_grades, train_damage_forest
 from .pipeline import PipelineSettings, describe_pair, descriptor_matrix
 from .pointcloud import GRADE_UNKNOWN, Epoch
 
@@ -137,8 +137,9 @@ def train(pairs: Sequence[TrainingPair], settings: PipelineSettings, *, n_estima
         tr, te = grouped_split(table.groups, test_size=test_size, seed=seed)
     else:
         tr, te = np.arange(len(table.y)), np.zeros(0, np.int64)
-    est = train_forest(table.x[tr], table.y[tr], n_estimators=n_estimators, max_depth=max_depth, seed=seed)
-    ev = evaluate_grades(table.y[te], est.predict(table.x[te])) if len(te) else None
+    est = train_damage_forest(table.x[tr], table.y[tr], table.names, n_estimators=n_estimators,
+                              max_depth=max_depth, seed=seed)
+    ev = evaluate_grades(table.y[te], predict_grades(est, table.x[te], table.names)) if len(te) else None
     provenance = {
         "created": datetime.date.today().isoformat(),
         "command": command,

@@ -19,11 +19,17 @@ def test_tiny_paper_experiment_writes_the_report(tmp_path, capsys):
         assert res["n"] + res["not_assessable"] == 6
         assert 0.0 <= res["overall_accuracy"] <= 1.0
     text = (out / "README.md").read_text()
-    assert text.count("| generic ULS |") == 1 and "(95.1)" in text  # the paper's number beside ours
+    assert text.count("| generic ULS | OA |") == 1 and "(95.1)" in text  # the paper's number beside ours
     assert "mixed city (1 × grade 0, 1 × grade 3" in text
     lod = doc["levels_of_detection"]  # measured on the region DIM rescan, never below the floors
     assert lod["lod_height_m"] >= 0.3 and lod["lod_curvature"] >= 0.2 and lod["points"] > 1000
     assert f"{lod['lod_curvature']:.2f} 1/m (curvature), measured" in text
+    # the ablation: both training layouts x both ways of fitting the forest, on the same tables
+    assert [(a["training"], a["forest_rows"]) for a in doc["ablation"]] == [
+        ("paper", "all, unweighted"), ("paper", "changed, balanced"),
+        ("paper+mixed", "all, unweighted"), ("paper+mixed", "changed, balanced")]
+    assert doc["ablation"][-1]["results"] == doc["results"]  # the headline is the last variant
+    assert "| paper+mixed | changed, balanced |" in text
     for slug in ("generic_uls", "region_uls", "generic_uls_plus_region_dim", "region_dim"):
         assert (out / f"confusion_{slug}.png").read_bytes()[:4] == b"\x89PNG"
     first = (out / "results.json").read_text()

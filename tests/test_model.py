@@ -72,3 +72,59 @@ def test_grouped_split_keeps_buildings_together():
     train, test = grouped_split(groups, 0.3, seed=0)
     assert not set(groups[train]) & set(groups[test])
     assert len(set(groups[test])) == 15
+
+
+def _descriptor_rows():
+    """Rows whose first column is share_changed: heavy (3) and destroyed (5) buildings with
+    changes, undamaged ones with a few changed points (0), and many rows without changes."""
+    rng = np.random.default_rng(3)
+    share = np.concatenate([rng.uniform(0.001, 0.01, 30), rng.uniform(0.01, 0.05, 30), rng.uniform(0.3, 0.9, 30)])
+    dz = np.concatenate([rng.normal(0, 0.05, 30), rng.normal(-0.5, 0.1, 30), rng.normal(-4, 0.5, 30)])
+    y = np.repeat([0, 3, 5], 30)
+    x = np.column_stack([share, dz])
+    return x, y
+
+
+def test_the_forest_learns_only_from_buildings_with_changed_points():
+    """Rows without changed points are decided by rule: adding 500 of them changes nothing."""
+    from core.model import decided_by_rule, predict_grades, train_damage_forest
+
+    names = ["share_changed", "height_median"]
+    x, y = _descriptor_rows()
+    unchanged = np.zeros((500, 2))
+    rf = train_damage_forest(x, y, names, n_estimators=20, seed=1)
+    rf_more = train_damage_forest(np.vstack([x, unchanged]), np.concatenate([y, np.zeros(500, int)]), names,
+                                  n_estimators=20, seed=1)
+    np.testing.assert_array_equal(rf.predict_proba(x), rf_more.predict_proba(x))
+    assert decided_by_rule(unchanged, names).all() and not decided_by_rule(x, names).any()
+    both = np.vstack([x, unchanged])
+    grades = predict_grades(rf, both, names)
+    assert (grades[len(x):] == 0).all()
+    np.testing.assert_array_equal(grades[:len(x)], rf.predict(x))
+    assert (grades[:len(x)] == y).mean() > 0.9  # separable by construction
+
+
+def test_a_forest_that_never_saw_grade_0_still_reports_it_by_rule():
+    """Only destroyed buildings changed in training: the forest knows one grade; a building
+    without changes is still "no damage" with p_0 = 1 in the results."""
+    from core.classify import predict_rows
+    from core.model import train_damage_forest
+    from core.pipeline import BuildingRow
+
+    names = ["share_changed", "height_median"]
+    x = np.array([[0.0, 0.0], [0.0, 0.0], [0.6, -4.0], [0.7, -5.0]])
+    rf = train_damage_forest(x, np.array([0, 0, 5, 5]), names, n_estimators=5)
+    m = DamageModel(rf, names, 1.5)
+    assert m.classes == [5] and m.grades == [0, 5]
+    rows = [BuildingRow(1, 100, 100, True, "", {"share_changed": 0.0, "height_median": 0.0}),
+            BuildingRow(2, 100, 100, True, "", {"share_changed": 0.5, "height_median": -3.0})]
+    a, b = predict_rows(rows, m)
+    assert (a.grade, a.decided_by, a.probabilities) == (0, "no change", {0: 1.0, 5: 0.0})
+    assert (b.grade, b.decided_by, b.probabilities) == (5, "model", {0: 0.0, 5: 1.0})
+
+
+def test_training_rows_without_any_change_are_refused():
+    from core.model import train_damage_forest
+
+    with pytest.raises(ModelError, match="none of the 3 training buildings has changed points"):
+        train_damage_forest(np.zeros((3, 2)), np.array([0, 3, 5]), ["share_changed", "h"])
