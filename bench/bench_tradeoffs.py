@@ -21,6 +21,7 @@ measured), written as *.part.las and renamed.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import shutil
 import sys
@@ -398,13 +399,18 @@ def main(argv=None):
         "uses the baseline's ULS training tables. \"Stage s\" is the time of the stage the knob acts on "
         "(acquire: every cloud the row uses, training and test; describe: descriptor rows of the four "
         "training pairs and the test pair, reading included; fit: forest training + prediction); "
-        "end-to-end = acquire + describe + fit. CPU s = CPU time of this process, all threads: unlike "
-        "wall seconds it hardly moves when other jobs share the cores, so compare rows by it when the "
-        "load average says the machine was shared (the reading below does)."),
+        "end-to-end = acquire + describe + fit. CPU s = CPU time of this process, all threads; close to "
+        "the wall seconds means the process had about one core on average, and on this shared VM both grow "
+        "alike with the other jobs' load: compare the seconds of rows run under similar load only (the load "
+        "average above says how shared the run was)."),
         report_table(rows),
         reading(rows),
     ])
     print("\n" + text)
+    results = cfg["work"] / "results.json"
+    tmp = results.with_name(results.name + ".part")
+    tmp.write_text(json.dumps({"minutes": total / 60, "rows": rows}, indent=1, default=str))
+    os.replace(tmp, results)
     if not args.quick or args.write:
         write_section("tradeoffs", text)
 
