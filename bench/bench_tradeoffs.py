@@ -38,7 +38,7 @@ from bench._report import machine, peak_rss_mb, table, write_section
 ROOT = Path(__file__).resolve().parents[1]
 WORK = ROOT / "out" / "bench_tradeoffs"
 
-FULL = {"train_buildings": 40, "test_mix": {0: 12, 3: 8, 4: 10, 5: 12}, "work": WORK,
+FULL = {"train_buildings": 40, "test_mix": {0: 20, 3: 16, 4: 16, 5: 20}, "work": WORK,
         "beam": ("single", "adaptive", "full"),
         "survey": (("300 kHz, 100 m", 300_000.0, 100.0), ("150 kHz, 100 m", 150_000.0, 100.0),
                    ("300 kHz, 150 m", 300_000.0, 150.0)),
@@ -200,7 +200,7 @@ class Study:
             step=1, trees=100) -> dict:
         from core.classify import predict_rows
         from core.evaluate import evaluate_grades
-        from core.model import DamageModel, train_forest
+        from core.model import DamageModel, train_damage_forest
 
         tables = [self.describe(t, "train", radius, step) for t in train_tags]
         test = self.describe(test_tag, "test", radius, step)
@@ -215,7 +215,8 @@ class Study:
         t, c = time.perf_counter(), time.process_time()
         x = np.vstack([t_["x"] for t_ in tables])
         y = np.concatenate([t_["y"] for t_ in tables])
-        est = train_forest(x, y, n_estimators=trees, max_depth=MAX_DEPTH, seed=0, n_jobs=self.workers)
+        est = train_damage_forest(x, y, settings.descriptor_names(), n_estimators=trees, max_depth=MAX_DEPTH, seed=0,
+                                  n_jobs=self.workers)
         model = DamageModel(est, settings.descriptor_names(), settings.radius_m, split=settings.to_json(),
                             provenance={"bench": "tradeoffs", "knob": knob, "value": str(value)})
         pred = predict_rows(test["rows"], model)

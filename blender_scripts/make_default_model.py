@@ -8,8 +8,9 @@ The paper's "VLS generic" classifier: the generic simulated dataset of 112 build
 extreme and destroyed in three post-event scenes), scanned with the paper's survey; the
 undamaged class from the pre-event scene scanned a second time with new range noise.
 Four training pairs: (pre, pre rescanned) grade 0, (pre, post_heavy) 3, (pre, post_extreme)
-4, (pre, post_destruction) 5. Random forest with the paper's settings (100 trees, depth 5)
-on the pipeline's default descriptors (the paper's robust features at r = 1.5 m), 70/30
+4, (pre, post_destruction) 5. Random forest with the paper's settings (100 trees, depth 5),
+fitted on the buildings with changed points (the others are "no damage" by rule) with
+balanced class weights (core.model.train_damage_forest), on the pipeline's default descriptors (the paper's robust features at r = 1.5 m), 70/30
 split grouped by building; the held-out scores go into the model's provenance. Each step
 skips outputs that exist, so an interrupted run continues. Same seed, same model.
 """

@@ -57,7 +57,8 @@ def model_settings(model: DamageModel, source: str = "model") -> PipelineSetting
         settings = settings_for_descriptors(model.feature_names, model.radius_m, stored.get("split"),
                                             min_points_pre=int(stored.get("min_points_pre", 50)),
                                             min_points_post=int(stored.get("min_points_post", 10)),
-                                            tile_m=float(stored.get("tile_m", 150.0)))
+                                            tile_m=float(stored.get("tile_m", 150.0)),
+                                            core_point_step=int(stored.get("core_point_step", 1)))
     except PipelineError as e:
         raise ModelError(f"{source}: {e}") from None
     if settings.descriptor_names() != list(model.feature_names):

@@ -99,9 +99,11 @@ class ExperimentSettings:
         return {g: self.buildings // 4 for g in TARGET_GRADES}
 
 
-def _acquire(kind: str, scene_dir: Path, out: Path, seed: int) -> Path:
+def _acquire(kind: str, scene_dir: Path, stem: Path, seed: int) -> Path:
+    """stem.seedN.las acquired from scene_dir; the seed in the name keeps a cache exact."""
     from .scene import read_scene
 
+    out = stem.with_name(f"{stem.name}.seed{seed}.las")
     if out.is_file():
         return out
     if kind == "uls":
@@ -124,6 +126,8 @@ def _table(pre: Path, posts: list, cache: Path, settings, workers) -> dict:
     from .classify import load_pair
     from .pipeline import describe_pair, descriptor_matrix
 
+    inputs = json.dumps([settings.to_json(), Path(pre).name, [Path(p).name for p, _ in posts]], sort_keys=True)
+    cache = cache.with_name(f"{cache.name}_{hashlib.sha256(inputs.encode()).hexdigest()[:10]}.npz")
     if cache.is_file():
         d = np.load(cache)
         return {"x": d["x"], "y": d["y"], "ids": d["ids"]}
@@ -193,38 +197,35 @@ def run_paper_experiment(out_dir, settings: ExperimentSettings | None = None, *,
 
     say("experiment 2/5: acquiring the clouds (ULS: paper survey; DIM: paper photo flight)")
     clouds: dict[tuple, dict] = {}
-    k = 0
-    for dataset, kind in (("generic", "uls"), ("region", "uls"), ("region", "dim")):
+    # every cloud its own seed, the same whatever the training layout
+    for k, (dataset, kind) in enumerate((("generic", "uls"), ("region", "uls"), ("region", "dim"))):
         c = {}
-        for name, scene, _ in (("pre", "pre", None), *TRAINING_SCENES):
-            k += 1
-            c[name] = _acquire(kind, data / dataset / scene, data / f"{dataset}_{kind}_{name}.las", s.seed * 100 + k)
+        for j, (name, scene, _) in enumerate((("pre", "pre", None), *TRAINING_SCENES)):
+            c[name] = _acquire(kind, data / dataset / scene, data / f"{dataset}_{kind}_{name}",
+                               s.seed * 100 + 5 * k + j + 1)
         if mixed:
-            for ep in ("pre", "post"):
-                k += 1
-                c[f"mixed_{ep}"] = _acquire(kind, data / f"{dataset}_mixed" / ep,
-                                            data / f"{dataset}_mixed_{kind}_{ep}.las", s.seed * 100 + 50 + k)
+            for j, ep in enumerate(("pre", "post")):
+                c[f"mixed_{ep}"] = _acquire(kind, data / f"{dataset}_mixed" / ep, data / f"{dataset}_mixed_{kind}_{ep}",
+                                            s.seed * 100 + 60 + 2 * k + j)
         clouds[(dataset, kind)] = c
-    test_pre = _acquire("dim", data / "test" / "pre", data / "test_dim_pre.las", s.seed * 100 + 90)
-    test_post = _acquire("dim", data / "test" / "post", data / "test_dim_post.las", s.seed * 100 + 91)
+    test_pre = _acquire("dim", data / "test" / "pre", data / "test_dim_pre", s.seed * 100 + 90)
+    test_post = _acquire("dim", data / "test" / "post", data / "test_dim_post", s.seed * 100 + 91)
     step("acquire")
 
     dim = clouds[("region", "dim")]
-    lod = _levels_of_detection(s, dim["pre"], dim["pre_rescan"], data / "lod_region_dim.json", workers)
+    lod = _levels_of_detection(s, dim["pre"], dim["pre_rescan"], data / f"lod_{dim['pre_rescan'].stem}.json", workers)
     pipe = PipelineSettings(split=lod.split())
     say(f"experiment 3/5: change descriptors of every training pair (levels of detection {lod.lod_height_m:.2f} m, "
         f"{lod.lod_curvature:.2f} 1/m; one table per dataset, shared)")
-    # the tables depend on the pipeline settings: a cache made with others is not reused
-    settings_tag = hashlib.sha256(json.dumps(pipe.to_json(), sort_keys=True).encode()).hexdigest()[:10]
-    tables = {}
+    tables = {}  # cached under a hash of the settings and the input clouds' names (seeds included)
     for key in sorted(clouds):
         c = clouds[key]
         parts = [_table(c["pre"], [(c[name], g) for name, _, g in TRAINING_SCENES],
-                        data / f"table_{key[0]}_{key[1]}_{settings_tag}.npz", pipe, workers)]
+                        data / f"table_{key[0]}_{key[1]}", pipe, workers)]
         if mixed:
             truth = read_truth(data / f"{key[0]}_mixed" / "post")
             parts.append(_table(c["mixed_pre"], [(c["mixed_post"], truth)],
-                                data / f"table_{key[0]}_mixed_{key[1]}_{settings_tag}.npz", pipe, workers))
+                                data / f"table_{key[0]}_mixed_{key[1]}", pipe, workers))
         tables[key] = {"paper": parts[0], "mixed": parts[1] if mixed else None}
     step("describe training")
 

@@ -80,3 +80,16 @@ def test_settings_json_round_trip_with_and_without_the_step():
     with pytest.raises(PipelineError, match="core point step"):
         PipelineSettings.from_json({**d, "core_point_step": 0})
     assert PipelineSettings(core_point_step=np.int64(3)).to_json()["core_point_step"] == 3  # numpy ints too
+
+
+def test_a_model_trained_with_a_step_classifies_with_it():
+    """The step is part of what a model stores; classification rebuilds it from the model."""
+    from core.classify import model_settings
+    from core.model import DamageModel
+
+    settings = PipelineSettings(core_point_step=4)
+    model = DamageModel(estimator=None, feature_names=settings.descriptor_names(), radius_m=settings.radius_m,
+                        split=settings.to_json())
+    assert model_settings(model).core_point_step == 4
+    older = {k: v for k, v in settings.to_json().items() if k != "core_point_step"}
+    assert model_settings(DamageModel(None, settings.descriptor_names(), 1.5, split=older)).core_point_step == 1

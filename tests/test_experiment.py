@@ -37,6 +37,14 @@ def test_tiny_paper_experiment_writes_the_report(tmp_path, capsys):
     assert main(args) == 0  # everything cached: same numbers
     again = json.loads((out / "results.json").read_text())
     assert again["results"] == json.loads(first)["results"]
+    # from nothing in another folder, same seed: the same clouds and numbers (reproducible)
+    other = tmp_path / "exp2"
+    assert main([*args[:2], "-o", str(other), *args[4:]]) == 0
+    fresh = json.loads((other / "results.json").read_text())
+    assert fresh["results"] == json.loads(first)["results"]
+    assert fresh["levels_of_detection"] == doc["levels_of_detection"]
+    for las in sorted((out / "data").glob("*.las"))[:3]:
+        assert (other / "data" / las.name).read_bytes() == las.read_bytes()
 
 
 def test_paper_table_is_transcribed_faithfully():
