@@ -68,11 +68,14 @@ def say(msg: str) -> None:
 
 # ------------------------------------------------------------------ data
 def ensure_scenes(cfg: dict) -> tuple[Path, Path]:
-    """The training and test scene bundles, generated once (into *.part, then renamed)."""
+    """The training and test scene bundles, generated once (into *.part, then renamed); the
+    folder names carry what made them, so a changed size or mix is generated anew."""
     from core.demo import generate
 
     scenes = cfg["work"] / "scenes"
-    train, test = scenes / "train", scenes / "test"
+    mix = "_".join(f"{g}x{n}" for g, n in sorted(cfg["test_mix"].items()))
+    train = scenes / f"train_generic_{cfg['train_buildings']}_seed{TRAIN_SEED}"
+    test = scenes / f"test_region_{mix}_seed{TEST_SEED}"
     jobs = ((train, ("pre", "post_heavy", "post_extreme", "post_destruction"),
              lambda out: generate("generic", "paper", cfg["train_buildings"], TRAIN_SEED, out)),
             (test, ("pre", "post"),
