@@ -131,17 +131,20 @@ def _compute_names(names: Sequence[str]) -> tuple[str, ...]:
     return tuple(out)
 
 
+def _positive_metres(value, what: str) -> float:
+    """A positive finite number of metres, or a RobustnessError naming `what` and the value."""
+    try:
+        x = float(value)
+    except (TypeError, ValueError):
+        raise RobustnessError(f"{what} must be a number of metres, got {value!r}") from None
+    if not math.isfinite(x) or x <= 0:
+        raise RobustnessError(f"{what} must be a positive number of metres, got {value!r}")
+    return x
+
+
 def check_spacing(spacing) -> float | None:
     """None, or a positive finite number of metres (RobustnessError naming the value)."""
-    if spacing is None:
-        return None
-    try:
-        s = float(spacing)
-    except (TypeError, ValueError):
-        raise RobustnessError(f"spacing must be a number of metres, got {spacing!r}") from None
-    if not math.isfinite(s) or s <= 0:
-        raise RobustnessError(f"spacing must be a positive number of metres, got {spacing!r}")
-    return s
+    return None if spacing is None else _positive_metres(spacing, "spacing")
 
 
 def thin_index(xyz: np.ndarray, spacing: float, seed: int = 0) -> np.ndarray:
@@ -286,13 +289,7 @@ def _stage_changes(pairs: Sequence[_Pair], radius: float, names: Sequence[str], 
 
 
 def _check_radius(radius) -> float:
-    try:
-        r = float(radius)
-    except (TypeError, ValueError):
-        raise RobustnessError(f"radius must be a number, got {radius!r}") from None
-    if not math.isfinite(r) or r <= 0:
-        raise RobustnessError(f"radius must be a positive number of metres, got {radius!r}")
-    return r
+    return _positive_metres(radius, "radius")
 
 
 def relative_changes(pre: Epoch, post: Epoch, radius: float, features: Sequence[str] | None = FEATURES,
