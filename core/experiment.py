@@ -99,13 +99,14 @@ class ExperimentSettings:
         return {g: self.buildings // 4 for g in TARGET_GRADES}
 
 
-def _acquire(kind: str, scene_dir: Path, stem: Path, seed: int) -> Path:
+def _acquire(kind: str, scene_dir: Path, stem: Path, seed: int, say=None) -> Path:
     """stem.seedN.las acquired from scene_dir; the seed in the name keeps a cache exact."""
     from .scene import read_scene
 
     out = stem.with_name(f"{stem.name}.seed{seed}.las")
     if out.is_file():
         return out
+    t0 = time.perf_counter()
     if kind == "uls":
         from .scan import scan
         from .survey import preset
@@ -115,10 +116,12 @@ def _acquire(kind: str, scene_dir: Path, stem: Path, seed: int) -> Path:
         from .dim import preset_dim, simulate_dim
 
         simulate_dim(read_scene(scene_dir), preset_dim("paper"), out, seed=seed, source=str(scene_dir))
+    if say:
+        say(f"  {out.name}: {kind.upper()} in {time.perf_counter() - t0:.0f} s")
     return out
 
 
-def _table(pre: Path, posts: list, cache: Path, settings, workers) -> dict:
+def _table(pre: Path, posts: list, cache: Path, settings, workers, say=None) -> dict:
     """Descriptor rows {X, y, ids} of the training pairs (pre, post), cached.
 
     `posts`: (post cloud, grade) where grade is one grade for every building or a
@@ -134,8 +137,12 @@ def _table(pre: Path, posts: list, cache: Path, settings, workers) -> dict:
     names = settings.descriptor_names()
     xs, ys, ids = [], [], []
     for post, grade in posts:
+        t0 = time.perf_counter()
         data = load_pair(pre, post)
         rows = [r for r in describe_pair(data.pre, data.post, settings, workers=workers) if r.assessable]
+        if say:
+            say(f"  {Path(post).name} against {Path(pre).name}: {len(rows)} buildings in "
+                f"{time.perf_counter() - t0:.0f} s")
         if isinstance(grade, dict):
             rows = [r for r in rows if r.building_id in grade]
         xs.append(descriptor_matrix(rows, names))
@@ -202,14 +209,14 @@ def run_paper_experiment(out_dir, settings: ExperimentSettings | None = None, *,
         c = {}
         for j, (name, scene, _) in enumerate((("pre", "pre", None), *TRAINING_SCENES)):
             c[name] = _acquire(kind, data / dataset / scene, data / f"{dataset}_{kind}_{name}",
-                               s.seed * 100 + 5 * k + j + 1)
+                               s.seed * 100 + 5 * k + j + 1, say)
         if mixed:
             for j, ep in enumerate(("pre", "post")):
                 c[f"mixed_{ep}"] = _acquire(kind, data / f"{dataset}_mixed" / ep, data / f"{dataset}_mixed_{kind}_{ep}",
-                                            s.seed * 100 + 60 + 2 * k + j)
+                                            s.seed * 100 + 60 + 2 * k + j, say)
         clouds[(dataset, kind)] = c
-    test_pre = _acquire("dim", data / "test" / "pre", data / "test_dim_pre", s.seed * 100 + 90)
-    test_post = _acquire("dim", data / "test" / "post", data / "test_dim_post", s.seed * 100 + 91)
+    test_pre = _acquire("dim", data / "test" / "pre", data / "test_dim_pre", s.seed * 100 + 90, say)
+    test_post = _acquire("dim", data / "test" / "post", data / "test_dim_post", s.seed * 100 + 91, say)
     step("acquire")
 
     dim = clouds[("region", "dim")]
@@ -221,11 +228,11 @@ def run_paper_experiment(out_dir, settings: ExperimentSettings | None = None, *,
     for key in sorted(clouds):
         c = clouds[key]
         parts = [_table(c["pre"], [(c[name], g) for name, _, g in TRAINING_SCENES],
-                        data / f"table_{key[0]}_{key[1]}", pipe, workers)]
+                        data / f"table_{key[0]}_{key[1]}", pipe, workers, say)]
         if mixed:
             truth = read_truth(data / f"{key[0]}_mixed" / "post")
             parts.append(_table(c["mixed_pre"], [(c["mixed_post"], truth)],
-                                data / f"table_{key[0]}_mixed_{key[1]}", pipe, workers))
+                                data / f"table_{key[0]}_mixed_{key[1]}", pipe, workers, say))
         tables[key] = {"paper": parts[0], "mixed": parts[1] if mixed else None}
     step("describe training")
 
