@@ -19,7 +19,6 @@ float32.
 """
 from __future__ import annotations
 
-import json
 import logging
 import math
 import os
@@ -32,7 +31,7 @@ import mapbox_earcut
 import numpy as np
 from scipy.spatial import Delaunay, QhullError
 
-from .errors import SceneError
+from .errors import SceneError, read_json_file
 from .scene import DEGENERATE_AREA_M2, GROUND, INTERIOR, ROOF, WALL, Building, Scene, triangle_areas
 
 __all__ = ["import_cityjson", "parse_reference_system", "SUPPORTED_VERSIONS"]
@@ -171,11 +170,7 @@ def _load(path: Path) -> dict:
     """Read and check the top level of a CityJSON file."""
     if not path.is_file():
         raise SceneError(f"{path}: CityJSON file does not exist")
-    try:
-        with open(path, "rb") as f:
-            doc = json.load(f)
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise SceneError(f"{path}: not valid JSON ({e})") from None
+    doc = read_json_file(path, "CityJSON file", SceneError)
     if not isinstance(doc, dict) or doc.get("type") != "CityJSON":
         found = doc.get("type") if isinstance(doc, dict) else type(doc).__name__
         raise SceneError(f"{path}: not a CityJSON file (type is {found!r}, expected 'CityJSON')")

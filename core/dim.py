@@ -69,7 +69,7 @@ from pathlib import Path
 import numpy as np
 from numba import njit, prange
 
-from .errors import SurveyError
+from .errors import SurveyError, read_json_file
 from .pointcloud import LasChunkWriter, PointChunk
 from .scene import Scene
 
@@ -254,12 +254,7 @@ def load_photo_survey(spec: str | os.PathLike) -> PhotoSurvey:
     if not spec.endswith(".json") and not Path(spec).exists():
         return preset_dim(spec)
     path = Path(spec)
-    try:
-        data = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise SurveyError(f"{path}: photo survey file does not exist") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise SurveyError(f"{path}: not valid JSON ({e})") from None
+    data = read_json_file(path, "photo survey file", SurveyError)
     if not isinstance(data, dict) or data.get("format") != FORMAT:
         raise SurveyError(f"{path}: not a photo survey file (format must be {FORMAT!r})")
     if data.get("version") != VERSION:

@@ -7,7 +7,6 @@ more specific part (a BGT building part inside a larger outline).
 """
 from __future__ import annotations
 
-import json
 import logging
 import os
 import re
@@ -16,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import QuakeScanError
+from .errors import QuakeScanError, read_json_file
 
 log = logging.getLogger(__name__)
 
@@ -61,12 +60,7 @@ def read_footprints(path: str | os.PathLike, id_field: str | None = None) -> Foo
     import shapely.geometry
 
     path = Path(path)
-    try:
-        doc = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise FootprintError(f"{path}: footprint file does not exist") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise FootprintError(f"{path}: not valid JSON ({e})") from None
+    doc = read_json_file(path, "footprint file", FootprintError)
     if not isinstance(doc, dict) or doc.get("type") != "FeatureCollection":
         raise FootprintError(f"{path}: not a GeoJSON FeatureCollection")
     features = doc.get("features") or []

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import SceneError
+from .errors import SceneError, read_json_file
 from .ply import MeshArrays, read_ply, write_ply
 
 FORMAT = "quakescan-scene"
@@ -88,10 +88,7 @@ def read_scene(folder: str | os.PathLike, validate: bool = True) -> Scene:
     if not manifest_path.is_file():
         raise SceneError(f"{manifest_path}: scene.json is missing (a scene bundle is a folder with "
                          "scene.json and mesh.ply)")
-    try:
-        manifest = json.loads(manifest_path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise SceneError(f"{manifest_path}: not valid JSON ({e})") from None
+    manifest = read_json_file(manifest_path, "scene.json", SceneError)
     if not isinstance(manifest, dict):
         raise _manifest_error(manifest_path, "top level must be a JSON object")
     if manifest.get("format") != FORMAT:

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import SurveyError
+from .errors import SurveyError, read_json_file
 
 FORMAT = "quakescan-survey"
 VERSION = 1
@@ -201,12 +201,7 @@ def load_survey(spec: str | os.PathLike) -> Survey:
     if not spec.endswith(".json") and not Path(spec).exists():
         return preset(spec)
     path = Path(spec)
-    try:
-        data = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise SurveyError(f"{path}: survey file does not exist") from None
-    except json.JSONDecodeError as e:
-        raise SurveyError(f"{path}: not valid JSON ({e})") from None
+    data = read_json_file(path, "survey file", SurveyError)
     if not isinstance(data, dict) or data.get("format") != FORMAT:
         raise SurveyError(f"{path}: not a survey file (format must be {FORMAT!r})")
     if data.get("version") != VERSION:
