@@ -10,6 +10,7 @@ from core.scan import RayCaster, ground_level, scan
 from core.scene import GROUND, ROOF, WALL, Scene
 from core.survey import FlightLine, plan_flight, preset
 from core.synthetic import box_city, flat_ground
+from tests.las_contract import CONTRACT_ORIGIN, read_checked
 from tests.spacing import nearest_neighbour_spacing
 
 EXACT = preset("paper").replace(range_noise_sigma_m=0.0)
@@ -101,24 +102,12 @@ def test_labels_match_the_faces_hit(tmp_path):
 
 
 def test_las_follows_the_contract(tmp_path):
-    scene = box_city(rows=1, cols=2, origin=(2600000.0, 1200000.0, 400.0))
+    scene = box_city(rows=1, cols=2, origin=CONTRACT_ORIGIN)
     scene.crs = "EPSG:2056"
     out = tmp_path / "c.laz"
     scan(scene, preset("paper"), out)
-    las = laspy.read(out)
-    h = las.header
-    assert str(h.version) == "1.4" and h.point_format.id == 6
-    np.testing.assert_array_equal(h.scales, [0.001] * 3)
-    np.testing.assert_array_equal(h.offsets, scene.origin)
-    dims = {d.name: d for d in h.point_format.extra_dimensions}
-    assert dims["building_id"].dtype == np.uint32
-    assert dims["grade"].dtype == np.uint8 and dims["surface"].dtype == np.uint8
-    assert h.parse_crs().to_epsg() == 2056
-    # header bookkeeping written from the workers' bounds
-    np.testing.assert_allclose(h.mins, [las.x.min(), las.y.min(), las.z.min()])
-    np.testing.assert_allclose(h.maxs, [las.x.max(), las.y.max(), las.z.max()])
-    assert h.point_count == len(las.x)
-    assert h.number_of_points_by_return[0] == len(las.x)
+    las = read_checked(out, scene)
+    assert las.header.number_of_points_by_return[0] == len(las.x)
     assert las.gps_time.min() >= 0 and np.all(np.diff(las.gps_time) >= 0)  # scan order
     assert set(np.unique(las.point_source_id)) == {1, 2}  # flight line numbers
     assert np.abs(las.scan_angle).max() * 0.006 <= 60.0 + 1e-9
