@@ -57,19 +57,19 @@ scene, survey and seed give the same bytes whatever the number of threads.
 """
 from __future__ import annotations
 
-import json
+import dataclasses
 import logging
 import math
 import os
 import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import asdict, dataclass, field, fields
-from pathlib import Path
+from dataclasses import dataclass, field
 
 import numpy as np
 from numba import njit, prange
 
-from .errors import SurveyError, read_json_file
+from . import settings_file
+from .errors import SurveyError
 from .pointcloud import LasChunkWriter, PointChunk
 from .scene import Scene
 
@@ -229,15 +229,10 @@ class PhotoSurvey:
         return self.footprint_m[0] * (1 - self.side_overlap_pct / 100)
 
     def replace(self, **changes) -> PhotoSurvey:
-        d = asdict(self)
-        d.update(changes)
-        return PhotoSurvey(**d)
+        return dataclasses.replace(self, **changes)
 
     def to_json(self) -> dict:
-        d = {"format": FORMAT, "version": VERSION}
-        d.update(asdict(self))
-        d["_doc"] = {k: f"{text} [{unit}]" for k, (text, unit) in FIELD_DOC.items()}
-        return d
+        return settings_file.to_json(self, FORMAT, VERSION, FIELD_DOC)
 
 
 def preset_dim(name: str) -> PhotoSurvey:
@@ -250,34 +245,13 @@ def preset_dim(name: str) -> PhotoSurvey:
 def load_photo_survey(spec: str | os.PathLike) -> PhotoSurvey:
     """A preset name or the path of a photo survey JSON file (fields missing from the file
     take the values of its `preset`, default 'paper')."""
-    spec = str(spec)
-    if not spec.endswith(".json") and not Path(spec).exists():
-        return preset_dim(spec)
-    path = Path(spec)
-    data = read_json_file(path, "photo survey file", SurveyError)
-    if not isinstance(data, dict) or data.get("format") != FORMAT:
-        raise SurveyError(f"{path}: not a photo survey file (format must be {FORMAT!r})")
-    if data.get("version") != VERSION:
-        raise SurveyError(f"{path}: photo survey version {data.get('version')!r} not supported "
-                          f"(expected {VERSION})")
-    known = {f.name for f in fields(PhotoSurvey)}
-    values = {k: v for k, v in data.items() if not k.startswith("_") and k not in ("format", "version")}
-    base = preset_dim(values.pop("preset")) if "preset" in values else PhotoSurvey()
-    unknown = sorted(set(values) - known)
-    if unknown:
-        raise SurveyError(f"{path}: unknown photo survey fields {unknown}; known fields: {sorted(known)}")
-    d = asdict(base)
-    d.update(values)
-    try:
-        return PhotoSurvey(**d)
-    except SurveyError as e:
-        raise SurveyError(f"{path}: {str(e).removeprefix('photo survey: ')}") from None
+    return settings_file.load(spec, cls=PhotoSurvey, fmt=FORMAT, version=VERSION, kind="photo survey",
+                              preset=preset_dim)
 
 
 def write_photo_survey_template(path: str | os.PathLike, survey: PhotoSurvey | None = None) -> None:
     """A photo survey JSON file with every field and its documentation (`_doc`)."""
-    survey = survey or preset_dim("paper")
-    Path(path).write_text(json.dumps(survey.to_json(), indent=1, ensure_ascii=False) + "\n")
+    settings_file.write_template(path, (survey or preset_dim("paper")).to_json())
 
 
 # Camera network ----------------------------------------------------------------------

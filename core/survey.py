@@ -17,15 +17,15 @@ Geometry conventions (all in the scene's local frame, metres, z up):
 """
 from __future__ import annotations
 
-import json
+import dataclasses
 import math
 import os
-from dataclasses import asdict, dataclass, field, fields
-from pathlib import Path
+from dataclasses import dataclass, field
 
 import numpy as np
 
-from .errors import SurveyError, read_json_file
+from . import settings_file
+from .errors import SurveyError
 
 FORMAT = "quakescan-survey"
 VERSION = 1
@@ -176,16 +176,11 @@ class Survey:
     def sub_rays(self) -> int:
         return 1 + sum(6 * k for k in range(1, self.beam_rings + 1))
 
-    def replace(self, **changes) -> "Survey":
-        d = asdict(self)
-        d.update(changes)
-        return Survey(**d)
+    def replace(self, **changes) -> Survey:
+        return dataclasses.replace(self, **changes)
 
     def to_json(self) -> dict:
-        d = {"format": FORMAT, "version": VERSION}
-        d.update(asdict(self))
-        d["_doc"] = {k: f"{text} [{unit}]" for k, (text, unit) in FIELD_DOC.items()}
-        return d
+        return settings_file.to_json(self, FORMAT, VERSION, FIELD_DOC)
 
 
 def preset(name: str) -> Survey:
@@ -196,30 +191,9 @@ def preset(name: str) -> Survey:
 
 
 def load_survey(spec: str | os.PathLike) -> Survey:
-    """A preset name or the path of a survey JSON file."""
-    spec = str(spec)
-    if not spec.endswith(".json") and not Path(spec).exists():
-        return preset(spec)
-    path = Path(spec)
-    data = read_json_file(path, "survey file", SurveyError)
-    if not isinstance(data, dict) or data.get("format") != FORMAT:
-        raise SurveyError(f"{path}: not a survey file (format must be {FORMAT!r})")
-    if data.get("version") != VERSION:
-        raise SurveyError(f"{path}: survey version {data.get('version')!r} not supported (expected {VERSION})")
-    known = {f.name for f in fields(Survey)}
-    values = {k: v for k, v in data.items() if not k.startswith("_") and k not in ("format", "version")}
-    unknown = sorted(set(values) - known)
-    if unknown:
-        raise SurveyError(f"{path}: unknown survey fields {unknown}; known fields: {sorted(known)}")
-    base = preset(values.pop("preset")) if "preset" in values else Survey()
-    d = asdict(base)
-    d.update(values)
-    try:
-        return Survey(**d)
-    except SurveyError as e:
-        raise SurveyError(f"{path}: {str(e).removeprefix('survey: ')}") from None
-    except TypeError as e:
-        raise SurveyError(f"{path}: {e}") from None
+    """A preset name or the path of a survey JSON file (fields missing from the file take
+    the values of its `preset`, default 'paper')."""
+    return settings_file.load(spec, cls=Survey, fmt=FORMAT, version=VERSION, kind="survey", preset=preset)
 
 
 # Flight planning ---------------------------------------------------------------------
@@ -317,5 +291,4 @@ def plan_flight(survey: Survey, bounds: np.ndarray, ground_z: float) -> FlightPl
 
 
 def write_survey_template(path: str | os.PathLike, survey: Survey | None = None) -> None:
-    survey = survey or preset("paper")
-    Path(path).write_text(json.dumps(survey.to_json(), indent=1) + "\n")
+    settings_file.write_template(path, (survey or preset("paper")).to_json())

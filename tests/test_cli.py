@@ -89,6 +89,16 @@ def test_bad_survey_files_are_named(tmp_path, content, text):
     assert text in str(err.value) and str(path) in str(err.value)
 
 
+def test_a_survey_file_names_a_preset_and_changes_some_fields(tmp_path):
+    path = tmp_path / "s.json"
+    path.write_text('{"format": "quakescan-survey", "version": 1, "preset": "paper", "altitude_agl_m": 150}')
+    assert load_survey(path) == preset("paper").replace(altitude_agl_m=150)
+    path.write_text(b'{"format": "quakescan-survey", "version": 1, "_doc": "\xff"}'.decode("latin-1"),
+                    encoding="latin-1")
+    with pytest.raises(SurveyError, match="not valid JSON"):  # undecodable bytes: named, not a crash
+        load_survey(path)
+
+
 def test_unknown_preset():
     with pytest.raises(SurveyError, match="unknown survey preset 'fast'"):
         load_survey("fast")

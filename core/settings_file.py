@@ -1,0 +1,59 @@
+"""Documented JSON files of a settings dataclass (the survey and the photo survey).
+
+A file holds `format`, `version`, any subset of the dataclass's fields, optionally
+`preset` (the values missing from the file are taken from it) and `_doc` (each field with
+its meaning and unit, written by `to_json`, ignored on reading)."""
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+from collections.abc import Callable
+from pathlib import Path
+
+from .errors import SurveyError, read_json_file
+
+
+def to_json(settings, fmt: str, version: int, field_doc: dict) -> dict:
+    """The file's content: format, version, every field, and `_doc` from field_doc
+    ({field: (meaning, unit)})."""
+    d = {"format": fmt, "version": version}
+    d.update(dataclasses.asdict(settings))
+    d["_doc"] = {k: f"{text} [{unit}]" for k, (text, unit) in field_doc.items()}
+    return d
+
+
+def load(spec: str | os.PathLike, *, cls: type, fmt: str, version: int, kind: str,
+         preset: Callable[[str], object]):
+    """`spec` is a preset name (-> preset(spec)) or the path of a `kind` file; a value the
+    dataclass refuses (its validate raises SurveyError "<kind>: ...") is reported against
+    the file."""
+    spec = str(spec)
+    if not spec.endswith(".json") and not Path(spec).exists():
+        return preset(spec)
+    path = Path(spec)
+    data = read_json_file(path, f"{kind} file", SurveyError)
+    if not isinstance(data, dict) or data.get("format") != fmt:
+        raise SurveyError(f"{path}: not a {kind} file (format must be {fmt!r})")
+    if data.get("version") != version:
+        raise SurveyError(f"{path}: {kind} version {data.get('version')!r} not supported (expected {version})")
+    known = {f.name for f in dataclasses.fields(cls)}
+    values = {k: v for k, v in data.items() if not k.startswith("_") and k not in ("format", "version")}
+    base = preset(values.pop("preset")) if "preset" in values else cls()
+    unknown = sorted(set(values) - known)
+    if unknown:
+        raise SurveyError(f"{path}: unknown {kind} fields {unknown}; known fields: {sorted(known)}")
+    try:
+        return dataclasses.replace(base, **values)
+    except SurveyError as e:
+        raise SurveyError(f"{path}: {str(e).removeprefix(f'{kind}: ')}") from None
+    except TypeError as e:
+        raise SurveyError(f"{path}: {e}") from None
+
+
+def write_template(path: str | os.PathLike, content: dict) -> None:
+    """The file with every field and its documentation, written whole or not at all."""
+    path = Path(path)
+    tmp = path.with_name(path.name + ".part")
+    tmp.write_text(json.dumps(content, indent=1, ensure_ascii=False) + "\n")
+    os.replace(tmp, path)
