@@ -148,19 +148,25 @@ class BuildingChange:
     descriptors: dict = field(default_factory=dict)
 
 
-def split_changed(d_curv: np.ndarray, d_height: np.ndarray, settings: SplitSettings) -> np.ndarray:
+def split_changed(d_curv: np.ndarray, d_height: np.ndarray, settings: SplitSettings,
+                  lod_height=None, lod_curvature=None) -> np.ndarray:
     """Changed mask for one building's points from k-means (k = 2) and the LoD gate.
 
     Features are scaled by their LoDs, so "one LoD" weighs the same in both. The cluster
     whose centre lies farther from zero change is the changed one; only its points that
-    exceed an LoD count as changed."""
+    exceed an LoD count as changed. `lod_height`/`lod_curvature` (per point, optional) are
+    levels of detection that the points' own neighbourhoods give (`core.m3c2`); the
+    settings' constants stay as floors."""
     from sklearn.cluster import KMeans
 
     n = len(d_height)
-    beyond = (np.abs(d_height) > settings.lod_height_m) | (np.abs(d_curv) > settings.lod_curvature)
+    lh = settings.lod_height_m if lod_height is None else np.maximum(lod_height, settings.lod_height_m)
+    lc = settings.lod_curvature if lod_curvature is None else np.maximum(lod_curvature, settings.lod_curvature)
+    with np.errstate(invalid="ignore"):
+        beyond = (np.abs(d_height) > lh) | (np.abs(d_curv) > lc)
     if n < 2 or not beyond.any():
         return np.zeros(n, bool)
-    x = np.column_stack([d_curv / settings.lod_curvature, d_height / settings.lod_height_m])
+    x = np.column_stack([d_curv / lc, d_height / lh])
     # Beyond CLIP_LODS a change is a change for sure; clipping keeps a handful of extreme
     # values (curvature fitted to rubble reaches hundreds of LoDs) from taking a cluster of
     # their own and leaving the bulk of a collapsed building "unchanged".
@@ -186,8 +192,10 @@ def feature_changes(pre: dict, post: dict, nn: np.ndarray) -> dict:
 
 
 def building_changes(pre_ids: np.ndarray, post_ids: np.ndarray, changes: dict, d_height: np.ndarray,
-                     distance: np.ndarray, settings: SplitSettings, min_points: int = 1) -> list[BuildingChange]:
-    """Split and describe every building with pre-event points (ID > 0)."""
+                     distance: np.ndarray, settings: SplitSettings, min_points: int = 1,
+                     lod_height=None, lod_curvature=None) -> list[BuildingChange]:
+    """Split and describe every building with pre-event points (ID > 0); `lod_height` and
+    `lod_curvature` are optional per-point levels of detection (see `split_changed`)."""
     if settings.curvature_feature not in changes:
         raise ChangeError(f"the split needs the change of {settings.curvature_feature!r}; "
                           f"available: {sorted(changes)}")
@@ -204,7 +212,9 @@ def building_changes(pre_ids: np.ndarray, post_ids: np.ndarray, changes: dict, d
         rows = order[a:b]
         if len(rows) < min_points:
             continue
-        changed = split_changed(d_curv[rows], d_height[rows], settings)
+        changed = split_changed(d_curv[rows], d_height[rows], settings,
+                                None if lod_height is None else lod_height[rows],
+                                None if lod_curvature is None else lod_curvature[rows])
         share = float(changed.mean()) if len(rows) else 0.0
         desc = {"share_changed": share}
         sel = rows[changed]

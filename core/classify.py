@@ -54,7 +54,7 @@ def model_settings(model: DamageModel, source: str = "model") -> PipelineSetting
     """The pipeline settings the model was trained with; refuses a model for other features."""
     stored = model.split or {}
     try:
-        settings = settings_for_descriptors(model.feature_names, model.radius_m, stored.get("split"),
+        settings = settings_for_descriptors(model.feature_names, model.radius_m, stored.get("split"), stored,
                                             min_points_pre=int(stored.get("min_points_pre", 50)),
                                             min_points_post=int(stored.get("min_points_post", 10)),
                                             tile_m=float(stored.get("tile_m", 150.0)),
@@ -135,7 +135,7 @@ class _Checkpoint:
                     except json.JSONDecodeError:
                         break  # a line cut by the interruption: that tile is redone
                     r = BuildingRow(d["building_id"], d["n_pre"], d["n_post"], True, "", d["descriptors"],
-                                    tuple(d["centre_xy"]))
+                                    tuple(d["centre_xy"]), d.get("quality", {}))
                     self.rows[r.building_id] = r
             else:
                 path.unlink()
@@ -147,7 +147,8 @@ class _Checkpoint:
         with open(self.path, "a") as f:
             for r in rows:
                 f.write(json.dumps({"building_id": r.building_id, "n_pre": r.n_pre, "n_post": r.n_post,
-                                    "descriptors": r.descriptors, "centre_xy": list(r.centre_xy)}) + "\n")
+                                    "descriptors": r.descriptors, "centre_xy": list(r.centre_xy),
+                                    "quality": r.quality}) + "\n")
             f.flush()
             os.fsync(f.fileno())
 

@@ -28,6 +28,7 @@ from .change import STATISTICS, SplitSettings, building_changes, nearest_neighbo
 from .errors import QuakeScanError
 from .features import FEATURES, compute_features
 from .pointcloud import Epoch
+from .surface import SURFACE_DESCRIPTORS, SurfaceSettings
 
 log = logging.getLogger(__name__)
 
@@ -39,6 +40,8 @@ PAPER_FEATURES = ("planarity", "surface_variation", "point_density", "num_neighb
 EXTRA_CHANGES = ("height", "distance")
 DEFAULT_RADIUS_M = 1.5
 GROUND_CLASS = 2
+# what a per-point level of detection of the curvature change needs of both neighbourhoods
+LOD_FEATURES = ("eigenvalue1", "eigenvalue2", "eigenvalue3", "num_neighbours")
 
 
 class PipelineError(QuakeScanError):
@@ -58,6 +61,21 @@ class PipelineSettings:
     # > 1: changes only at every k-th pre-event point of each building (neighbourhoods, nearest
     # neighbours and the point counts still use the full clouds): approximate, k times fewer queries
     core_point_step: int = 1
+    # The paper's descriptors: statistics of the point features' changes over the changed
+    # points of the LoD-gated split (share_changed, <feature>_<statistic>).
+    paper_descriptors: bool = True
+    # Descriptors of 2.5-D surfaces and M3C2 core points (core.surface); None: not computed.
+    surface: SurfaceSettings | None = None
+    # which surface descriptors are columns (all by default; a model may use fewer)
+    surface_descriptors: tuple = SURFACE_DESCRIPTORS
+    # The split's levels of detection per point (M3C2 at the nearest core point for the
+    # height change, the curvature's standard errors for its change), the split's constants
+    # as floors; needs `surface` (its core points). False: the constants alone (the paper).
+    per_point_lod: bool = False
+    # A building whose sparser epoch is below this planimetric density (pts/m²) or whose
+    # footprint the post-event epoch covers less than `min_coverage` is not assessable.
+    min_density_pts_m2: float = 0.0
+    min_coverage: float = 0.0
 
     def __post_init__(self):
         if not (math.isfinite(self.radius_m) and self.radius_m > 0):
@@ -70,27 +88,56 @@ class PipelineSettings:
         k = self.core_point_step
         if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 1:
             raise PipelineError(f"core point step must be a positive integer (1 = every point), got {k!r}")
+        if isinstance(self.surface, dict):
+            self.surface = SurfaceSettings.from_json(self.surface)
+        self.surface_descriptors = tuple(self.surface_descriptors)
+        unknown = [c for c in self.surface_descriptors if c not in SURFACE_DESCRIPTORS]
+        if unknown:
+            raise PipelineError(f"unknown surface descriptors {unknown}; known: {', '.join(SURFACE_DESCRIPTORS)}")
+        if self.per_point_lod and self.surface is None:
+            raise PipelineError("per-point levels of detection need the surface settings (their M3C2 core points)")
+        if not self.paper_descriptors and self.surface is None:
+            raise PipelineError("no descriptors asked for: enable the paper's descriptors or the surface ones")
+        if not (math.isfinite(self.min_density_pts_m2) and self.min_density_pts_m2 >= 0):
+            raise PipelineError(f"minimum density must be >= 0 pts/m², got {self.min_density_pts_m2!r}")
+        if not 0 <= self.min_coverage <= 1:
+            raise PipelineError(f"minimum coverage must be a share in [0, 1], got {self.min_coverage!r}")
 
     @property
     def computed_features(self) -> tuple:
-        """Point features to compute: the described ones and the split's curvature."""
+        """Point features to compute: the described ones, the split's curvature and, with
+        per-point levels of detection, the eigenvalues and counts they need."""
+        if not self.paper_descriptors:
+            return ()
         names = list(self.point_features)
-        if self.split.curvature_feature not in names:
-            names.append(self.split.curvature_feature)
+        extra = [self.split.curvature_feature] + (list(LOD_FEATURES) if self.per_point_lod else [])
+        names += [f for f in extra if f not in names]
         return tuple(names)
 
     def descriptor_names(self) -> list[str]:
         """Columns of the descriptor table, in the order a model is trained on."""
-        cols = ["share_changed"]
-        for name in (*self.point_features, *EXTRA_CHANGES):
-            cols += [f"{name}_{s}" for s in STATISTICS]
+        cols = []
+        if self.paper_descriptors:
+            cols.append("share_changed")
+            for name in (*self.point_features, *EXTRA_CHANGES):
+                cols += [f"{name}_{s}" for s in STATISTICS]
+        if self.surface is not None:
+            cols += list(self.surface_descriptors)
         return cols
 
     def to_json(self) -> dict:
-        return {"radius_m": self.radius_m, "point_features": list(self.point_features),
-                "split": self.split.to_json(), "min_points_pre": self.min_points_pre,
-                "min_points_post": self.min_points_post, "tile_m": self.tile_m,
-                "core_point_step": int(self.core_point_step)}
+        d = {"radius_m": self.radius_m, "point_features": list(self.point_features),
+             "split": self.split.to_json(), "min_points_pre": self.min_points_pre,
+             "min_points_post": self.min_points_post, "tile_m": self.tile_m,
+             "core_point_step": int(self.core_point_step)}
+        if self.surface is not None or not self.paper_descriptors or self.per_point_lod:
+            # keys older QuakeScans never wrote: only when they differ from those versions
+            d.update(paper_descriptors=self.paper_descriptors, per_point_lod=self.per_point_lod,
+                     surface=None if self.surface is None else self.surface.to_json(),
+                     surface_descriptors=list(self.surface_descriptors))
+        if self.min_density_pts_m2 or self.min_coverage:
+            d.update(min_density_pts_m2=self.min_density_pts_m2, min_coverage=self.min_coverage)
+        return d
 
     @classmethod
     def from_json(cls, d: dict) -> PipelineSettings:
@@ -98,19 +145,33 @@ class PipelineSettings:
             return cls(radius_m=float(d["radius_m"]), point_features=tuple(d["point_features"]),
                        split=SplitSettings(**d["split"]), min_points_pre=int(d["min_points_pre"]),
                        min_points_post=int(d["min_points_post"]), tile_m=float(d.get("tile_m", 150.0)),
-                       core_point_step=int(d.get("core_point_step", 1)))  # absent in older models
+                       core_point_step=int(d.get("core_point_step", 1)),  # absent in older models
+                       **_newer_keys(d))
         except (KeyError, TypeError, ValueError) as e:
             raise PipelineError(f"incomplete pipeline settings ({e!r}): {d}") from None
 
 
+def _newer_keys(d: dict) -> dict:
+    """Settings that older model files do not hold, with the values those versions used."""
+    surface = d.get("surface")
+    return {"paper_descriptors": bool(d.get("paper_descriptors", True)),
+            "per_point_lod": bool(d.get("per_point_lod", False)),
+            "surface": None if surface is None else SurfaceSettings.from_json(surface),
+            "surface_descriptors": tuple(d.get("surface_descriptors", SURFACE_DESCRIPTORS)),
+            "min_density_pts_m2": float(d.get("min_density_pts_m2", 0.0)),
+            "min_coverage": float(d.get("min_coverage", 0.0))}
+
+
 def settings_for_descriptors(names: Sequence[str], radius_m: float, split: dict | None = None,
-                             **kw) -> PipelineSettings:
-    """Settings that produce the descriptor columns `names` (those a model was trained on).
+                             stored: dict | None = None, **kw) -> PipelineSettings:
+    """Settings that produce the descriptor columns `names` (those a model was trained on);
+    `stored`: the model's stored pipeline settings (surface settings, per-point LoD, ...).
 
     Refuses a column that no point feature or change produces: a model for other features."""
     feats, bad = [], []
+    surface_cols = [c for c in names if c in SURFACE_DESCRIPTORS]
     for col in names:
-        if col == "share_changed":
+        if col == "share_changed" or col in SURFACE_DESCRIPTORS:
             continue
         base, _, stat = col.rpartition("_")
         if stat not in STATISTICS or not (base in FEATURES or base in EXTRA_CHANGES):
@@ -119,9 +180,20 @@ def settings_for_descriptors(names: Sequence[str], radius_m: float, split: dict 
             feats.append(base)
     if bad:
         raise PipelineError(f"the model asks for descriptors {bad} that this QuakeScan cannot compute "
-                            f"(point features: {', '.join(FEATURES)}; statistics: {', '.join(STATISTICS)})")
+                            f"(point features: {', '.join(FEATURES)}; statistics: {', '.join(STATISTICS)}; "
+                            f"surface descriptors: {', '.join(SURFACE_DESCRIPTORS)})")
+    newer = _newer_keys(stored or {})
+    newer["paper_descriptors"] = "share_changed" in names
+    newer["surface_descriptors"] = tuple(surface_cols) or SURFACE_DESCRIPTORS
+    if surface_cols and newer["surface"] is None:
+        newer["surface"] = SurfaceSettings()
+    if not surface_cols and not newer["per_point_lod"]:
+        newer["surface"] = None
+    for key in list(newer):
+        if key in kw:
+            newer.pop(key)
     return PipelineSettings(radius_m=radius_m, point_features=tuple(feats),
-                            split=SplitSettings(**(split or {})), **kw)
+                            split=SplitSettings(**(split or {})), **newer, **kw)
 
 
 @dataclass
@@ -135,6 +207,9 @@ class BuildingRow:
     reason: str = ""
     descriptors: dict = field(default_factory=dict)
     centre_xy: tuple = (math.nan, math.nan)  # local frame
+    # density_pre / density_post (pts/m², planimetric, over the building's cells) and
+    # coverage (share of its cells with post-event points), where surfaces were described
+    quality: dict = field(default_factory=dict)
 
     @property
     def share_changed(self) -> float | None:
@@ -272,6 +347,7 @@ def describe_pair(pre: Epoch, post: Epoch, settings: PipelineSettings, *, worker
 
     pre_index = GridIndex(pre.xyz[:, :2], settings.tile_m / 4)
     post_index = GridIndex(post.xyz[:, :2], settings.tile_m / 4)
+    geometry = _surface_geometry(pre, post, settings)
     total = len(ok)
     done = done or {}
     finished = 0
@@ -284,32 +360,129 @@ def describe_pair(pre: Epoch, post: Epoch, settings: PipelineSettings, *, worker
             if progress:
                 progress(finished, total)
             continue
-        # every k-th point of each building (its indices ascend: `order` is a stable sort), so no
-        # building is left without query points whatever k
-        k = settings.core_point_step
-        q = np.sort(np.concatenate([order[where[b][0]:where[b][1]:k] for b in bids])).astype(np.int64)
-        pre_f = _features_at(pre, pre_index, q, settings, workers)
-        box = _box(pre.xyz[q, :2], settings.radius_m)
-        nn, dist = _exact_nearest(pre.xyz[q], post, post_index, box, workers)
-        uniq_nn, inv = np.unique(nn, return_inverse=True)
-        post_f = _features_at(post, post_index, uniq_nn, settings, workers)
-        changes = {name: post_f[name][inv] - pre_f[name] for name in settings.computed_features}
-        d_height = post.xyz[nn, 2] - pre.xyz[q, 2]
-        wanted = set(settings.descriptor_names())
-        tile_rows = []
-        for bc in building_changes(pre_ids[q], post_ids[nn], changes, d_height, dist, settings.split):
-            desc = {k: v for k, v in bc.descriptors.items() if k in wanted}
-            tile_rows.append(BuildingRow(bc.building_id, n_pre_of.get(bc.building_id, 0),
-                                         n_post_of.get(bc.building_id, 0), True, "", desc,
-                                         tuple(centres[bc.building_id].tolist())))
+        members = {b: order[where[b][0]:where[b][1]] for b in bids}
+        tile_rows = _describe_tile(pre, post, pre_index, post_index, bids, members, settings, geometry, workers)
         for r in tile_rows:
+            r.n_pre, r.n_post = n_pre_of.get(r.building_id, 0), n_post_of.get(r.building_id, 0)
+            r.centre_xy = tuple(centres[r.building_id].tolist())
             rows[r.building_id] = r
         if on_tile:
             on_tile(tile_rows)
         finished += len(bids)
         if progress:
             progress(finished, total)
-    return [rows[b] for b in all_ids]
+    return [_quality_gate(rows[b], settings) for b in all_ids]
+
+
+def _surface_geometry(pre: Epoch, post: Epoch, settings: PipelineSettings):
+    """Grid and cylinder sizes of the pair, from its epochs' building-point densities."""
+    if settings.surface is None:
+        return None
+    from .surface import SurfaceGeometry, planimetric_density
+
+    d_pre = planimetric_density(pre.xyz[pre.building_id > 0, :2])
+    d_post = planimetric_density(post.xyz[post.building_id > 0, :2])
+    if d_post == 0.0:  # a post-event epoch without building points (all collapsed, or footprints missed)
+        d_post = planimetric_density(post.xyz[:, :2])
+    return SurfaceGeometry.for_pair(settings.surface, d_pre, d_post)
+
+
+def _quality_gate(row: BuildingRow, settings: PipelineSettings) -> BuildingRow:
+    """Not assessable where the data are sparser or cover less than the model was made for."""
+    if not row.assessable or not row.quality:
+        return row
+    density = min(row.quality.get("density_pre", math.inf), row.quality.get("density_post", math.inf))
+    coverage = row.quality.get("coverage", 1.0)
+    if density < settings.min_density_pts_m2:
+        row.assessable = False
+        row.reason = f"density {density:.1f} pts/m² < {settings.min_density_pts_m2:g}"
+    elif coverage < settings.min_coverage:
+        row.assessable = False
+        row.reason = f"post-event coverage {100 * coverage:.0f} % < {100 * settings.min_coverage:.0f} %"
+    return row
+
+
+def _describe_tile(pre, post, pre_index, post_index, bids, members, settings: PipelineSettings, geometry,
+                   workers) -> list[BuildingRow]:
+    """Descriptor rows of the buildings of one tile (counts and centres are the caller's)."""
+    descriptors = {b: {} for b in bids}
+    quality = {b: {} for b in bids}
+    cores = None
+    if settings.surface is not None:
+        from .surface import describe_surfaces, region_margin
+
+        allpts = np.concatenate([members[b] for b in bids])
+        box = _box(pre.xyz[allpts, :2], region_margin(settings.surface, geometry))
+        pre_r = pre_index.query(pre.xyz[:, :2], box)
+        post_r = post_index.query(post.xyz[:, :2], box)
+        ground = pre.classification[pre_r] == GROUND_CLASS if pre.classification is not None else None
+        surf, cores, qual = describe_surfaces(pre.xyz[pre_r], pre.building_id[pre_r], ground, post.xyz[post_r],
+                                              bids, settings.surface, geometry, workers=workers,
+                                              quality=True)
+        for b in bids:
+            descriptors[b].update({k: surf[b][k] for k in settings.surface_descriptors})
+            quality[b] = qual[b]
+    if settings.paper_descriptors:
+        for b, d in _paper_descriptors(pre, post, pre_index, post_index, bids, members, settings, cores,
+                                       workers).items():
+            descriptors[b].update(d)
+    return [BuildingRow(b, 0, 0, True, "", descriptors[b], quality=quality[b]) for b in bids]
+
+
+def _paper_descriptors(pre, post, pre_index, post_index, bids, members, settings: PipelineSettings, cores,
+                       workers) -> dict:
+    """The paper's descriptors: point features, nearest-neighbour changes, the LoD-gated split."""
+    # every k-th point of each building (its indices ascend: `order` is a stable sort), so no
+    # building is left without query points whatever k
+    k = settings.core_point_step
+    q = np.sort(np.concatenate([members[b][::k] for b in bids])).astype(np.int64)
+    pre_f = _features_at(pre, pre_index, q, settings, workers)
+    box = _box(pre.xyz[q, :2], settings.radius_m)
+    nn, dist = _exact_nearest(pre.xyz[q], post, post_index, box, workers)
+    uniq_nn, inv = np.unique(nn, return_inverse=True)
+    post_f = _features_at(post, post_index, uniq_nn, settings, workers)
+    changes = {name: post_f[name][inv] - pre_f[name] for name in settings.computed_features}
+    d_height = post.xyz[nn, 2] - pre.xyz[q, 2]
+    lod_h = lod_c = None
+    if settings.per_point_lod:
+        d_height, lod_h, lod_c = _per_point_lods(pre.xyz[q], pre.building_id[q], d_height, pre_f, post_f, inv,
+                                                 cores)
+    wanted = set(settings.descriptor_names())
+    out = {}
+    for bc in building_changes(pre.building_id[q], post.building_id[nn], changes, d_height, dist, settings.split,
+                               lod_height=lod_h, lod_curvature=lod_c):
+        out[bc.building_id] = {k: v for k, v in bc.descriptors.items() if k in wanted}
+    return out
+
+
+def _per_point_lods(q_xyz, q_bid, d_height_nn, pre_f, post_f, inv, cores):
+    """Surface change and levels of detection per query point.
+
+    The height change is the M3C2 distance of the nearest core point of the same building
+    (its surface's change, not a neighbour's height) with that core's level of detection;
+    where the core's cylinders are not comparable (the surface left the cylinder) the
+    point-to-point change stays, with the floor as LoD (NaN here). The curvature's LoD comes
+    from both neighbourhoods' standard errors (core.m3c2.curvature_standard_error)."""
+    from scipy.spatial import cKDTree
+
+    from .m3c2 import curvature_lod, curvature_standard_error
+
+    d_height = d_height_nn.copy()
+    lod_h = np.full(len(q_xyz), np.nan)
+    for b, cc in cores.items():
+        sel = np.flatnonzero(q_bid == b)
+        if len(sel) == 0 or len(cc.xyz) == 0:
+            continue
+        _, j = cKDTree(cc.xyz).query(q_xyz[sel])
+        use = cc.comparable[j]
+        d_height[sel[use]] = cc.distance[j[use]]
+        lod_h[sel[use]] = cc.lod[j[use]]
+    se_pre = curvature_standard_error(pre_f["eigenvalue1"], pre_f["eigenvalue2"], pre_f["eigenvalue3"],
+                                      pre_f["num_neighbours"])
+    se_post = curvature_standard_error(post_f["eigenvalue1"], post_f["eigenvalue2"], post_f["eigenvalue3"],
+                                       post_f["num_neighbours"])[inv]
+    # np.maximum with the floor keeps NaN: a NaN level is replaced by the floor in split_changed
+    return d_height, np.nan_to_num(lod_h, nan=0.0), np.nan_to_num(curvature_lod(se_pre, se_post), nan=0.0)
 
 
 def descriptor_matrix(rows: Sequence[BuildingRow], names: Sequence[str]) -> np.ndarray:

@@ -1,0 +1,420 @@
+"""Building descriptors that mean the same at any point density and from any sensor.
+
+The paper's descriptors are statistics over points, and several of its point features
+(densities, neighbour counts) scale with the density of the cloud: a sparse airborne
+archive before and a dense drone cloud after differ everywhere. What a structural
+engineer reads from two surveys is geometric: how much of the footprint came down and by
+how much, which surfaces disappeared, what lies around the building. This module measures
+that on grids and core points whose spacing is set by the *sparser* epoch, so that every
+descriptor is a share of area or a length, never a count of points:
+
+**2.5-D upper surfaces** (`cell_m` = sqrt(points_per_cell / density of the sparser epoch),
+clipped to [cell_min_m, cell_max_m]). The building's cells are those holding its pre-event
+points; the top of a cell is the highest point of *any* kind in it (vegetation over a roof
+included, as on real data where points belong to buildings through footprints), in both
+epochs. Lowering = pre top − post top. At the building's outline and at steps of the roof
+(where one sampling may catch an eave that the other misses) a cell is compared with the
+highest post-event cell of its 3 × 3 neighbourhood instead; interior roof cells are
+compared directly, so a hole of one or two cells is not smoothed away.
+
+- `s_lowered_1m`, `s_lowered_storey`, `s_lowered_half`: share of the footprint lowered by
+  more than 1 m, more than one storey (`storey_m`), more than half its height above ground;
+- `s_raised`: share raised by more than `raised_m` (tilted or displaced parts, debris);
+- `s_volume_loss`, `s_volume_gain`: lost / gained volume relative to the pre-event volume
+  above ground; `s_height_ratio_mean`, `s_height_ratio_p10`: post/pre height above ground over the
+  footprint (mean and 10th percentile);
+- `s_post_gap`: share of the footprint with no post-event point (not covered or occluded);
+- `s_debris_ring`, `s_debris_volume`: cells in a ring of `debris_ring_m` around the building
+  (not other buildings' cells) that rose by more than `debris_rise_m`, as a share of the ring
+  and as a volume relative to the building's.
+
+**Surface change on core points** (`core.m3c2`): core points one per `cell_m` voxel of the
+building's pre-event points (so shares are shares of surface area), normals from the
+pre-event points, walls oriented outwards. A core point is *changed* when its M3C2 distance
+exceeds both its own level of detection and `lod_floor_m`, or when its surface is lost
+(no post-event point within `max_depth_m` along the normal).
+
+- `m_changed`, `m_lost`: share of core points changed / lost; `m_roof_changed`,
+  `m_wall_changed`: the same over roof (|n_z| >= 0.5) and wall core points;
+- `m_coherent`: share of core points that are changed *and* have at least half of their
+  (at least three) adjacent core points changed: a 95 % test flags ~5 % of an unchanged
+  surface at random, real damage is spatially coherent;
+- `m_distance_p10`, `m_distance_median`, `m_distance_p90`: signed distance over the changed
+  comparable core points (0 when none); `m_lod_median`: the typical level of detection
+  (how noisy the pair is, so the classifier can discount noise it has seen in training).
+
+The building's ground is the 10th percentile of the pre-event ground points (ASPRS 2)
+within `ground_search_m` of it, or the 2nd percentile of all pre-event points there when
+the cloud has no ground class.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from .errors import QuakeScanError
+from .m3c2 import ColumnGrid, M3C2Settings, cylinder_radius, m3c2, orient_normals, voxel_core_points
+
+GROUND_CLASS = 2
+RASTER_DESCRIPTORS = ("s_lowered_1m", "s_lowered_storey", "s_lowered_half", "s_raised", "s_volume_loss",
+                      "s_volume_gain", "s_height_ratio_mean", "s_height_ratio_p10", "s_post_gap",
+                      "s_debris_ring", "s_debris_volume")
+CORE_DESCRIPTORS = ("m_changed", "m_lost", "m_roof_changed", "m_wall_changed", "m_coherent", "m_distance_p10",
+                    "m_distance_median", "m_distance_p90", "m_lod_median")
+SURFACE_DESCRIPTORS = RASTER_DESCRIPTORS + CORE_DESCRIPTORS
+
+
+class SurfaceError(QuakeScanError):
+    """Surface descriptors cannot be computed as asked."""
+
+
+@dataclass(frozen=True)
+class SurfaceSettings:
+    points_per_cell: float = 4.0  # expected points of the sparser epoch per raster cell
+    cell_min_m: float = 0.5
+    cell_max_m: float = 2.0
+    storey_m: float = 3.0
+    raised_m: float = 0.5
+    debris_ring_m: float = 5.0
+    debris_rise_m: float = 0.3
+    ground_search_m: float = 10.0
+    lod_floor_m: float = 0.1  # a surface change smaller than this is not damage, however precise
+    # top layer of a cell: within top_layer_cells * cell + top_layer_m of its highest point
+    # (1.5 cells spans a 45 degree roof across the cell's diagonal)
+    top_layer_cells: float = 1.5
+    top_layer_m: float = 0.3
+    m3c2: M3C2Settings = field(default_factory=M3C2Settings)
+
+    def __post_init__(self):
+        for name in ("points_per_cell", "cell_min_m", "cell_max_m", "storey_m", "raised_m", "debris_ring_m",
+                     "debris_rise_m", "ground_search_m", "top_layer_cells", "top_layer_m"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise SurfaceError(f"surface setting {name} must be a positive number, got {v!r}")
+        if self.cell_max_m < self.cell_min_m:
+            raise SurfaceError(f"cell_max_m {self.cell_max_m} < cell_min_m {self.cell_min_m}")
+        if isinstance(self.m3c2, dict):
+            object.__setattr__(self, "m3c2", M3C2Settings(**self.m3c2))
+
+    def cell_for(self, sparser_density_pts_m2: float) -> float:
+        """Raster cell side (m) for a pair whose sparser epoch has this planimetric density."""
+        if not (math.isfinite(sparser_density_pts_m2) and sparser_density_pts_m2 > 0):
+            return self.cell_max_m
+        return float(np.clip(math.sqrt(self.points_per_cell / sparser_density_pts_m2), self.cell_min_m,
+                             self.cell_max_m))
+
+    def to_json(self) -> dict:
+        d = asdict(self)
+        d["m3c2"] = self.m3c2.to_json()
+        return d
+
+    @classmethod
+    def from_json(cls, d: dict) -> SurfaceSettings:
+        d = dict(d)
+        d["m3c2"] = M3C2Settings(**d.get("m3c2", {}))
+        return cls(**d)
+
+
+def planimetric_density(xy: np.ndarray, cell_m: float = 1.0) -> float:
+    """Points per m² of a surface seen from above: the mean number of points in the `cell_m`
+    cells whose four neighbours are occupied too (interior cells: partly covered cells at
+    outlines would bias it low), over the cell area; all occupied cells when none is interior."""
+    xy = np.asarray(xy, dtype=np.float64)
+    if len(xy) == 0:
+        return 0.0
+    ij = np.floor((xy - xy.min(axis=0)) / cell_m).astype(np.int64) + 1
+    width = int(ij[:, 1].max()) + 2
+    keys, counts = np.unique(ij[:, 0] * width + ij[:, 1], return_counts=True)
+    interior = np.ones(len(keys), bool)
+    for off in (1, -1, width, -width):
+        nk = keys + off
+        pos = np.minimum(np.searchsorted(keys, nk), len(keys) - 1)
+        interior &= keys[pos] == nk
+    use = counts[interior] if interior.any() else counts
+    return float(use.mean()) / (cell_m * cell_m)
+
+
+@dataclass
+class SurfaceGeometry:
+    """Grid and cylinder sizes of one pair (set by its sparser epoch)."""
+
+    cell_m: float
+    cylinder_radius_m: float
+    density_pre: float
+    density_post: float
+
+    @classmethod
+    def for_pair(cls, settings: SurfaceSettings, density_pre: float, density_post: float) -> SurfaceGeometry:
+        sparser = min(density_pre, density_post)
+        return cls(settings.cell_for(sparser), cylinder_radius(settings.m3c2, sparser), density_pre, density_post)
+
+
+
+def region_margin(settings: SurfaceSettings, geom: SurfaceGeometry) -> float:
+    """How far beyond a building's points its descriptors read the clouds (m)."""
+    return max(settings.debris_ring_m + 2 * geom.cell_m, settings.ground_search_m,
+               settings.m3c2.max_depth_m + geom.cylinder_radius_m, settings.m3c2.normal_radius_m) + 1.0
+
+
+class _CellTops:
+    """Upper surface height and point count per cell of one epoch (keys on one integer grid).
+
+    The top of a cell is the mean height of its *top layer*: the points within
+    `layer_m` of its highest point. The highest point alone is biased by the density (on a
+    sloped roof the highest of 20 samples lies nearer the cell's upper edge than the highest
+    of 2), the mean of the top layer of a plane is its height at the centroid whatever the
+    density, and walls or ground below the layer do not pull it down."""
+
+    def __init__(self, xyz: np.ndarray, lo: np.ndarray, cell: float, width: int, layer_m: float):
+        ij = np.floor((xyz[:, :2] - lo) / cell).astype(np.int64)
+        key = ij[:, 0] * width + ij[:, 1]
+        order = np.argsort(key, kind="stable")
+        k = key[order]
+        if len(k):
+            starts = np.flatnonzero(np.r_[True, k[1:] != k[:-1]])
+            z = xyz[order, 2]
+            top = np.maximum.reduceat(z, starts)
+            cell_of = np.repeat(np.arange(len(starts)), np.diff(np.r_[starts, len(k)]))
+            layer = z >= top[cell_of] - layer_m
+            n = np.bincount(cell_of[layer], minlength=len(starts))
+            self.keys = k[starts]
+            self.top = np.bincount(cell_of[layer], weights=z[layer], minlength=len(starts)) / n
+            self.count = np.diff(np.r_[starts, len(k)])
+        else:
+            self.keys = np.zeros(0, np.int64)
+            self.top = np.zeros(0)
+            self.count = np.zeros(0, np.int64)
+
+    def lookup(self, keys: np.ndarray) -> np.ndarray:
+        """Top height per key, NaN where the cell holds no point."""
+        pos = np.searchsorted(self.keys, keys)
+        pos = np.minimum(pos, max(len(self.keys) - 1, 0))
+        out = np.full(keys.shape, np.nan)
+        if len(self.keys):
+            hit = self.keys[pos] == keys
+            out[hit] = self.top[pos[hit]]
+        return out
+
+
+@dataclass
+class CoreChange:
+    """Per core point of one building: where, how far the surface moved, and whether it counts."""
+
+    xyz: np.ndarray
+    distance: np.ndarray
+    lod: np.ndarray
+    comparable: np.ndarray
+    changed: np.ndarray
+
+
+def _neighbour_offsets(width: int, radius_cells: int, disc_m: float | None = None, cell: float = 1.0):
+    """Key offsets of the cells within a square of `radius_cells` (or within `disc_m` of the cell)."""
+    d = np.arange(-radius_cells, radius_cells + 1)
+    di, dj = np.meshgrid(d, d, indexing="ij")
+    keep = np.ones(di.shape, bool) if disc_m is None else (di * di + dj * dj) * cell * cell <= disc_m ** 2 + 1e-9
+    return (di * width + dj)[keep].ravel()
+
+
+def describe_surfaces(pre_xyz: np.ndarray, pre_bid: np.ndarray, pre_ground: np.ndarray, post_xyz: np.ndarray,
+                      bids, settings: SurfaceSettings, geom: SurfaceGeometry, *, workers: int = -1,
+                      quality: bool = False):
+    """Surface descriptors of the buildings `bids` from the points of a region around them.
+
+    pre_xyz/post_xyz: (n, 3) local-frame points of the region (every kind of point);
+    pre_bid: building ID per pre-event point (0 = none); pre_ground: ground mask (ASPRS 2)
+    or None. Returns ({building ID: {descriptor: value}}, {building ID: CoreChange}) and,
+    with `quality`, {building ID: {density_pre, density_post, coverage}}: planimetric
+    densities (pts/m²) of the building's own pre-event points and of the post-event points
+    over its cells, and the share of its cells with post-event points."""
+    from .features import compute_features
+
+    bids = [int(b) for b in bids]
+    c = geom.cell_m
+    both = np.vstack([pre_xyz[:, :2], post_xyz[:, :2]]) if len(post_xyz) else pre_xyz[:, :2]
+    pad = int(math.ceil(settings.debris_ring_m / c)) + 3
+    lo = np.floor(both.min(axis=0) / c) * c - pad * c
+    width = int(math.ceil((both.max(axis=0)[1] - lo[1]) / c)) + 2 * pad + 2
+    layer = settings.top_layer_cells * c + settings.top_layer_m
+    pre_tops = _CellTops(pre_xyz, lo, c, width, layer)
+    post_tops = _CellTops(post_xyz, lo, c, width, layer)
+    pre_key = (np.floor((pre_xyz[:, 0] - lo[0]) / c).astype(np.int64) * width
+               + np.floor((pre_xyz[:, 1] - lo[1]) / c).astype(np.int64))
+    building_keys = np.unique(pre_key[pre_bid > 0])
+    post_key = (np.floor((post_xyz[:, 0] - lo[0]) / c).astype(np.int64) * width
+                + np.floor((post_xyz[:, 1] - lo[1]) / c).astype(np.int64))
+    n3 = _neighbour_offsets(width, 1)
+    ring_offsets = _neighbour_offsets(width, int(math.ceil(settings.debris_ring_m / c)), settings.debris_ring_m, c)
+
+    order = np.argsort(pre_bid, kind="stable")
+    sorted_bid = pre_bid[order]
+    descriptors, members, core_of, qual = {}, {}, {}, {}
+    for bid in bids:
+        a, b = np.searchsorted(sorted_bid, [bid, bid + 1])
+        idx = order[a:b]
+        if len(idx) == 0:
+            raise SurfaceError(f"building {bid} has no pre-event points in its region")
+        ground = _ground_height(pre_xyz, pre_ground, pre_xyz[idx], settings.ground_search_m)
+        descriptors[bid] = _raster(pre_key[idx], pre_tops, post_tops, building_keys, ground, n3, ring_offsets,
+                                   settings, c)
+        if quality:
+            cells = np.unique(pre_key[idx])
+            inside = np.isin(post_key, cells)
+            qual[bid] = {"density_pre": round(planimetric_density(pre_xyz[idx, :2]), 3),
+                         "density_post": round(planimetric_density(post_xyz[inside, :2]), 3),
+                         "coverage": round(1.0 - descriptors[bid]["s_post_gap"], 4)}
+        members[bid] = idx
+        core_of[bid] = idx[voxel_core_points(pre_xyz[idx], c)]
+    # one normal and one M3C2 pass over every building's core points
+    all_core = np.concatenate([core_of[b] for b in bids]) if bids else np.zeros(0, np.int64)
+    f = compute_features(pre_xyz, settings.m3c2.normal_radius_m, ("normal_x", "normal_y", "normal_z"),
+                         query_index=np.sort(all_core), workers=workers)
+    sorted_core = np.sort(all_core)
+    normals_all = np.column_stack([f["normal_x"], f["normal_y"], f["normal_z"]])
+    normals = {}
+    for bid in bids:
+        pos = np.searchsorted(sorted_core, core_of[bid])
+        normals[bid] = orient_normals(normals_all[pos], pre_xyz[core_of[bid], :2],
+                                      pre_xyz[members[bid], :2].mean(axis=0))
+    pre_grid = ColumnGrid(pre_xyz, max(geom.cylinder_radius_m, 0.5))
+    post_grid = ColumnGrid(post_xyz, max(geom.cylinder_radius_m, 0.5))
+    nrm = np.vstack([normals[b] for b in bids]) if bids else np.zeros((0, 3))
+    res = m3c2(pre_xyz[all_core], nrm, pre_grid, post_grid, settings.m3c2, geom.cylinder_radius_m)
+    lost_all = res.lost_beyond_chance(geom.density_post / max(geom.density_pre, 1e-9))
+    cores, start = {}, 0
+    for bid in bids:
+        k = len(core_of[bid])
+        sl = slice(start, start + k)
+        start += k
+        cc, dm = _core_change(pre_xyz[core_of[bid]], normals[bid], res, lost_all[sl], sl, settings, c)
+        descriptors[bid].update(dm)
+        cores[bid] = cc
+    if quality:
+        return descriptors, cores, qual
+    return descriptors, cores
+
+
+def _ground_height(pre_xyz, pre_ground, pts, search_m):
+    lo, hi = pts[:, :2].min(axis=0) - search_m, pts[:, :2].max(axis=0) + search_m
+    near = np.all((pre_xyz[:, :2] >= lo) & (pre_xyz[:, :2] <= hi), axis=1)
+    if pre_ground is not None:
+        g = near & pre_ground
+        if g.sum() >= 3:
+            return float(np.percentile(pre_xyz[g, 2], 10))
+    return float(np.percentile(pre_xyz[near, 2], 2))
+
+
+def _raster(keys_b, pre_tops, post_tops, building_keys, ground, n3, ring_offsets, s: SurfaceSettings, c):
+    cells = np.unique(keys_b)
+    pre_top = pre_tops.lookup(cells)
+    post_top = post_tops.lookup(cells)
+    h_pre = np.maximum(pre_top - ground, 0.0)
+    nb = cells[:, None] + n3[None, :]
+    pre_nb = pre_tops.lookup(nb)
+    post_nb_max = _row_max(post_tops.lookup(nb))
+    pre_nb_max = _row_max(pre_nb)
+    # outline cells (a neighbour outside the building) and steps of the roof get the 3x3 tolerance
+    in_building = np.isin(nb, cells)
+    with np.errstate(invalid="ignore"):
+        step = (pre_nb_max + _row_max(-pre_nb)) > 3 * c  # max - min of the 3x3 pre-event tops
+    edge = ~in_building.all(axis=1) | step
+    post_cmp = np.where(edge, post_nb_max, post_top)
+    pre_cmp = np.where(edge, pre_nb_max, pre_top)
+    covered = ~np.isnan(post_top)
+    with np.errstate(invalid="ignore"):
+        lowered = pre_top - post_cmp
+        raised = post_top - pre_cmp
+        lowered = np.where(covered | ~np.isnan(post_cmp), lowered, np.nan)
+        # edge cells: both tops from their 3x3 neighbourhoods, so partly covered cells compare alike
+        ratio = np.clip((post_cmp - ground) / np.maximum(pre_cmp - ground, c), 0.0, 1.5)
+    low = np.nan_to_num(lowered, nan=0.0)
+    out = {
+        "s_lowered_1m": float(np.mean(low > 1.0)),
+        "s_lowered_storey": float(np.mean(low > s.storey_m)),
+        "s_lowered_half": float(np.mean((low > 0.5 * h_pre) & (h_pre > 1.0))),
+        "s_raised": float(np.mean(np.nan_to_num(raised, nan=0.0) > s.raised_m)),
+        "s_post_gap": float(1.0 - covered.mean()),
+    }
+    vol = float(np.sum(h_pre)) * c * c
+    loss = np.clip(np.nan_to_num(lowered, nan=0.0), 0.0, h_pre)
+    gain = np.clip(post_top - pre_top, 0.0, None)
+    out["s_volume_loss"] = float(np.sum(loss[covered]) * c * c / vol) if vol > 0 else 0.0
+    out["s_volume_gain"] = float(np.sum(gain[covered]) * c * c / vol) if vol > 0 else 0.0
+    r = ratio[covered & (h_pre > 1.0)]
+    out["s_height_ratio_mean"] = float(np.mean(r)) if len(r) else 1.0
+    out["s_height_ratio_p10"] = float(np.percentile(r, 10)) if len(r) else 1.0
+    # debris: a ring around the outline, other buildings' cells excluded
+    outline = cells[~in_building.all(axis=1)]
+    ring = np.unique((outline[:, None] + ring_offsets[None, :]).ravel())
+    ring = ring[~np.isin(ring, building_keys)]
+    # against the highest pre-event cell around (vegetation and cars sampled differently)
+    pre_ring = _row_max(pre_tops.lookup(ring[:, None] + n3[None, :]))
+    rise = post_tops.lookup(ring) - np.where(np.isnan(pre_ring), ground, pre_ring)
+    seen = ~np.isnan(rise)
+    out["s_debris_ring"] = float(np.mean(rise[seen] > s.debris_rise_m)) if seen.any() else 0.0
+    out["s_debris_volume"] = (float(np.sum(np.clip(rise[seen], 0, None)) * c * c / vol)
+                              if vol > 0 and seen.any() else 0.0)
+    return out
+
+
+def _row_max(a):
+    """Row-wise maximum ignoring NaN; NaN for an all-NaN row (without numpy's warning)."""
+    m = np.max(np.where(np.isnan(a), -np.inf, a), axis=1)
+    return np.where(np.isinf(m), np.nan, m)
+
+
+def _core_change(cxyz, normals, res, lost, sl, s: SurfaceSettings, spacing):
+    """Core-point descriptors of one building from its slice `sl` of the M3C2 result."""
+    distance, lod_raw = res.distance[sl], res.lod[sl]
+    comparable = res.comparable[sl]
+    lod = np.maximum(np.nan_to_num(lod_raw, nan=np.inf), s.lod_floor_m)
+    sig = comparable & (np.abs(np.nan_to_num(distance)) > lod)
+    changed = sig | lost
+    valid = comparable | lost
+    roof = np.abs(normals[:, 2]) >= 0.5
+    wall = np.isfinite(normals[:, 2]) & ~roof
+
+    def share(mask, among):
+        k = among.sum()
+        return float((mask & among).sum() / k) if k else 0.0
+
+    coherent = _coherent(cxyz, changed, valid, spacing)
+    dist = distance[sig]
+    out = {
+        "m_changed": share(changed, valid),
+        "m_lost": share(lost, valid),
+        "m_roof_changed": share(changed, valid & roof),
+        "m_wall_changed": share(changed, valid & wall),
+        "m_coherent": share(coherent, valid),
+        "m_distance_p10": float(np.percentile(dist, 10)) if len(dist) else 0.0,
+        "m_distance_median": float(np.median(dist)) if len(dist) else 0.0,
+        "m_distance_p90": float(np.percentile(dist, 90)) if len(dist) else 0.0,
+        "m_lod_median": float(np.median(lod_raw[comparable])) if comparable.any() else 0.0,
+    }
+    return CoreChange(cxyz, distance, lod_raw, comparable, changed), out
+
+
+def _coherent(xyz, changed, valid, spacing):
+    """Changed core points with at least half of their (>= 3) valid adjacent core points changed."""
+    if not changed.any():
+        return np.zeros(len(xyz), bool)
+    ijk = np.floor((xyz - xyz.min(axis=0)) / spacing).astype(np.int64)
+    dims = ijk.max(axis=0) + 3
+    key = ((ijk[:, 0] + 1) * dims[1] + ijk[:, 1] + 1) * dims[2] + ijk[:, 2] + 1
+    order = np.argsort(key)
+    skey = key[order]
+    n_valid = np.zeros(len(xyz), np.int64)
+    n_changed = np.zeros(len(xyz), np.int64)
+    for dx in (-1, 0, 1):
+        for dy in (-1, 0, 1):
+            for dz in (-1, 0, 1):
+                if dx == dy == dz == 0:
+                    continue
+                nk = key + (dx * dims[1] + dy) * dims[2] + dz
+                pos = np.minimum(np.searchsorted(skey, nk), len(skey) - 1)
+                hit = skey[pos] == nk
+                j = order[pos]
+                n_valid += hit & valid[j]
+                n_changed += hit & changed[j]
+    return changed & (n_valid >= 3) & (2 * n_changed >= n_valid)

@@ -1,0 +1,164 @@
+"""M3C2 distances and levels of detection against closed-form answers (core/m3c2.py)."""
+import math
+
+import numpy as np
+import pytest
+
+from core.features import compute_features
+from core.m3c2 import (
+    ColumnGrid,
+    M3C2Error,
+    M3C2Settings,
+    curvature_lod,
+    curvature_standard_error,
+    cylinder_radius,
+    m3c2,
+    orient_normals,
+    voxel_core_points,
+)
+
+
+def noisy_plane(rng, density, sigma, size=20.0, z0=0.0):
+    n = rng.poisson(density * size * size)
+    xy = rng.uniform(0, size, (n, 2))
+    return np.column_stack([xy, z0 + rng.normal(0, sigma, n)])
+
+
+def grid_cores(size=20.0, margin=2.0, step=1.0, z=0.0):
+    g = np.arange(margin, size - margin + 1e-9, step)
+    xx, yy = np.meshgrid(g, g)
+    return np.column_stack([xx.ravel(), yy.ravel(), np.full(xx.size, z)])
+
+
+def run(pre, post, cores, normals, radius, **kw):
+    s = M3C2Settings(**kw)
+    return m3c2(cores, normals, ColumnGrid(pre, radius), ColumnGrid(post, radius), s, radius)
+
+
+def test_two_noisy_planes_give_the_closed_form_lod_and_five_percent_false_positives():
+    rng = np.random.default_rng(0)
+    rho1, s1, rho2, s2, r = 100.0, 0.02, 25.0, 0.05, 0.5
+    pre, post = noisy_plane(rng, rho1, s1), noisy_plane(rng, rho2, s2)
+    cores = grid_cores(step=0.6)
+    res = run(pre, post, cores, np.tile([0, 0, 1.0], (len(cores), 1)), r)
+    n1, n2 = math.pi * r * r * rho1, math.pi * r * r * rho2
+    assert np.median(res.n_pre) == pytest.approx(n1, rel=0.05)
+    assert np.median(res.n_post) == pytest.approx(n2, rel=0.08)
+    expected_lod = 1.96 * math.sqrt(s1 ** 2 / n1 + s2 ** 2 / n2)
+    assert np.median(res.lod) == pytest.approx(expected_lod, rel=0.1)
+    assert abs(np.mean(res.distance)) < 0.003
+    # a 95 % test flags ~5 % of an unchanged surface: that is what "significant" means
+    assert 0.02 < res.significant.mean() < 0.09
+    assert not res.lost.any()
+
+
+def test_an_offset_larger_than_the_lod_is_detected_everywhere_and_measured():
+    rng = np.random.default_rng(1)
+    pre, post = noisy_plane(rng, 50, 0.02), noisy_plane(rng, 50, 0.02, z0=0.25)
+    cores = grid_cores()
+    res = run(pre, post, cores, np.tile([0, 0, 1.0], (len(cores), 1)), 0.5)
+    assert res.significant.all()
+    assert np.median(res.distance) == pytest.approx(0.25, abs=0.005)
+
+
+def test_registration_error_widens_the_lod_as_lague_et_al():
+    rng = np.random.default_rng(2)
+    pre, post = noisy_plane(rng, 50, 0.02), noisy_plane(rng, 50, 0.02)
+    cores = grid_cores()
+    normals = np.tile([0, 0, 1.0], (len(cores), 1))
+    a = run(pre, post, cores, normals, 0.5)
+    b = run(pre, post, cores, normals, 0.5, registration_error_m=0.05)
+    np.testing.assert_allclose(b.lod - a.lod, 1.96 * 0.05)
+    assert b.significant.sum() <= a.significant.sum()
+
+
+def test_tilted_plane_offset_along_its_normal_at_utm_coordinates():
+    rng = np.random.default_rng(3)
+    tilt = math.radians(35)
+    normal = np.array([math.sin(tilt), 0.0, math.cos(tilt)])
+    u = np.array([math.cos(tilt), 0.0, -math.sin(tilt)])
+    v = np.array([0.0, 1.0, 0.0])
+
+    def plane(offset, sigma):
+        st = rng.uniform(0, 20, (8000, 2))
+        return st[:, :1] * u + st[:, 1:] * v + (offset + rng.normal(0, sigma, (len(st), 1))) * normal
+
+    origin = np.array([500_000.0, 5_000_000.0, 300.0])
+    pre, post = plane(0.0, 0.01) + origin, plane(0.4, 0.01) + origin
+    st = np.stack(np.meshgrid(np.arange(3, 17.0), np.arange(3, 17.0)), -1).reshape(-1, 2)
+    cores = st[:, :1] * u + st[:, 1:] * v + origin
+    res = run(pre, post, cores, np.tile(normal, (len(cores), 1)), 0.6)
+    assert res.significant.all()
+    np.testing.assert_allclose(res.distance, 0.4, atol=0.01)
+
+
+def test_a_roof_hole_deeper_than_the_cylinder_is_lost_and_walls_use_horizontal_cylinders():
+    rng = np.random.default_rng(4)
+    pre = noisy_plane(rng, 50, 0.01, z0=10.0)
+    hole = (np.abs(pre[:, 0] - 10) < 3) & (np.abs(pre[:, 1] - 10) < 3)
+    post = pre[~hole].copy()
+    post[:, 2] += rng.normal(0, 0.01, len(post))
+    cores = grid_cores(z=10.0)
+    res = run(pre, post, cores, np.tile([0, 0, 1.0], (len(cores), 1)), 0.5, max_depth_m=2.0)
+    inside = (np.abs(cores[:, 0] - 10) < 2.4) & (np.abs(cores[:, 1] - 10) < 2.4)
+    assert res.lost[inside].all()
+    assert not res.lost[~inside & ((np.abs(cores[:, 0] - 10) > 3.6) | (np.abs(cores[:, 1] - 10) > 3.6))].any()
+    # a vertical wall x = 5 pushed out by 0.3 m: horizontal normals measure it
+    yz = rng.uniform(0, 10, (6000, 2))
+    wall_pre = np.column_stack([np.full(len(yz), 5.0) + rng.normal(0, 0.01, len(yz)), yz])
+    wall_post = wall_pre + [0.3, 0, 0]
+    wc = np.column_stack([np.full(16, 5.0), np.linspace(2, 8, 16), np.linspace(2, 8, 16)])
+    normals = orient_normals(np.tile([-1.0, 0, 0], (16, 1)), wc[:, :2], np.array([0.0, 5.0]))
+    assert np.all(normals[:, 0] == 1.0)  # turned away from the centre at x = 0
+    w = run(wall_pre, wall_post, wc, normals, 0.5)
+    np.testing.assert_allclose(w.distance, 0.3, atol=0.01)
+
+
+def test_undefined_normals_and_empty_epochs_are_not_comparable():
+    rng = np.random.default_rng(5)
+    pre = noisy_plane(rng, 20, 0.01)
+    cores = grid_cores()[:5]
+    normals = np.tile([0, 0, 1.0], (5, 1))
+    normals[0] = np.nan
+    res = m3c2(cores, normals, ColumnGrid(pre, 0.5), ColumnGrid(np.zeros((0, 3)), 0.5), M3C2Settings())
+    assert not res.comparable.any() and not res.significant.any()
+    assert res.lost[1:].all() and not res.lost[0]
+    with pytest.raises(M3C2Error, match="shape"):
+        m3c2(cores, normals[:3], ColumnGrid(pre, 0.5), ColumnGrid(pre, 0.5), M3C2Settings())
+    with pytest.raises(M3C2Error, match="max_depth_m"):
+        M3C2Settings(max_depth_m=0)
+
+
+def test_cylinder_radius_grows_for_sparse_epochs():
+    s = M3C2Settings(cylinder_radius_m=0.5, min_points=6)
+    assert cylinder_radius(s, 250.0) == 0.5
+    r = cylinder_radius(s, 3.0)
+    assert math.pi * r * r * 3.0 == pytest.approx(6.0)
+    assert cylinder_radius(s, 0.0) == 0.5
+
+
+def test_voxel_core_points_are_one_per_voxel_whatever_the_density():
+    rng = np.random.default_rng(6)
+    dense, sparse = noisy_plane(rng, 400, 0.0), noisy_plane(rng, 16, 0.0)
+    a, b = voxel_core_points(dense, 1.0), voxel_core_points(sparse, 1.0)
+    assert len(a) == 400 and abs(len(b) - 400) < 8  # 1 m voxels on a 20 x 20 m plane
+    assert np.all(np.diff(a) > 0)
+    assert len(voxel_core_points(np.zeros((0, 3)), 1.0)) == 0
+
+
+def test_curvature_standard_error_matches_the_spread_of_fitted_curvature_on_noisy_planes():
+    """|H| of a noisy plane is the absolute value of a normal variable with the predicted
+    standard error: its mean is SE * sqrt(2/pi)."""
+    rng = np.random.default_rng(7)
+    sigma, r = 0.03, 1.5
+    cloud = noisy_plane(rng, 30, sigma, size=40)
+    q = np.flatnonzero((np.abs(cloud[:, 0] - 20) < 15) & (np.abs(cloud[:, 1] - 20) < 15))[::7]
+    f = compute_features(cloud, r, ("curvature", "eigenvalue1", "eigenvalue2", "eigenvalue3", "num_neighbours"),
+                         query_index=q)
+    se = curvature_standard_error(f["eigenvalue1"], f["eigenvalue2"], f["eigenvalue3"], f["num_neighbours"])
+    closed_form = sigma * math.sqrt(48 / (30 * math.pi * r * r)) / r ** 2
+    assert np.median(se) == pytest.approx(closed_form, rel=0.1)
+    assert np.mean(f["curvature"]) == pytest.approx(np.median(se) * math.sqrt(2 / math.pi), rel=0.15)
+    lod = curvature_lod(se, se)
+    assert np.mean(np.abs(f["curvature"][1:] - f["curvature"][:-1]) > lod[1:]) < 0.06
+    assert np.isnan(curvature_standard_error(1.0, 0.0, 0.0, 10))
