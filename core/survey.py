@@ -51,6 +51,9 @@ FIELD_DOC = {
                   "which sweeps exactly the FOV", "deg"),
     "scan_pitch_deg": ("forward tilt of the scan plane (0 = vertical, perpendicular to the heading)", "deg"),
     "range_noise_sigma_m": ("standard deviation of the Gaussian range noise (seeded)", "m"),
+    "strip_misalignment_m": (("registration error between flight lines: every point of a line is moved by one "
+                             "3-D offset drawn per line (Gaussian, this standard deviation per axis, seeded "
+                             "by the scan seed and the line number); 0 = strips perfectly registered"), "m"),
     "max_range_m": ("maximum range; farther surfaces give no return", "m"),
     "beam_divergence_mrad": ("full beam divergence at 1/e² intensity", "mrad"),
     "beam": ("'single' (one ray per pulse), 'full' (sub-rays over the footprint for every pulse) or "
@@ -85,6 +88,7 @@ class Survey:
     sweep_deg: float = 330.0
     scan_pitch_deg: float = 0.0
     range_noise_sigma_m: float = 0.01
+    strip_misalignment_m: float = 0.0
     max_range_m: float = 400.0
     # beam model
     beam_divergence_mrad: float = 0.5
@@ -109,8 +113,8 @@ class Survey:
             v = getattr(self, name)
             if not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
                 bad(f"{name} must be a positive number [{FIELD_DOC[name][1]}], got {v!r}")
-        for name in ("run_in_m", "range_noise_sigma_m", "beam_divergence_mrad", "echo_separation_m",
-                     "adaptive_edge_m", "min_echo_energy", "gps_start_s"):
+        for name in ("run_in_m", "range_noise_sigma_m", "strip_misalignment_m", "beam_divergence_mrad",
+                     "echo_separation_m", "adaptive_edge_m", "min_echo_energy", "gps_start_s"):
             v = getattr(self, name)
             if not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
                 bad(f"{name} must be a number >= 0 [{FIELD_DOC[name][1]}], got {v!r}")
