@@ -386,3 +386,74 @@ def test_strip_misalignment_same_seed_same_bytes_whatever_the_threads(tmp_path):
     a, b, c = ((tmp_path / f"{k}.las").read_bytes() for k in "abc")
     assert a == b
     assert a != c
+
+
+def test_unknown_preset_lists_the_known_ones():
+    with pytest.raises(SurveyError, match="unknown survey preset 'fast'; known: 'paper', 'als'"):
+        preset("fast")
+
+
+def test_als_preset_is_an_aircraft_scan_of_about_10_points_per_m2():
+    s = preset("als")
+    assert s.name == "als" and s.deflector == "oscillating_mirror"
+    assert 40 <= s.fov_deg <= 60 and 300 <= s.altitude_agl_m <= 1000 and s.speed_m_s == 60
+    assert 0.02 <= s.range_noise_sigma_m <= 0.03 and 0.25 <= s.beam_divergence_mrad <= 0.5
+    assert s.max_range_m >= s.altitude_agl_m / math.cos(math.radians(s.fov_deg / 2))
+    assert s.nominal_density_pts_m2 == pytest.approx(10.0, rel=0.01)
+    assert s.strip_misalignment_m == 0
+
+
+@pytest.mark.parametrize("density", [4.0, 10.0, 17.5, 30.0])
+def test_als_for_density_turns_pulse_rate_and_speed_within_realistic_ranges(density):
+    from core.survey import ALS_PULSE_RATE_HZ, ALS_SCAN_RATE_HZ, ALS_SPEED_M_S, als_for_density
+
+    s = als_for_density(density)
+    assert s.nominal_density_pts_m2 == pytest.approx(density, rel=1e-9)
+    assert ALS_PULSE_RATE_HZ[0] <= s.pulse_rate_hz <= ALS_PULSE_RATE_HZ[1]
+    assert ALS_SPEED_M_S[0] <= s.speed_m_s <= ALS_SPEED_M_S[1]
+    assert ALS_SCAN_RATE_HZ[0] <= s.scan_rate_hz <= ALS_SCAN_RATE_HZ[1]
+    # the flight geometry is the preset's
+    a = preset("als")
+    assert (s.altitude_agl_m, s.fov_deg, s.strip_overlap_pct) == (a.altitude_agl_m, a.fov_deg, a.strip_overlap_pct)
+
+
+def test_als_for_density_beyond_the_pulse_rates_moves_the_speed_or_says_why():
+    from core.survey import ALS_SPEED_M_S, als_for_density
+
+    slow = als_for_density(3.0)  # 3 pts/m² at 50 kHz needs a faster aircraft
+    assert slow.pulse_rate_hz == 50_000.0 and ALS_SPEED_M_S[0] <= slow.speed_m_s <= ALS_SPEED_M_S[1]
+    assert slow.nominal_density_pts_m2 == pytest.approx(3.0)
+    for bad, text in ((500.0, "out of reach"), (0.0, "positive number"), (float("nan"), "positive number")):
+        with pytest.raises(SurveyError, match=text):
+            als_for_density(bad)
+
+
+def test_a_short_max_range_narrows_the_strips_instead_of_leaving_gaps():
+    """At 150 m with a 120° FOV the swath's edges lie 300 m away; with max_range 200 m the
+    scanner records a swath of 2·sqrt(200² - 150²) and the plan spaces its lines by that."""
+    s = preset("paper").replace(altitude_agl_m=150.0, max_range_m=200.0)
+    assert s.swath_m == pytest.approx(2 * math.sqrt(200.0 ** 2 - 150.0 ** 2))
+    plan = plan_flight(s, np.array([[0.0, 0.0, 0.0], [200.0, 300.0, 10.0]]), 0.0)
+    ys = np.array([ln.start[1] for ln in plan.lines])
+    for y in np.linspace(0, 300, 61):
+        assert np.sum(np.abs(ys - y) <= s.swath_m / 2) >= 2
+    assert preset("paper").swath_m == pytest.approx(2 * 100 * math.tan(math.radians(60)))  # range not limiting
+
+
+def test_als_over_a_300_m_scene_with_one_line_or_the_plan(tmp_path):
+    """500 m above a 284 m × 284 m city: the box culling and the 2 km range let one flight
+    line (swath 466 m) record every building; the plan flies three lines, two strips everywhere."""
+    from core.survey import als_for_density
+
+    scene = box_city(rows=10, cols=10, footprint=12.0, street=16.0, margin=10.0)
+    s = als_for_density(4.0)
+    b = scene.bounds()
+    one = [FlightLine(0, np.array([b[0, 0] - s.run_in_m, 0.5 * (b[0, 1] + b[1, 1]), s.altitude_agl_m]),
+                      np.array([1.0, 0.0, 0.0]), b[1, 0] - b[0, 0] + 2 * s.run_in_m, 0.0, s.speed_m_s)]
+    single = scan(scene, s, tmp_path / "one.las", seed=1, lines=one)
+    planned = scan(scene, s, tmp_path / "plan.las", seed=1)
+    assert planned.lines == 3
+    for summary in (single, planned):
+        assert set(summary.points_by_building) == set(range(1, 101))
+    # one strip against two: about half the points
+    assert 0.4 < single.points / planned.points < 0.6
