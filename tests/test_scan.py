@@ -401,6 +401,9 @@ def test_als_preset_is_an_aircraft_scan_of_about_10_points_per_m2():
     assert s.max_range_m >= s.altitude_agl_m / math.cos(math.radians(s.fov_deg / 2))
     assert s.nominal_density_pts_m2 == pytest.approx(10.0, rel=0.01)
     assert s.strip_misalignment_m == 0
+    from core.survey import load_survey
+
+    assert load_survey("als") == s  # --survey als
 
 
 @pytest.mark.parametrize("density", [4.0, 10.0, 17.5, 30.0])
