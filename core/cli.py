@@ -379,7 +379,7 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("scan", help="scan a scene bundle with a virtual UAV laser scanner")
     s.add_argument("scene", help="scene bundle folder (scene.json + mesh.ply)")
     s.add_argument("-o", "--output", required=True, help="output point cloud, .las or .laz")
-    s.add_argument("--survey", default="paper", help="preset name (paper) or survey JSON file")
+    s.add_argument("--survey", default="paper", help="preset name (paper, als) or survey JSON file")
     s.add_argument("--beam", choices=("single", "adaptive", "full"), help="override the survey's beam model")
     s.add_argument("--seed", type=int, default=0, help="seed of the range noise (same seed, same bytes)")
     s.add_argument("--threads", type=int, default=None, help="worker threads (default: all cores)")

@@ -22,6 +22,12 @@ Beam model (`Survey.beam`):
   Elsewhere the footprint lies on one plane and the full beam would return the central
   hit within a fraction of a millimetre (measured in bench/bench_scan.py).
   Discontinuities narrower than the pulse spacing (wires, antennas) can be missed.
+
+Strip misalignment (`Survey.strip_misalignment_m`, default 0): every point of flight line k
+is moved by one 3-D offset `strip_offset(survey, seed, k)`, added where the final float64
+point is formed (local hit + the line's shift to LAS coordinates), in the compiled and the
+numpy paths alike. Rays are cast without it: it is a registration error of the processed
+strip, not a different flight.
 """
 from __future__ import annotations
 
@@ -321,8 +327,9 @@ class _Simulator:
         pulses = self.pulses(batch.line, batch.j0, batch.j1)
         stats = {"pulses_swept": batch.j1 - batch.j0, "pulses_emitted": pulses.n_fov, "pulses_cast": len(pulses),
                  "rays_cast": 0, "pulses_with_sub_rays": 0}
+        shift = self.line_shift(batch.line.index)
         if s.beam == "single" and self.fast and self.header is not None:
-            return self._single_fused(batch, pulses, stats)
+            return self._single_fused(batch, pulses, shift, stats)
         o, d, o32, d32 = pulses.rays(self.fast)
         # Every output point: a ray (row of o/d: the pulse's central ray) and a pulse index.
         if s.beam == "single":
@@ -343,10 +350,17 @@ class _Simulator:
         noise = (rng.standard_normal(len(ray), dtype=np.float32) if s.range_noise_sigma_m > 0
                  else np.zeros(len(ray), np.float32))
         stats["points"] = len(ray)
-        out = self._output(pulses, batch.line.index, ray, pulse, face, rng_m, noise, ret, nret, o, d, stats)
+        out = self._output(pulses, batch.line.index, ray, pulse, face, rng_m, noise, ret, nret, o, d, shift, stats)
         return out, stats
 
-    def _single_fused(self, batch: _Batch, pulses: _Pulses, stats):
+    def line_shift(self, line_index: int) -> np.ndarray:
+        """Local → LAS-offset coordinates for the points of one flight line: `shift` plus the
+        line's strip misalignment (`shift` itself, untouched, when there is none)."""
+        if self.survey.strip_misalignment_m == 0:
+            return self.shift
+        return self.shift + strip_offset(self.survey, self.seed, line_index)
+
+    def _single_fused(self, batch: _Batch, pulses: _Pulses, shift: np.ndarray, stats):
         """The single-ray beam with the compiled loops: float32 rays → Embree → one pass that
         refines, adds noise and packs (same bytes as the general path, fewer passes)."""
 
@@ -365,16 +379,17 @@ class _Simulator:
         a = np.empty(hits, dtype=h.point_format.dtype())
         m, ok, mins, maxs, by_return, by_face = refine_and_pack(
             face, pulses.t, cs, ln.t_start, pulses.start_local, pulses.velocity, pulses.down, pulses.right,
-            c.normals, c.plane_d, float(s.max_range_m), noise, s.range_noise_sigma_m, self.shift, SCALE,
+            c.normals, c.plane_d, float(s.max_range_m), noise, s.range_noise_sigma_m, shift, SCALE,
             pulses.theta, pulses.forward, pulses.edge, np.uint16(ln.index + 1),
             c.face_building, c.face_grade, c.face_surface, c.face_class,
             _las_columns(a))
         stats["points"] = m
         return _kernel_record(h, a[:m], ok, mins, maxs, by_return, by_face, stats), stats
 
-    def _output(self, pulses, line_index, ray, pulse, face, rng_m, noise, ret, nret, o, d, stats):
+    def _output(self, pulses, line_index, ray, pulse, face, rng_m, noise, ret, nret, o, d, shift, stats):
         """Points → a packed LAS record (when the simulator has a header) or a PointChunk;
-        fills stats with counts by return and by face, and the record's bounds."""
+        fills stats with counts by return and by face, and the record's bounds. A point is
+        o + d · (range + noise) + shift, `shift` being the line's (see `line_shift`)."""
         c, sigma = self.caster, self.survey.range_noise_sigma_m
         n_faces = len(c.face_surface)
         if self.header is not None and self.fast:
@@ -386,14 +401,14 @@ class _Simulator:
             a = np.empty(len(ray), dtype=h.point_format.dtype())
             ok, mins, maxs, by_return, by_face = pack_points(
                 ray, pulse, face, rng_m, noise, sigma, ret.astype(np.uint8), nret.astype(np.uint8), o, d,
-                self.shift, SCALE, pulses.t, pulses.theta, pulses.forward, pulses.edge, np.uint16(line_index + 1),
+                shift, SCALE, pulses.t, pulses.theta, pulses.forward, pulses.edge, np.uint16(line_index + 1),
                 c.face_building, c.face_grade, c.face_surface, c.face_class,
                 _las_columns(a))
             return _kernel_record(h, a, ok, mins, maxs, by_return, by_face, stats)
         stats["by_return"] = np.bincount(ret, minlength=16)[:16]
         stats["by_face"] = np.bincount(face, minlength=n_faces)
         chunk = PointChunk(
-            xyz=o[ray] + d[ray] * (rng_m + sigma * noise.astype(np.float64))[:, None] + self.shift,
+            xyz=o[ray] + d[ray] * (rng_m + sigma * noise.astype(np.float64))[:, None] + shift,
             gps_time=pulses.t[pulse],
             scan_angle_deg=np.degrees(pulses.theta[pulse]),
             return_number=ret, number_of_returns=nret,
@@ -549,6 +564,25 @@ class _Simulator:
         pi, ret = pi[order], ret[order]
         return (pi, np.concatenate(rows_face)[order], np.concatenate(rows_rng)[order],
                 ret.astype(np.uint8), det_count[pi].astype(np.uint8))
+
+
+# Spawn key of the strip-misalignment stream: keeps it apart from the range-noise stream,
+# whose entropy (seed, line, batch) could otherwise equal (seed, line) padded with zeros.
+_STRIP_STREAM = 1
+
+
+def strip_offset(survey: Survey, seed: int, line_index: int) -> np.ndarray:
+    """The (3,) float64 offset added to every point of flight line `line_index`: Gaussian,
+    `survey.strip_misalignment_m` per axis, drawn from (seed, line) alone, so the same seed
+    gives the same offsets whatever the threads and batches (zeros without misalignment).
+
+    It models what multi-strip ULS/ALS shows after trajectory processing: each strip slightly
+    shifted against its neighbours by residual GNSS/INS and boresight errors."""
+    sigma = survey.strip_misalignment_m
+    if sigma == 0:
+        return np.zeros(3)
+    ss = np.random.SeedSequence([seed, line_index], spawn_key=(_STRIP_STREAM,))
+    return sigma * np.random.default_rng(ss).standard_normal(3)
 
 
 def _las_columns(a: np.ndarray) -> tuple:

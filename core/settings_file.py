@@ -37,18 +37,26 @@ def load(spec: str | os.PathLike, *, cls: type, fmt: str, version: int, kind: st
         raise SurveyError(f"{path}: not a {kind} file (format must be {fmt!r})")
     if data.get("version") != version:
         raise SurveyError(f"{path}: {kind} version {data.get('version')!r} not supported (expected {version})")
-    known = {f.name for f in dataclasses.fields(cls)}
     values = {k: v for k, v in data.items() if not k.startswith("_") and k not in ("format", "version")}
+    return from_values(values, cls=cls, kind=kind, preset=preset, source=str(path))
+
+
+def from_values(values: dict, *, cls: type, kind: str, preset: Callable[[str], object], source: str):
+    """The dataclass from a dict of (some of) its fields and optionally `preset` (missing
+    fields come from it, else from the defaults); every refusal names `source`. Shared by the
+    settings files and the documents that embed settings (core.acquisition)."""
+    values = dict(values)
+    known = {f.name for f in dataclasses.fields(cls)}
     base = preset(values.pop("preset")) if "preset" in values else cls()
     unknown = sorted(set(values) - known)
     if unknown:
-        raise SurveyError(f"{path}: unknown {kind} fields {unknown}; known fields: {sorted(known)}")
+        raise SurveyError(f"{source}: unknown {kind} fields {unknown}; known fields: {sorted(known)}")
     try:
         return dataclasses.replace(base, **values)
     except SurveyError as e:
-        raise SurveyError(f"{path}: {str(e).removeprefix(f'{kind}: ')}") from None
+        raise SurveyError(f"{source}: {str(e).removeprefix(f'{kind}: ')}") from None
     except TypeError as e:
-        raise SurveyError(f"{path}: {e}") from None
+        raise SurveyError(f"{source}: {e}") from None
 
 
 def write_template(path: str | os.PathLike, content: dict) -> None:

@@ -51,6 +51,9 @@ FIELD_DOC = {
                   "which sweeps exactly the FOV", "deg"),
     "scan_pitch_deg": ("forward tilt of the scan plane (0 = vertical, perpendicular to the heading)", "deg"),
     "range_noise_sigma_m": ("standard deviation of the Gaussian range noise (seeded)", "m"),
+    "strip_misalignment_m": (("registration error between flight lines: every point of a line is moved by one "
+                             "3-D offset drawn per line (Gaussian, this standard deviation per axis, seeded "
+                             "by the scan seed and the line number); 0 = strips perfectly registered"), "m"),
     "max_range_m": ("maximum range; farther surfaces give no return", "m"),
     "beam_divergence_mrad": ("full beam divergence at 1/e² intensity", "mrad"),
     "beam": ("'single' (one ray per pulse), 'full' (sub-rays over the footprint for every pulse) or "
@@ -85,6 +88,7 @@ class Survey:
     sweep_deg: float = 330.0
     scan_pitch_deg: float = 0.0
     range_noise_sigma_m: float = 0.01
+    strip_misalignment_m: float = 0.0
     max_range_m: float = 400.0
     # beam model
     beam_divergence_mrad: float = 0.5
@@ -109,8 +113,8 @@ class Survey:
             v = getattr(self, name)
             if not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
                 bad(f"{name} must be a positive number [{FIELD_DOC[name][1]}], got {v!r}")
-        for name in ("run_in_m", "range_noise_sigma_m", "beam_divergence_mrad", "echo_separation_m",
-                     "adaptive_edge_m", "min_echo_energy", "gps_start_s"):
+        for name in ("run_in_m", "range_noise_sigma_m", "strip_misalignment_m", "beam_divergence_mrad",
+                     "echo_separation_m", "adaptive_edge_m", "min_echo_energy", "gps_start_s"):
             v = getattr(self, name)
             if not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
                 bad(f"{name} must be a number >= 0 [{FIELD_DOC[name][1]}], got {v!r}")
@@ -165,12 +169,25 @@ class Survey:
 
     @property
     def swath_m(self) -> float:
-        """Strip width on flat ground at ground level."""
-        return 2 * self.altitude_agl_m * math.tan(math.radians(self.fov_deg / 2))
+        """Strip width on flat ground at ground level: the FOV's, or the narrower width within
+        `max_range_m` when the FOV's edges lie beyond it (the flight plan spaces its lines by
+        what the scanner records, so a short range gives closer lines, not gaps). When even
+        nadir is out of range the FOV's width stands (and the scan records nothing)."""
+        half = self.altitude_agl_m * math.tan(math.radians(self.fov_deg / 2))
+        if self.max_range_m > self.altitude_agl_m:
+            half = min(half, math.sqrt(self.max_range_m ** 2 - self.altitude_agl_m ** 2))
+        return 2 * half
 
     @property
     def line_spacing_m(self) -> float:
         return self.swath_m * (1 - self.strip_overlap_pct / 100)
+
+    @property
+    def nominal_density_pts_m2(self) -> float:
+        """Mean points per m² of flat ground at ground level inside a block of strips: pulses
+        leaving the scanner per second / (speed × line spacing). Near nadir and on roofs (closer
+        to the scanner) the density is a few per cent higher."""
+        return self.pulse_rate_hz * self.fov_fraction / (self.speed_m_s * self.line_spacing_m)
 
     @property
     def sub_rays(self) -> int:
@@ -183,11 +200,73 @@ class Survey:
         return settings_file.to_json(self, FORMAT, VERSION, FIELD_DOC)
 
 
+def _als() -> Survey:
+    """Manned-aircraft airborne laser scanning as a national archive holds it (AHN3, the
+    Netherlands: 8–15 pts/m², oscillating-mirror and polygon scanners flown by aeroplane).
+
+    500 m above ground at 60 m/s (117 kn), oscillating mirror over a 50° FOV (swath 466 m),
+    50 % strip overlap (so every point lies in two strips, on a scene of any size: the density
+    of a small scene equals that of a large block), 140 kHz at 140 lines/s (along-track and
+    across-track spacing both ≈ 0.44 m per strip at nadir), range noise 2.5 cm, divergence
+    0.3 mrad (15 cm footprint), returns up to 2 000 m. Nominal density
+    (`nominal_density_pts_m2`) 10.0 pts/m²; measured (`core.acquisition.measured_density`,
+    roof cells of a 3 × 3 box city, 9 m roofs, seed 1): 10.35 pts/m², true roof points per
+    roof area 10.37. `als_for_density` moves it to other densities."""
+    return Survey(name="als", altitude_agl_m=500.0, speed_m_s=60.0, strip_overlap_pct=50.0, run_in_m=50.0,
+                  deflector="oscillating_mirror", scan_rate_hz=140.0, pulse_rate_hz=140_000.0, fov_deg=50.0,
+                  range_noise_sigma_m=0.025, max_range_m=2000.0, beam_divergence_mrad=0.3)
+
+
+PRESETS = {"paper": Survey, "als": _als}
+
+# Realistic ranges of the knobs `als_for_density` turns: aircraft ALS pulse rates (older
+# 50 kHz systems to today's MHz scanners), ground speeds (slow fixed-wing to 155 kn) and
+# oscillating-mirror line rates.
+ALS_PULSE_RATE_HZ = (50_000.0, 1_000_000.0)
+ALS_SPEED_M_S = (40.0, 80.0)
+ALS_SCAN_RATE_HZ = (20.0, 200.0)
+
+
 def preset(name: str) -> Survey:
-    """Named presets: 'paper' (Zahs et al. Table)."""
-    if name == "paper":
-        return Survey()
-    raise SurveyError(f"unknown survey preset {name!r}; known: 'paper', or give a survey JSON file")
+    """Named presets: 'paper' (Zahs et al. Table: UAV laser scanning) and 'als' (airborne
+    laser scanning as in national archives such as AHN3, ~10 pts/m²; see `_als`)."""
+    if name in PRESETS:
+        return PRESETS[name]()
+    known = ", ".join(repr(k) for k in PRESETS)
+    raise SurveyError(f"unknown survey preset {name!r}; known: {known}, or give a survey JSON file")
+
+
+def als_for_density(pts_per_m2: float, speed_m_s: float | None = None) -> Survey:
+    """The 'als' preset flown for a nominal density of `pts_per_m2` (`nominal_density_pts_m2`).
+
+    The flight geometry (altitude, FOV, overlap) stays; the pulse rate is set to the density ×
+    speed × line spacing, at `speed_m_s` (default the preset's 60 m/s). When that pulse rate
+    lies outside `ALS_PULSE_RATE_HZ`, the speed moves (within `ALS_SPEED_M_S`) so that the
+    rate's nearest bound gives the density, as a flight planner would. The mirror's line rate
+    follows so that along- and across-track spacing agree at nadir (within `ALS_SCAN_RATE_HZ`).
+    4–30 pts/m² are reached at 60 m/s with 56–420 kHz."""
+    base = _als()
+    if isinstance(pts_per_m2, bool) or not isinstance(pts_per_m2, (int, float)) or not math.isfinite(pts_per_m2) \
+            or pts_per_m2 <= 0:
+        raise SurveyError(f"als_for_density: pts_per_m2 must be a positive number [pts/m²], got {pts_per_m2!r}")
+    speed = base.speed_m_s if speed_m_s is None else float(speed_m_s)
+    if not ALS_SPEED_M_S[0] <= speed <= ALS_SPEED_M_S[1]:
+        raise SurveyError(f"als_for_density: speed_m_s must lie in {ALS_SPEED_M_S} m/s, got {speed_m_s!r}")
+    spacing = base.line_spacing_m
+    prr = pts_per_m2 * speed * spacing
+    if not ALS_PULSE_RATE_HZ[0] <= prr <= ALS_PULSE_RATE_HZ[1]:
+        prr = min(max(prr, ALS_PULSE_RATE_HZ[0]), ALS_PULSE_RATE_HZ[1])
+        speed = prr / (pts_per_m2 * spacing)
+        if not ALS_SPEED_M_S[0] <= speed <= ALS_SPEED_M_S[1]:
+            lo = ALS_PULSE_RATE_HZ[0] / (ALS_SPEED_M_S[1] * spacing)
+            hi = ALS_PULSE_RATE_HZ[1] / (ALS_SPEED_M_S[0] * spacing)
+            raise SurveyError(f"als_for_density: {pts_per_m2} pts/m² is out of reach of an aircraft ALS "
+                              f"({lo:.2f}–{hi:.0f} pts/m² with pulse rates {ALS_PULSE_RATE_HZ} Hz and speeds "
+                              f"{ALS_SPEED_M_S} m/s)")
+    # along-track spacing speed/rate = across-track spacing altitude · FOV · rate / PRR at nadir
+    rate = math.sqrt(speed * prr / (base.altitude_agl_m * math.radians(base.fov_deg)))
+    rate = min(max(rate, ALS_SCAN_RATE_HZ[0]), ALS_SCAN_RATE_HZ[1])
+    return base.replace(speed_m_s=speed, pulse_rate_hz=prr, scan_rate_hz=rate)
 
 
 def load_survey(spec: str | os.PathLike) -> Survey:

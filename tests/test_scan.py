@@ -266,13 +266,15 @@ def test_survey_that_misses_the_scene(tmp_path):
     assert not (tmp_path / "x.las").exists() and not (tmp_path / "x.las.part").exists()
 
 
-@pytest.mark.parametrize("beam, deflector", [("single", "rotating_polygon"), ("adaptive", "rotating_polygon"),
-                                             ("full", "oscillating_mirror")])
-def test_compiled_loops_match_the_numpy_reference(tmp_path, beam, deflector):
+@pytest.mark.parametrize("beam, deflector, misalignment", [
+    ("single", "rotating_polygon", 0.0), ("adaptive", "rotating_polygon", 0.0), ("full", "oscillating_mirror", 0.0),
+    ("single", "rotating_polygon", 0.05), ("adaptive", "oscillating_mirror", 0.05)])
+def test_compiled_loops_match_the_numpy_reference(tmp_path, beam, deflector, misalignment):
     """The numba kernels (pulses, rays, hit refinement, LAS packing) give the same bytes as
-    the plain numpy implementation kept beside them."""
+    the plain numpy implementation kept beside them, strip misalignment included."""
     scene = box_city(rows=1, cols=2, origin=(500000.0, 5000000.0, 0.0))
-    s = preset("paper").replace(beam=beam, deflector=deflector, pulse_rate_hz=60_000.0)
+    s = preset("paper").replace(beam=beam, deflector=deflector, pulse_rate_hz=60_000.0,
+                                strip_misalignment_m=misalignment)
     scan(scene, s, tmp_path / "fast.las", seed=3, fast=True, batch_rays=100_000)
     scan(scene, s, tmp_path / "ref.las", seed=3, fast=False, batch_rays=100_000)
     assert (tmp_path / "fast.las").read_bytes() == (tmp_path / "ref.las").read_bytes()
@@ -313,3 +315,148 @@ def test_crosshatch_sees_the_walls_facing_along_track(tmp_path):
         assert len(lines) == (2 if pattern == "parallel" else 4)
     assert counts["parallel"][0] < 0.01 * counts["parallel"][1]
     assert counts["crosshatch"][0] > 0.3 * counts["crosshatch"][1]
+
+
+def _roof_lines(survey, offsets_y, length=30.0):
+    """Flight lines at roof-centre heights over box_city(rows=1, cols=1)'s 12 m roof, one per
+    across-track offset: every line sees the whole roof."""
+    z = survey.altitude_agl_m
+    return [FlightLine(k, np.array([6.0 - length / 2, 6.0 + y, z]), np.array([1.0, 0.0, 0.0]), length,
+                       k * length / survey.speed_m_s, survey.speed_m_s) for k, y in enumerate(offsets_y)]
+
+
+def test_strip_misalignment_moves_every_point_of_a_line_by_its_offset(tmp_path):
+    """Same seed with and without misalignment: the same pulses and noise, every point of line k
+    moved by strip_offset(k) (to the LAS millimetre); the paper preset has none."""
+    from core.scan import strip_offset
+
+    assert preset("paper").strip_misalignment_m == 0
+    scene = box_city(rows=1, cols=1)
+    base = preset("paper").replace(pulse_rate_hz=50_000.0)
+    lines = _roof_lines(base, (-3.0, 3.0))
+    xyz = {}
+    for sigma in (0.0, 0.05):
+        out = tmp_path / f"{sigma}.las"
+        scan(scene, base.replace(strip_misalignment_m=sigma), out, seed=11, lines=lines)
+        las, xyz[sigma] = _read(out)
+    line = np.asarray(las.point_source_id) - 1
+    assert set(np.unique(line)) == {0, 1}
+    moved = xyz[0.05] - xyz[0.0]
+    for k in (0, 1):
+        expect = strip_offset(base.replace(strip_misalignment_m=0.05), 11, k)
+        assert np.abs(expect).max() > 1e-3
+        np.testing.assert_allclose(moved[line == k], np.broadcast_to(expect, moved[line == k].shape),
+                                   atol=1e-3 + 1e-9)
+
+
+def test_strip_misalignment_height_steps_have_the_expected_spread(tmp_path):
+    """Two overlapping lines over one flat roof, sigma = 0.05 m per axis: the difference of the
+    lines' mean roof heights is Gaussian with variance 2 sigma² (range noise off, so a line's
+    mean roof height is the roof plus its z offset). Over n pairs (seeds × line pairs) the sum
+    of squared differences / (2 sigma²) is chi² with n degrees of freedom; the test accepts the
+    central 1 - 2e-6 of it."""
+    from scipy.stats import chi2
+
+    sigma = 0.05
+    scene = box_city(rows=1, cols=1, height=9.0)
+    s = EXACT.replace(pulse_rate_hz=20_000.0, strip_misalignment_m=sigma)
+    lines = _roof_lines(s, (-4.0, 4.0, -2.0, 2.0, -1.0, 1.0, -3.0, 3.0))
+    steps = []
+    for seed in range(12):
+        out = tmp_path / f"{seed}.las"
+        scan(scene, s, out, seed=seed, lines=lines)
+        las, xyz = _read(out)
+        roof = np.asarray(las.surface) == ROOF
+        line = np.asarray(las.point_source_id) - 1
+        mean_z = np.array([xyz[roof & (line == k), 2].mean() for k in range(len(lines))])
+        steps.append(mean_z[0::2] - mean_z[1::2])
+    steps = np.concatenate(steps)
+    n = len(steps)
+    statistic = float(np.sum(steps ** 2) / (2 * sigma ** 2))
+    assert chi2.ppf(1e-6, n) < statistic < chi2.ppf(1 - 1e-6, n), (n, statistic, steps.std())
+    assert abs(steps.mean()) < 6 * math.sqrt(2) * sigma / math.sqrt(n)  # no bias between lines
+
+
+def test_strip_misalignment_same_seed_same_bytes_whatever_the_threads(tmp_path):
+    scene = box_city(rows=1, cols=2)
+    s = preset("paper").replace(pulse_rate_hz=100_000.0, strip_misalignment_m=0.05)
+    scan(scene, s, tmp_path / "a.las", seed=7, threads=2, batch_rays=20_000)
+    scan(scene, s, tmp_path / "b.las", seed=7, threads=1, batch_rays=20_000)
+    scan(scene, s, tmp_path / "c.las", seed=8, threads=2, batch_rays=20_000)
+    a, b, c = ((tmp_path / f"{k}.las").read_bytes() for k in "abc")
+    assert a == b
+    assert a != c
+
+
+def test_unknown_preset_lists_the_known_ones():
+    with pytest.raises(SurveyError, match="unknown survey preset 'fast'; known: 'paper', 'als'"):
+        preset("fast")
+
+
+def test_als_preset_is_an_aircraft_scan_of_about_10_points_per_m2():
+    s = preset("als")
+    assert s.name == "als" and s.deflector == "oscillating_mirror"
+    assert 40 <= s.fov_deg <= 60 and 300 <= s.altitude_agl_m <= 1000 and s.speed_m_s == 60
+    assert 0.02 <= s.range_noise_sigma_m <= 0.03 and 0.25 <= s.beam_divergence_mrad <= 0.5
+    assert s.max_range_m >= s.altitude_agl_m / math.cos(math.radians(s.fov_deg / 2))
+    assert s.nominal_density_pts_m2 == pytest.approx(10.0, rel=0.01)
+    assert s.strip_misalignment_m == 0
+    from core.survey import load_survey
+
+    assert load_survey("als") == s  # --survey als
+
+
+@pytest.mark.parametrize("density", [4.0, 10.0, 17.5, 30.0])
+def test_als_for_density_turns_pulse_rate_and_speed_within_realistic_ranges(density):
+    from core.survey import ALS_PULSE_RATE_HZ, ALS_SCAN_RATE_HZ, ALS_SPEED_M_S, als_for_density
+
+    s = als_for_density(density)
+    assert s.nominal_density_pts_m2 == pytest.approx(density, rel=1e-9)
+    assert ALS_PULSE_RATE_HZ[0] <= s.pulse_rate_hz <= ALS_PULSE_RATE_HZ[1]
+    assert ALS_SPEED_M_S[0] <= s.speed_m_s <= ALS_SPEED_M_S[1]
+    assert ALS_SCAN_RATE_HZ[0] <= s.scan_rate_hz <= ALS_SCAN_RATE_HZ[1]
+    # the flight geometry is the preset's
+    a = preset("als")
+    assert (s.altitude_agl_m, s.fov_deg, s.strip_overlap_pct) == (a.altitude_agl_m, a.fov_deg, a.strip_overlap_pct)
+
+
+def test_als_for_density_beyond_the_pulse_rates_moves_the_speed_or_says_why():
+    from core.survey import ALS_SPEED_M_S, als_for_density
+
+    slow = als_for_density(3.0)  # 3 pts/m² at 50 kHz needs a faster aircraft
+    assert slow.pulse_rate_hz == 50_000.0 and ALS_SPEED_M_S[0] <= slow.speed_m_s <= ALS_SPEED_M_S[1]
+    assert slow.nominal_density_pts_m2 == pytest.approx(3.0)
+    for bad, text in ((500.0, "out of reach"), (0.0, "positive number"), (float("nan"), "positive number")):
+        with pytest.raises(SurveyError, match=text):
+            als_for_density(bad)
+
+
+def test_a_short_max_range_narrows_the_strips_instead_of_leaving_gaps():
+    """At 150 m with a 120° FOV the swath's edges lie 300 m away; with max_range 200 m the
+    scanner records a swath of 2·sqrt(200² - 150²) and the plan spaces its lines by that."""
+    s = preset("paper").replace(altitude_agl_m=150.0, max_range_m=200.0)
+    assert s.swath_m == pytest.approx(2 * math.sqrt(200.0 ** 2 - 150.0 ** 2))
+    plan = plan_flight(s, np.array([[0.0, 0.0, 0.0], [200.0, 300.0, 10.0]]), 0.0)
+    ys = np.array([ln.start[1] for ln in plan.lines])
+    for y in np.linspace(0, 300, 61):
+        assert np.sum(np.abs(ys - y) <= s.swath_m / 2) >= 2
+    assert preset("paper").swath_m == pytest.approx(2 * 100 * math.tan(math.radians(60)))  # range not limiting
+
+
+def test_als_over_a_300_m_scene_with_one_line_or_the_plan(tmp_path):
+    """500 m above a 284 m × 284 m city: the box culling and the 2 km range let one flight
+    line (swath 466 m) record every building; the plan flies three lines, two strips everywhere."""
+    from core.survey import als_for_density
+
+    scene = box_city(rows=10, cols=10, footprint=12.0, street=16.0, margin=10.0)
+    s = als_for_density(4.0)
+    b = scene.bounds()
+    one = [FlightLine(0, np.array([b[0, 0] - s.run_in_m, 0.5 * (b[0, 1] + b[1, 1]), s.altitude_agl_m]),
+                      np.array([1.0, 0.0, 0.0]), b[1, 0] - b[0, 0] + 2 * s.run_in_m, 0.0, s.speed_m_s)]
+    single = scan(scene, s, tmp_path / "one.las", seed=1, lines=one)
+    planned = scan(scene, s, tmp_path / "plan.las", seed=1)
+    assert planned.lines == 3
+    for summary in (single, planned):
+        assert set(summary.points_by_building) == set(range(1, 101))
+    # one strip against two: about half the points
+    assert 0.4 < single.points / planned.points < 0.6
