@@ -5,7 +5,8 @@ Reads both epochs into one float64 local frame, takes building IDs from the clou
 epoch by ICP on stable areas, describes every building's change (`core.pipeline`, tile by
 tile) and applies a model: the shipped default unless one is given. A building with too
 few points is reported as not assessable, never guessed; a building without changed
-points is "no damage" by the paper's rule, without asking the forest.
+points is "no damage" by the paper's rule, without asking the model, unless the model was
+trained on every row (`DamageModel.no_change_rule` False) and is asked about all of them.
 
 Long runs checkpoint every finished tile to OUT/.checkpoint.jsonl; a rerun with the same
 inputs and model continues from there. Every output is written under a temporary name and
@@ -152,11 +153,18 @@ class _Checkpoint:
             os.fsync(f.fileno())
 
 
-def predict_rows(rows, model: DamageModel) -> list:
-    """BuildingResults: not assessable stays so; no changed points → no damage; else the forest."""
+def predict_rows(rows, model: DamageModel, rule: bool | None = None) -> list:
+    """BuildingResults: not assessable stays so; no changed points → no damage by rule;
+    else the model.
+
+    rule: decide buildings without changed points without asking the model (the paper's
+    rule); None: as the model was trained (`model.no_change_rule`; True for every model
+    file written before the switch existed)."""
     from .results import BuildingResult
 
-    classes, grades = model.classes, model.grades
+    rule = model.no_change_rule if rule is None else bool(rule)
+    classes = model.classes
+    grades = sorted(set(classes) | ({0} if rule else set()))
     out, ask = [], []
     for r in rows:
         if not r.assessable:
@@ -164,7 +172,7 @@ def predict_rows(rows, model: DamageModel) -> list:
             continue
         share = float(r.descriptors["share_changed"])
         res = BuildingResult(r.building_id, r.n_pre, r.n_post, True, "", share_changed=share)
-        if share == 0.0:
+        if rule and share == 0.0:
             res.grade = 0
             res.probabilities = {c: float(c == 0) for c in grades}
             res.decided_by = "no change"

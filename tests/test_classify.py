@@ -61,6 +61,22 @@ def test_classify_finds_the_collapsed_buildings(city, tmp_path):
     assert not (tmp_path / "res" / ".checkpoint.jsonl").exists()
 
 
+def test_a_model_trained_on_every_row_is_asked_about_every_building(city, tmp_path):
+    """rule=False: the forest sees the unchanged buildings too, the file says so, and
+    classify asks it about them instead of deciding them by rule."""
+    d, grades = city
+    model, _, _ = train([TrainingPair(str(d / "pre.las"), str(d / "post.las"))], PipelineSettings(),
+                        n_estimators=10, test_size=0.0, rule=False)
+    assert model.no_change_rule is False and model.classes == [0, 5]
+    save_model(model, tmp_path / "all.skops")
+    assert load_model(tmp_path / "all.skops").no_change_rule is False
+    classify(d / "pre.las", d / "post.las", tmp_path / "res", model_path=tmp_path / "all.skops", write_las=False)
+    with open(tmp_path / "res" / "buildings.csv", newline="") as f:
+        rows = {int(r["building_id"]): r for r in csv.DictReader(f)}
+    assert [int(rows[b]["predicted_grade"]) for b in sorted(rows)] == list(grades)
+    assert {r["decided_by"] for r in rows.values()} == {"model"}
+
+
 def test_cli_train_classify_evaluate(city, tmp_path, capsys):
     d, grades = city
     model = tmp_path / "m.skops"

@@ -290,3 +290,82 @@ def test_the_shipped_model_loads_and_predicts_as_before():
         else:
             assert r.decided_by == "model" and r.grade == m.classes[int(np.argmax(p))]
             assert r.probabilities == {**{g: 0.0 for g in m.grades}, **dict(zip(m.classes, p.tolist()))}
+
+
+# ------------------------------------------------------------------ the no-change rule as a model property
+
+def _rows_with_unchanged_heavy():
+    """_descriptor_rows plus unchanged rows (share_changed 0) of two kinds: 40 undamaged and
+    40 'heavy' ones that sank without a changed point (height -0.5): only a model asked
+    about unchanged rows can tell them apart."""
+    x, y = _descriptor_rows()
+    flat = np.column_stack([np.zeros(80), np.repeat([0.0, -0.5], 40)])
+    return np.vstack([x, flat]), np.concatenate([y, np.repeat([0, 3], 40)])
+
+
+def test_rule_off_fits_and_asks_every_row():
+    from core.model import fit_classifier, predict_grades, train_damage_forest
+
+    names = ["share_changed", "height_median"]
+    x, y = _rows_with_unchanged_heavy()
+    all_rows = train_damage_forest(x, y, names, rule=False, n_estimators=20, seed=1)
+    np.testing.assert_array_equal(all_rows.predict_proba(x),
+                                  fit_classifier(x, y, n_estimators=20, seed=1).predict_proba(x))
+    changed = train_damage_forest(x, y, names, n_estimators=20, seed=1)
+    flat = x[-80:]
+    assert (predict_grades(changed, flat, names) == 0).all()  # the rule: unchanged is undamaged
+    off = predict_grades(all_rows, flat, names, rule=False)
+    assert (off == y[-80:]).all()  # the model sees the sunk ones
+    assert predict_grades(all_rows, np.zeros((0, 2)), names, rule=False).shape == (0,)
+
+
+def test_rule_off_keeps_calibration_groups_row_for_row():
+    from core.model import train_damage_forest
+
+    names = ["share_changed", "height_median"]
+    x, y = _rows_with_unchanged_heavy()
+    groups = np.arange(len(y)) // 2
+    est = train_damage_forest(x, y, names, calibration="sigmoid", groups=groups, n_estimators=10)
+    assert est.n_features_in_ == 2 and len(est.calibrated_classifiers_) == 3
+    folds = [(np.arange(len(y))[k::3], np.arange(len(y))[(k + 1) % 3::3]) for k in range(3)]
+    with pytest.raises(ModelError, match="cannot follow the rule's removal of 80 unchanged rows"):
+        train_damage_forest(x, y, names, calibration="sigmoid", cv=folds)
+
+
+def test_a_model_without_the_rule_is_asked_about_unchanged_buildings(tmp_path):
+    import skops.io as sio
+
+    from core.classify import predict_rows
+    from core.model import TRUSTED_TYPES, VERSION_ALL_ROWS, train_damage_forest
+    from core.pipeline import BuildingRow
+
+    names = ["share_changed", "height_median"]
+    x, y = _rows_with_unchanged_heavy()
+    m = DamageModel(train_damage_forest(x, y, names, rule=False, n_estimators=20, seed=1), names, 1.5,
+                    no_change_rule=False)
+    rows = [BuildingRow(1, 100, 100, True, "", {"share_changed": 0.0, "height_median": -0.5}),
+            BuildingRow(2, 100, 100, True, "", {"share_changed": 0.0, "height_median": 0.0}),
+            BuildingRow(3, 100, 100, True, "", {"share_changed": 0.6, "height_median": -4.0}),
+            BuildingRow(4, 3, 0, False, "3 pre-event points < 50")]
+    sunk, flat, destroyed, na = predict_rows(rows, m)
+    assert (sunk.grade, sunk.decided_by) == (3, "model") and (flat.grade, flat.decided_by) == (0, "model")
+    assert (destroyed.grade, na.grade, na.assessable) == (5, None, False)
+    assert sunk.probabilities[3] > 0.5 and set(sunk.probabilities) == {0, 3, 5}
+    forced = predict_rows(rows, m, rule=True)[0]
+    assert (forced.grade, forced.decided_by) == (0, "no change")
+    save_model(m, tmp_path / "all.skops")
+    assert sio.load(tmp_path / "all.skops", trusted=TRUSTED_TYPES)["meta"]["version"] == VERSION_ALL_ROWS
+    back = load_model(tmp_path / "all.skops")
+    assert back.no_change_rule is False
+    assert [(r.grade, r.decided_by) for r in predict_rows(rows, back)] == \
+           [(r.grade, r.decided_by) for r in (sunk, flat, destroyed, na)]
+
+
+def test_grades_of_a_model_without_the_rule_are_its_classes():
+    from core.model import train_damage_forest
+
+    names = ["share_changed", "height_median"]
+    x = np.array([[0.0, 0.0], [0.1, -1.0], [0.6, -4.0], [0.7, -5.0]])
+    est = train_damage_forest(x, np.array([3, 3, 5, 5]), names, rule=False, n_estimators=5)
+    assert DamageModel(est, names, 1.5, no_change_rule=False).grades == [3, 5]
+    assert DamageModel(est, names, 1.5).grades == [0, 3, 5]
