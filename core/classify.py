@@ -155,7 +155,8 @@ class _Checkpoint:
 
 def predict_rows(rows, model: DamageModel, rule: bool | None = None) -> list:
     """BuildingResults: not assessable stays so; no changed points → no damage by rule;
-    else the model.
+    else the model. `confidence`: the model's probability of the grade it gives, 1.0 for a
+    grade given by rule, None when not assessable.
 
     rule: decide buildings without changed points without asking the model (the paper's
     rule); None: as the model was trained (`model.no_change_rule`; True for every model
@@ -176,17 +177,19 @@ def predict_rows(rows, model: DamageModel, rule: bool | None = None) -> list:
             res.grade = 0
             res.probabilities = {c: float(c == 0) for c in grades}
             res.decided_by = "no change"
+            res.confidence = 1.0
         else:
             ask.append((res, r))
         out.append(res)
     if ask:
         table = {n: np.array([r.descriptors[n] for _, r in ask]) for n in model.feature_names}
         proba = model.predict_proba(table)
-        for (res, _), p in zip(ask, proba):
+        for (res, _), p, conf in zip(ask, proba, model.confidence(proba)):
             res.probabilities = {c: 0.0 for c in grades}
             res.probabilities.update({c: float(v) for c, v in zip(classes, p)})
             res.grade = int(classes[int(np.argmax(p))])
             res.decided_by = "model"
+            res.confidence = float(conf)
     return out
 
 

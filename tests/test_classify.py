@@ -50,6 +50,8 @@ def test_classify_finds_the_collapsed_buildings(city, tmp_path):
     for bid, g in enumerate(grades, start=1):
         assert int(rows[bid]["predicted_grade"]) == g, bid
         assert rows[bid]["decided_by"] == ("model" if g else "no change")
+        conf = float(rows[bid]["confidence"])
+        assert conf == (float(rows[bid][f"p_{g}"]) if g else 1.0) and 0.5 <= conf <= 1.0
     assert float(rows[4]["share_changed"]) > 0.5
     assert summary["by_label"] == {"no damage": 4, "destruction": 2}
     gj = json.loads((tmp_path / "res" / "buildings.geojson").read_text())

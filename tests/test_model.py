@@ -119,8 +119,8 @@ def test_a_forest_that_never_saw_grade_0_still_reports_it_by_rule():
     rows = [BuildingRow(1, 100, 100, True, "", {"share_changed": 0.0, "height_median": 0.0}),
             BuildingRow(2, 100, 100, True, "", {"share_changed": 0.5, "height_median": -3.0})]
     a, b = predict_rows(rows, m)
-    assert (a.grade, a.decided_by, a.probabilities) == (0, "no change", {0: 1.0, 5: 0.0})
-    assert (b.grade, b.decided_by, b.probabilities) == (5, "model", {0: 0.0, 5: 1.0})
+    assert (a.grade, a.decided_by, a.probabilities, a.confidence) == (0, "no change", {0: 1.0, 5: 0.0}, 1.0)
+    assert (b.grade, b.decided_by, b.probabilities, b.confidence) == (5, "model", {0: 0.0, 5: 1.0}, 1.0)
 
 
 def test_training_rows_without_any_change_are_refused():
@@ -369,3 +369,34 @@ def test_grades_of_a_model_without_the_rule_are_its_classes():
     est = train_damage_forest(x, np.array([3, 3, 5, 5]), names, rule=False, n_estimators=5)
     assert DamageModel(est, names, 1.5, no_change_rule=False).grades == [3, 5]
     assert DamageModel(est, names, 1.5).grades == [0, 3, 5]
+
+
+# ------------------------------------------------------------------ confidence
+
+
+def test_confidence_is_the_predicted_class_probability_and_margin_its_lead():
+    p = np.array([[0.7, 0.2, 0.1], [0.4, 0.4, 0.2], [0.0, 0.0, 1.0]])
+    np.testing.assert_allclose(DamageModel.confidence(p), [0.7, 0.4, 1.0])
+    np.testing.assert_allclose(DamageModel.margin(p), [0.5, 0.0, 1.0])
+    np.testing.assert_array_equal(DamageModel.margin(np.ones((2, 1))), [1.0, 1.0])
+    assert DamageModel.confidence(np.zeros((0, 3))).shape == (0,)
+    with pytest.raises(ModelError, match=r"\(n, n_classes\) array, got shape \(3,\)"):
+        DamageModel.confidence([0.2, 0.3, 0.5])
+
+
+def test_predict_rows_puts_the_confidence_on_each_building(model):
+    from core.classify import predict_rows
+    from core.pipeline import BuildingRow
+
+    m, x = model
+    names = ["share_changed", "b", "c"]
+    m.feature_names = names
+    rows = [BuildingRow(k + 1, 100, 100, True, "", dict(zip(names, r.tolist()))) for k, r in enumerate(x[:20])]
+    rows[0].descriptors["share_changed"] = 0.0
+    rows.append(BuildingRow(99, 2, 0, False, "2 pre-event points < 50"))
+    res = predict_rows(rows, m)
+    proba = m.predict_proba({n: np.array([r.descriptors[n] for r in rows[1:20]]) for n in names})
+    assert res[0].confidence == 1.0 and res[0].decided_by == "no change"
+    np.testing.assert_allclose([r.confidence for r in res[1:20]], proba.max(axis=1))
+    assert all(r.confidence == r.probabilities[r.grade] for r in res[:20])
+    assert res[-1].confidence is None
