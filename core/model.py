@@ -176,8 +176,9 @@ def fit_classifier(x: np.ndarray, y: np.ndarray, kind: str = "rf", *, calibratio
     class_weight
         "balanced" (classes weighted inversely to their frequency, see `train_forest`) or None.
     n_jobs
-        Cores for fitting: the forest's joblib workers; boosting's OpenMP threads (limited
-        with threadpoolctl; the result does not depend on it). None: the libraries' default.
+        Cores for fitting: the forest's joblib workers, and the native thread pools (OpenMP
+        of boosting, BLAS of the sigmoid fit) through `native_threads`; the result does not
+        depend on it. None: the libraries' defaults (every core).
     kw
         Further arguments of the estimator (e.g. min_samples_leaf); for "hgb" they override
         `HGB_DEFAULTS`.
@@ -194,12 +195,8 @@ def fit_classifier(x: np.ndarray, y: np.ndarray, kind: str = "rf", *, calibratio
 
         est = CalibratedClassifierCV(base, method=calibration, cv=calibration_folds(x, y, cv, groups))
     try:
-        if kind == "hgb" and n_jobs is not None and n_jobs > 0:
-            from threadpoolctl import threadpool_limits
-
-            with threadpool_limits(limits=n_jobs, user_api="openmp"):
-                return est.fit(x, y)
-        return est.fit(x, y)
+        with native_threads(n_jobs):
+            return est.fit(x, y)
     except ValueError as e:  # e.g. a calibration fold without a class: name what was asked
         grades = dict(zip(*(v.tolist() for v in np.unique(y, return_counts=True))))
         raise ModelError(f"cannot fit a {kind} classifier (calibration {calibration}) on {len(y)} rows with "
@@ -228,6 +225,21 @@ def _classifier(kind: str, *, class_weight, seed, n_estimators, max_depth, n_job
     except TypeError as e:  # an argument the estimator does not take
         raise ModelError(f"classifier kind {kind!r}: {e}") from None
     raise ModelError(f"classifier kind {kind!r} is not one of {list(CLASSIFIER_KINDS)}")
+
+
+def native_threads(n_jobs: int | None):
+    """A context limiting OpenMP and BLAS threads to n_jobs (None or < 1: no limit).
+
+    Measured on a 2-core machine shared with other jobs: a boosting or sigmoid-calibration
+    fit of a few hundred rows took 10-20x longer with every core's threads than with one,
+    the threads waiting for cores longer than the work takes."""
+    import contextlib
+
+    if n_jobs is None or n_jobs < 1:
+        return contextlib.nullcontext()
+    from threadpoolctl import threadpool_limits
+
+    return threadpool_limits(limits=int(n_jobs))
 
 
 def calibration_folds(x: np.ndarray, y: np.ndarray, cv=None, groups=None):

@@ -6,6 +6,8 @@ import pytest
 
 from core.model import DamageModel, ModelError, grouped_split, load_model, save_model, train_forest
 
+pytestmark = pytest.mark.usefixtures("one_native_thread")  # tiny fits (tests/conftest.py)
+
 
 @pytest.fixture
 def model():
