@@ -410,7 +410,7 @@ def load_model(path: str | os.PathLike) -> DamageModel:
     if est is None or not hasattr(est, "predict_proba") or not isinstance(names, list):
         raise ModelError(f"{path}: incomplete model (estimator or feature names missing)")
     if getattr(est, "n_features_in_", len(names)) != len(names):
-        raise ModelError(f"{path}: the forest expects {est.n_features_in_} features but the file names "
+        raise ModelError(f"{path}: the classifier expects {est.n_features_in_} features but the file names "
                          f"{len(names)}")
     rule = meta.get("no_change_rule", True)
     if not isinstance(rule, bool):
