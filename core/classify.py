@@ -5,7 +5,8 @@ Reads both epochs into one float64 local frame, takes building IDs from the clou
 epoch by ICP on stable areas, describes every building's change (`core.pipeline`, tile by
 tile) and applies a model: the shipped default unless one is given. A building with too
 few points is reported as not assessable, never guessed; a building without changed
-points is "no damage" by the paper's rule, without asking the forest.
+points is "no damage" by the paper's rule, without asking the model, unless the model was
+trained on every row (`DamageModel.no_change_rule` False) and is asked about all of them.
 
 Long runs checkpoint every finished tile to OUT/.checkpoint.jsonl; a rerun with the same
 inputs and model continues from there. Every output is written under a temporary name and
@@ -153,11 +154,19 @@ class _Checkpoint:
             os.fsync(f.fileno())
 
 
-def predict_rows(rows, model: DamageModel) -> list:
-    """BuildingResults: not assessable stays so; no changed points → no damage; else the forest."""
+def predict_rows(rows, model: DamageModel, rule: bool | None = None) -> list:
+    """BuildingResults: not assessable stays so; no changed points → no damage by rule;
+    else the model. `confidence`: the model's probability of the grade it gives, 1.0 for a
+    grade given by rule, None when not assessable.
+
+    rule: decide buildings without changed points without asking the model (the paper's
+    rule); None: as the model was trained (`model.no_change_rule`; True for every model
+    file written before the switch existed)."""
     from .results import BuildingResult
 
-    classes, grades = model.classes, model.grades
+    rule = model.no_change_rule if rule is None else bool(rule)
+    classes = model.classes
+    grades = sorted(set(classes) | ({0} if rule else set()))
     out, ask = [], []
     for r in rows:
         if not r.assessable:
@@ -165,21 +174,23 @@ def predict_rows(rows, model: DamageModel) -> list:
             continue
         share = float(r.descriptors["share_changed"])
         res = BuildingResult(r.building_id, r.n_pre, r.n_post, True, "", share_changed=share)
-        if share == 0.0:
+        if rule and share == 0.0:
             res.grade = 0
             res.probabilities = {c: float(c == 0) for c in grades}
             res.decided_by = "no change"
+            res.confidence = 1.0
         else:
             ask.append((res, r))
         out.append(res)
     if ask:
         table = {n: np.array([r.descriptors[n] for _, r in ask]) for n in model.feature_names}
         proba = model.predict_proba(table)
-        for (res, _), p in zip(ask, proba):
+        for (res, _), p, conf in zip(ask, proba, model.confidence(proba)):
             res.probabilities = {c: 0.0 for c in grades}
             res.probabilities.update({c: float(v) for c, v in zip(classes, p)})
             res.grade = int(classes[int(np.argmax(p))])
             res.decided_by = "model"
+            res.confidence = float(conf)
     return out
 
 

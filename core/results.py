@@ -39,6 +39,9 @@ OUTLINE_HULL = "convex hull of points"
 OUTLINE_BUFFER = "buffer around points"  # fewer than 3 distinct points, or all on a line
 _FIXED = ["building_id", "assessable", "predicted_grade", "label"]
 _TAIL = ["share_changed", "n_pre", "n_post", "decided_by", "reason"]
+# Columns added after the first files: written after all others, optional on reading, so
+# readers that look columns up by name (core.evaluate, read_csv) take old and new files.
+_ADDED = ["confidence"]
 
 
 class ResultsError(QuakeScanError):
@@ -56,6 +59,9 @@ class BuildingResult:
     probabilities: dict[int, float] = field(default_factory=dict)  # class grade → p
     share_changed: float | None = None
     decided_by: str = ""  # "model" | "no change" (no changed points → no damage, per the paper) | ""
+    # probability of the predicted grade (DamageModel.confidence); 1.0 when decided by rule,
+    # None when not assessable
+    confidence: float | None = None
 
     @property
     def label(self) -> str:
@@ -115,7 +121,7 @@ def _sorted(rows) -> list[BuildingResult]:
 # ---------------------------------------------------------------------------------------- CSV
 
 def csv_columns(classes) -> list[str]:
-    return _FIXED + [f"p_{int(c)}" for c in classes] + _TAIL
+    return _FIXED + [f"p_{int(c)}" for c in classes] + _TAIL + _ADDED
 
 
 def _record(r: BuildingResult, classes) -> dict:
@@ -128,14 +134,16 @@ def _record(r: BuildingResult, classes) -> dict:
         rec[f"p_{int(c)}"] = None if p is None else float(p)
     rec.update({"share_changed": None if r.share_changed is None else float(r.share_changed),
                 "n_pre": int(r.n_pre), "n_post": int(r.n_post), "decided_by": r.decided_by if ok else "",
-                "reason": r.reason or ""})
+                "reason": r.reason or "",
+                "confidence": float(r.confidence) if ok and r.confidence is not None else None})
     return rec
 
 
 def write_csv(rows, path, classes) -> None:
     """One line per building, sorted by building_id. Columns: building_id, assessable (1/0),
     predicted_grade (empty when not assessable), label, p_<grade> per model class (empty when
-    not assessable), share_changed, n_pre, n_post, decided_by, reason. `core.evaluate` reads it."""
+    not assessable), share_changed, n_pre, n_post, decided_by, reason, confidence (probability
+    of the predicted grade; empty when not assessable). `core.evaluate` reads it."""
     classes = [int(c) for c in classes]
     with _atomic(path) as tmp, open(tmp, "w", newline="") as f:
         w = csv.writer(f, lineterminator="\n")
@@ -155,7 +163,8 @@ def write_csv(rows, path, classes) -> None:
 
 
 def read_csv(path) -> list[BuildingResult]:
-    """BuildingResults from a CSV that `write_csv` wrote."""
+    """BuildingResults from a CSV that `write_csv` wrote (files without the later columns,
+    `_ADDED`, too: those fields stay empty)."""
     path = Path(path)
     try:
         with open(path, newline="") as f:
@@ -175,9 +184,11 @@ def read_csv(path) -> list[BuildingResult]:
             g = d["predicted_grade"].strip()
             probs = {k: float(d[c]) for c, k in pcols.items() if d[c].strip()} if ok else {}
             share = d["share_changed"].strip()
+            conf = (d.get("confidence") or "").strip()
             out.append(BuildingResult(int(d["building_id"]), int(d["n_pre"]), int(d["n_post"]), ok,
                                       d["reason"], int(g) if ok and g else None, probs,
-                                      float(share) if share else None, d["decided_by"]))
+                                      float(share) if share else None, d["decided_by"],
+                                      float(conf) if ok and conf else None))
         except (ValueError, AttributeError) as e:
             raise ResultsError(f"{path}: line {i}: {e}") from None
     return out

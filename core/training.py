@@ -121,10 +121,15 @@ def training_table(pairs: Sequence[TrainingPair], settings: PipelineSettings, *,
 
 def train(pairs: Sequence[TrainingPair], settings: PipelineSettings, *, n_estimators: int = 100,
           max_depth: int | None = 5, test_size: float = 0.3, seed: int = 0, workers: int = -1,
-          progress=None, command: str = "") -> tuple[DamageModel, Evaluation | None, TrainingTable]:
+          progress=None, command: str = "", rule: bool = True, classifier: dict | None = None
+          ) -> tuple[DamageModel, Evaluation | None, TrainingTable]:
     """Fit the forest on the training 70 % (grouped by building) and evaluate it on the rest.
 
-    With test_size 0 the forest sees every row and no evaluation is returned."""
+    With test_size 0 the forest sees every row and no evaluation is returned. rule: fit on
+    buildings with changed points and decide the others by rule (the paper's way), or
+    (False) fit on every row and ask the model about every building; the model file records
+    which. classifier: further `core.model.fit_classifier` arguments (kind, calibration, ...);
+    calibration folds are grouped by building."""
     t0 = time.perf_counter()
     table = training_table(pairs, settings, workers=workers, progress=progress)
     if len(np.unique(table.y)) < 2:
@@ -137,9 +142,14 @@ def train(pairs: Sequence[TrainingPair], settings: PipelineSettings, *, n_estima
         tr, te = grouped_split(table.groups, test_size=test_size, seed=seed)
     else:
         tr, te = np.arange(len(table.y)), np.zeros(0, np.int64)
-    est = train_damage_forest(table.x[tr], table.y[tr], table.names, n_estimators=n_estimators,
-                              max_depth=max_depth, seed=seed)
-    ev = evaluate_grades(table.y[te], predict_grades(est, table.x[te], table.names)) if len(te) else None
+    fit_args = {"max_depth": max_depth, "seed": seed, **(classifier or {})}
+    if "max_iter" not in fit_args:  # boosting rounds given as such: n_estimators would say them twice
+        fit_args.setdefault("n_estimators", n_estimators)
+    if fit_args.get("calibration"):
+        fit_args.setdefault("groups", table.groups[tr])
+    est = train_damage_forest(table.x[tr], table.y[tr], table.names, rule=rule, **fit_args)
+    ev = (evaluate_grades(table.y[te], predict_grades(est, table.x[te], table.names, rule=rule))
+          if len(te) else None)
     provenance = {
         "created": datetime.date.today().isoformat(),
         "command": command,
@@ -152,5 +162,5 @@ def train(pairs: Sequence[TrainingPair], settings: PipelineSettings, *, n_estima
         "seconds": round(time.perf_counter() - t0, 1),
     }
     model = DamageModel(est, list(table.names), settings.radius_m, split=settings.to_json(),
-                        provenance=provenance)
+                        provenance=provenance, no_change_rule=rule)
     return model, ev, table

@@ -50,6 +50,8 @@ def test_classify_finds_the_collapsed_buildings(city, tmp_path):
     for bid, g in enumerate(grades, start=1):
         assert int(rows[bid]["predicted_grade"]) == g, bid
         assert rows[bid]["decided_by"] == ("model" if g else "no change")
+        conf = float(rows[bid]["confidence"])
+        assert conf == (float(rows[bid][f"p_{g}"]) if g else 1.0) and 0.5 <= conf <= 1.0
     assert float(rows[4]["share_changed"]) > 0.5
     assert summary["by_label"] == {"no damage": 4, "destruction": 2}
     gj = json.loads((tmp_path / "res" / "buildings.geojson").read_text())
@@ -59,6 +61,22 @@ def test_classify_finds_the_collapsed_buildings(city, tmp_path):
     g = np.asarray(las["predicted_grade"])
     assert set(np.unique(g[np.asarray(las["building_id"]) == 4])) == {5}
     assert not (tmp_path / "res" / ".checkpoint.jsonl").exists()
+
+
+def test_a_model_trained_on_every_row_is_asked_about_every_building(city, tmp_path):
+    """rule=False: the forest sees the unchanged buildings too, the file says so, and
+    classify asks it about them instead of deciding them by rule."""
+    d, grades = city
+    model, _, _ = train([TrainingPair(str(d / "pre.las"), str(d / "post.las"))], PipelineSettings(),
+                        n_estimators=10, test_size=0.0, rule=False)
+    assert model.no_change_rule is False and model.classes == [0, 5]
+    save_model(model, tmp_path / "all.skops")
+    assert load_model(tmp_path / "all.skops").no_change_rule is False
+    classify(d / "pre.las", d / "post.las", tmp_path / "res", model_path=tmp_path / "all.skops", write_las=False)
+    with open(tmp_path / "res" / "buildings.csv", newline="") as f:
+        rows = {int(r["building_id"]): r for r in csv.DictReader(f)}
+    assert [int(rows[b]["predicted_grade"]) for b in sorted(rows)] == list(grades)
+    assert {r["decided_by"] for r in rows.values()} == {"model"}
 
 
 def test_cli_train_classify_evaluate(city, tmp_path, capsys):

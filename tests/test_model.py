@@ -6,6 +6,8 @@ import pytest
 
 from core.model import DamageModel, ModelError, grouped_split, load_model, save_model, train_forest
 
+pytestmark = pytest.mark.usefixtures("one_native_thread")  # tiny fits (tests/conftest.py)
+
 
 @pytest.fixture
 def model():
@@ -119,8 +121,8 @@ def test_a_forest_that_never_saw_grade_0_still_reports_it_by_rule():
     rows = [BuildingRow(1, 100, 100, True, "", {"share_changed": 0.0, "height_median": 0.0}),
             BuildingRow(2, 100, 100, True, "", {"share_changed": 0.5, "height_median": -3.0})]
     a, b = predict_rows(rows, m)
-    assert (a.grade, a.decided_by, a.probabilities) == (0, "no change", {0: 1.0, 5: 0.0})
-    assert (b.grade, b.decided_by, b.probabilities) == (5, "model", {0: 0.0, 5: 1.0})
+    assert (a.grade, a.decided_by, a.probabilities, a.confidence) == (0, "no change", {0: 1.0, 5: 0.0}, 1.0)
+    assert (b.grade, b.decided_by, b.probabilities, b.confidence) == (5, "model", {0: 0.0, 5: 1.0}, 1.0)
 
 
 def test_training_rows_without_any_change_are_refused():
@@ -128,3 +130,275 @@ def test_training_rows_without_any_change_are_refused():
 
     with pytest.raises(ModelError, match="none of the 3 training buildings has changed points"):
         train_damage_forest(np.zeros((3, 2)), np.array([0, 3, 5]), ["share_changed", "h"])
+
+
+# ------------------------------------------------------------------ classifier kinds and their files
+
+KINDS = [("rf", None), ("hgb", None), ("rf", "sigmoid"), ("hgb", "sigmoid"), ("rf", "isotonic"),
+         ("hgb", "isotonic")]
+SMALL = {"rf": {"n_estimators": 10}, "hgb": {"n_estimators": 15}}  # fast; the defaults are bigger
+
+
+def _grades_data(n=150, seed=0):
+    rng = np.random.default_rng(seed)
+    x = rng.normal(size=(n, 3))
+    y = np.where(x[:, 0] > 0.5, 5, np.where(x[:, 1] > 0, 3, 0))
+    return x, y
+
+
+def test_train_forest_is_the_rf_kind_and_the_forest_it_always_was():
+    """train_forest goes through fit_classifier("rf") and still fits the same forest."""
+    from sklearn.ensemble import RandomForestClassifier
+
+    from core.model import fit_classifier
+
+    x, y = _grades_data()
+    old = RandomForestClassifier(n_estimators=20, max_depth=5, random_state=3, n_jobs=None,
+                                 class_weight="balanced").fit(x, y)
+    np.testing.assert_array_equal(train_forest(x, y, n_estimators=20, seed=3).predict_proba(x), old.predict_proba(x))
+    np.testing.assert_array_equal(fit_classifier(x, y, n_estimators=20, seed=3).predict_proba(x), old.predict_proba(x))
+    assert fit_classifier(x, y, "rf").n_estimators == 100
+
+
+@pytest.mark.parametrize("kind,calibration", KINDS)
+def test_same_rows_same_seed_same_predictions(kind, calibration):
+    from core.model import fit_classifier
+
+    x, y = _grades_data()
+    a = fit_classifier(x, y, kind, calibration=calibration, seed=4, **SMALL[kind])
+    b = fit_classifier(x, y, kind, calibration=calibration, seed=4, **SMALL[kind])
+    np.testing.assert_array_equal(a.predict_proba(x), b.predict_proba(x))
+    assert [int(c) for c in a.classes_] == [0, 3, 5]
+    assert (a.predict(x) == y).mean() > 0.85
+
+
+def test_hgb_defaults_and_arguments():
+    from core.model import HGB_DEFAULTS, fit_classifier
+
+    x, y = _grades_data()
+    h = fit_classifier(x, y, "hgb", seed=2, learning_rate=0.2)
+    assert h.max_iter == HGB_DEFAULTS["max_iter"] and h.early_stopping is False and h.learning_rate == 0.2
+    assert h.random_state == 2 and h.class_weight == "balanced" and h.max_depth == 5
+    assert fit_classifier(x, y, "hgb", n_estimators=7).max_iter == 7
+    assert fit_classifier(x, y, "hgb", n_estimators=7, n_jobs=1).n_iter_ == 7
+    with pytest.raises(ModelError, match="n_estimators=7 and max_iter=9"):
+        fit_classifier(x, y, "hgb", n_estimators=7, max_iter=9)
+    with pytest.raises(ModelError, match="classifier kind 'svm' is not one of"):
+        fit_classifier(x, y, "svm")
+    with pytest.raises(ModelError, match="calibration 'platt' is not one of"):
+        fit_classifier(x, y, "rf", calibration="platt")
+    with pytest.raises(ModelError, match="classifier kind 'rf'.*learning_rate"):
+        fit_classifier(x, y, "rf", learning_rate=0.1)
+
+
+def test_calibration_folds_keep_groups_apart_and_are_fixed():
+    from core.model import calibration_folds, fit_classifier
+
+    x, y = _grades_data(120)
+    groups = np.arange(120) // 4  # 30 buildings, 4 rows each
+    assert calibration_folds(x, y) == 3
+    folds = calibration_folds(x, y, groups=groups)
+    assert len(folds) == 3
+    for tr, te in folds:
+        assert not set(groups[tr]) & set(groups[te])
+    again = calibration_folds(x, y, groups=groups)
+    assert all((a == c).all() and (b == d).all() for (a, b), (c, d) in zip(folds, again))
+    m = fit_classifier(x, y, "rf", calibration="sigmoid", groups=groups, n_estimators=10)
+    assert len(m.calibrated_classifiers_) == 3
+    with pytest.raises(ModelError, match="119 groups for 120 rows"):
+        calibration_folds(x, y, groups=groups[1:])
+    with pytest.raises(ModelError, match=r"cannot fit a rf classifier \(calibration isotonic\) on 4 rows"):
+        fit_classifier(x[:4], np.array([0, 0, 5, 5]), "rf", calibration="isotonic")
+
+
+@pytest.mark.parametrize("kind,calibration", KINDS)
+def test_every_kind_round_trips_through_a_file_of_trusted_types(tmp_path, kind, calibration):
+    import skops.io as sio
+
+    from core.model import TRUSTED_TYPES, fit_classifier
+
+    x, y = _grades_data()
+    est = fit_classifier(x, y, kind, calibration=calibration, groups=np.arange(len(y)) // 3, seed=1,
+                         **SMALL[kind])
+    m = DamageModel(est, ["a", "b", "c"], 1.5)
+    save_model(m, tmp_path / "m.skops")
+    assert set(sio.get_untrusted_types(file=tmp_path / "m.skops")) <= set(TRUSTED_TYPES)
+    back = load_model(tmp_path / "m.skops")
+    table = {"a": x[:, 0], "b": x[:, 1], "c": x[:, 2]}
+    np.testing.assert_array_equal(back.predict_proba(table), m.predict_proba(table))
+    c = back.classifier
+    assert (c["kind"], c["calibration"]) == (kind, calibration) and c["params"]["random_state"] == 1
+    assert c == m.classifier
+    if calibration:
+        assert c["params"]["calibration_cv"] == "3 given splits"
+    meta = sio.load(tmp_path / "m.skops", trusted=TRUSTED_TYPES)["meta"]
+    assert meta["classifier"] == c and meta["no_change_rule"] is True and meta["version"] == 1
+
+
+def test_trusted_types_are_exactly_what_the_kinds_need(tmp_path):
+    """No type on the allow-list that no classifier kind needs (and none missing)."""
+    import skops.io as sio
+
+    from core.model import TRUSTED_TYPES, fit_classifier
+
+    x, y = _grades_data(60)
+    needed = set()
+    for k, (kind, calibration) in enumerate(KINDS):
+        sio.dump(fit_classifier(x, y, kind, calibration=calibration, n_estimators=3), tmp_path / f"{k}.skops")
+        needed |= set(sio.get_untrusted_types(file=tmp_path / f"{k}.skops"))
+    assert needed == set(TRUSTED_TYPES)
+
+
+def test_metadata_naming_another_classifier_is_refused(tmp_path, model):
+    import skops.io as sio
+
+    m, _ = model
+    meta = {"format": "quakescan-model", "version": 1, "feature_names": ["a", "b", "c"],
+            "classifier": {"kind": "hgb", "calibration": None, "params": {}}}
+    sio.dump({"meta": meta, "estimator": m.estimator}, tmp_path / "liar.skops")
+    with pytest.raises(ModelError, match="metadata says kind 'hgb'.*holds kind 'rf'"):
+        load_model(tmp_path / "liar.skops")
+    meta = dict(meta, classifier={"kind": "rf", "calibration": None}, no_change_rule="yes")
+    sio.dump({"meta": meta, "estimator": m.estimator}, tmp_path / "rule.skops")
+    with pytest.raises(ModelError, match="no_change_rule must be true or false, got 'yes'"):
+        load_model(tmp_path / "rule.skops")
+
+
+def test_the_shipped_model_loads_and_predicts_as_before():
+    """core/data/default_model.skops predates the classifier and no_change_rule keys: it is a
+    forest without calibration, decides unchanged buildings by rule, and predict_rows gives
+    what the rule plus the forest's own predict_proba give."""
+    import skops.io as sio
+
+    from core.classify import DEFAULT_MODEL, predict_rows
+    from core.model import TRUSTED_TYPES
+    from core.pipeline import BuildingRow
+
+    meta = sio.load(DEFAULT_MODEL, trusted=TRUSTED_TYPES)["meta"]
+    assert "classifier" not in meta and "no_change_rule" not in meta and meta["version"] == 1
+    m = load_model(DEFAULT_MODEL)
+    assert m.no_change_rule is True and m.grades == [0, 3, 4, 5]
+    assert (m.classifier["kind"], m.classifier["calibration"]) == ("rf", None)
+    assert m.classifier["params"]["n_estimators"] == 100
+    rng = np.random.default_rng(5)
+    x = np.abs(rng.normal(size=(40, len(m.feature_names))))
+    x[::4, 0] = 0.0  # share_changed (the first column) zero: by rule
+    rows = [BuildingRow(i + 1, 100, 100, True, "", dict(zip(m.feature_names, r.tolist()))) for i, r in enumerate(x)]
+    got = predict_rows(rows, m)
+    want = m.estimator.predict_proba(x)
+    for r, row, p in zip(got, x, want):
+        if row[0] == 0:
+            assert (r.grade, r.decided_by, r.probabilities) == (0, "no change", {0: 1.0, 3: 0.0, 4: 0.0, 5: 0.0})
+        else:
+            assert r.decided_by == "model" and r.grade == m.classes[int(np.argmax(p))]
+            assert r.probabilities == {**{g: 0.0 for g in m.grades}, **dict(zip(m.classes, p.tolist()))}
+
+
+# ------------------------------------------------------------------ the no-change rule as a model property
+
+def _rows_with_unchanged_heavy():
+    """_descriptor_rows plus unchanged rows (share_changed 0) of two kinds: 40 undamaged and
+    40 'heavy' ones that sank without a changed point (height -0.5): only a model asked
+    about unchanged rows can tell them apart."""
+    x, y = _descriptor_rows()
+    flat = np.column_stack([np.zeros(80), np.repeat([0.0, -0.5], 40)])
+    return np.vstack([x, flat]), np.concatenate([y, np.repeat([0, 3], 40)])
+
+
+def test_rule_off_fits_and_asks_every_row():
+    from core.model import fit_classifier, predict_grades, train_damage_forest
+
+    names = ["share_changed", "height_median"]
+    x, y = _rows_with_unchanged_heavy()
+    all_rows = train_damage_forest(x, y, names, rule=False, n_estimators=20, seed=1)
+    np.testing.assert_array_equal(all_rows.predict_proba(x),
+                                  fit_classifier(x, y, n_estimators=20, seed=1).predict_proba(x))
+    changed = train_damage_forest(x, y, names, n_estimators=20, seed=1)
+    flat = x[-80:]
+    assert (predict_grades(changed, flat, names) == 0).all()  # the rule: unchanged is undamaged
+    off = predict_grades(all_rows, flat, names, rule=False)
+    assert (off == y[-80:]).all()  # the model sees the sunk ones
+    assert predict_grades(all_rows, np.zeros((0, 2)), names, rule=False).shape == (0,)
+
+
+def test_rule_off_keeps_calibration_groups_row_for_row():
+    from core.model import train_damage_forest
+
+    names = ["share_changed", "height_median"]
+    x, y = _rows_with_unchanged_heavy()
+    groups = np.arange(len(y)) // 2
+    est = train_damage_forest(x, y, names, calibration="sigmoid", groups=groups, n_estimators=10)
+    assert est.n_features_in_ == 2 and len(est.calibrated_classifiers_) == 3
+    folds = [(np.arange(len(y))[k::3], np.arange(len(y))[(k + 1) % 3::3]) for k in range(3)]
+    with pytest.raises(ModelError, match="cannot follow the rule's removal of 80 unchanged rows"):
+        train_damage_forest(x, y, names, calibration="sigmoid", cv=folds)
+
+
+def test_a_model_without_the_rule_is_asked_about_unchanged_buildings(tmp_path):
+    import skops.io as sio
+
+    from core.classify import predict_rows
+    from core.model import TRUSTED_TYPES, VERSION_ALL_ROWS, train_damage_forest
+    from core.pipeline import BuildingRow
+
+    names = ["share_changed", "height_median"]
+    x, y = _rows_with_unchanged_heavy()
+    m = DamageModel(train_damage_forest(x, y, names, rule=False, n_estimators=20, seed=1), names, 1.5,
+                    no_change_rule=False)
+    rows = [BuildingRow(1, 100, 100, True, "", {"share_changed": 0.0, "height_median": -0.5}),
+            BuildingRow(2, 100, 100, True, "", {"share_changed": 0.0, "height_median": 0.0}),
+            BuildingRow(3, 100, 100, True, "", {"share_changed": 0.6, "height_median": -4.0}),
+            BuildingRow(4, 3, 0, False, "3 pre-event points < 50")]
+    sunk, flat, destroyed, na = predict_rows(rows, m)
+    assert (sunk.grade, sunk.decided_by) == (3, "model") and (flat.grade, flat.decided_by) == (0, "model")
+    assert (destroyed.grade, na.grade, na.assessable) == (5, None, False)
+    assert sunk.probabilities[3] > 0.5 and set(sunk.probabilities) == {0, 3, 5}
+    forced = predict_rows(rows, m, rule=True)[0]
+    assert (forced.grade, forced.decided_by) == (0, "no change")
+    save_model(m, tmp_path / "all.skops")
+    assert sio.load(tmp_path / "all.skops", trusted=TRUSTED_TYPES)["meta"]["version"] == VERSION_ALL_ROWS
+    back = load_model(tmp_path / "all.skops")
+    assert back.no_change_rule is False
+    assert [(r.grade, r.decided_by) for r in predict_rows(rows, back)] == \
+           [(r.grade, r.decided_by) for r in (sunk, flat, destroyed, na)]
+
+
+def test_grades_of_a_model_without_the_rule_are_its_classes():
+    from core.model import train_damage_forest
+
+    names = ["share_changed", "height_median"]
+    x = np.array([[0.0, 0.0], [0.1, -1.0], [0.6, -4.0], [0.7, -5.0]])
+    est = train_damage_forest(x, np.array([3, 3, 5, 5]), names, rule=False, n_estimators=5)
+    assert DamageModel(est, names, 1.5, no_change_rule=False).grades == [3, 5]
+    assert DamageModel(est, names, 1.5).grades == [0, 3, 5]
+
+
+# ------------------------------------------------------------------ confidence
+
+
+def test_confidence_is_the_predicted_class_probability_and_margin_its_lead():
+    p = np.array([[0.7, 0.2, 0.1], [0.4, 0.4, 0.2], [0.0, 0.0, 1.0]])
+    np.testing.assert_allclose(DamageModel.confidence(p), [0.7, 0.4, 1.0])
+    np.testing.assert_allclose(DamageModel.margin(p), [0.5, 0.0, 1.0])
+    np.testing.assert_array_equal(DamageModel.margin(np.ones((2, 1))), [1.0, 1.0])
+    assert DamageModel.confidence(np.zeros((0, 3))).shape == (0,)
+    with pytest.raises(ModelError, match=r"\(n, n_classes\) array, got shape \(3,\)"):
+        DamageModel.confidence([0.2, 0.3, 0.5])
+
+
+def test_predict_rows_puts_the_confidence_on_each_building(model):
+    from core.classify import predict_rows
+    from core.pipeline import BuildingRow
+
+    m, x = model
+    names = ["share_changed", "b", "c"]
+    m.feature_names = names
+    rows = [BuildingRow(k + 1, 100, 100, True, "", dict(zip(names, r.tolist()))) for k, r in enumerate(x[:20])]
+    rows[0].descriptors["share_changed"] = 0.0
+    rows.append(BuildingRow(99, 2, 0, False, "2 pre-event points < 50"))
+    res = predict_rows(rows, m)
+    proba = m.predict_proba({n: np.array([r.descriptors[n] for r in rows[1:20]]) for n in names})
+    assert res[0].confidence == 1.0 and res[0].decided_by == "no change"
+    np.testing.assert_allclose([r.confidence for r in res[1:20]], proba.max(axis=1))
+    assert all(r.confidence == r.probabilities[r.grade] for r in res[:20])
+    assert res[-1].confidence is None

@@ -19,12 +19,12 @@ ORIGIN = np.array([500000.0, 5000000.0, 40.0])
 def _rows():
     return [
         R.BuildingResult(7, 900, 850, True, grade=5, probabilities={0: 0.05, 3: 0.1, 4: 0.15, 5: 0.7},
-                         share_changed=0.8123456789, decided_by="model"),
+                         share_changed=0.8123456789, decided_by="model", confidence=0.7),
         R.BuildingResult(2, 12, 400, False, reason="12 pre-event points < 50"),
         R.BuildingResult(3, 500, 510, True, grade=0, probabilities={0: 1.0, 3: 0.0, 4: 0.0, 5: 0.0},
-                         share_changed=0.0, decided_by="no change"),
+                         share_changed=0.0, decided_by="no change", confidence=1.0),
         R.BuildingResult(5, 700, 300, True, grade=4, probabilities={0: 0.1, 3: 0.2, 4: 0.4, 5: 0.3},
-                         share_changed=1 / 3, decided_by="model, with \"quotes\", commas"),
+                         share_changed=1 / 3, decided_by="model, with \"quotes\", commas", confidence=0.4),
     ]
 
 
@@ -43,6 +43,7 @@ def test_csv_round_trip(tmp_path):
         assert (r.n_pre, r.n_post, r.assessable, r.grade, r.reason, r.decided_by) == \
                (w.n_pre, w.n_post, w.assessable, w.grade, w.reason, w.decided_by)
         assert r.probabilities == pytest.approx(w.probabilities, rel=1e-6)
+        assert r.confidence == w.confidence
         assert (r.share_changed is None) == (w.share_changed is None)
         if w.share_changed is not None:
             assert r.share_changed == pytest.approx(w.share_changed, rel=1e-6)
@@ -63,11 +64,32 @@ def test_csv_not_assessable_is_empty_never_a_guess(tmp_path):
     assert na["reason"] == "12 pre-event points < 50" and na["n_pre"] == "12"
     assert rows[7]["assessable"] == "1" and rows[7]["predicted_grade"] == "5" and rows[7]["p_5"] == "0.7"
     assert rows[7]["share_changed"] == "0.812346"
+    assert rows[7]["confidence"] == "0.7" and rows[3]["confidence"] == "1" and na["confidence"] == ""
     # a not-assessable row whose caller forgot to clear a grade still writes no grade
     R.write_csv([R.BuildingResult(1, 0, 0, False, "no point inside the footprint", grade=3,
-                                  probabilities={3: 1.0})], path, CLASSES)
+                                  probabilities={3: 1.0}, confidence=1.0)], path, CLASSES)
     (r,) = R.read_csv(path)
-    assert r.grade is None and r.probabilities == {} and r.label == "not assessable"
+    assert r.grade is None and r.probabilities == {} and r.label == "not assessable" and r.confidence is None
+
+
+def test_confidence_comes_after_the_first_columns_and_old_files_still_read(tmp_path):
+    """The column added for confidence goes last; a result file written before it (no
+    confidence column) reads as before, with confidence empty, in read_csv and evaluate."""
+    first = ["building_id", "assessable", "predicted_grade", "label", "p_0", "p_3", "p_4", "p_5",
+             "share_changed", "n_pre", "n_post", "decided_by", "reason"]
+    assert R.csv_columns(CLASSES) == first + ["confidence"]
+    path = tmp_path / "buildings.csv"
+    R.write_csv(_rows(), path, CLASSES)
+    old = tmp_path / "old.csv"
+    with open(path, newline="") as f, open(old, "w", newline="") as g:
+        w = csv.writer(g, lineterminator="\n")
+        for line in csv.reader(f):
+            w.writerow(line[:-1])
+    back = R.read_csv(old)
+    assert [r.confidence for r in back] == [None] * 4 and [r.grade for r in back] == [None, 0, 4, 5]
+    truth = tmp_path / "truth.csv"
+    truth.write_text("building_id,grade\n3,0\n5,4\n7,5\n")
+    assert evaluate_files(old, truth).overall_accuracy == evaluate_files(path, truth).overall_accuracy == 1.0
 
 
 def test_empty_csv_round_trip(tmp_path):
@@ -134,6 +156,7 @@ def test_geojson(tmp_path):
     assert shapely.geometry.shape(feats[7]["geometry"]).equals(fp_poly)
     assert feats[7]["properties"]["colour"] == R.GRADE_COLOURS[5]
     assert feats[7]["properties"]["predicted_grade"] == 5 and feats[7]["properties"]["p_5"] == 0.7
+    assert feats[7]["properties"]["confidence"] == 0.7 and feats[2]["properties"]["confidence"] is None
     h = feats[3]
     assert h["properties"]["outline"] == "convex hull of points"
     coords = np.array(h["geometry"]["coordinates"][0])
