@@ -159,19 +159,25 @@ def region_margin(settings: SurfaceSettings, geom: SurfaceGeometry) -> float:
 
 
 class _CellTops:
-    """Upper surface height and point count per cell of one epoch (keys on one integer grid).
+    """Upper surface per cell of one epoch (keys on one integer grid): height, how many points
+    define it and how much they scatter.
 
-    The top of a cell is the mean height of its *top layer*: the points within
-    `layer_m` of its highest point. The highest point alone is biased by the density (on a
-    sloped roof the highest of 20 samples lies nearer the cell's upper edge than the highest
-    of 2), the mean of the top layer of a plane is its height at the centroid whatever the
-    density, and walls or ground below the layer do not pull it down."""
+    The top of a cell is the mean height of its *top layer*: the points within `layer_m`
+    of its highest point. The highest point alone is biased by the density (on a sloped
+    roof the highest of 20 samples lies nearer the cell's upper edge than the highest of 2);
+    the mean of the top layer of a plane is its height at the centroid whatever the
+    density, and walls or ground below the layer do not pull it down. Its standard
+    deviation and count give the cell's level of detection as M3C2 does for a cylinder: a
+    roof is a thin layer, a tree crown a thick one whose top moves by metres between two
+    samplings of the same leaves."""
 
     def __init__(self, xyz: np.ndarray, lo: np.ndarray, cell: float, width: int, layer_m: float):
         ij = np.floor((xyz[:, :2] - lo) / cell).astype(np.int64)
         key = ij[:, 0] * width + ij[:, 1]
         order = np.argsort(key, kind="stable")
         k = key[order]
+        # the spread of a single point is unknown: take a uniform spread over the layer
+        self.unknown_std = layer_m / math.sqrt(12.0)
         if len(k):
             starts = np.flatnonzero(np.r_[True, k[1:] != k[:-1]])
             z = xyz[order, 2]
@@ -179,23 +185,45 @@ class _CellTops:
             cell_of = np.repeat(np.arange(len(starts)), np.diff(np.r_[starts, len(k)]))
             layer = z >= top[cell_of] - layer_m
             n = np.bincount(cell_of[layer], minlength=len(starts))
+            mean = np.bincount(cell_of[layer], weights=z[layer], minlength=len(starts)) / n
+            dev = z[layer] - mean[cell_of[layer]]
+            var = np.bincount(cell_of[layer], weights=dev * dev, minlength=len(starts)) / np.maximum(n - 1, 1)
             self.keys = k[starts]
-            self.top = np.bincount(cell_of[layer], weights=z[layer], minlength=len(starts)) / n
+            self.top = mean
+            self.n = n
+            self.std = np.where(n >= 2, np.sqrt(var), self.unknown_std)
             self.count = np.diff(np.r_[starts, len(k)])
         else:
             self.keys = np.zeros(0, np.int64)
-            self.top = np.zeros(0)
-            self.count = np.zeros(0, np.int64)
+            self.top = self.std = np.zeros(0)
+            self.n = self.count = np.zeros(0, np.int64)
+
+    def index(self, keys: np.ndarray) -> np.ndarray:
+        """Position of each key's cell, -1 where the cell holds no point."""
+        if len(self.keys) == 0:
+            return np.full(keys.shape, -1, np.int64)
+        pos = np.minimum(np.searchsorted(self.keys, keys), len(self.keys) - 1)
+        return np.where(self.keys[pos] == keys, pos, -1)
 
     def lookup(self, keys: np.ndarray) -> np.ndarray:
         """Top height per key, NaN where the cell holds no point."""
-        pos = np.searchsorted(self.keys, keys)
-        pos = np.minimum(pos, max(len(self.keys) - 1, 0))
-        out = np.full(keys.shape, np.nan)
-        if len(self.keys):
-            hit = self.keys[pos] == keys
-            out[hit] = self.top[pos[hit]]
-        return out
+        i = self.index(keys)
+        return np.where(i >= 0, self.top[np.maximum(i, 0)] if len(self.top) else np.nan, np.nan)
+
+    def variance_of_mean(self, i: np.ndarray) -> np.ndarray:
+        """Squared standard error of the top at cell positions `i` (-1: no cell, NaN)."""
+        if len(self.top) == 0:
+            return np.full(i.shape, np.nan)
+        j = np.maximum(i, 0)
+        return np.where(i >= 0, self.std[j] ** 2 / self.n[j], np.nan)
+
+
+def _row_argmax(values: np.ndarray):
+    """Row-wise max ignoring NaN and its column (NaN, 0 for all-NaN rows)."""
+    filled = np.where(np.isnan(values), -np.inf, values)
+    j = np.argmax(filled, axis=1)
+    m = filled[np.arange(len(values)), j]
+    return np.where(np.isinf(m), np.nan, m), j
 
 
 @dataclass
@@ -306,54 +334,67 @@ def _ground_height(pre_xyz, pre_ground, pts, search_m):
 
 
 def _raster(keys_b, pre_tops, post_tops, building_keys, ground, n3, ring_offsets, s: SurfaceSettings, c):
+    """Raster descriptors of one building (its cells: `keys_b`) and the cells around it."""
+    z, reg = s.m3c2.z, s.m3c2.registration_error_m
     cells = np.unique(keys_b)
-    pre_top = pre_tops.lookup(cells)
-    post_top = post_tops.lookup(cells)
-    h_pre = np.maximum(pre_top - ground, 0.0)
     nb = cells[:, None] + n3[None, :]
+    i_pre, i_post = pre_tops.index(cells), post_tops.index(cells)
+    pre_top, post_top = pre_tops.lookup(cells), post_tops.lookup(cells)
+    h_pre = np.maximum(pre_top - ground, 0.0)
     pre_nb = pre_tops.lookup(nb)
-    post_nb_max = _row_max(post_tops.lookup(nb))
-    pre_nb_max = _row_max(pre_nb)
-    # outline cells (a neighbour outside the building) and steps of the roof get the 3x3 tolerance
+    post_nb_max, j_post = _row_argmax(post_tops.lookup(nb))
+    pre_nb_max, j_pre = _row_argmax(pre_nb)
+    # outline cells (a neighbour outside the building) and steps of the roof are compared with
+    # the highest cell of the other epoch's 3x3 neighbourhood: one sampling may catch an eave
+    # or a dormer wall that the other misses by a few centimetres
     in_building = np.isin(nb, cells)
     with np.errstate(invalid="ignore"):
         step = (pre_nb_max + _row_max(-pre_nb)) > 3 * c  # max - min of the 3x3 pre-event tops
     edge = ~in_building.all(axis=1) | step
+    rows = np.arange(len(cells))
+    i_post_cmp = np.where(edge, post_tops.index(nb[rows, j_post]), i_post)
+    i_pre_cmp = np.where(edge, pre_tops.index(nb[rows, j_pre]), i_pre)
     post_cmp = np.where(edge, post_nb_max, post_top)
     pre_cmp = np.where(edge, pre_nb_max, pre_top)
     covered = ~np.isnan(post_top)
     with np.errstate(invalid="ignore"):
         lowered = pre_top - post_cmp
         raised = post_top - pre_cmp
-        lowered = np.where(covered | ~np.isnan(post_cmp), lowered, np.nan)
-        # edge cells: both tops from their 3x3 neighbourhoods, so partly covered cells compare alike
-        ratio = np.clip((post_cmp - ground) / np.maximum(pre_cmp - ground, c), 0.0, 1.5)
-    low = np.nan_to_num(lowered, nan=0.0)
+        # levels of detection of the two differences (M3C2's form on the cells' top layers)
+        lod_low = z * (np.sqrt(pre_tops.variance_of_mean(i_pre) + post_tops.variance_of_mean(i_post_cmp)) + reg)
+        lod_raise = z * (np.sqrt(pre_tops.variance_of_mean(i_pre_cmp) + post_tops.variance_of_mean(i_post)) + reg)
+        low = np.where(lowered > lod_low, lowered, 0.0)
+        rise = np.where(raised > lod_raise, raised, 0.0)
+    low, rise = np.nan_to_num(low, nan=0.0), np.nan_to_num(rise, nan=0.0)
     out = {
         "s_lowered_1m": float(np.mean(low > 1.0)),
         "s_lowered_storey": float(np.mean(low > s.storey_m)),
         "s_lowered_half": float(np.mean((low > 0.5 * h_pre) & (h_pre > 1.0))),
-        "s_raised": float(np.mean(np.nan_to_num(raised, nan=0.0) > s.raised_m)),
+        "s_raised": float(np.mean(rise > s.raised_m)),
         "s_post_gap": float(1.0 - covered.mean()),
     }
     vol = float(np.sum(h_pre)) * c * c
-    loss = np.clip(np.nan_to_num(lowered, nan=0.0), 0.0, h_pre)
-    gain = np.clip(post_top - pre_top, 0.0, None)
-    out["s_volume_loss"] = float(np.sum(loss[covered]) * c * c / vol) if vol > 0 else 0.0
-    out["s_volume_gain"] = float(np.sum(gain[covered]) * c * c / vol) if vol > 0 else 0.0
-    r = ratio[covered & (h_pre > 1.0)]
-    out["s_height_ratio_mean"] = float(np.mean(r)) if len(r) else 1.0
-    out["s_height_ratio_p10"] = float(np.percentile(r, 10)) if len(r) else 1.0
-    # debris: a ring around the outline, other buildings' cells excluded
+    out["s_volume_loss"] = float(np.sum(np.clip(low, 0.0, h_pre)) * c * c / vol) if vol > 0 else 0.0
+    out["s_volume_gain"] = float(np.sum(rise) * c * c / vol) if vol > 0 else 0.0
+    tall = covered & (h_pre > 1.0)
+    ratio = np.clip((h_pre - low + rise) / np.maximum(h_pre, c), 0.0, 1.5)[tall]
+    out["s_height_ratio_mean"] = float(np.mean(ratio)) if len(ratio) else 1.0
+    out["s_height_ratio_p10"] = float(np.percentile(ratio, 10)) if len(ratio) else 1.0
+    # debris: a ring around the outline, other buildings' cells excluded, compared with the
+    # highest pre-event cell around (vegetation and cars are sampled differently each time)
     outline = cells[~in_building.all(axis=1)]
     ring = np.unique((outline[:, None] + ring_offsets[None, :]).ravel())
     ring = ring[~np.isin(ring, building_keys)]
-    # against the highest pre-event cell around (vegetation and cars sampled differently)
-    pre_ring = _row_max(pre_tops.lookup(ring[:, None] + n3[None, :]))
-    rise = post_tops.lookup(ring) - np.where(np.isnan(pre_ring), ground, pre_ring)
-    seen = ~np.isnan(rise)
-    out["s_debris_ring"] = float(np.mean(rise[seen] > s.debris_rise_m)) if seen.any() else 0.0
-    out["s_debris_volume"] = (float(np.sum(np.clip(rise[seen], 0, None)) * c * c / vol)
+    pre_ring, j_ring = _row_argmax(pre_tops.lookup(ring[:, None] + n3[None, :]))
+    i_ring_pre = pre_tops.index(ring + n3[j_ring])
+    i_ring_post = post_tops.index(ring)
+    with np.errstate(invalid="ignore"):
+        up = post_tops.lookup(ring) - np.where(np.isnan(pre_ring), ground, pre_ring)
+        var = np.nan_to_num(pre_tops.variance_of_mean(i_ring_pre), nan=0.0) + post_tops.variance_of_mean(i_ring_post)
+        up = np.where(up > z * (np.sqrt(var) + reg), up, 0.0)
+    seen = i_ring_post >= 0
+    out["s_debris_ring"] = float(np.mean(up[seen] > s.debris_rise_m)) if seen.any() else 0.0
+    out["s_debris_volume"] = (float(np.sum(np.clip(up[seen], 0, None)) * c * c / vol)
                               if vol > 0 and seen.any() else 0.0)
     return out
 
