@@ -172,7 +172,8 @@ def predict_rows(rows, model: DamageModel, rule: bool | None = None) -> list:
         if not r.assessable:
             out.append(BuildingResult(r.building_id, r.n_pre, r.n_post, False, r.reason))
             continue
-        share = float(r.descriptors["share_changed"])
+        # the paper's share of changed points, or for a surface model its share of changed surface
+        share = float(r.descriptors.get("share_changed", r.descriptors.get("m_changed", 0.0)))
         res = BuildingResult(r.building_id, r.n_pre, r.n_post, True, "", share_changed=share)
         if rule and share == 0.0:
             res.grade = 0

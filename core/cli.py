@@ -10,8 +10,6 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
-
 from . import __version__
 from .errors import QuakeScanError
 
@@ -192,8 +190,15 @@ def cmd_calibrate_lod(args) -> int:
     from .pointcloud import read_epoch
 
     first = read_epoch(args.first)
-    lod = calibrate(first, read_epoch(args.second, origin=first.origin), radius_m=args.radius,
-                    quantile=args.quantile, seed=args.seed, workers=args.threads)
+    second = read_epoch(args.second, origin=first.origin)
+    if args.footprints:  # real clouds: building points from footprints, as classify assigns them
+        from .footprints import assign_buildings, read_footprints
+
+        fp = read_footprints(args.footprints, args.id_field)
+        for e in (first, second):
+            e.building_id = assign_buildings(e.xyz[:, 0] + e.origin[0], e.xyz[:, 1] + e.origin[1], fp)
+    lod = calibrate(first, second, radius_m=args.radius, quantile=args.quantile, seed=args.seed,
+                    workers=args.threads)
     print(f"calibrate-lod: {lod.points:,} building points; at the {100 * args.quantile:g}th percentile "
           f"|Δheight| {lod.height_at_quantile_m:.3f} m, |Δcurvature| {lod.curvature_at_quantile:.3f} 1/m")
     print(f"levels of detection: --lod-height {lod.lod_height_m:.3f} --lod-curvature {lod.lod_curvature:.3f}")
@@ -321,6 +326,19 @@ def cmd_robustness(args) -> int:
     return 0
 
 
+def cmd_training_set(args) -> int:
+    """The transfer training set: cities, random acquisitions, descriptor tables (resumable)."""
+    import numpy as np
+
+    from .default_model import TRANSFER_SETTINGS
+    from .trainset import build, default_plan
+
+    table = build(args.output, default_plan(args.seed, args.size), TRANSFER_SETTINGS, workers=args.threads)
+    counts = dict(zip(*(v.tolist() for v in np.unique(table.y, return_counts=True))))
+    print(f"{args.output}: {len(table.y)} building rows, grades {counts}; manifest.json and tables/")
+    return 0
+
+
 def cmd_experiment(args) -> int:
     """The paper's four classifiers evaluated on a held-out region-specific DIM city."""
     from .experiment import ExperimentSettings, run_paper_experiment
@@ -435,6 +453,15 @@ def build_parser() -> argparse.ArgumentParser:
     rb.add_argument("--progress", action="store_true")
     rb.set_defaults(func=cmd_robustness)
 
+    ts = sub.add_parser("training-set", help="the transfer training set of the shipped model: many cities, random "
+                        "ULS/ALS/DIM acquisitions, cross-source pairs, descriptor tables (resumable)")
+    ts.add_argument("-o", "--output", required=True, help="folder for scenes, clouds, tables and manifest.json")
+    ts.add_argument("--size", choices=("full", "quick"), default="full",
+                    help="full: ~2,900 buildings (the shipped model's); quick: 2 small cities")
+    ts.add_argument("--seed", type=int, default=0)
+    ts.add_argument("--threads", type=int, default=-1)
+    ts.set_defaults(func=cmd_training_set)
+
     ex = sub.add_parser("experiment", help="the paper's experiment: four classifiers on a held-out DIM city")
     ex.add_argument("which", choices=("paper",), help="which experiment (paper)")
     ex.add_argument("-o", "--output", required=True, help="report folder (data are kept in OUTPUT/data)")
@@ -464,6 +491,9 @@ def build_parser() -> argparse.ArgumentParser:
     lc.add_argument("first", help="LAS/LAZ of undamaged buildings with building IDs")
     lc.add_argument("second", help="the same buildings acquired again with the same scanner or camera")
     lc.add_argument("-o", "--output", help="also write the levels as JSON")
+    lc.add_argument("--footprints", help="GeoJSON building footprints in the clouds' CRS (real clouds without a "
+                    "building_id dimension)")
+    lc.add_argument("--id-field", default=None, help="footprint property holding the building ID")
     lc.add_argument("--radius", type=float, default=1.5, help="feature radius in m (default 1.5)")
     lc.add_argument("--quantile", type=float, default=0.999, help="quantile of |change| (default 0.999)")
     lc.add_argument("--seed", type=int, default=0)

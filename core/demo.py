@@ -43,9 +43,12 @@ def generator_command(args: list[str]) -> list[str]:
 
 
 def generate(set_name: str, dataset: str, buildings: int | None, seed: int, out: Path,
-             grade_mix: dict | None = None) -> None:
-    """Run the add-on's scene generator; `grade_mix` (grade -> count) fixes a mixed city's grades."""
+             grade_mix: dict | None = None, source: Path | None = None) -> None:
+    """Run the add-on's scene generator; `grade_mix` (grade -> count) fixes a mixed city's grades;
+    `source`: the scene bundle whose buildings `set_name` "bundle" damages."""
     args = ["--set", set_name, "--dataset", dataset, "--seed", str(seed), "--out", str(out)]
+    if source is not None:
+        args += ["--source", str(source)]
     if grade_mix:
         args += ["--grade-mix", ",".join(f"{g}:{n}" for g, n in sorted(grade_mix.items()))]
     elif buildings is not None:

@@ -277,13 +277,14 @@ def describe_surfaces(pre_xyz: np.ndarray, pre_bid: np.ndarray, pre_ground: np.n
 
     order = np.argsort(pre_bid, kind="stable")
     sorted_bid = pre_bid[order]
+    ground_finder = _GroundFinder(pre_xyz, pre_ground, settings.ground_search_m)
     descriptors, members, core_of, qual = {}, {}, {}, {}
     for bid in bids:
         a, b = np.searchsorted(sorted_bid, [bid, bid + 1])
         idx = order[a:b]
         if len(idx) == 0:
             raise SurfaceError(f"building {bid} has no pre-event points in its region")
-        ground = _ground_height(pre_xyz, pre_ground, pre_xyz[idx], settings.ground_search_m)
+        ground = ground_finder.height(pre_xyz[idx])
         descriptors[bid] = _raster(pre_key[idx], pre_tops, post_tops, building_keys, ground, n3, ring_offsets,
                                    settings, c)
         if quality:
@@ -323,14 +324,30 @@ def describe_surfaces(pre_xyz: np.ndarray, pre_bid: np.ndarray, pre_ground: np.n
     return descriptors, cores
 
 
-def _ground_height(pre_xyz, pre_ground, pts, search_m):
-    lo, hi = pts[:, :2].min(axis=0) - search_m, pts[:, :2].max(axis=0) + search_m
-    near = np.all((pre_xyz[:, :2] >= lo) & (pre_xyz[:, :2] <= hi), axis=1)
-    if pre_ground is not None:
-        g = near & pre_ground
-        if g.sum() >= 3:
-            return float(np.percentile(pre_xyz[g, 2], 10))
-    return float(np.percentile(pre_xyz[near, 2], 2))
+class _GroundFinder:
+    """Ground height near a building: the 10th percentile of the ground points (ASPRS 2) within
+    `search_m` of its points, or the 2nd percentile of every point there when the cloud has no
+    ground class (or too few ground points nearby). Points sorted by x once per region."""
+
+    def __init__(self, xyz: np.ndarray, ground: np.ndarray | None, search_m: float):
+        self.search = search_m
+        self.sets = []
+        for mask in ((ground,) if ground is not None and ground.any() else ()) + (None,):
+            pts = xyz if mask is None else xyz[mask]
+            order = np.argsort(pts[:, 0], kind="stable")
+            self.sets.append((pts[order], mask is None))
+
+    def height(self, pts: np.ndarray) -> float:
+        lo, hi = pts[:, :2].min(axis=0) - self.search, pts[:, :2].max(axis=0) + self.search
+        for sorted_pts, is_all in self.sets:
+            a, b = np.searchsorted(sorted_pts[:, 0], [lo[0], hi[0]])
+            cand = sorted_pts[a:b]
+            cand = cand[(cand[:, 1] >= lo[1]) & (cand[:, 1] <= hi[1])]
+            if is_all:
+                return float(np.percentile(cand[:, 2], 2))
+            if len(cand) >= 3:
+                return float(np.percentile(cand[:, 2], 10))
+        raise AssertionError("unreachable: the last set holds every point")
 
 
 def _raster(keys_b, pre_tops, post_tops, building_keys, ground, n3, ring_offsets, s: SurfaceSettings, c):

@@ -1,0 +1,147 @@
+"""The model QuakeScan ships: the transfer training set, a classifier chosen by measurement,
+the data it can judge, and where it all came from.
+
+1. **Descriptors** (`TRANSFER_SETTINGS`): the density-invariant surface descriptors of
+   `core.surface` only. The paper's point-feature descriptors are left out of the shipped
+   model: several of them count points (densities, neighbours) and the rest are statistics
+   over a split whose gate depends on the sensor's noise; `bench/bench_transfer.py` measures
+   both with and without them on the same rows.
+2. **Training set** (`core.trainset.default_plan`): thousands of buildings, every
+   acquisition randomised, cross-source pairs.
+3. **Classifier** (`select_classifier`): random forest and gradient boosting, with and
+   without calibrated probabilities, compared by cross-validation that holds out whole
+   *cities* (a building's rows, and its neighbours', never on both sides); the best macro
+   F1 over the four grades wins (ties: the earlier, simpler candidate). It is fitted on
+   every row and asked about every assessable building (no "no change" rule: an undamaged
+   building with changed points is exactly what it learned).
+4. **What it can judge**: the sparsest density and the smallest post-event coverage among
+   its training rows (1st percentile) become the pipeline's `min_density_pts_m2` and
+   `min_coverage`: a building below them is "not assessable" with the reason, not guessed.
+5. **Provenance**: plan, counts, the comparison table, the choice and its scores, the
+   command and date go into the model file.
+"""
+from __future__ import annotations
+
+import datetime
+import math
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from .pipeline import PipelineSettings
+from .surface import SurfaceSettings
+
+TRANSFER_SETTINGS = PipelineSettings(surface=SurfaceSettings(), paper_descriptors=False)
+CANDIDATES = (
+    {"name": "rf (paper: 100 trees, depth 5)", "kind": "rf", "n_estimators": 100, "max_depth": 5},
+    {"name": "rf 300 deep", "kind": "rf", "n_estimators": 300, "max_depth": None, "min_samples_leaf": 2},
+    {"name": "hgb", "kind": "hgb", "max_depth": None},
+    {"name": "rf 300 deep + sigmoid", "kind": "rf", "n_estimators": 300, "max_depth": None, "min_samples_leaf": 2,
+     "calibration": "sigmoid"},
+    {"name": "hgb + sigmoid", "kind": "hgb", "max_depth": None, "calibration": "sigmoid"},
+)
+QUANTILE_OF_LIMITS = 0.01
+
+
+def data_limits(table) -> tuple[float, float]:
+    """(minimum density pts/m², minimum coverage) the model is made for: the 1st percentile
+    of its training rows' sparser-epoch density and post-event coverage, rounded down."""
+    dens = np.nanmin(table.density, axis=1)
+    dens = dens[np.isfinite(dens)]
+    d = float(np.quantile(dens, QUANTILE_OF_LIMITS)) if len(dens) else 0.0
+    cov = 1.0 - table.x[:, table.names.index("s_post_gap")] if "s_post_gap" in table.names else np.ones(1)
+    c = float(np.quantile(cov, QUANTILE_OF_LIMITS))
+    return math.floor(d * 10) / 10, math.floor(c * 100) / 100
+
+
+MIN_CITIES_TO_GROUP = 6
+
+
+def cv_groups(table) -> np.ndarray:
+    """Groups of the cross-validation: whole cities (a building and its neighbours, whose debris
+    and acquisitions it shares, never on both sides), or single buildings for a training set of
+    fewer than MIN_CITIES_TO_GROUP cities, where city folds would leave calibration folds
+    without a second city."""
+    if len(set(table.city.tolist())) >= MIN_CITIES_TO_GROUP:
+        return np.asarray(table.city)
+    return table.groups
+
+
+def select_classifier(table, candidates=CANDIDATES, *, seed: int = 0, n_splits: int = 5):
+    """Scores of every candidate under city-held-out cross-validation, and the winner's config."""
+    from .model_selection import compare_classifiers
+
+    groups = cv_groups(table)
+    scores = compare_classifiers(table.x, table.y, groups, table.names, list(candidates), seed=seed,
+                                 n_splits=min(n_splits, len(set(groups.tolist()))))
+    best = max(range(len(scores)), key=lambda i: (round(scores[i].macro_f1, 3), -i))
+    return scores, dict(candidates[best])
+
+
+def fit_default_model(table, plan, config: dict, scores, *, seed: int = 0, command: str = "",
+                      seconds_building: float | None = None):
+    """The chosen classifier fitted on every row, with its settings and provenance."""
+    from .model import DamageModel, fit_classifier
+    from .model_selection import comparison_table
+
+    fit_args = {k: v for k, v in config.items() if k not in ("name", "rule")}
+    t0 = time.perf_counter()
+    est = fit_classifier(table.x, table.y, seed=seed, groups=cv_groups(table) if fit_args.get("calibration") else None,
+                         **fit_args)
+    min_density, min_coverage = data_limits(table)
+    settings = PipelineSettings.from_json({**TRANSFER_SETTINGS.to_json(), "min_density_pts_m2": min_density,
+                                           "min_coverage": min_coverage})
+    chosen = next(s for s in scores if s.name == config["name"])
+    sensors = {}
+    for p in table.pair:
+        sensors[table.sensors[p]] = sensors.get(table.sensors[p], 0) + 1
+    provenance = {
+        "created": datetime.date.today().isoformat(),
+        "command": command,
+        "dataset": (f"transfer training set '{plan.name}' (seed {plan.seed}): {len(plan.cities)} cities, "
+                    f"{len(plan.pairs)} pairs, {len(table.y)} building rows; random acquisitions, "
+                    "cross-source pairs, mixed post-event cities (core.trainset)"),
+        "cities": [c.name for c in plan.cities],
+        "rows_per_sensor_pair": sensors,
+        "grades_train": {str(g): int(n) for g, n in zip(*np.unique(table.y, return_counts=True))},
+        "n_rows": int(len(table.y)), "n_train": int(len(table.y)), "n_test": 0,
+        "classifier_selection": {"criterion": "macro F1, cross-validation holding out whole cities"
+                                              if len(set(table.city.tolist())) >= MIN_CITIES_TO_GROUP
+                                              else "macro F1, cross-validation holding out buildings",
+                                 "chosen": config["name"], "table": comparison_table(scores),
+                                 "scores": [s.to_json() for s in scores]},
+        "test_overall_accuracy": round(float(chosen.accuracy), 4),
+        "test_note": "held-out scores: pooled out-of-fold predictions, cities held out",
+        "limits": {"min_density_pts_m2": min_density, "min_coverage": min_coverage,
+                   "rule": f"{QUANTILE_OF_LIMITS:.0%} quantile of the training rows"},
+        "seed": seed,
+        "seconds": {"fit": round(time.perf_counter() - t0, 1), "training_set": seconds_building},
+    }
+    return DamageModel(est, list(table.names), settings.radius_m, split=settings.to_json(), provenance=provenance,
+                       no_change_rule=False)
+
+
+def make_default_model(work: Path, output: Path, *, seed: int = 0, size: str = "full", workers: int = -1,
+                       say: Callable[[str], None] = print, command: str = ""):
+    """Build the training set under `work`, choose and fit the classifier, write `output`."""
+    from .model import save_model
+    from .trainset import build, default_plan
+
+    t0 = time.perf_counter()
+    plan = default_plan(seed, size)
+    table = build(Path(work) / "trainset", plan, TRANSFER_SETTINGS, workers=workers, say=say)
+    t_build = round(time.perf_counter() - t0, 1)
+    say(f"comparing {len(CANDIDATES)} classifiers (cross-validation holding out whole cities)")
+    scores, config = select_classifier(table, seed=seed)
+    from .model_selection import comparison_table
+
+    say(comparison_table(scores))
+    say(f"chosen: {config['name']}")
+    model = fit_default_model(table, plan, config, scores, seed=seed, command=command, seconds_building=t_build)
+    output = Path(output)
+    output.parent.mkdir(parents=True, exist_ok=True)
+    save_model(model, output)
+    say(f"model -> {output} (limits: {model.provenance['limits']}); {time.perf_counter() - t0:.0f} s in all")
+    return model, scores, table

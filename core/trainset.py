@@ -1,0 +1,302 @@
+"""A training set made for transfer (`quakescan training-set`): many cities, every acquisition
+randomised, cross-source pairs, undamaged buildings beside collapses.
+
+A classifier trained on one simulator's clean, dense, same-sensor pairs learns that
+simulator's habits; on a real pair (another sensor, another density, noise, strip errors)
+every building looks changed. This training set varies what real pairs vary:
+
+- **buildings**: generic European towns, L'Aquila-like historic centres and the real
+  Rotterdam LoD2 shapes (`../shared/data/rotterdam_subset.json`, damaged by the add-on's
+  generator through `--set bundle`), each city with its own seed;
+- **damage context**: mixed post-event cities (every grade side by side, EMS-98 1–2
+  included and trained as "no damage": undamaged and slightly damaged buildings next to
+  collapses, with a neighbour's debris on their walls), and the paper's design (every
+  building heavy / extreme / destroyed) for more damaged examples;
+- **acquisition**: every cloud drawn by `core.acquisition.random_acquisition` (ULS altitude,
+  pulse rate, range noise 1–3 cm, strip misalignment; ALS-like 4–30 pts/m²; DIM GSD,
+  matching noise, nadir-only flights), and the pre-/post-event sensors of a pair cycle
+  through same-source and cross-source combinations (an ALS archive before and a drone
+  after is what responders really have);
+- **labels**: the post-event scene's grade per building (grades 1–2 → 0).
+
+`build` generates the scenes (the add-on's generator, `core.demo.generate`), acquires the
+clouds (`core.acquisition.acquire`), describes every pair (`core.pipeline.describe_pair`)
+and keeps one descriptor table per pair. Every step is resumable: a scene with the same
+generator settings, a cloud whose sidecar records the same acquisition, seed and scene,
+and a table for the same settings and clouds are not made again. The same plan and seed
+give the same table.
+
+The Zurich city model in `../shared/data` is reserved for evaluation and never used here.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .errors import QuakeScanError
+
+FORMAT = "quakescan-training-set"
+VERSION = 1
+SOURCES = ("generic", "region", "rotterdam")
+# Same-source and cross-source sensor combinations, cycled through the pairs of a plan
+# (pre-event sensor, post-event sensor).
+SENSOR_PAIRS = (("uls", "uls"), ("dim", "dim"), ("als", "uls"), ("als", "dim"), ("uls", "dim"), ("als", "als"),
+                ("dim", "uls"))
+ROTTERDAM = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "rotterdam_subset.json"
+
+
+class TrainingSetError(QuakeScanError):
+    """A training set cannot be planned or built as asked."""
+
+
+@dataclass(frozen=True)
+class CitySpec:
+    """One generated city: its pre-event scene and one or more post-event scenes."""
+
+    name: str
+    source: str  # generic | region | rotterdam
+    dataset: str  # mixed | paper
+    seed: int
+    buildings: int | None = None  # None with rotterdam: every building of the model
+    grade_mix: dict | None = None  # mixed: exact counts per grade
+
+    @property
+    def post_scenes(self) -> tuple:
+        return ("post",) if self.dataset == "mixed" else ("post_heavy", "post_extreme", "post_destruction")
+
+
+@dataclass(frozen=True)
+class PairSpec:
+    """One training pair: a post-event scene of a city (or its pre-event scene again, a
+    no-change pair) acquired with two acquisitions."""
+
+    city: str
+    post_scene: str
+    pre: dict  # Acquisition.to_json()
+    post: dict
+    pre_seed: int
+    post_seed: int
+
+    @property
+    def name(self) -> str:
+        return f"{self.city}.{self.post_scene}.{self.pre['kind']}-{self.post['kind']}.{self.pre_seed}-{self.post_seed}"
+
+
+@dataclass
+class TrainingPlan:
+    cities: list = field(default_factory=list)
+    pairs: list = field(default_factory=list)
+    seed: int = 0
+    name: str = "custom"
+
+    def to_json(self) -> dict:
+        return {"name": self.name, "seed": self.seed, "cities": [asdict(c) for c in self.cities],
+                "pairs": [asdict(p) for p in self.pairs]}
+
+
+def _mix(n: int) -> dict:
+    """Grades of a mixed training city of n buildings: about a quarter per trained class,
+    a tenth of the 'no damage' quarter at EMS-98 1 and 2 (invisible damage, trained as 0)."""
+    slight = max(1, round(0.05 * n))
+    rest = n - 2 * slight
+    base, extra = divmod(rest, 4)
+    counts = [base + (1 if k < extra else 0) for k in range(4)]
+    return {0: counts[0], 1: slight, 2: slight, 3: counts[1], 4: counts[2], 5: counts[3]}
+
+
+def default_plan(seed: int = 0, size: str = "full") -> TrainingPlan:
+    """The training set of the shipped model (`full`, ~2,900 building rows) or a small one for
+    tests and smoke runs (`quick`, 2 small cities).
+
+    full: 6 generic and 6 region-specific mixed cities of 64 buildings, 2 mixed cities of the
+    16 Rotterdam buildings, one generic and one region-specific city in the paper's design
+    (64 buildings, heavy / extreme / destruction) with a no-change pair each; three pairs per
+    mixed city, one per post-event scene of a paper-design city, sensors cycling through
+    SENSOR_PAIRS, every acquisition drawn at random."""
+    from .acquisition import random_acquisition
+
+    if size not in ("full", "quick"):
+        raise TrainingSetError(f"plan size must be 'full' or 'quick', got {size!r}")
+    rng = np.random.default_rng([seed, 7001])
+    cities = []
+    if size == "full":
+        for k in range(6):
+            cities.append(CitySpec(f"generic_m{k}", "generic", "mixed", seed * 1000 + 100 + k, 64, _mix(64)))
+            cities.append(CitySpec(f"region_m{k}", "region", "mixed", seed * 1000 + 200 + k, 64, _mix(64)))
+        for k in range(2):
+            cities.append(CitySpec(f"rotterdam_m{k}", "rotterdam", "mixed", seed * 1000 + 300 + k, None, _mix(16)))
+        cities.append(CitySpec("generic_p0", "generic", "paper", seed * 1000 + 400, 64))
+        cities.append(CitySpec("region_p0", "region", "paper", seed * 1000 + 401, 64))
+        per_mixed = 3
+    else:
+        cities.append(CitySpec("generic_m0", "generic", "mixed", seed * 1000 + 100, 12, _mix(12)))
+        cities.append(CitySpec("region_m0", "region", "mixed", seed * 1000 + 200, 12, _mix(12)))
+        per_mixed = 2
+    pairs, turn = [], 0
+
+    def add(city, post_scene):
+        nonlocal turn
+        a, b = SENSOR_PAIRS[turn % len(SENSOR_PAIRS)]
+        turn += 1
+        pre, post = random_acquisition(a, rng), random_acquisition(b, rng)
+        s1, s2 = (int(v) for v in rng.integers(1, 2 ** 31 - 1, 2))
+        pairs.append(PairSpec(city.name, post_scene, pre.to_json(), post.to_json(), s1, s2))
+
+    for city in cities:
+        if city.dataset == "mixed":
+            for _ in range(per_mixed):
+                add(city, "post")
+        else:
+            for scene in city.post_scenes:
+                add(city, scene)
+            add(city, "pre")  # the same city acquired twice: every building grade 0
+    return TrainingPlan(cities, pairs, seed, f"default-{size}")
+
+
+@dataclass
+class TransferTable:
+    """Descriptor rows of a training set: one per assessable building of every pair."""
+
+    x: np.ndarray
+    y: np.ndarray  # target grade 0/3/4/5
+    names: list
+    city: np.ndarray  # (n,) index into `cities`
+    pair: np.ndarray  # (n,) index into `pairs`
+    building_id: np.ndarray
+    density: np.ndarray  # (n, 2) pre/post planimetric density of the building (pts/m²)
+    cities: list
+    pairs: list  # PairSpec.name per index
+    sensors: list  # "pre-post" kinds per pair index
+
+    @property
+    def groups(self) -> np.ndarray:
+        """One group per building of a city: its rows of several pairs stay on one side of a split."""
+        return self.city.astype(np.int64) * 1_000_000 + self.building_id.astype(np.int64)
+
+
+def _settings_key(settings) -> str:
+    return hashlib.sha256(json.dumps(settings.to_json(), sort_keys=True).encode()).hexdigest()[:12]
+
+
+def _write_json_atomic(path: Path, data: dict) -> None:
+    tmp = path.with_name(path.name + ".part")
+    tmp.write_text(json.dumps(data, indent=1) + "\n")
+    os.replace(tmp, path)
+
+
+def generate_city(city: CitySpec, folder: Path) -> None:
+    """The city's scene bundles under `folder` (skipped by the generator when up to date)."""
+    from .demo import generate
+
+    if city.source == "rotterdam":
+        source = folder.parent / f"{city.name}_source"
+        if not (source / "scene.json").is_file():
+            from .cityjson import import_cityjson
+            from .scene import write_scene
+
+            if not ROTTERDAM.is_file():
+                raise TrainingSetError(f"{ROTTERDAM}: the Rotterdam CityJSON model is missing (the shared "
+                                       "data folder sits beside the repository)")
+            tmp = folder.parent / f".{city.name}_source.part"
+            write_scene(import_cityjson(ROTTERDAM), tmp)
+            os.replace(tmp, source)
+        generate("bundle", city.dataset, city.buildings, city.seed, folder, grade_mix=city.grade_mix, source=source)
+    else:
+        generate(city.source, city.dataset, None if city.grade_mix else city.buildings, city.seed, folder,
+                 grade_mix=city.grade_mix)
+
+
+def _grades(scene_dir: Path) -> dict:
+    doc = json.loads((scene_dir / "scene.json").read_text())
+    return {int(b["id"]): int(b["grade"]) for b in doc["buildings"]}
+
+
+def build(out_dir, plan: TrainingPlan, settings, *, workers: int = -1,
+          say: Callable[[str], None] = print) -> TransferTable:
+    """Generate, acquire and describe everything the plan asks for under out_dir; returns the
+    table of all pairs. Resumable and seeded (see the module docstring)."""
+    from .acquisition import Acquisition, acquire
+    from .classify import load_pair
+    from .evaluate import to_target_grade
+    from .pipeline import describe_pair, descriptor_matrix
+
+    out = Path(out_dir)
+    for sub in ("scenes", "clouds", "tables"):
+        (out / sub).mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    cities = {c.name: c for c in plan.cities}
+    unknown = sorted({p.city for p in plan.pairs} - set(cities))
+    if unknown:
+        raise TrainingSetError(f"pairs name cities the plan does not have: {unknown}")
+    say(f"training set 1/3: {len(plan.cities)} cities -> {out / 'scenes'}")
+    for k, city in enumerate(plan.cities, 1):
+        t = time.perf_counter()
+        generate_city(city, out / "scenes" / city.name)
+        say(f"  [{k}/{len(plan.cities)}] {city.name} ({city.source}, {city.dataset}) {time.perf_counter() - t:.0f} s")
+    key = _settings_key(settings)
+    names = settings.descriptor_names()
+    say(f"training set 2/3 and 3/3: acquiring and describing {len(plan.pairs)} pairs")
+    parts, manifest_pairs = [], []
+    for k, pair in enumerate(plan.pairs, 1):
+        scenes = out / "scenes" / pair.city
+        table_path = out / "tables" / f"{pair.name}.{key}.npz"
+        clouds = out / "clouds" / pair.city
+        clouds.mkdir(exist_ok=True)
+        t = time.perf_counter()
+        paths = []
+        for role, scene, acq, seed in (("pre", "pre", pair.pre, pair.pre_seed),
+                                       ("post", pair.post_scene, pair.post, pair.post_seed)):
+            a = Acquisition.from_json(acq, f"{pair.name} {role}")
+            path = clouds / f"{scene}.{a.kind}.{seed}.las"
+            if not table_path.is_file():
+                acquire(scenes / scene, a, path, seed=seed)
+            paths.append(path)
+        t_acq = time.perf_counter() - t
+        if table_path.is_file():
+            d = np.load(table_path)
+            part = {k2: d[k2] for k2 in d.files}
+        else:
+            data = load_pair(*paths)
+            truth = _grades(scenes / pair.post_scene)
+            rows = [r for r in describe_pair(data.pre, data.post, settings, workers=workers)
+                    if r.assessable and r.building_id in truth]
+            part = {"x": descriptor_matrix(rows, names),
+                    "y": to_target_grade(np.array([truth[r.building_id] for r in rows], np.int64)),
+                    "building_id": np.array([r.building_id for r in rows], np.int64),
+                    "density": np.array([[r.quality.get("density_pre", np.nan), r.quality.get("density_post", np.nan)]
+                                         for r in rows], dtype=np.float64).reshape(len(rows), 2),
+                    "seconds": np.array([t_acq, time.perf_counter() - t - t_acq])}
+            tmp = table_path.with_name(table_path.name + ".part.npz")
+            np.savez(tmp, **part)
+            os.replace(tmp, table_path)
+        parts.append(part)
+        manifest_pairs.append({"name": pair.name, "rows": int(len(part["y"])),
+                               "acquire_s": round(float(part["seconds"][0]), 1),
+                               "describe_s": round(float(part["seconds"][1]), 1)})
+        say(f"  [{k}/{len(plan.pairs)}] {pair.name}: {len(part['y'])} buildings "
+            f"(acquire {part['seconds'][0]:.0f} s, describe {part['seconds'][1]:.0f} s)")
+    city_index = {c.name: i for i, c in enumerate(plan.cities)}
+    table = TransferTable(
+        x=np.vstack([p["x"] for p in parts]) if parts else np.zeros((0, len(names))),
+        y=np.concatenate([p["y"] for p in parts]) if parts else np.zeros(0, np.int64),
+        names=list(names),
+        city=np.concatenate([np.full(len(p["y"]), city_index[pr.city]) for p, pr in zip(parts, plan.pairs)]),
+        pair=np.concatenate([np.full(len(p["y"]), i) for i, p in enumerate(parts)]),
+        building_id=np.concatenate([p["building_id"] for p in parts]),
+        density=np.vstack([p["density"] for p in parts]),
+        cities=[c.name for c in plan.cities], pairs=[p.name for p in plan.pairs],
+        sensors=[f"{p.pre['kind']}-{p.post['kind']}" for p in plan.pairs])
+    _write_json_atomic(out / "manifest.json", {
+        "format": FORMAT, "version": VERSION, "plan": plan.to_json(), "settings": settings.to_json(),
+        "rows": int(len(table.y)), "grades": {str(g): int(n) for g, n in zip(*np.unique(table.y, return_counts=True))},
+        "pairs": manifest_pairs, "seconds": round(time.perf_counter() - t0, 1)})
+    say(f"training set: {len(table.y)} building rows from {len(plan.pairs)} pairs in "
+        f"{time.perf_counter() - t0:.0f} s")
+    return table

@@ -1,0 +1,78 @@
+"""The transfer training set (core/trainset.py) and the shipped model's recipe (core/default_model.py)."""
+import json
+
+import numpy as np
+import pytest
+
+from core.default_model import TRANSFER_SETTINGS, data_limits, fit_default_model, select_classifier
+from core.trainset import SENSOR_PAIRS, TrainingPlan, TrainingSetError, build, default_plan
+
+
+def test_the_full_plan_varies_buildings_sensors_and_damage_context():
+    plan = default_plan(0, "full")
+    planned = 0
+    sizes = {c.name: (c.buildings or 16) for c in plan.cities}
+    for p in plan.pairs:
+        planned += sizes[p.city]
+    assert planned >= 2500  # "thousands of buildings"
+    combos = {(p.pre["kind"], p.post["kind"]) for p in plan.pairs}
+    assert combos == set(SENSOR_PAIRS)  # every same-source and cross-source combination
+    assert {c.source for c in plan.cities} == {"generic", "region", "rotterdam"}
+    assert any(p.post_scene == "pre" for p in plan.pairs)  # no-change pairs of the paper design
+    mixed = [c for c in plan.cities if c.dataset == "mixed"]
+    assert all(c.grade_mix[0] > 0 and c.grade_mix[5] > 0 for c in mixed)  # undamaged beside collapses
+    # every acquisition drawn at random: no two ULS acquisitions alike
+    uls = [json.dumps(a, sort_keys=True) for p in plan.pairs for a in (p.pre, p.post) if a["kind"] == "uls"]
+    assert len(set(uls)) == len(uls)
+    text = json.dumps(plan.to_json()).lower()
+    assert "zurich" not in text  # reserved for evaluation
+    assert json.dumps(default_plan(0, "full").to_json()) == json.dumps(plan.to_json())
+    assert json.dumps(default_plan(1, "full").to_json()) != json.dumps(plan.to_json())
+
+
+def test_a_plan_naming_a_city_it_lacks_is_refused(tmp_path):
+    plan = default_plan(0, "quick")
+    bad = TrainingPlan(plan.cities[:1], plan.pairs, 0, "broken")
+    with pytest.raises(TrainingSetError, match="region_m0"):
+        build(tmp_path, bad, TRANSFER_SETTINGS, say=lambda s: None)
+    with pytest.raises(TrainingSetError, match="full' or 'quick"):
+        default_plan(0, "huge")
+
+
+@pytest.mark.slow
+def test_quick_training_set_builds_resumes_and_trains_a_model_that_classifies_cross_source_pairs(tmp_path):
+    from core.classify import classify
+    from core.model import load_model, save_model
+
+    plan = default_plan(0, "quick")
+    said = []
+    table = build(tmp_path / "ts", plan, TRANSFER_SETTINGS, workers=2, say=said.append)
+    assert table.x.shape == (len(table.y), len(TRANSFER_SETTINGS.descriptor_names()))
+    assert len(table.y) >= 40 and set(np.unique(table.y)) <= {0, 3, 4, 5}
+    assert np.all(np.isfinite(table.x))
+    manifest = json.loads((tmp_path / "ts" / "manifest.json").read_text())
+    assert manifest["rows"] == len(table.y) and manifest["plan"]["name"] == "default-quick"
+    clouds = sorted((tmp_path / "ts" / "clouds").rglob("*.las"))
+    stamps = {p: p.stat().st_mtime_ns for p in clouds}
+    again = build(tmp_path / "ts", plan, TRANSFER_SETTINGS, workers=2, say=lambda s: None)
+    np.testing.assert_array_equal(again.x, table.x)  # resumed: same rows, nothing acquired again
+    assert {p: p.stat().st_mtime_ns for p in clouds} == stamps
+
+    scores, config = select_classifier(table, seed=0, n_splits=2)
+    model = fit_default_model(table, plan, config, scores, command="test")
+    dens, cov = data_limits(table)
+    assert model.split["min_density_pts_m2"] == dens and 0 < dens
+    assert 0 <= cov <= 1 and model.no_change_rule is False
+    path = tmp_path / "model.skops"
+    save_model(model, path)
+    loaded = load_model(path)
+    assert loaded.provenance["classifier_selection"]["chosen"] == config["name"]
+
+    # a cross-source pair (ALS-like archive before, DIM after) end to end through classify
+    pair = next(p for p in plan.pairs if p.pre["kind"] == "als" and p.post["kind"] == "dim")
+    pre = next((tmp_path / "ts" / "clouds" / pair.city).glob(f"pre.als.{pair.pre_seed}.las"))
+    post = next((tmp_path / "ts" / "clouds" / pair.city).glob(f"post.dim.{pair.post_seed}.las"))
+    summary = classify(pre, post, tmp_path / "out", model_path=path, write_las=False)
+    assert summary["buildings"] == 12
+    header = (tmp_path / "out" / "buildings.csv").read_text().splitlines()[0].split(",")
+    assert "confidence" in header and "decided_by" in header
