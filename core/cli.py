@@ -10,6 +10,8 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
+
 from . import __version__
 from .errors import QuakeScanError
 
@@ -328,8 +330,6 @@ def cmd_robustness(args) -> int:
 
 def cmd_training_set(args) -> int:
     """The transfer training set: cities, random acquisitions, descriptor tables (resumable)."""
-    import numpy as np
-
     from .default_model import TRANSFER_SETTINGS
     from .trainset import build, default_plan
 
