@@ -181,11 +181,12 @@ def main(argv=None) -> int:
             tag = name.replace(" ", "_").replace("+", "").replace("-", "")
             summary, secs = run_classify(pre, post, work / "results" / label / tag, mp)
             ev = evaluate_files(work / "results" / label / tag / "buildings.csv", city / "post")
+            f1s = ", ".join(f"{g}: {100 * m['f1']:.0f}" for g, m in ev.per_grade.items())
             row[label] = {"overall_accuracy": ev.overall_accuracy, "n": ev.n, "not_assessable": ev.not_assessable,
                           "f1": {str(g): m["f1"] for g, m in ev.per_grade.items()}, "damaged_f1": ev.damaged["f1"],
                           "seconds": round(secs, 1), "describe_s": summary["seconds"]["describe"]}
             print(f"  {name} [{label}]: OA {100 * ev.overall_accuracy:.1f} % on {ev.n} "
-                  f"(F1 {', '.join(f'{g}: {100 * m['f1']:.0f}' for g, m in ev.per_grade.items())}; "
+                  f"(F1 {f1s}; "
                   f"damaged {100 * ev.damaged['f1']:.1f}), {secs:.0f} s", flush=True)
         results["simulated"].append(row)
 

@@ -264,11 +264,32 @@ def run_paper_experiment(out_dir, settings: ExperimentSettings | None = None, *,
     for lay in ((("paper",), ("paper", "mixed")) if mixed else (("paper",),)):
         for rows in ("all, unweighted", "changed, balanced"):
             ablation[("+".join(lay), rows)] = {name: evaluate(parts, lay, rows) for name, parts in CLASSIFIERS.items()}
+    shipped = shipped_default(pair, truth, workers)
     step("train + classify")
 
     say(f"experiment 5/5: report -> {out}")
-    write_report(out, results, s, lod, timings, time.perf_counter() - t0, ablation)
+    write_report(out, results, s, lod, timings, time.perf_counter() - t0, ablation, shipped)
     return results
+
+
+def shipped_default(pair, truth: dict, workers) -> Evaluation | None:
+    """The shipped default model (trained on the transfer training set, not on this experiment's
+    data) applied as it is to the test pair: what a user gets without training anything."""
+    from .classify import default_model_path, model_settings, predict_rows
+    from .model import ModelError, load_model
+    from .pipeline import describe_pair
+
+    try:
+        path = default_model_path()
+        model = load_model(path)
+    except ModelError:
+        return None
+    rows = describe_pair(pair.pre, pair.post, model_settings(model, str(path)), workers=workers)
+    pred = [r for r in predict_rows(rows, model) if r.building_id in truth]
+    assessed = [r for r in pred if r.assessable]
+    ev = evaluate_grades(np.array([truth[r.building_id] for r in assessed]), np.array([r.grade for r in assessed]))
+    ev.not_assessable = sum(not r.assessable for r in pred)
+    return ev
 
 
 def _cell(m: dict) -> tuple:
@@ -317,8 +338,19 @@ def ablation_table(ablation: dict) -> str:
     return "\n".join(lines)
 
 
+def shipped_text(ev: Evaluation | None) -> str:
+    if ev is None:
+        return "The shipped default model was not found; no comparison with it."
+    f1 = ", ".join(f"{name} {100 * ev.per_grade[g]['f1']:.1f}" for g, name in
+                   ((0, "no damage"), (3, "heavy"), (4, "extreme"), (5, "destruction")))
+    return (f"The shipped default model (`core/data/default_model.skops`: the transfer training set of "
+            f"`core.trainset`, nothing of this experiment's data), applied as it is to the same test pair: "
+            f"overall accuracy {100 * ev.overall_accuracy:.1f} % on {ev.n} buildings ({ev.not_assessable} not "
+            f"assessable); F1 {f1}; damaged vs undamaged F1 {100 * ev.damaged['f1']:.1f} %.")
+
+
 def write_report(out: Path, results: dict, s: ExperimentSettings, lod, timings: dict, total_s: float,
-                 ablation: dict | None = None) -> None:
+                 ablation: dict | None = None, shipped: Evaluation | None = None) -> None:
     out.mkdir(parents=True, exist_ok=True)
     for name, ev in results.items():
         slug = name.lower().replace(" + ", "_plus_").replace(" ", "_")
@@ -331,7 +363,8 @@ def write_report(out: Path, results: dict, s: ExperimentSettings, lod, timings: 
            "results": {name: ev.to_json() for name, ev in results.items()},
            "ablation": [{"training": lay, "forest_rows": rows, "results": {n: ev.to_json() for n, ev in res.items()}}
                         for (lay, rows), res in (ablation or {}).items()],
-           "paper": {name: {str(k): v for k, v in t.items()} for name, t in PAPER_TABLE.items()}}
+           "paper": {name: {str(k): v for k, v in t.items()} for name, t in PAPER_TABLE.items()},
+           "shipped_default": None if shipped is None else shipped.to_json()}
     _atomic_text(out / "results.json", json.dumps(doc, indent=1))
     n = next(iter(results.values())).n if results else 0
     measured = s.lod_height_m is None or s.lod_curvature is None
@@ -360,6 +393,8 @@ Each cell: ours (the paper's), in %.
 
 Overall accuracy over all four classes at once: {", ".join(f"{k} {100 * v.overall_accuracy:.1f} %"
                                                         for k, v in results.items())}.
+
+{shipped_text(shipped)}
 
 What the measures against misreading undamaged buildings buy (same descriptor tables, same test rows;
 overall accuracy, in brackets undamaged buildings recognised of those assessed). "all, unweighted" is the

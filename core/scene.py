@@ -75,6 +75,26 @@ class Scene:
         return np.array([used.min(axis=0), used.max(axis=0)])
 
 
+def crop_to_buildings(scene: Scene, building_ids, margin_m: float = 20.0) -> Scene:
+    """The scene with only the given buildings and the terrain (and other non-building faces)
+    within `margin_m` of their x/y extent: a city model's outlier need not make a survey fly
+    over kilometres of empty terrain."""
+    keep_ids = set(int(b) for b in building_ids)
+    unknown = sorted(keep_ids - set(scene.building_ids.tolist()))
+    if unknown:
+        raise SceneError(f"crop: buildings {unknown} are not in the scene")
+    tri = scene.vertices[scene.faces]  # (m, 3, 3)
+    is_kept = np.isin(scene.face_building, list(keep_ids))
+    lo = tri[is_kept][:, :, :2].reshape(-1, 2).min(axis=0) - margin_m
+    hi = tri[is_kept][:, :, :2].reshape(-1, 2).max(axis=0) + margin_m
+    near = np.all((tri[:, :, :2] >= lo) & (tri[:, :, :2] <= hi), axis=(1, 2))
+    faces_kept = is_kept | ((scene.face_building == 0) & near)
+    used, faces = np.unique(scene.faces[faces_kept], return_inverse=True)
+    return Scene(scene.vertices[used], faces.reshape(-1, 3).astype(np.int64), scene.face_building[faces_kept],
+                 scene.face_surface[faces_kept], [b for b in scene.buildings if b.id in keep_ids],
+                 scene.origin.copy(), scene.crs, scene.epoch, scene.units)
+
+
 def _manifest_error(path, msg):
     return SceneError(f"{path}: {msg}")
 

@@ -11,7 +11,7 @@ from core.trainset import SENSOR_PAIRS, TrainingPlan, TrainingSetError, build, d
 def test_the_full_plan_varies_buildings_sensors_and_damage_context():
     plan = default_plan(0, "full")
     planned = 0
-    sizes = {c.name: (c.buildings or 16) for c in plan.cities}
+    sizes = {c.name: (c.buildings or 15) for c in plan.cities}
     for p in plan.pairs:
         planned += sizes[p.city]
     assert planned >= 2500  # "thousands of buildings"
@@ -76,3 +76,17 @@ def test_quick_training_set_builds_resumes_and_trains_a_model_that_classifies_cr
     assert summary["buildings"] == 12
     header = (tmp_path / "out" / "buildings.csv").read_text().splitlines()[0].split(",")
     assert "confidence" in header and "decided_by" in header
+
+
+def test_densest_cluster_drops_the_outlier_and_the_empty_terrain_between():
+    from core.cityjson import import_cityjson
+    from core.trainset import ROTTERDAM, densest_cluster
+
+    if not ROTTERDAM.is_file():
+        pytest.skip(f"{ROTTERDAM} not available")
+    scene = import_cityjson(ROTTERDAM)
+    cropped = densest_cluster(scene)
+    assert len(scene.buildings) == 16 and len(cropped.buildings) == 15
+    span = cropped.bounds()[1, :2] - cropped.bounds()[0, :2]
+    assert np.all(span < 150) and np.all(scene.bounds()[1, :2] - scene.bounds()[0, :2] > 400)
+    assert set(np.unique(cropped.face_building)) == set(cropped.building_ids.tolist()) | {0}
