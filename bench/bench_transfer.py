@@ -266,7 +266,9 @@ GROUPS = {
     "post-event gaps (s_post_gap)": lambda n: n == "s_post_gap",
     "M3C2 shares (m_changed, m_lost, m_roof/wall_changed)": lambda n: n in ("m_changed", "m_lost", "m_roof_changed",
                                                                              "m_wall_changed"),
-    "coherent change (m_coherent)": lambda n: n == "m_coherent",
+    "upper/lower storeys (m_upper_changed, m_lower_changed)": lambda n: n in ("m_upper_changed", "m_lower_changed"),
+    "direction (m_inward, m_outward)": lambda n: n in ("m_inward", "m_outward"),
+    "coherence (m_coherent, m_largest_patch)": lambda n: n in ("m_coherent", "m_largest_patch"),
     "M3C2 distances and LoD (m_distance_*, m_lod_median)": lambda n: n.startswith(("m_distance", "m_lod")),
 }
 
@@ -282,7 +284,7 @@ def _describe_rows(pre, post, settings, footprints=None):
 def ablation(work: Path, model, trainset_dir: Path, city: Path, pairs: dict, real: list) -> dict:
     """Refit the shipped classifier without each descriptor group (and the other candidates)
     on the training set; score all on the same test rows."""
-    from core.default_model import CANDIDATES, TRANSFER_SETTINGS, cv_groups
+    from core.default_model import CANDIDATES, TABLE_SETTINGS, cv_groups
     from core.evaluate import evaluate_grades, read_truth
     from core.model import fit_classifier
     from core.pipeline import descriptor_matrix
@@ -290,17 +292,17 @@ def ablation(work: Path, model, trainset_dir: Path, city: Path, pairs: dict, rea
 
     print("ablation: training set and test descriptor tables", flush=True)
     t0 = time.perf_counter()
-    tab = build(trainset_dir, default_plan(model.provenance.get("seed", 0) or 0, "full"), TRANSFER_SETTINGS,
+    tab = build(trainset_dir, default_plan(model.provenance.get("seed", 0) or 0, "full"), TABLE_SETTINGS,
                 say=lambda s: None)
     names = tab.names
     truth = read_truth(city / "post")
     tests = {}
     for name, (pre, post) in pairs.items():
-        rows = [r for r in _describe_rows(pre, post, TRANSFER_SETTINGS) if r.building_id in truth]
+        rows = [r for r in _describe_rows(pre, post, TABLE_SETTINGS) if r.building_id in truth]
         tests[name] = (descriptor_matrix(rows, names), np.array([truth[r.building_id] for r in rows]))
     fp = SHARED / "ahn3_footprints_rd.geojson"
     for name, tag, pre, post in real:
-        rows = _describe_rows(pre, post, TRANSFER_SETTINGS, fp)
+        rows = _describe_rows(pre, post, TABLE_SETTINGS, fp)
         tests[name] = (descriptor_matrix(rows, names), None)
     chosen = model.provenance.get("classifier_selection", {}).get("chosen")
     config = next((c for c in CANDIDATES if c["name"] == chosen), CANDIDATES[0])
@@ -321,15 +323,17 @@ def ablation(work: Path, model, trainset_dir: Path, city: Path, pairs: dict, rea
                 out[name] = {"oa": ev.overall_accuracy, "f1_3": ev.per_grade[3]["f1"], "damaged_f1": ev.damaged["f1"]}
         return out
 
-    every = list(range(len(names)))
-    runs = {f"shipped ({config['name']}, all {len(names)} descriptors)": fit_score(config, every)}
+    used = [n for n in model.feature_names if n in names]
+    base = [names.index(n) for n in used]
+    runs = {f"shipped ({config['name']}, its {len(base)} descriptors)": fit_score(config, base)}
     for group, test in GROUPS.items():
-        cols = [i for i, n in enumerate(names) if not test(n)]
-        if len(cols) < len(names):
-            runs[f"without {group}"] = fit_score(config, cols)
+        if any(test(n) for n in used):
+            runs[f"without {group}"] = fit_score(config, [i for i in base if not test(names[i])])
+        else:
+            runs[f"with {group}"] = fit_score(config, base + [i for i, n in enumerate(names) if test(n)])
     for cand in CANDIDATES:
         if cand["name"] != config["name"]:
-            runs[f"classifier: {cand['name']}"] = fit_score(cand, every)
+            runs[f"classifier: {cand['name']}"] = fit_score(cand, base)
     sim = list(pairs)
     real_names = [r[0] for r in real]
     head = ["variant", "fit s"] + [f"{n} OA / F1 3" for n in sim] + [f"{n.split(':')[0]}{' halves' if 'halves' in n else ' thin'} dmg %"

@@ -330,10 +330,10 @@ def cmd_robustness(args) -> int:
 
 def cmd_training_set(args) -> int:
     """The transfer training set: cities, random acquisitions, descriptor tables (resumable)."""
-    from .default_model import TRANSFER_SETTINGS
+    from .default_model import TABLE_SETTINGS
     from .trainset import build, default_plan
 
-    table = build(args.output, default_plan(args.seed, args.size), TRANSFER_SETTINGS, workers=args.threads)
+    table = build(args.output, default_plan(args.seed, args.size), TABLE_SETTINGS, workers=args.threads)
     counts = dict(zip(*(v.tolist() for v in np.unique(table.y, return_counts=True))))
     print(f"{args.output}: {len(table.y)} building rows, grades {counts}; manifest.json and tables/")
     return 0

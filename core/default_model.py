@@ -2,7 +2,8 @@
 the data it can judge, and where it all came from.
 
 1. **Descriptors** (`TRANSFER_SETTINGS`): the density-invariant surface descriptors of
-   `core.surface` only. The paper's point-feature descriptors are left out of the shipped
+   `core.surface` only, without the distances and LoD of the significant core points
+   (`MODEL_DESCRIPTORS`). The paper's point-feature descriptors are left out of the shipped
    model: several of them count points (densities, neighbours) and the rest are statistics
    over a split whose gate depends on the sensor's noise; `bench/bench_transfer.py` measures
    both with and without them on the same rows.
@@ -31,9 +32,17 @@ from pathlib import Path
 import numpy as np
 
 from .pipeline import PipelineSettings
-from .surface import SurfaceSettings
+from .surface import SURFACE_DESCRIPTORS, SurfaceSettings
 
-TRANSFER_SETTINGS = PipelineSettings(surface=SurfaceSettings(), paper_descriptors=False)
+# The training set's tables hold every surface descriptor (so that an ablation can put any of
+# them back); the model uses those whose meaning does not depend on the sensor's noise: the
+# signed distances and the level of detection of the significant core points are left out
+# (on an unchanged real roof the few "significant" core points are noise, and their
+# distances and LoD describe the sensor, not the building; bench_transfer measures them).
+TABLE_SETTINGS = PipelineSettings(surface=SurfaceSettings(), paper_descriptors=False)
+MODEL_DESCRIPTORS = tuple(n for n in SURFACE_DESCRIPTORS if not n.startswith(("m_distance", "m_lod")))
+TRANSFER_SETTINGS = PipelineSettings(surface=SurfaceSettings(), paper_descriptors=False,
+                                     surface_descriptors=MODEL_DESCRIPTORS)
 CANDIDATES = (
     {"name": "rf (paper: 100 trees, depth 5)", "kind": "rf", "n_estimators": 100, "max_depth": 5},
     {"name": "rf 300 deep", "kind": "rf", "n_estimators": 300, "max_depth": None, "min_samples_leaf": 2},
@@ -67,6 +76,17 @@ def cv_groups(table) -> np.ndarray:
     if len(set(table.city.tolist())) >= MIN_CITIES_TO_GROUP:
         return np.asarray(table.city)
     return table.groups
+
+
+def model_columns(table, names=MODEL_DESCRIPTORS):
+    """The table restricted to the descriptor columns `names` (a copy with x and names replaced)."""
+    import dataclasses
+
+    missing = [n for n in names if n not in table.names]
+    if missing:
+        raise ValueError(f"the training table lacks descriptors {missing}")
+    cols = [table.names.index(n) for n in names]
+    return dataclasses.replace(table, x=table.x[:, cols], names=list(names))
 
 
 def select_classifier(table, candidates=CANDIDATES, *, seed: int = 0, n_splits: int = 5):
@@ -131,7 +151,7 @@ def make_default_model(work: Path, output: Path, *, seed: int = 0, size: str = "
 
     t0 = time.perf_counter()
     plan = default_plan(seed, size)
-    table = build(Path(work) / "trainset", plan, TRANSFER_SETTINGS, workers=workers, say=say)
+    table = model_columns(build(Path(work) / "trainset", plan, TABLE_SETTINGS, workers=workers, say=say))
     t_build = round(time.perf_counter() - t0, 1)
     say(f"comparing {len(CANDIDATES)} classifiers (cross-validation holding out whole cities)")
     scores, config = select_classifier(table, seed=seed)

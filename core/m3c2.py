@@ -7,19 +7,28 @@ nothing moved. M3C2 compares the two epochs' *surfaces* instead:
 1. at a core point c with surface normal n (PCA of the pre-event points within
    `normal_radius_m`), both epochs' points inside a cylinder of radius r around the axis
    c + t·n, |t| <= `max_depth_m`, are projected on the axis;
-2. the change is the difference of their mean positions along the axis,
-   d = mean_post − mean_pre;
+2. the change is the difference of their positions along the axis, d = m_post − m_pre, with
+   m the median of the projections (default: at building edges and corners a cylinder also
+   catches a little of the neighbouring wall, roof or ground, and two samplings catch
+   different amounts of it; the median follows the surface the core lies on) or their mean
+   (Lague et al.'s original, `statistic="mean"`);
 3. its level of detection at 95 % confidence is
-   LoD = 1.96 · (sqrt(s_pre²/n_pre + s_post²/n_post) + reg),
-   s the standard deviation of the projections (surface roughness, noise and misfit of
-   the local plane together), n the number of points, reg the registration error between
-   the epochs. |d| > LoD is a significant change. On an unchanged surface a 95 % test
+   LoD = t · e · sqrt(s_pre²/n_pre + s_post²/n_post) + 1.96 · reg,
+   s the spread of the projections (1.4826 × median absolute deviation, or the standard
+   deviation: surface roughness, noise and misfit of the local plane together), n the
+   number of points the statistic is taken from (medians: at most `sample` per cylinder),
+   e = sqrt(π/2) for medians (their scatter relative to means) and 1 for means, reg the
+   registration error between the epochs, and t Student's quantile for the Welch–Satterthwaite
+   degrees of freedom of the two spreads (1.96 for many points; larger where a sparse
+   epoch's handful of points gives an uncertain spread, Lague et al.'s normal quantile would
+   flag far more than 5 % of an unchanged surface there). |d| > LoD is a significant change. On an unchanged surface a 95 % test
    flags ~5 % of the core points by construction, so a building-level decision must look
    for a share clearly above that and for spatially coherent change, not for any flag.
 
 Where the post-event cylinder holds no point while the pre-event one does, the surface
-moved farther than `max_depth_m` along its normal or vanished (a hole, a collapsed roof):
-`lost`. The cylinder radius grows with the sparser epoch's spacing so that a cylinder
+moved farther than `max_depth_m` or vanished (a hole, a collapsed roof): `lost`; or the
+post-event flight did not observe it. `seen_through` (points behind the surface) and
+`lost_beyond_chance` (the count an unchanged surface would have had) tell the two apart. The cylinder radius grows with the sparser epoch's spacing so that a cylinder
 holds at least `min_points` points of it on a plane (`cylinder_radius`).
 
 `curvature_lod` gives the same kind of level of detection for the change of the mean
@@ -53,11 +62,22 @@ class M3C2Settings:
     min_comparable: int = 4  # fewer points in either cylinder: no distance (its spread is unknown)
     normal_radius_m: float = 1.5
     max_depth_m: float = 2.0  # half length of the cylinder: changes beyond it are "lost"
+    # how far behind the surface (along -normal) the post-event epoch is searched for points
+    # that show the surface is gone (see `M3C2Result.lost`)
+    see_through_m: float = 30.0
     registration_error_m: float = 0.0
     z: float = Z95
+    # "median": median and 1.4826 x MAD of the projections (robust to the other surfaces a
+    # cylinder catches at edges and corners); "mean": mean and standard deviation (Lague et al.)
+    statistic: str = "median"
+    sample: int = 32  # median mode: projections per cylinder the statistics are taken from
 
     def __post_init__(self):
-        for name in ("cylinder_radius_m", "normal_radius_m", "max_depth_m", "z"):
+        if self.statistic not in ("median", "mean"):
+            raise M3C2Error(f"M3C2 statistic must be 'median' or 'mean', got {self.statistic!r}")
+        if not (isinstance(self.sample, int) and self.sample >= 8):
+            raise M3C2Error(f"M3C2 sample must be an integer >= 8, got {self.sample!r}")
+        for name in ("cylinder_radius_m", "normal_radius_m", "max_depth_m", "z", "see_through_m"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise M3C2Error(f"M3C2 {name} must be a positive number, got {v!r}")
@@ -82,6 +102,7 @@ class M3C2Result:
     std_post: np.ndarray
     radius_m: float
     min_comparable: int = 2
+    behind_post: np.ndarray | None = None  # (m,) post-event points behind the surface (see `lost`)
 
     @property
     def comparable(self) -> np.ndarray:
@@ -97,13 +118,50 @@ class M3C2Result:
         """The pre-event surface has no post-event counterpart within max_depth_m."""
         return (self.n_pre >= self.min_comparable) & (self.n_post == 0)
 
-    def lost_beyond_chance(self, density_ratio: float, alpha: float = 0.05) -> np.ndarray:
+    @property
+    def seen_through(self) -> np.ndarray:
+        """The post-event epoch has points *behind* the surface (along −normal, beyond
+        max_depth_m up to see_through_m): the floor below a roof hole, the rubble below a
+        collapsed roof. Where a lost surface has nothing behind it either, it may simply not
+        have been observed (occlusion, another flight direction)."""
+        if self.behind_post is None:
+            return np.ones(len(self.n_post), bool)
+        return self.behind_post > 0
+
+    def lost_beyond_chance(self, density_ratio, alpha: float = 0.05) -> np.ndarray:
         """`lost` where an empty post-event cylinder is unlikely by chance: with the epochs'
-        density ratio (post/pre) an unchanged surface puts a Poisson number of mean
-        λ = n_pre · ratio points in it, and P(0) = exp(−λ) must be below `alpha`
-        (λ >= 3 at 5 %). A sparse post-event epoch does not make surfaces 'lost'."""
-        expected = self.n_pre * float(density_ratio)
+        density ratio (post/pre, a number or one per core point) an unchanged surface puts a
+        Poisson number of mean λ = n_pre · ratio points in it, and P(0) = exp(−λ) must be
+        below `alpha` (λ >= 3 at 5 %). A sparse post-event epoch, or a facade the post-event
+        flight hardly sees, does not make surfaces 'lost'."""
+        expected = self.n_pre * np.asarray(density_ratio, dtype=np.float64)
         return self.lost & (expected >= -math.log(alpha))
+
+    @property
+    def unseen(self) -> np.ndarray:
+        """Neither comparable nor lost-and-seen-through."""
+        return ~self.comparable & ~(self.lost & self.seen_through)
+
+
+MAD_EFFICIENCY = 0.37  # the median absolute deviation estimates a normal spread like a std from 0.37 n points
+
+
+def _critical_value(z: float, v1, v2, n1, n2, median: bool):
+    """Student's t quantile at the confidence of `z` with Welch–Satterthwaite degrees of freedom:
+    a spread estimated from a handful of points (a sparse epoch's cylinder holds 5–10) is
+    itself uncertain, and the normal quantile would flag far more than 5 % of an unchanged
+    surface. A robust spread (MAD) carries less information than a standard deviation from
+    the same points, so its degrees of freedom are scaled by its efficiency."""
+    from scipy.stats import norm, t
+
+    q = float(norm.cdf(z))
+    scale = MAD_EFFICIENCY if median else 1.0
+    d1 = np.maximum(scale * (np.asarray(n1, np.float64) - 1), 1.0)
+    d2 = np.maximum(scale * (np.asarray(n2, np.float64) - 1), 1.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        df = (v1 + v2) ** 2 / (v1 ** 2 / d1 + v2 ** 2 / d2)
+    df = np.where(np.isfinite(df) & (df > 0), df, np.minimum(d1, d2))
+    return t.ppf(q, np.maximum(df, 1.0))
 
 
 def cylinder_radius(settings: M3C2Settings, sparser_density_pts_m2: float) -> float:
@@ -137,6 +195,31 @@ class ColumnGrid:
         order, starts = K.counting_sort(K.column_index(xyz, lo[0], lo[1], cell, nx, ny), nx * ny)
         self.px, self.py, self.pz = K.sort_columns_by_z(order, starts, xyz)
         self.lo, self.cell, self.nx, self.ny, self.starts = lo, cell, nx, ny, starts
+
+    def robust(self, centres, axes, radius, half_length, behind_length, sample: int = 32, chunk: int = 200_000):
+        """count, median and robust spread (1.4826 MAD) of the projections per cylinder, and the
+        points behind it (at -behind_length .. -half_length along the axis)."""
+        from . import _m3c2_kernels as K
+
+        m = len(centres)
+        count = np.zeros(m, np.int64)
+        behind = np.zeros(m, np.int64)
+        median, spread = np.full(m, np.nan), np.full(m, np.nan)
+        if m == 0 or self.n == 0:
+            return count, median, spread, behind
+        c = np.ascontiguousarray(centres, dtype=np.float64)
+        a = np.ascontiguousarray(axes, dtype=np.float64)
+        r = np.broadcast_to(np.asarray(radius, np.float64), (m,)).copy()
+        h = np.broadcast_to(np.asarray(half_length, np.float64), (m,)).copy()
+        hb = np.broadcast_to(np.asarray(behind_length, np.float64), (m,)).copy()
+        for s0 in range(0, m, chunk):  # bounded memory for the samples
+            sl = slice(s0, min(m, s0 + chunk))
+            buf = np.empty((sl.stop - sl.start, sample))
+            K.cylinder_robust(c[sl, 0].copy(), c[sl, 1].copy(), c[sl, 2].copy(), a[sl, 0].copy(), a[sl, 1].copy(),
+                              a[sl, 2].copy(), r[sl], h[sl], hb[sl], self.px, self.py, self.pz, self.starts,
+                              self.lo[0], self.lo[1], self.cell, self.nx, self.ny, buf, count[sl], median[sl],
+                              spread[sl], behind[sl])
+        return count, median, spread, behind
 
     def moments(self, centres, axes, radius, half_length):
         """count, mean, population variance, min and max of the projections per cylinder."""
@@ -182,20 +265,38 @@ def m3c2(core, normals, pre: ColumnGrid, post: ColumnGrid, settings: M3C2Setting
     m = len(core)
     n1 = np.zeros(m, np.int64)
     n2 = np.zeros(m, np.int64)
-    mean1, var1, mean2, var2 = (np.full(m, np.nan) for _ in range(4))
+    behind = np.zeros(m, np.int64)
+    loc1, s1, loc2, s2 = (np.full(m, np.nan) for _ in range(4))
     if ok.any():
         c, a = core[ok], normals[ok] / np.linalg.norm(normals[ok], axis=1, keepdims=True)
-        n1[ok], mean1[ok], var1[ok], _, _ = pre.moments(c, a, r, settings.max_depth_m)
-        n2[ok], mean2[ok], var2[ok], _, _ = post.moments(c, a, r, settings.max_depth_m)
+        if settings.statistic == "median":
+            n1[ok], loc1[ok], s1[ok], _ = pre.robust(c, a, r, settings.max_depth_m, 0.0, settings.sample)
+            n2[ok], loc2[ok], s2[ok], behind[ok] = post.robust(c, a, r, settings.max_depth_m, settings.see_through_m,
+                                                               settings.sample)
+        else:
+            n1[ok], loc1[ok], var1, _, _ = pre.moments(c, a, r, settings.max_depth_m)
+            n2[ok], loc2[ok], var2, _, _ = post.moments(c, a, r, settings.max_depth_m)
+            _, _, _, behind[ok] = post.robust(c, a, r, settings.max_depth_m, settings.see_through_m, 8)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                s1[ok] = np.sqrt(var1 * n1[ok] / np.maximum(n1[ok] - 1, 1))
+                s2[ok] = np.sqrt(var2 * n2[ok] / np.maximum(n2[ok] - 1, 1))
+    # the median of n normal values scatters sqrt(pi / 2) times as much as their mean, and it is
+    # taken from a sample of at most `sample` of them
+    median = settings.statistic == "median"
+    efficiency = math.sqrt(math.pi / 2) if median else 1.0
+    m1 = np.minimum(n1, settings.sample) if median else n1
+    m2 = np.minimum(n2, settings.sample) if median else n2
     with np.errstate(invalid="ignore", divide="ignore"):
-        s1 = np.where(n1 >= 2, np.sqrt(var1 * n1 / np.maximum(n1 - 1, 1)), np.nan)
-        s2 = np.where(n2 >= 2, np.sqrt(var2 * n2 / np.maximum(n2 - 1, 1)), np.nan)
+        s1 = np.where(n1 >= 2, s1, np.nan)
+        s2 = np.where(n2 >= 2, s2, np.nan)
         k = settings.min_comparable
         comparable = (n1 >= k) & (n2 >= k)
-        distance = np.where(comparable, mean2 - mean1, np.nan)
-        lod = np.where(comparable, settings.z * (np.sqrt(s1 ** 2 / n1 + s2 ** 2 / n2)
-                                                 + settings.registration_error_m), np.nan)
-    return M3C2Result(distance, lod, n1, n2, s1, s2, r, k)
+        distance = np.where(comparable, loc2 - loc1, np.nan)
+        v1, v2 = s1 ** 2 / m1, s2 ** 2 / m2
+        factor = _critical_value(settings.z, v1, v2, m1, m2, median)
+        lod = np.where(comparable, factor * efficiency * np.sqrt(v1 + v2)
+                       + settings.z * settings.registration_error_m, np.nan)
+    return M3C2Result(distance, lod, n1, n2, s1, s2, r, k, behind)
 
 
 def voxel_core_points(xyz: np.ndarray, spacing_m: float) -> np.ndarray:

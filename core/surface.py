@@ -36,6 +36,16 @@ exceeds both its own level of detection and `lod_floor_m`, or when its surface i
 
 - `m_changed`, `m_lost`: share of core points changed / lost; `m_roof_changed`,
   `m_wall_changed`: the same over roof (|n_z| >= 0.5) and wall core points;
+- `m_holes`, `m_wall_holes`: share of (wall) core points lost *and seen through*: the
+  post-event epoch has points behind where the surface was (the interior through a hole in
+  a wall, a blown-out infill panel, the attic through a roof hole): an intact surface hides
+  what is behind it, so this is the most specific sign of an opening;
+- `m_upper_changed`, `m_lower_changed`: share changed above and below one storey
+  (`storey_m`) over the ground: a neighbour's debris piles against the ground storey,
+  damage to roofs, gables and parapets is higher up;
+- `m_inward`, `m_outward`: share significantly moved against / along the normal (walls
+  point outwards, roofs up): a roof that sagged, a wall that bulged or was buried;
+- `m_largest_patch`: the largest 26-connected patch of changed core points, as a share;
 - `m_coherent`: share of core points that are changed *and* have at least half of their
   (at least three) adjacent core points changed: a 95 % test flags ~5 % of an unchanged
   surface at random, real damage is spatially coherent;
@@ -61,7 +71,9 @@ GROUND_CLASS = 2
 RASTER_DESCRIPTORS = ("s_lowered_1m", "s_lowered_storey", "s_lowered_half", "s_raised", "s_volume_loss",
                       "s_volume_gain", "s_height_ratio_mean", "s_height_ratio_p10", "s_post_gap",
                       "s_debris_ring", "s_debris_volume")
-CORE_DESCRIPTORS = ("m_changed", "m_lost", "m_roof_changed", "m_wall_changed", "m_coherent", "m_distance_p10",
+CORE_DESCRIPTORS = ("m_changed", "m_lost", "m_roof_changed", "m_wall_changed", "m_holes", "m_wall_holes",
+                    "m_upper_changed",
+                    "m_lower_changed", "m_inward", "m_outward", "m_coherent", "m_largest_patch", "m_distance_p10",
                     "m_distance_median", "m_distance_p90", "m_lod_median")
 SURFACE_DESCRIPTORS = RASTER_DESCRIPTORS + CORE_DESCRIPTORS
 
@@ -80,7 +92,7 @@ class SurfaceSettings:
     debris_ring_m: float = 5.0
     debris_rise_m: float = 0.3
     ground_search_m: float = 10.0
-    lod_floor_m: float = 0.1  # a surface change smaller than this is not damage, however precise
+    lod_floor_m: float = 0.2  # a surface change smaller than this is not damage, however precise
     # top layer of a cell: within top_layer_cells * cell + top_layer_m of its highest point
     # (1.5 cells spans a 45 degree roof across the cell's diagonal)
     top_layer_cells: float = 1.5
@@ -278,13 +290,13 @@ def describe_surfaces(pre_xyz: np.ndarray, pre_bid: np.ndarray, pre_ground: np.n
     order = np.argsort(pre_bid, kind="stable")
     sorted_bid = pre_bid[order]
     ground_finder = _GroundFinder(pre_xyz, pre_ground, settings.ground_search_m)
-    descriptors, members, core_of, qual = {}, {}, {}, {}
+    descriptors, members, core_of, qual, grounds = {}, {}, {}, {}, {}
     for bid in bids:
         a, b = np.searchsorted(sorted_bid, [bid, bid + 1])
         idx = order[a:b]
         if len(idx) == 0:
             raise SurfaceError(f"building {bid} has no pre-event points in its region")
-        ground = ground_finder.height(pre_xyz[idx])
+        ground = grounds[bid] = ground_finder.height(pre_xyz[idx])
         descriptors[bid] = _raster(pre_key[idx], pre_tops, post_tops, building_keys, ground, n3, ring_offsets,
                                    settings, c)
         if quality:
@@ -310,13 +322,14 @@ def describe_surfaces(pre_xyz: np.ndarray, pre_bid: np.ndarray, pre_ground: np.n
     post_grid = ColumnGrid(post_xyz, max(geom.cylinder_radius_m, 0.5))
     nrm = np.vstack([normals[b] for b in bids]) if bids else np.zeros((0, 3))
     res = m3c2(pre_xyz[all_core], nrm, pre_grid, post_grid, settings.m3c2, geom.cylinder_radius_m)
-    lost_all = res.lost_beyond_chance(geom.density_post / max(geom.density_pre, 1e-9))
+    lost_all = _lost(res, nrm)
     cores, start = {}, 0
     for bid in bids:
         k = len(core_of[bid])
         sl = slice(start, start + k)
         start += k
-        cc, dm = _core_change(pre_xyz[core_of[bid]], normals[bid], res, lost_all[sl], sl, settings, c)
+        cc, dm = _core_change(pre_xyz[core_of[bid]], normals[bid], res, lost_all[sl], res.seen_through[sl], sl,
+                              settings, c, grounds[bid])
         descriptors[bid].update(dm)
         cores[bid] = cc
     if quality:
@@ -416,35 +429,78 @@ def _raster(keys_b, pre_tops, post_tops, building_keys, ground, n3, ring_offsets
     return out
 
 
+FACING_BINS = 8  # walls by the direction they face (45 degree sectors); roofs one more bin
+
+
+def _facing(normals: np.ndarray) -> np.ndarray:
+    """Bin of each core point: 0..7 walls by azimuth, 8 roofs (|n_z| >= 0.5), -1 undefined."""
+    out = np.full(len(normals), -1, np.int64)
+    ok = np.all(np.isfinite(normals), axis=1)
+    roof = ok & (np.abs(normals[:, 2]) >= 0.5)
+    wall = ok & ~roof
+    az = np.arctan2(normals[wall, 1], normals[wall, 0])
+    out[wall] = np.floor((az + np.pi) / (2 * np.pi) * FACING_BINS).astype(np.int64) % FACING_BINS
+    out[roof] = FACING_BINS
+    return out
+
+
+def _lost(res, normals: np.ndarray) -> np.ndarray:
+    """Core points whose surface is gone, not just unobserved.
+
+    Roofs: lost with the post-event epoch seeing through (points below them: the floor
+    through a hole, the rubble of a collapse). Walls: an airborne sensor seldom sees behind a
+    wall, so a lost wall point must instead be unlikely to be empty by chance given how well
+    the post-event flight saw walls facing the same way in this region (the ratio of post- to
+    pre-event points over all such cylinders): a facade the flight hardly saw is not lost."""
+    facing = _facing(normals)
+    ratio = np.zeros(len(facing))
+    for b in range(FACING_BINS + 1):
+        sel = facing == b
+        if sel.any():
+            ratio[sel] = res.n_post[sel].sum() / max(res.n_pre[sel].sum(), 1)
+    roof = facing == FACING_BINS
+    by_chance = res.lost_beyond_chance(ratio)
+    return np.where(roof, by_chance & res.seen_through, by_chance)
+
+
 def _row_max(a):
     """Row-wise maximum ignoring NaN; NaN for an all-NaN row (without numpy's warning)."""
     m = np.max(np.where(np.isnan(a), -np.inf, a), axis=1)
     return np.where(np.isinf(m), np.nan, m)
 
 
-def _core_change(cxyz, normals, res, lost, sl, s: SurfaceSettings, spacing):
+def _core_change(cxyz, normals, res, lost, seen_through, sl, s: SurfaceSettings, spacing, ground: float):
     """Core-point descriptors of one building from its slice `sl` of the M3C2 result."""
     distance, lod_raw = res.distance[sl], res.lod[sl]
     comparable = res.comparable[sl]
     lod = np.maximum(np.nan_to_num(lod_raw, nan=np.inf), s.lod_floor_m)
-    sig = comparable & (np.abs(np.nan_to_num(distance)) > lod)
+    d = np.nan_to_num(distance)
+    sig = comparable & (np.abs(d) > lod)
     changed = sig | lost
-    valid = comparable | lost
+    valid = comparable | lost  # the rest was not observed after the event: unknown
     roof = np.abs(normals[:, 2]) >= 0.5
     wall = np.isfinite(normals[:, 2]) & ~roof
+    upper = (cxyz[:, 2] - ground) > s.storey_m
 
     def share(mask, among):
         k = among.sum()
         return float((mask & among).sum() / k) if k else 0.0
 
-    coherent = _coherent(cxyz, changed, valid, spacing)
+    coherent, largest = _coherence(cxyz, changed, valid, spacing)
     dist = distance[sig]
     out = {
         "m_changed": share(changed, valid),
         "m_lost": share(lost, valid),
         "m_roof_changed": share(changed, valid & roof),
         "m_wall_changed": share(changed, valid & wall),
+        "m_holes": share(lost & seen_through, valid),
+        "m_wall_holes": share(lost & seen_through, valid & wall),
+        "m_upper_changed": share(changed, valid & upper),
+        "m_lower_changed": share(changed, valid & ~upper),
+        "m_inward": share(sig & (d < 0), valid),
+        "m_outward": share(sig & (d > 0), valid),
         "m_coherent": share(coherent, valid),
+        "m_largest_patch": float(largest / valid.sum()) if valid.any() else 0.0,
         "m_distance_p10": float(np.percentile(dist, 10)) if len(dist) else 0.0,
         "m_distance_median": float(np.median(dist)) if len(dist) else 0.0,
         "m_distance_p90": float(np.percentile(dist, 90)) if len(dist) else 0.0,
@@ -453,10 +509,14 @@ def _core_change(cxyz, normals, res, lost, sl, s: SurfaceSettings, spacing):
     return CoreChange(cxyz, distance, lod_raw, comparable, changed), out
 
 
-def _coherent(xyz, changed, valid, spacing):
-    """Changed core points with at least half of their (>= 3) valid adjacent core points changed."""
+def _coherence(xyz, changed, valid, spacing):
+    """(changed core points with at least half of their (>= 3) valid adjacent core points
+    changed, the size of the largest 26-connected patch of changed core points)."""
     if not changed.any():
-        return np.zeros(len(xyz), bool)
+        return np.zeros(len(xyz), bool), 0
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
     ijk = np.floor((xyz - xyz.min(axis=0)) / spacing).astype(np.int64)
     dims = ijk.max(axis=0) + 3
     key = ((ijk[:, 0] + 1) * dims[1] + ijk[:, 1] + 1) * dims[2] + ijk[:, 2] + 1
@@ -464,6 +524,7 @@ def _coherent(xyz, changed, valid, spacing):
     skey = key[order]
     n_valid = np.zeros(len(xyz), np.int64)
     n_changed = np.zeros(len(xyz), np.int64)
+    edges_a, edges_b = [], []
     for dx in (-1, 0, 1):
         for dy in (-1, 0, 1):
             for dz in (-1, 0, 1):
@@ -475,4 +536,14 @@ def _coherent(xyz, changed, valid, spacing):
                 j = order[pos]
                 n_valid += hit & valid[j]
                 n_changed += hit & changed[j]
-    return changed & (n_valid >= 3) & (2 * n_changed >= n_valid)
+                link = hit & changed & changed[j]
+                edges_a.append(np.flatnonzero(link))
+                edges_b.append(j[link])
+    coherent = changed & (n_valid >= 3) & (2 * n_changed >= n_valid)
+    idx = np.flatnonzero(changed)
+    remap = np.full(len(xyz), -1)
+    remap[idx] = np.arange(len(idx))
+    a, b = np.concatenate(edges_a), np.concatenate(edges_b)
+    graph = coo_matrix((np.ones(len(a)), (remap[a], remap[b])), shape=(len(idx), len(idx)))
+    _, labels = connected_components(graph, directed=False)
+    return coherent, int(np.bincount(labels).max())

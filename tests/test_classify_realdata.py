@@ -50,7 +50,7 @@ def test_same_tile_as_both_epochs_is_undamaged_everywhere(same_tile_result):
     assessable = [r for r in rows.values() if r["assessable"] == "1"]
     assert len(assessable) > 100
     assert {r["label"] for r in assessable} == {"no damage"}
-    assert {r["decided_by"] for r in assessable} == {"no change"}
+    assert all(float(r["share_changed"]) == 0.0 for r in assessable)
     off_tile = [r for r in rows.values() if r["assessable"] == "0"]
     assert all(r["predicted_grade"] == "" and r["reason"] for r in off_tile)
     gj = json.loads((out / "buildings.geojson").read_text())
@@ -93,3 +93,44 @@ def test_shifted_post_epoch_is_aligned_and_a_real_collapse_is_found(ahn3, tmp_pa
     others = [r for b, r in rows.items() if b != target and r["assessable"] == "1"]
     undamaged = sum(r["label"] == "no damage" for r in others) / len(others)
     assert undamaged > 0.95, undamaged
+
+
+def _split(las_path, tmp_path, pre_mask, post_mask):
+    las = laspy.read(las_path)
+    paths = []
+    for name, mask in (("pre", pre_mask(len(las.points))), ("post", post_mask(len(las.points)))):
+        sub = laspy.LasData(las.header)
+        sub.points = las.points[mask]
+        sub.write(tmp_path / f"{name}.las")
+        paths.append(tmp_path / f"{name}.las")
+    return paths
+
+
+@pytest.mark.slow
+def test_two_random_halves_of_a_real_tile_are_a_no_change_pair(ahn3, tmp_path):
+    """The issue's real no-change rescan: AHN3 tile 1 split into two random halves
+    (default_rng(5).random(n) < 0.5, ~4.5 pts/m² each), real footprints, the shipped model.
+    Every assessable building is undamaged or the share called damaged stays at 1 building
+    in a hundred; the rest are not assessable with a stated reason (too sparse for the model,
+    too few points), never guessed."""
+    las, fp = ahn3
+    pre, post = _split(las, tmp_path, lambda n: np.random.default_rng(5).random(n) < 0.5,
+                       lambda n: ~(np.random.default_rng(5).random(n) < 0.5))
+    classify(pre, post, tmp_path / "res", footprints_path=fp, write_las=False)
+    rows = _rows(tmp_path / "res" / "buildings.csv")
+    ok = [r for r in rows.values() if r["assessable"] == "1"]
+    damaged = [b for b, r in rows.items() if r["assessable"] == "1" and r["label"] != "no damage"]
+    assert len(ok) >= 30
+    assert len(damaged) <= max(1, 0.01 * len(ok)), damaged
+    assert all(r["reason"] for r in rows.values() if r["assessable"] == "0")
+    assert all(0.0 <= float(r["confidence"]) <= 1.0 for r in ok)
+
+
+def test_calibrate_lod_takes_footprints_for_real_clouds(ahn3, tmp_path, capsys):
+    las, fp = ahn3
+    pre, post = _split(las, tmp_path, lambda n: np.random.default_rng(5).random(n) < 0.5,
+                       lambda n: ~(np.random.default_rng(5).random(n) < 0.5))
+    assert main(["calibrate-lod", str(pre), str(post), "--footprints", str(fp), "-o", str(tmp_path / "lod.json")]) == 0
+    lod = json.loads((tmp_path / "lod.json").read_text())
+    assert lod["points"] > 10_000 and lod["lod_height_m"] >= 0.3 and lod["lod_curvature"] >= 0.2
+    assert "--lod-height" in capsys.readouterr().out

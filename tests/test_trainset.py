@@ -4,7 +4,7 @@ import json
 import numpy as np
 import pytest
 
-from core.default_model import TRANSFER_SETTINGS, data_limits, fit_default_model, select_classifier
+from core.default_model import TABLE_SETTINGS, TRANSFER_SETTINGS, data_limits, fit_default_model, model_columns, select_classifier
 from core.trainset import SENSOR_PAIRS, TrainingPlan, TrainingSetError, build, default_plan
 
 
@@ -46,18 +46,20 @@ def test_quick_training_set_builds_resumes_and_trains_a_model_that_classifies_cr
 
     plan = default_plan(0, "quick")
     said = []
-    table = build(tmp_path / "ts", plan, TRANSFER_SETTINGS, workers=2, say=said.append)
-    assert table.x.shape == (len(table.y), len(TRANSFER_SETTINGS.descriptor_names()))
+    table = build(tmp_path / "ts", plan, TABLE_SETTINGS, workers=2, say=said.append)
+    assert table.x.shape == (len(table.y), len(TABLE_SETTINGS.descriptor_names()))
     assert len(table.y) >= 40 and set(np.unique(table.y)) <= {0, 3, 4, 5}
     assert np.all(np.isfinite(table.x))
     manifest = json.loads((tmp_path / "ts" / "manifest.json").read_text())
     assert manifest["rows"] == len(table.y) and manifest["plan"]["name"] == "default-quick"
     clouds = sorted((tmp_path / "ts" / "clouds").rglob("*.las"))
     stamps = {p: p.stat().st_mtime_ns for p in clouds}
-    again = build(tmp_path / "ts", plan, TRANSFER_SETTINGS, workers=2, say=lambda s: None)
+    again = build(tmp_path / "ts", plan, TABLE_SETTINGS, workers=2, say=lambda s: None)
     np.testing.assert_array_equal(again.x, table.x)  # resumed: same rows, nothing acquired again
     assert {p: p.stat().st_mtime_ns for p in clouds} == stamps
 
+    table = model_columns(table)
+    assert table.names == TRANSFER_SETTINGS.descriptor_names()
     scores, config = select_classifier(table, seed=0, n_splits=2)
     model = fit_default_model(table, plan, config, scores, command="test")
     dens, cov = data_limits(table)
