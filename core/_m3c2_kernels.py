@@ -97,13 +97,14 @@ def _median_sorted(a, n):
 
 
 @njit(parallel=True, **_JIT)
-def cylinder_robust(cx, cy, cz, nx_, ny_, nz_, radius, half_length, behind_length, px, py, pz, starts, lo_x, lo_y,
-                    cell, ncx, ncy, sample, count, median, spread, behind):
+def cylinder_robust(cx, cy, cz, nx_, ny_, nz_, radius, half_length, behind_length, near_length, px, py, pz, starts,
+                    lo_x, lo_y, cell, ncx, ncy, sample, count, median, spread, behind, near):
     """Per cylinder: number of points with |distance along the axis| <= half_length, the median
     of their distances and their robust spread (1.4826 x median absolute deviation), from a
     uniform sample of at most `sample.shape[1]` of them (reservoir sampling with a generator
     seeded by the cylinder's index: deterministic whatever the threads); and the number of
-    points behind the surface, at distances in [-behind_length, -half_length)."""
+    points behind the surface, at distances in [-behind_length, -half_length), and the number
+    within near_length of the core (|distance| <= near_length: on the core's own surface)."""
     m = cx.shape[0]
     cap = sample.shape[1]
     for k in prange(m):
@@ -123,6 +124,8 @@ def cylinder_robust(cx, cy, cz, nx_, ny_, nz_, radius, half_length, behind_lengt
         j1 = min(int(math.floor((y + ey - lo_y) / cell)), ncy - 1)
         n = 0
         nb = 0
+        nn = 0
+        hn = near_length[k]
         state = np.uint64(k) * np.uint64(6364136223846793005) + np.uint64(1442695040888963407)
         for i in range(i0, i1 + 1):
             for j in range(j0, j1 + 1):
@@ -141,6 +144,8 @@ def cylinder_robust(cx, cy, cz, nx_, ny_, nz_, radius, half_length, behind_lengt
                         perp2 = dx * dx + dy * dy + dz * dz - along * along
                         if perp2 <= r2:
                             if along >= -h:
+                                if abs(along) <= hn:
+                                    nn += 1
                                 if n < cap:
                                     sample[k, n] = along
                                 else:
@@ -154,6 +159,7 @@ def cylinder_robust(cx, cy, cz, nx_, ny_, nz_, radius, half_length, behind_lengt
                     t += 1
         count[k] = n
         behind[k] = nb
+        near[k] = nn
         if n > 0:
             s = min(n, cap)
             vals = np.sort(sample[k, :s])

@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from .pipeline import PipelineSettings
-from .surface import SURFACE_DESCRIPTORS, SurfaceSettings
+from .surface import DESCRIPTOR_VERSION, SURFACE_DESCRIPTORS, SurfaceSettings
 
 # The training set's tables hold every surface descriptor (so that an ablation can put any of
 # them back); the model uses those whose meaning does not depend on the sensor's noise: the
@@ -137,6 +137,7 @@ def fit_default_model(table, plan, config: dict, scores, *, seed: int = 0, comma
         "limits": {"min_density_pts_m2": min_density, "min_coverage": min_coverage,
                    "rule": f"{QUANTILE_OF_LIMITS:.0%} quantile of the training rows"},
         "seed": seed,
+        "descriptor_version": DESCRIPTOR_VERSION,
         "seconds": {"fit": round(time.perf_counter() - t0, 1), "training_set": seconds_building},
     }
     return DamageModel(est, list(table.names), settings.radius_m, split=settings.to_json(), provenance=provenance,

@@ -58,7 +58,7 @@ class M3C2Settings:
     """Cylinder and detection settings; every length in metres."""
 
     cylinder_radius_m: float = 0.5  # smallest radius; grown for sparse epochs (cylinder_radius)
-    min_points: int = 6  # expected points of the sparser epoch in a cylinder on a plane
+    min_points: int = 10  # expected points of the sparser epoch in a cylinder on a plane
     min_comparable: int = 4  # fewer points in either cylinder: no distance (its spread is unknown)
     normal_radius_m: float = 1.5
     max_depth_m: float = 2.0  # half length of the cylinder: changes beyond it are "lost"
@@ -71,13 +71,14 @@ class M3C2Settings:
     # cylinder catches at edges and corners); "mean": mean and standard deviation (Lague et al.)
     statistic: str = "median"
     sample: int = 32  # median mode: projections per cylinder the statistics are taken from
+    near_m: float = 0.15  # "still there": points within this distance of the core point (`displaced`)
 
     def __post_init__(self):
         if self.statistic not in ("median", "mean"):
             raise M3C2Error(f"M3C2 statistic must be 'median' or 'mean', got {self.statistic!r}")
         if not (isinstance(self.sample, int) and self.sample >= 8):
             raise M3C2Error(f"M3C2 sample must be an integer >= 8, got {self.sample!r}")
-        for name in ("cylinder_radius_m", "normal_radius_m", "max_depth_m", "z", "see_through_m"):
+        for name in ("cylinder_radius_m", "normal_radius_m", "max_depth_m", "z", "see_through_m", "near_m"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise M3C2Error(f"M3C2 {name} must be a positive number, got {v!r}")
@@ -103,6 +104,22 @@ class M3C2Result:
     radius_m: float
     min_comparable: int = 2
     behind_post: np.ndarray | None = None  # (m,) post-event points behind the surface (see `lost`)
+    near_pre: np.ndarray | None = None  # (m,) points within near_m of the core point, per epoch
+    near_post: np.ndarray | None = None
+
+    @property
+    def displaced(self) -> np.ndarray:
+        """`significant` where the pre-event surface itself is gone from the cylinder: the share
+        of post-event points within near_m of the core point is below a quarter of the
+        pre-event share. At edges and steps a cylinder holds two surfaces, and two samplings
+        weight them differently, so their medians differ by the step although both surfaces
+        are still there; a surface that really moved leaves nothing where it was."""
+        if self.near_pre is None or self.near_post is None:
+            return self.significant
+        with np.errstate(invalid="ignore", divide="ignore"):
+            share_pre = self.near_pre / np.maximum(self.n_pre, 1)
+            share_post = self.near_post / np.maximum(self.n_post, 1)
+        return self.significant & (share_post < 0.25 * share_pre)
 
     @property
     def comparable(self) -> np.ndarray:
@@ -196,30 +213,34 @@ class ColumnGrid:
         self.px, self.py, self.pz = K.sort_columns_by_z(order, starts, xyz)
         self.lo, self.cell, self.nx, self.ny, self.starts = lo, cell, nx, ny, starts
 
-    def robust(self, centres, axes, radius, half_length, behind_length, sample: int = 32, chunk: int = 200_000):
-        """count, median and robust spread (1.4826 MAD) of the projections per cylinder, and the
-        points behind it (at -behind_length .. -half_length along the axis)."""
+    def robust(self, centres, axes, radius, half_length, behind_length, sample: int = 32, chunk: int = 200_000,
+               near_length: float = 0.0):
+        """count, median and robust spread (1.4826 MAD) of the projections per cylinder, the
+        points behind it (at -behind_length .. -half_length along the axis) and the points
+        within near_length of the centre."""
         from . import _m3c2_kernels as K
 
         m = len(centres)
         count = np.zeros(m, np.int64)
         behind = np.zeros(m, np.int64)
+        near = np.zeros(m, np.int64)
         median, spread = np.full(m, np.nan), np.full(m, np.nan)
         if m == 0 or self.n == 0:
-            return count, median, spread, behind
+            return count, median, spread, behind, near
         c = np.ascontiguousarray(centres, dtype=np.float64)
         a = np.ascontiguousarray(axes, dtype=np.float64)
         r = np.broadcast_to(np.asarray(radius, np.float64), (m,)).copy()
         h = np.broadcast_to(np.asarray(half_length, np.float64), (m,)).copy()
         hb = np.broadcast_to(np.asarray(behind_length, np.float64), (m,)).copy()
+        hn = np.broadcast_to(np.asarray(near_length, np.float64), (m,)).copy()
         for s0 in range(0, m, chunk):  # bounded memory for the samples
             sl = slice(s0, min(m, s0 + chunk))
             buf = np.empty((sl.stop - sl.start, sample))
             K.cylinder_robust(c[sl, 0].copy(), c[sl, 1].copy(), c[sl, 2].copy(), a[sl, 0].copy(), a[sl, 1].copy(),
-                              a[sl, 2].copy(), r[sl], h[sl], hb[sl], self.px, self.py, self.pz, self.starts,
+                              a[sl, 2].copy(), r[sl], h[sl], hb[sl], hn[sl], self.px, self.py, self.pz, self.starts,
                               self.lo[0], self.lo[1], self.cell, self.nx, self.ny, buf, count[sl], median[sl],
-                              spread[sl], behind[sl])
-        return count, median, spread, behind
+                              spread[sl], behind[sl], near[sl])
+        return count, median, spread, behind, near
 
     def moments(self, centres, axes, radius, half_length):
         """count, mean, population variance, min and max of the projections per cylinder."""
@@ -266,17 +287,22 @@ def m3c2(core, normals, pre: ColumnGrid, post: ColumnGrid, settings: M3C2Setting
     n1 = np.zeros(m, np.int64)
     n2 = np.zeros(m, np.int64)
     behind = np.zeros(m, np.int64)
+    near1 = np.zeros(m, np.int64)
+    near2 = np.zeros(m, np.int64)
     loc1, s1, loc2, s2 = (np.full(m, np.nan) for _ in range(4))
     if ok.any():
         c, a = core[ok], normals[ok] / np.linalg.norm(normals[ok], axis=1, keepdims=True)
+        near = settings.near_m
+        n1[ok], r_loc1, r_s1, _, near1[ok] = pre.robust(c, a, r, settings.max_depth_m, 0.0, settings.sample,
+                                                        near_length=near)
+        n2[ok], r_loc2, r_s2, behind[ok], near2[ok] = post.robust(c, a, r, settings.max_depth_m,
+                                                                  settings.see_through_m, settings.sample,
+                                                                  near_length=near)
         if settings.statistic == "median":
-            n1[ok], loc1[ok], s1[ok], _ = pre.robust(c, a, r, settings.max_depth_m, 0.0, settings.sample)
-            n2[ok], loc2[ok], s2[ok], behind[ok] = post.robust(c, a, r, settings.max_depth_m, settings.see_through_m,
-                                                               settings.sample)
+            loc1[ok], s1[ok], loc2[ok], s2[ok] = r_loc1, r_s1, r_loc2, r_s2
         else:
-            n1[ok], loc1[ok], var1, _, _ = pre.moments(c, a, r, settings.max_depth_m)
-            n2[ok], loc2[ok], var2, _, _ = post.moments(c, a, r, settings.max_depth_m)
-            _, _, _, behind[ok] = post.robust(c, a, r, settings.max_depth_m, settings.see_through_m, 8)
+            _, loc1[ok], var1, _, _ = pre.moments(c, a, r, settings.max_depth_m)
+            _, loc2[ok], var2, _, _ = post.moments(c, a, r, settings.max_depth_m)
             with np.errstate(invalid="ignore", divide="ignore"):
                 s1[ok] = np.sqrt(var1 * n1[ok] / np.maximum(n1[ok] - 1, 1))
                 s2[ok] = np.sqrt(var2 * n2[ok] / np.maximum(n2[ok] - 1, 1))
@@ -296,7 +322,7 @@ def m3c2(core, normals, pre: ColumnGrid, post: ColumnGrid, settings: M3C2Setting
         factor = _critical_value(settings.z, v1, v2, m1, m2, median)
         lod = np.where(comparable, factor * efficiency * np.sqrt(v1 + v2)
                        + settings.z * settings.registration_error_m, np.nan)
-    return M3C2Result(distance, lod, n1, n2, s1, s2, r, k, behind)
+    return M3C2Result(distance, lod, n1, n2, s1, s2, r, k, behind, near1, near2)
 
 
 def voxel_core_points(xyz: np.ndarray, spacing_m: float) -> np.ndarray:

@@ -31,8 +31,9 @@ compared directly, so a hole of one or two cells is not smoothed away.
 **Surface change on core points** (`core.m3c2`): core points one per `cell_m` voxel of the
 building's pre-event points (so shares are shares of surface area), normals from the
 pre-event points, walls oriented outwards. A core point is *changed* when its M3C2 distance
-exceeds both its own level of detection and `lod_floor_m`, or when its surface is lost
-(no post-event point within `max_depth_m` along the normal).
+exceeds both its own level of detection and `lod_floor_m` and its old surface is no longer
+there (`M3C2Result.displaced`), or when its surface is lost: no post-event point within
+`max_depth_m` along the normal where an unchanged surface would have had some (`_lost`).
 
 - `m_changed`, `m_lost`: share of core points changed / lost; `m_roof_changed`,
   `m_wall_changed`: the same over roof (|n_z| >= 0.5) and wall core points;
@@ -45,7 +46,8 @@ exceeds both its own level of detection and `lod_floor_m`, or when its surface i
   damage to roofs, gables and parapets is higher up;
 - `m_inward`, `m_outward`: share significantly moved against / along the normal (walls
   point outwards, roofs up): a roof that sagged, a wall that bulged or was buried;
-- `m_largest_patch`: the largest 26-connected patch of changed core points, as a share;
+- `m_largest_patch`: the largest patch of changed core points (joined up to two voxels
+  apart), as a share;
 - `m_coherent`: share of core points that are changed *and* have at least half of their
   (at least three) adjacent core points changed: a 95 % test flags ~5 % of an unchanged
   surface at random, real damage is spatially coherent;
@@ -68,6 +70,9 @@ from .errors import QuakeScanError
 from .m3c2 import ColumnGrid, M3C2Settings, cylinder_radius, m3c2, orient_normals, voxel_core_points
 
 GROUND_CLASS = 2
+# Bumped whenever a descriptor's computation changes: cached training tables made with another
+# version are not reused (core.trainset), and a model records the version it was trained on.
+DESCRIPTOR_VERSION = 5
 RASTER_DESCRIPTORS = ("s_lowered_1m", "s_lowered_storey", "s_lowered_half", "s_raised", "s_volume_loss",
                       "s_volume_gain", "s_height_ratio_mean", "s_height_ratio_p10", "s_post_gap",
                       "s_debris_ring", "s_debris_volume")
@@ -290,15 +295,15 @@ def describe_surfaces(pre_xyz: np.ndarray, pre_bid: np.ndarray, pre_ground: np.n
     order = np.argsort(pre_bid, kind="stable")
     sorted_bid = pre_bid[order]
     ground_finder = _GroundFinder(pre_xyz, pre_ground, settings.ground_search_m)
-    descriptors, members, core_of, qual, grounds = {}, {}, {}, {}, {}
+    descriptors, members, core_of, qual, grounds, outline_core = {}, {}, {}, {}, {}, {}
     for bid in bids:
         a, b = np.searchsorted(sorted_bid, [bid, bid + 1])
         idx = order[a:b]
         if len(idx) == 0:
             raise SurfaceError(f"building {bid} has no pre-event points in its region")
         ground = grounds[bid] = ground_finder.height(pre_xyz[idx])
-        descriptors[bid] = _raster(pre_key[idx], pre_tops, post_tops, building_keys, ground, n3, ring_offsets,
-                                   settings, c)
+        descriptors[bid], edge_keys = _raster(pre_key[idx], pre_tops, post_tops, building_keys, ground, n3,
+                                              ring_offsets, settings, c)
         if quality:
             cells = np.unique(pre_key[idx])
             inside = np.isin(post_key, cells)
@@ -307,6 +312,7 @@ def describe_surfaces(pre_xyz: np.ndarray, pre_bid: np.ndarray, pre_ground: np.n
                          "coverage": round(1.0 - descriptors[bid]["s_post_gap"], 4)}
         members[bid] = idx
         core_of[bid] = idx[voxel_core_points(pre_xyz[idx], c)]
+        outline_core[bid] = np.isin(pre_key[core_of[bid]], edge_keys)
     # one normal and one M3C2 pass over every building's core points
     all_core = np.concatenate([core_of[b] for b in bids]) if bids else np.zeros(0, np.int64)
     f = compute_features(pre_xyz, settings.m3c2.normal_radius_m, ("normal_x", "normal_y", "normal_z"),
@@ -322,7 +328,7 @@ def describe_surfaces(pre_xyz: np.ndarray, pre_bid: np.ndarray, pre_ground: np.n
     post_grid = ColumnGrid(post_xyz, max(geom.cylinder_radius_m, 0.5))
     nrm = np.vstack([normals[b] for b in bids]) if bids else np.zeros((0, 3))
     res = m3c2(pre_xyz[all_core], nrm, pre_grid, post_grid, settings.m3c2, geom.cylinder_radius_m)
-    lost_all = _lost(res, nrm)
+    lost_all = _lost(res, nrm, np.concatenate([outline_core[b] for b in bids]) if bids else np.zeros(0, bool))
     cores, start = {}, 0
     for bid in bids:
         k = len(core_of[bid])
@@ -364,7 +370,8 @@ class _GroundFinder:
 
 
 def _raster(keys_b, pre_tops, post_tops, building_keys, ground, n3, ring_offsets, s: SurfaceSettings, c):
-    """Raster descriptors of one building (its cells: `keys_b`) and the cells around it."""
+    """Raster descriptors of one building (its cells: `keys_b`) and the cells around it, and
+    the keys of its outline and step cells."""
     z, reg = s.m3c2.z, s.m3c2.registration_error_m
     cells = np.unique(keys_b)
     nb = cells[:, None] + n3[None, :]
@@ -410,6 +417,7 @@ def _raster(keys_b, pre_tops, post_tops, building_keys, ground, n3, ring_offsets
     ratio = np.clip((h_pre - low + rise) / np.maximum(h_pre, c), 0.0, 1.5)[tall]
     out["s_height_ratio_mean"] = float(np.mean(ratio)) if len(ratio) else 1.0
     out["s_height_ratio_p10"] = float(np.percentile(ratio, 10)) if len(ratio) else 1.0
+    edge_keys = cells[edge]
     # debris: a ring around the outline, other buildings' cells excluded, compared with the
     # highest pre-event cell around (vegetation and cars are sampled differently each time)
     outline = cells[~in_building.all(axis=1)]
@@ -426,7 +434,7 @@ def _raster(keys_b, pre_tops, post_tops, building_keys, ground, n3, ring_offsets
     out["s_debris_ring"] = float(np.mean(up[seen] > s.debris_rise_m)) if seen.any() else 0.0
     out["s_debris_volume"] = (float(np.sum(np.clip(up[seen], 0, None)) * c * c / vol)
                               if vol > 0 and seen.any() else 0.0)
-    return out
+    return out, edge_keys
 
 
 FACING_BINS = 8  # walls by the direction they face (45 degree sectors); roofs one more bin
@@ -444,14 +452,18 @@ def _facing(normals: np.ndarray) -> np.ndarray:
     return out
 
 
-def _lost(res, normals: np.ndarray) -> np.ndarray:
+LOST_ALPHA = 0.01  # an empty post-event cylinder counts only where chance gives it < 1 %
+
+
+def _lost(res, normals: np.ndarray, outline: np.ndarray) -> np.ndarray:
     """Core points whose surface is gone, not just unobserved.
 
     Roofs: lost with the post-event epoch seeing through (points below them: the floor
     through a hole, the rubble of a collapse). Walls: an airborne sensor seldom sees behind a
     wall, so a lost wall point must instead be unlikely to be empty by chance given how well
     the post-event flight saw walls facing the same way in this region (the ratio of post- to
-    pre-event points over all such cylinders): a facade the flight hardly saw is not lost."""
+    pre-event points over all such cylinders): a facade the flight hardly saw is not lost.
+    Either way an empty cylinder must be unlikely by chance (`LOST_ALPHA`)."""
     facing = _facing(normals)
     ratio = np.zeros(len(facing))
     for b in range(FACING_BINS + 1):
@@ -459,8 +471,10 @@ def _lost(res, normals: np.ndarray) -> np.ndarray:
         if sel.any():
             ratio[sel] = res.n_post[sel].sum() / max(res.n_pre[sel].sum(), 1)
     roof = facing == FACING_BINS
-    by_chance = res.lost_beyond_chance(ratio)
-    return np.where(roof, by_chance & res.seen_through, by_chance)
+    by_chance = res.lost_beyond_chance(ratio, LOST_ALPHA)
+    # at the outline a roof cylinder's "behind" reaches past the eave to the ground beside the
+    # building: there seeing through proves nothing, so only interior roof points can be lost
+    return np.where(roof, by_chance & res.seen_through & ~outline, by_chance)
 
 
 def _row_max(a):
@@ -475,7 +489,7 @@ def _core_change(cxyz, normals, res, lost, seen_through, sl, s: SurfaceSettings,
     comparable = res.comparable[sl]
     lod = np.maximum(np.nan_to_num(lod_raw, nan=np.inf), s.lod_floor_m)
     d = np.nan_to_num(distance)
-    sig = comparable & (np.abs(d) > lod)
+    sig = comparable & (np.abs(d) > lod) & res.displaced[sl]
     changed = sig | lost
     valid = comparable | lost  # the rest was not observed after the event: unknown
     roof = np.abs(normals[:, 2]) >= 0.5
@@ -509,33 +523,46 @@ def _core_change(cxyz, normals, res, lost, seen_through, sl, s: SurfaceSettings,
     return CoreChange(cxyz, distance, lod_raw, comparable, changed), out
 
 
+def _voxel_lookup(xyz, spacing):
+    """Keys of the core points' voxels and a lookup from a key offset to neighbour indices."""
+    ijk = np.floor((xyz - xyz.min(axis=0)) / spacing).astype(np.int64)
+    dims = ijk.max(axis=0) + 5
+    key = ((ijk[:, 0] + 2) * dims[1] + ijk[:, 1] + 2) * dims[2] + ijk[:, 2] + 2
+    order = np.argsort(key)
+    skey = key[order]
+
+    def neighbour(dx, dy, dz):
+        nk = key + (dx * dims[1] + dy) * dims[2] + dz
+        pos = np.minimum(np.searchsorted(skey, nk), len(skey) - 1)
+        return skey[pos] == nk, order[pos]
+
+    return neighbour
+
+
 def _coherence(xyz, changed, valid, spacing):
     """(changed core points with at least half of their (>= 3) valid adjacent core points
-    changed, the size of the largest 26-connected patch of changed core points)."""
+    changed, the size of the largest patch of changed core points). A patch joins changed
+    points up to two voxels apart, so that a core point left unobserved in the middle of a
+    hole does not cut it in two (sparse epochs leave more such gaps)."""
     if not changed.any():
         return np.zeros(len(xyz), bool), 0
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
-    ijk = np.floor((xyz - xyz.min(axis=0)) / spacing).astype(np.int64)
-    dims = ijk.max(axis=0) + 3
-    key = ((ijk[:, 0] + 1) * dims[1] + ijk[:, 1] + 1) * dims[2] + ijk[:, 2] + 1
-    order = np.argsort(key)
-    skey = key[order]
+    neighbour = _voxel_lookup(xyz, spacing)
     n_valid = np.zeros(len(xyz), np.int64)
     n_changed = np.zeros(len(xyz), np.int64)
     edges_a, edges_b = [], []
-    for dx in (-1, 0, 1):
-        for dy in (-1, 0, 1):
-            for dz in (-1, 0, 1):
+    span = range(-2, 3)
+    for dx in span:
+        for dy in span:
+            for dz in span:
                 if dx == dy == dz == 0:
                     continue
-                nk = key + (dx * dims[1] + dy) * dims[2] + dz
-                pos = np.minimum(np.searchsorted(skey, nk), len(skey) - 1)
-                hit = skey[pos] == nk
-                j = order[pos]
-                n_valid += hit & valid[j]
-                n_changed += hit & changed[j]
+                hit, j = neighbour(dx, dy, dz)
+                if max(abs(dx), abs(dy), abs(dz)) == 1:
+                    n_valid += hit & valid[j]
+                    n_changed += hit & changed[j]
                 link = hit & changed & changed[j]
                 edges_a.append(np.flatnonzero(link))
                 edges_b.append(j[link])

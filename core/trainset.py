@@ -183,7 +183,11 @@ class TransferTable:
 
 
 def _settings_key(settings) -> str:
-    return hashlib.sha256(json.dumps(settings.to_json(), sort_keys=True).encode()).hexdigest()[:12]
+    """Tables are reused only for the same settings and the same descriptor code."""
+    from .surface import DESCRIPTOR_VERSION
+
+    doc = {"settings": settings.to_json(), "descriptor_version": DESCRIPTOR_VERSION}
+    return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()[:12]
 
 
 def _write_json_atomic(path: Path, data: dict) -> None:
