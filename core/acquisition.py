@@ -20,7 +20,8 @@ log-uniformly, since their effects are multiplicative, everything else uniformly
   UAV trajectory); strip overlap 30–70 % (flight plans from economical to the paper's 60 %
   and beyond).
 - `als` (the `als` preset otherwise, see `core.survey.als_for_density`): nominal density
-  4–30 pts/m² (national archives: AHN2/3 6–15, other countries' 4–30); range noise
+  2–30 pts/m² (national archives: older blocks 1–4, AHN2/3 6–15, others up to 30; the
+  sparse end matters: a building the model never saw that sparse is 'not assessable'); range noise
   0.02–0.04 m (aircraft scanners' ranging precision plus GNSS/INS noise at 500 m);
   strip misalignment 0.02–0.08 m (residuals of archive strip adjustment are a few
   centimetres; older blocks reach decimetres).
@@ -78,7 +79,7 @@ ULS_PULSE_RATE_HZ = (100_000.0, 600_000.0)
 ULS_RANGE_NOISE_M = (0.01, 0.03)
 ULS_MISALIGNMENT_M = (0.0, 0.05)
 ULS_OVERLAP_PCT = (30.0, 70.0)
-ALS_DENSITY_PTS_M2 = (4.0, 30.0)
+ALS_DENSITY_PTS_M2 = (2.0, 30.0)
 ALS_RANGE_NOISE_M = (0.02, 0.04)
 ALS_MISALIGNMENT_M = (0.02, 0.08)
 DIM_ALTITUDE_M = (80.0, 150.0)

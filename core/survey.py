@@ -222,7 +222,7 @@ PRESETS = {"paper": Survey, "als": _als}
 # Realistic ranges of the knobs `als_for_density` turns: aircraft ALS pulse rates (older
 # 50 kHz systems to today's MHz scanners), ground speeds (slow fixed-wing to 155 kn) and
 # oscillating-mirror line rates.
-ALS_PULSE_RATE_HZ = (50_000.0, 1_000_000.0)
+ALS_PULSE_RATE_HZ = (25_000.0, 1_000_000.0)  # 25 kHz: the first ALS generations (older archives)
 ALS_SPEED_M_S = (40.0, 80.0)
 ALS_SCAN_RATE_HZ = (20.0, 200.0)
 
