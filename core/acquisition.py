@@ -87,9 +87,8 @@ DIM_NOISE_PX = (0.5, 1.5)
 DIM_POINT_STEP_PX = (6.0, 12.0)
 DIM_NADIR_ONLY_SHARE = 0.25
 
-# Density measurement (see the module docstring).
-DENSITY_CELL_M = 1.0
-ROOF_BAND_M = 1.0
+# Density measurement (see the module docstring): the one measure of core.surface.
+from .surface import DENSITY_CELL_M, ROOF_BAND_M  # noqa: E402
 
 
 @dataclass(frozen=True)
@@ -310,27 +309,10 @@ def acquire(scene: str | os.PathLike | Scene, acquisition: Acquisition, out_path
 # Density ------------------------------------------------------------------------------
 
 def _roof_cell_density(cells: np.ndarray, z: np.ndarray) -> tuple[float, int]:
-    """(density [pts/m²], interior cells) of building points given their integer cells (n, 2)
-    and heights (see the module docstring)."""
-    from scipy.stats import trim_mean
+    """The one density measure of the project (`core.surface.roof_cell_density`)."""
+    from .surface import roof_cell_density
 
-    if len(cells) == 0:
-        return math.nan, 0
-    ij = cells - cells.min(axis=0) + 1  # ≥ 1: every neighbour index stays ≥ 0
-    span = int(ij[:, 1].max()) + 2
-    keys, inverse = np.unique(ij[:, 0] * span + ij[:, 1], return_inverse=True)
-    top = np.full(len(keys), -np.inf)
-    np.maximum.at(top, inverse, z)
-    counts = np.bincount(inverse[z >= top[inverse] - ROOF_BAND_M], minlength=len(keys))
-    interior = np.ones(len(keys), bool)
-    for dx in (-1, 0, 1):
-        for dy in (-1, 0, 1):
-            if dx or dy:
-                nb = keys + dx * span + dy
-                interior &= keys[np.minimum(np.searchsorted(keys, nb), len(keys) - 1)] == nb
-    if not interior.any():
-        return math.nan, 0
-    return float(trim_mean(counts[interior], 0.25)) / DENSITY_CELL_M ** 2, int(interior.sum())
+    return roof_cell_density(cells, z)
 
 
 def _building_mask(classification: np.ndarray, building_id: np.ndarray | None) -> np.ndarray:

@@ -72,7 +72,7 @@ from .m3c2 import ColumnGrid, M3C2Settings, cylinder_radius, m3c2, orient_normal
 GROUND_CLASS = 2
 # Bumped whenever a descriptor's computation changes: cached training tables made with another
 # version are not reused (core.trainset), and a model records the version it was trained on.
-DESCRIPTOR_VERSION = 5
+DESCRIPTOR_VERSION = 6
 RASTER_DESCRIPTORS = ("s_lowered_1m", "s_lowered_storey", "s_lowered_half", "s_raised", "s_volume_loss",
                       "s_volume_gain", "s_height_ratio_mean", "s_height_ratio_p10", "s_post_gap",
                       "s_debris_ring", "s_debris_volume")
@@ -134,23 +134,54 @@ class SurfaceSettings:
         return cls(**d)
 
 
-def planimetric_density(xy: np.ndarray, cell_m: float = 1.0) -> float:
-    """Points per m² of a surface seen from above: the mean number of points in the `cell_m`
-    cells whose four neighbours are occupied too (interior cells: partly covered cells at
-    outlines would bias it low), over the cell area; all occupied cells when none is interior."""
-    xy = np.asarray(xy, dtype=np.float64)
-    if len(xy) == 0:
-        return 0.0
-    ij = np.floor((xy - xy.min(axis=0)) / cell_m).astype(np.int64) + 1
-    width = int(ij[:, 1].max()) + 2
-    keys, counts = np.unique(ij[:, 0] * width + ij[:, 1], return_counts=True)
+DENSITY_CELL_M = 1.0
+ROOF_BAND_M = 1.0
+
+
+def roof_cell_density(cells: np.ndarray, z: np.ndarray) -> tuple[float, int]:
+    """(density [pts/m²], interior cells) of building points given their integer 1 m cells
+    (n, 2) and heights: in each cell the points within ROOF_BAND_M of its highest point (roofs
+    up to 45° whole, walls below the eaves not), over the cells whose eight neighbours are
+    occupied too (a cell cut by an outline does not count), the interquartile mean of those
+    counts per m² (robust to chimneys and leftover walls). NaN, 0 without an interior cell."""
+    from scipy.stats import trim_mean
+
+    if len(cells) == 0:
+        return math.nan, 0
+    ij = cells - cells.min(axis=0) + 1  # >= 1: every neighbour index stays >= 0
+    span = int(ij[:, 1].max()) + 2
+    keys, inverse = np.unique(ij[:, 0] * span + ij[:, 1], return_inverse=True)
+    top = np.full(len(keys), -np.inf)
+    np.maximum.at(top, inverse, z)
+    counts = np.bincount(inverse[z >= top[inverse] - ROOF_BAND_M], minlength=len(keys))
     interior = np.ones(len(keys), bool)
-    for off in (1, -1, width, -width):
-        nk = keys + off
-        pos = np.minimum(np.searchsorted(keys, nk), len(keys) - 1)
-        interior &= keys[pos] == nk
-    use = counts[interior] if interior.any() else counts
-    return float(use.mean()) / (cell_m * cell_m)
+    for dx in (-1, 0, 1):
+        for dy in (-1, 0, 1):
+            if dx or dy:
+                nb = keys + dx * span + dy
+                interior &= keys[np.minimum(np.searchsorted(keys, nb), len(keys) - 1)] == nb
+    if not interior.any():
+        return math.nan, 0
+    return float(trim_mean(counts[interior], 0.25)) / DENSITY_CELL_M ** 2, int(interior.sum())
+
+
+def planimetric_density(xyz: np.ndarray) -> float:
+    """Points per m² of roof seen from above (`roof_cell_density` on 1 m cells of the given
+    frame; the same measure as `core.acquisition.measured_density`). A building too small for
+    an interior cell takes the mean top-band count of all its cells; no point gives 0."""
+    xyz = np.asarray(xyz, dtype=np.float64)
+    if len(xyz) == 0:
+        return 0.0
+    cells = np.floor(xyz[:, :2] / DENSITY_CELL_M).astype(np.int64)
+    d, n = roof_cell_density(cells, xyz[:, 2])
+    if n:
+        return d
+    keys, inverse = np.unique(cells[:, 0] * (int(cells[:, 1].max() - cells[:, 1].min()) + 2)
+                              + (cells[:, 1] - cells[:, 1].min()), return_inverse=True)
+    top = np.full(len(keys), -np.inf)
+    np.maximum.at(top, inverse, xyz[:, 2])
+    counts = np.bincount(inverse[xyz[:, 2] >= top[inverse] - ROOF_BAND_M], minlength=len(keys))
+    return float(counts.mean()) / DENSITY_CELL_M ** 2
 
 
 @dataclass
@@ -307,8 +338,8 @@ def describe_surfaces(pre_xyz: np.ndarray, pre_bid: np.ndarray, pre_ground: np.n
         if quality:
             cells = np.unique(pre_key[idx])
             inside = np.isin(post_key, cells)
-            qual[bid] = {"density_pre": round(planimetric_density(pre_xyz[idx, :2]), 3),
-                         "density_post": round(planimetric_density(post_xyz[inside, :2]), 3),
+            qual[bid] = {"density_pre": round(planimetric_density(pre_xyz[idx]), 3),
+                         "density_post": round(planimetric_density(post_xyz[inside]), 3),
                          "coverage": round(1.0 - descriptors[bid]["s_post_gap"], 4)}
         members[bid] = idx
         core_of[bid] = idx[voxel_core_points(pre_xyz[idx], c)]

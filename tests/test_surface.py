@@ -118,11 +118,13 @@ def test_debris_outside_the_footprint_is_seen_in_the_ring():
     assert quiet["s_debris_ring"] < 0.01
 
 
-def test_planimetric_density_counts_points_per_square_metre_of_interior_cells():
+def test_planimetric_density_counts_roof_points_per_square_metre_of_interior_cells():
     rng = np.random.default_rng(4)
     pts = sample_box(rng, 12.0, 0, 0, 20, 20, 5.0, walls=True)
-    assert planimetric_density(pts[:, :2]) == pytest.approx(12.0, rel=0.08)
-    assert planimetric_density(np.zeros((0, 2))) == 0.0
+    assert planimetric_density(pts) == pytest.approx(12.0, rel=0.08)  # walls below the eaves left out
+    assert planimetric_density(np.zeros((0, 3))) == 0.0
+    small = sample_box(rng, 12.0, 0, 0, 1.5, 1.5, 3.0, walls=False)  # no interior cell: mean over its cells
+    assert 0 < planimetric_density(small) < 13
 
 
 def test_bad_settings_and_a_building_without_points_are_refused_by_name():
