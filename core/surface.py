@@ -72,7 +72,7 @@ from .m3c2 import ColumnGrid, M3C2Settings, cylinder_radius, m3c2, orient_normal
 GROUND_CLASS = 2
 # Bumped whenever a descriptor's computation changes: cached training tables made with another
 # version are not reused (core.trainset), and a model records the version it was trained on.
-DESCRIPTOR_VERSION = 7
+DESCRIPTOR_VERSION = 8
 RASTER_DESCRIPTORS = ("s_lowered_1m", "s_lowered_storey", "s_lowered_half", "s_raised", "s_volume_loss",
                       "s_volume_gain", "s_height_ratio_mean", "s_height_ratio_p10", "s_post_gap",
                       "s_debris_ring", "s_debris_volume")
@@ -104,7 +104,7 @@ class SurfaceSettings:
     top_layer_m: float = 0.3
     # changes count only in patches of at least this many core points / raster cells
     min_patch_cores: int = 3
-    min_patch_cells: int = 2
+    min_patch_cells: int = 3
     m3c2: M3C2Settings = field(default_factory=M3C2Settings)
 
     def __post_init__(self):

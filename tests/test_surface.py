@@ -158,3 +158,23 @@ def test_pipeline_quality_gate_names_the_density_and_surface_rows_match_at_utm()
                         s_ok, workers=1)[0]
     for k, v in local.descriptors.items():
         assert utm.descriptors[k] == pytest.approx(v, abs=1e-6), k
+
+
+def test_changes_count_only_as_areas_not_as_single_cells_or_points():
+    """A 95 % test flags single cells and core points of an unchanged surface at random, so a
+    lowering counts in patches of >= 2 cells and a changed surface in patches of >= 3 core
+    points: a 2 x 2 m roof hole is seen, a 0.3 m one (one cell) is not."""
+    rng = np.random.default_rng(7)
+    pre = scene(rng, 100, False)
+
+    def with_hole(half):
+        xyz, bid, cls = scene(rng, 100, False)
+        hole = (np.abs(xyz[:, 0] - 2) < half) & (np.abs(xyz[:, 1] - 2) < half) & (xyz[:, 2] > 5.5)
+        floor = np.column_stack([rng.uniform(2 - half, 2 + half, (400, 2)), np.full(400, 3.0)])
+        return (np.vstack([xyz[~hole], floor]), np.concatenate([bid[~hole], np.ones(400, np.int64)]),
+                np.concatenate([cls[~hole], np.full(400, 6, np.uint8)]))
+
+    big, _ = describe(pre, with_hole(1.0), 100, 100)
+    small, _ = describe(pre, with_hole(0.15), 100, 100)
+    assert big["s_lowered_1m"] == pytest.approx(4.0 / 100, abs=0.02) and big["m_holes"] > 0
+    assert small["s_lowered_1m"] == 0.0 and small["m_changed"] == 0.0

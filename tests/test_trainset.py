@@ -92,3 +92,18 @@ def test_densest_cluster_drops_the_outlier_and_the_empty_terrain_between():
     span = cropped.bounds()[1, :2] - cropped.bounds()[0, :2]
     assert np.all(span < 150) and np.all(scene.bounds()[1, :2] - scene.bounds()[0, :2] > 400)
     assert set(np.unique(cropped.face_building)) == set(cropped.building_ids.tolist()) | {0}
+
+
+def test_damage_the_acquisition_did_not_see_is_left_out_of_training():
+    from core.default_model import EVIDENCE, training_rows, visible_damage
+    from core.trainset import TransferTable
+
+    names = list(EVIDENCE) + ["s_post_gap"]
+    x = np.zeros((4, len(names)))
+    x[1, names.index("m_holes")] = 0.1  # heavy, seen
+    x[3, names.index("s_post_gap")] = 0.5  # heavy, nothing changed that shows damage
+    y = np.array([0, 3, 0, 3])
+    t = TransferTable(x, y, names, np.zeros(4, int), np.zeros(4, int), np.arange(4), np.ones((4, 2)), ["c"], ["p"],
+                      ["uls-uls"])
+    assert visible_damage(t).tolist() == [True, True, True, False]
+    assert training_rows(t).y.tolist() == [0, 3, 0]
