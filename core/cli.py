@@ -182,8 +182,16 @@ def _pipeline_settings(args):
 
     split = SplitSettings(lod_height_m=args.lod_height, lod_curvature=args.lod_curvature,
                           min_changed_share=args.min_changed_share, seed=args.seed)
+    which = getattr(args, "descriptors", "paper")
+    surface = None
+    if which in ("surface", "both"):
+        from .default_model import MODEL_DESCRIPTORS
+        from .surface import SurfaceSettings
+
+        surface = SurfaceSettings()
     return PipelineSettings(radius_m=args.radius, point_features=_csv_list(args.features) or PAPER_FEATURES,
-                            split=split)
+                            split=split, paper_descriptors=which in ("paper", "both"), surface=surface,
+                            **({"surface_descriptors": MODEL_DESCRIPTORS} if surface else {}))
 
 
 def cmd_calibrate_lod(args) -> int:
@@ -223,10 +231,12 @@ def cmd_train(args) -> int:
     pairs = [TrainingPair(pre, post, args.truth[k] if args.truth else None, args.footprints)
              for k, (pre, post) in enumerate(args.pair)]
     progress = _Progress("describe", args.progress or sys.stderr.isatty())
-    model, ev, table = train(pairs, _pipeline_settings(args), n_estimators=args.trees, max_depth=args.depth,
+    settings = _pipeline_settings(args)
+    model, ev, table = train(pairs, settings, n_estimators=args.trees, max_depth=args.depth,
                              test_size=args.test_size, seed=args.seed, workers=args.threads,
                              progress=lambda name, d, t: progress(d, t),
-                             command="quakescan " + " ".join(sys.argv[1:]))
+                             command="quakescan " + " ".join(sys.argv[1:]),
+                             rule=settings.paper_descriptors)
     out = Path(args.output)
     out.parent.mkdir(parents=True, exist_ok=True)
     save_model(model, out)
@@ -516,6 +526,9 @@ def build_parser() -> argparse.ArgumentParser:
                     "epoch's grade dimension)")
     tr.add_argument("--footprints", help="GeoJSON footprints when the clouds have no building_id")
     pipeline_options(tr)
+    tr.add_argument("--descriptors", choices=("paper", "surface", "both"), default="paper",
+                    help="paper: the paper's change descriptors (split, no-change rule); surface: the "
+                    "density-invariant descriptors of the shipped model (every building asked); both")
     tr.add_argument("--trees", type=int, default=100)
     tr.add_argument("--depth", type=int, default=5)
     tr.add_argument("--test-size", type=float, default=0.3, help="held-out share of buildings (default 0.3)")

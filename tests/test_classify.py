@@ -192,3 +192,18 @@ def test_footprints_that_hit_nothing_or_some_buildings(city, tmp_path, capsys):
     # a footprint on open ground: its (ground) points did not change
     assert rows[99]["assessable"] == "1" and rows[99]["decided_by"] == "no change"
     assert sorted(rows) == [1, 99]  # IDs come from the footprints, not from the LAS
+
+
+def test_train_on_surface_descriptors_asks_the_model_about_every_building(city, tmp_path):
+    d, grades = city
+    out = tmp_path / "surface.skops"
+    assert main(["train", "--pair", str(d / "pre.las"), str(d / "post.las"), "--descriptors", "surface",
+                 "--trees", "10", "--test-size", "0", "-o", str(out)]) == 0
+    model = load_model(out)
+    assert model.no_change_rule is False and "share_changed" not in model.feature_names
+    assert "m_holes" in model.feature_names and model_settings(model).paper_descriptors is False
+    classify(d / "pre.las", d / "post.las", tmp_path / "res", model_path=out, write_las=False)
+    with open(tmp_path / "res" / "buildings.csv", newline="") as f:
+        rows = {int(r["building_id"]): r for r in csv.DictReader(f)}
+    assert [int(rows[b]["predicted_grade"]) for b in sorted(rows)] == list(grades)
+    assert {r["decided_by"] for r in rows.values()} == {"model"}
