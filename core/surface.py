@@ -72,7 +72,7 @@ from .m3c2 import ColumnGrid, M3C2Settings, cylinder_radius, m3c2, orient_normal
 GROUND_CLASS = 2
 # Bumped whenever a descriptor's computation changes: cached training tables made with another
 # version are not reused (core.trainset), and a model records the version it was trained on.
-DESCRIPTOR_VERSION = 8
+DESCRIPTOR_VERSION = 9
 RASTER_DESCRIPTORS = ("s_lowered_1m", "s_lowered_storey", "s_lowered_half", "s_raised", "s_volume_loss",
                       "s_volume_gain", "s_height_ratio_mean", "s_height_ratio_p10", "s_post_gap",
                       "s_debris_ring", "s_debris_volume")
@@ -445,7 +445,8 @@ def _raster(keys_b, pre_tops, post_tops, building_keys, ground, n3, ring_offsets
         "s_lowered_storey": float(np.mean(low > s.storey_m)),
         "s_lowered_half": float(np.mean((low > 0.5 * h_pre) & (h_pre > 1.0))),
         "s_raised": float(np.mean(rise > s.raised_m)),
-        "s_post_gap": float(1.0 - covered.mean()),
+        # sampling leaves single empty cells in a sparse epoch; an unobserved area is a patch
+        "s_post_gap": float(_in_patches(cells, ~covered, width, s.min_patch_cells).mean()),
     }
     vol = float(np.sum(h_pre)) * c * c
     out["s_volume_loss"] = float(np.sum(np.clip(low, 0.0, h_pre)) * c * c / vol) if vol > 0 else 0.0
@@ -467,6 +468,7 @@ def _raster(keys_b, pre_tops, post_tops, building_keys, ground, n3, ring_offsets
         up = post_tops.lookup(ring) - np.where(np.isnan(pre_ring), ground, pre_ring)
         var = np.nan_to_num(pre_tops.variance_of_mean(i_ring_pre), nan=0.0) + post_tops.variance_of_mean(i_ring_post)
         up = np.where(up > z * (np.sqrt(var) + reg), up, 0.0)
+    up = np.where(_in_patches(ring, np.nan_to_num(up) > 0, width, s.min_patch_cells), up, 0.0)
     seen = i_ring_post >= 0
     out["s_debris_ring"] = float(np.mean(up[seen] > s.debris_rise_m)) if seen.any() else 0.0
     out["s_debris_volume"] = (float(np.sum(np.clip(up[seen], 0, None)) * c * c / vol)
