@@ -62,6 +62,14 @@ def model_settings(model: DamageModel, source: str = "model") -> PipelineSetting
                                             core_point_step=int(stored.get("core_point_step", 1)))
     except PipelineError as e:
         raise ModelError(f"{source}: {e}") from None
+    version = (model.provenance or {}).get("descriptor_version")
+    if settings.surface is not None and version is not None:
+        from .surface import DESCRIPTOR_VERSION
+
+        if version != DESCRIPTOR_VERSION:
+            log.warning("%s: trained on surface descriptors of version %s, this QuakeScan computes version %s: "
+                        "retrain it (blender_scripts/make_default_model.py) for results it was measured on",
+                        source, version, DESCRIPTOR_VERSION)
     if settings.descriptor_names() != list(model.feature_names):
         raise ModelError(f"{source}: the model's descriptor columns are not in the order this QuakeScan "
                          f"computes them ({model.feature_names[:4]}...): retrain it with `quakescan train`")

@@ -264,23 +264,30 @@ def test_metadata_naming_another_classifier_is_refused(tmp_path, model):
         load_model(tmp_path / "rule.skops")
 
 
-def test_the_shipped_model_loads_and_predicts_as_before():
-    """core/data/default_model.skops predates the classifier and no_change_rule keys: it is a
-    forest without calibration, decides unchanged buildings by rule, and predict_rows gives
-    what the rule plus the forest's own predict_proba give."""
+def test_a_model_file_of_the_first_format_loads_and_predicts_as_before(tmp_path):
+    """Files written before the classifier and no_change_rule keys (the model QuakeScan shipped
+    until the transfer model, commit 14370f2): a forest without calibration that decides
+    unchanged buildings by rule, and predict_rows gives what the rule plus the forest's own
+    predict_proba give."""
     import skops.io as sio
 
-    from core.classify import DEFAULT_MODEL, predict_rows
-    from core.model import TRUSTED_TYPES
-    from core.pipeline import BuildingRow
+    from core.classify import predict_rows
+    from core.pipeline import BuildingRow, PipelineSettings
 
-    meta = sio.load(DEFAULT_MODEL, trusted=TRUSTED_TYPES)["meta"]
-    assert "classifier" not in meta and "no_change_rule" not in meta and meta["version"] == 1
-    m = load_model(DEFAULT_MODEL)
+    settings = PipelineSettings()
+    names = settings.descriptor_names()
+    rng = np.random.default_rng(4)
+    xt = np.abs(rng.normal(size=(60, len(names))))
+    yt = np.repeat([3, 4, 5], 20)
+    forest = train_forest(xt, yt, n_estimators=100, seed=0)
+    meta = {"format": "quakescan-model", "version": 1, "quakescan": "0.1.0", "sklearn": "1.4",
+            "feature_names": names, "radius_m": 1.5, "split": settings.to_json(), "provenance": {},
+            "created": "2026-11-01"}
+    sio.dump({"meta": meta, "estimator": forest}, tmp_path / "old.skops")
+    m = load_model(tmp_path / "old.skops")
     assert m.no_change_rule is True and m.grades == [0, 3, 4, 5]
     assert (m.classifier["kind"], m.classifier["calibration"]) == ("rf", None)
     assert m.classifier["params"]["n_estimators"] == 100
-    rng = np.random.default_rng(5)
     x = np.abs(rng.normal(size=(40, len(m.feature_names))))
     x[::4, 0] = 0.0  # share_changed (the first column) zero: by rule
     rows = [BuildingRow(i + 1, 100, 100, True, "", dict(zip(m.feature_names, r.tolist()))) for i, r in enumerate(x)]
@@ -292,6 +299,21 @@ def test_the_shipped_model_loads_and_predicts_as_before():
         else:
             assert r.decided_by == "model" and r.grade == m.classes[int(np.argmax(p))]
             assert r.probabilities == {**{g: 0.0 for g in m.grades}, **dict(zip(m.classes, p.tolist()))}
+
+
+def test_the_shipped_model_is_the_transfer_model_with_its_limits_and_provenance():
+    from core.classify import DEFAULT_MODEL, model_settings
+    from core.default_model import MODEL_DESCRIPTORS
+
+    m = load_model(DEFAULT_MODEL)
+    assert m.no_change_rule is False and m.grades == [0, 3, 4, 5]
+    assert list(m.feature_names) == list(MODEL_DESCRIPTORS)
+    s = model_settings(m)
+    assert s.surface is not None and not s.paper_descriptors
+    assert 0 < s.min_density_pts_m2 < 4 and 0 < s.min_coverage < 1
+    prov = m.provenance
+    assert prov["classifier_selection"]["chosen"] and prov["n_rows"] > 2500
+    assert "make_default_model.py" in prov["command"] and prov["descriptor_version"] >= 1
 
 
 # ------------------------------------------------------------------ the no-change rule as a model property
