@@ -13,80 +13,9 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from ._feature_kernels import _lower_bound
+
 _JIT = dict(nogil=True, cache=True, error_model="numpy")
-
-
-@njit(**_JIT)
-def _first_at_least(a, lo, hi, v):
-    while lo < hi:
-        mid = (lo + hi) >> 1
-        if a[mid] < v:
-            lo = mid + 1
-        else:
-            hi = mid
-    return lo
-
-
-@njit(parallel=True, **_JIT)
-def cylinder_moments(cx, cy, cz, nx_, ny_, nz_, radius, half_length, px, py, pz, starts, lo_x, lo_y, cell,
-                     ncx, ncy, count, mean, var, zmin_along, zmax_along):
-    """Per cylinder: number of points inside, mean and population variance of their signed
-    distance along the axis, and its extreme values (shifted: the mean is accumulated
-    relative to 0 because |distance| <= half_length keeps the sums well conditioned)."""
-    m = cx.shape[0]
-    for k in prange(m):
-        x, y, z = cx[k], cy[k], cz[k]
-        ax, ay, az = nx_[k], ny_[k], nz_[k]
-        r = radius[k]
-        h = half_length[k]
-        r2 = r * r
-        # x/y reach of the cylinder: the axis end points grown by r (exact for the box)
-        ex = abs(ax) * h + r * math.sqrt(max(0.0, 1.0 - ax * ax))
-        ey = abs(ay) * h + r * math.sqrt(max(0.0, 1.0 - ay * ay))
-        ez = abs(az) * h + r * math.sqrt(max(0.0, 1.0 - az * az))
-        i0 = max(int(math.floor((x - ex - lo_x) / cell)), 0)
-        i1 = min(int(math.floor((x + ex - lo_x) / cell)), ncx - 1)
-        j0 = max(int(math.floor((y - ey - lo_y) / cell)), 0)
-        j1 = min(int(math.floor((y + ey - lo_y) / cell)), ncy - 1)
-        n = 0
-        s = 0.0
-        ss = 0.0
-        amin = np.inf
-        amax = -np.inf
-        for i in range(i0, i1 + 1):
-            for j in range(j0, j1 + 1):
-                c = i * ncy + j
-                a = starts[c]
-                b = starts[c + 1]
-                if a == b:
-                    continue
-                t = _first_at_least(pz, a, b, z - ez)
-                while t < b and pz[t] <= z + ez:
-                    dx = px[t] - x
-                    dy = py[t] - y
-                    dz = pz[t] - z
-                    along = dx * ax + dy * ay + dz * az
-                    if abs(along) <= h:
-                        perp2 = dx * dx + dy * dy + dz * dz - along * along
-                        if perp2 <= r2:
-                            n += 1
-                            s += along
-                            ss += along * along
-                            amin = min(amin, along)
-                            amax = max(amax, along)
-                    t += 1
-        count[k] = n
-        if n > 0:
-            mu = s / n
-            mean[k] = mu
-            var[k] = max(ss / n - mu * mu, 0.0)
-            zmin_along[k] = amin
-            zmax_along[k] = amax
-        else:
-            mean[k] = np.nan
-            var[k] = np.nan
-            zmin_along[k] = np.nan
-            zmax_along[k] = np.nan
 
 
 @njit(**_JIT)
@@ -98,13 +27,14 @@ def _median_sorted(a, n):
 
 @njit(parallel=True, **_JIT)
 def cylinder_robust(cx, cy, cz, nx_, ny_, nz_, radius, half_length, behind_length, near_length, px, py, pz, starts,
-                    lo_x, lo_y, cell, ncx, ncy, sample, count, median, spread, behind, near):
+                    lo_x, lo_y, cell, ncx, ncy, sample, count, median, spread, behind, near, mean, var):
     """Per cylinder: number of points with |distance along the axis| <= half_length, the median
     of their distances and their robust spread (1.4826 x median absolute deviation), from a
     uniform sample of at most `sample.shape[1]` of them (reservoir sampling with a generator
     seeded by the cylinder's index: deterministic whatever the threads); and the number of
     points behind the surface, at distances in [-behind_length, -half_length), and the number
-    within near_length of the core (|distance| <= near_length: on the core's own surface)."""
+    within near_length of the core (|distance| <= near_length: on the core's own surface);
+    and the mean and population variance of all the distances (not only the sample's)."""
     m = cx.shape[0]
     cap = sample.shape[1]
     for k in prange(m):
@@ -125,6 +55,8 @@ def cylinder_robust(cx, cy, cz, nx_, ny_, nz_, radius, half_length, behind_lengt
         n = 0
         nb = 0
         nn = 0
+        acc = 0.0
+        acc2 = 0.0
         hn = near_length[k]
         state = np.uint64(k) * np.uint64(6364136223846793005) + np.uint64(1442695040888963407)
         for i in range(i0, i1 + 1):
@@ -134,7 +66,7 @@ def cylinder_robust(cx, cy, cz, nx_, ny_, nz_, radius, half_length, behind_lengt
                 b = starts[c + 1]
                 if a == b:
                     continue
-                t = _first_at_least(pz, a, b, z - ez)
+                t = _lower_bound(pz, a, b, z - ez)
                 while t < b and pz[t] <= z + ez:
                     dx = px[t] - x
                     dy = py[t] - y
@@ -146,6 +78,8 @@ def cylinder_robust(cx, cy, cz, nx_, ny_, nz_, radius, half_length, behind_lengt
                             if along >= -h:
                                 if abs(along) <= hn:
                                     nn += 1
+                                acc += along
+                                acc2 += along * along
                                 if n < cap:
                                     sample[k, n] = along
                                 else:
@@ -161,6 +95,9 @@ def cylinder_robust(cx, cy, cz, nx_, ny_, nz_, radius, half_length, behind_lengt
         behind[k] = nb
         near[k] = nn
         if n > 0:
+            mu = acc / n
+            mean[k] = mu
+            var[k] = max(acc2 / n - mu * mu, 0.0)
             s = min(n, cap)
             vals = np.sort(sample[k, :s])
             med = _median_sorted(vals, s)
@@ -170,3 +107,5 @@ def cylinder_robust(cx, cy, cz, nx_, ny_, nz_, radius, half_length, behind_lengt
         else:
             median[k] = np.nan
             spread[k] = np.nan
+            mean[k] = np.nan
+            var[k] = np.nan

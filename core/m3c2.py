@@ -188,6 +188,22 @@ def cylinder_radius(settings: M3C2Settings, sparser_density_pts_m2: float) -> fl
     return max(settings.cylinder_radius_m, math.sqrt(settings.min_points / (math.pi * sparser_density_pts_m2)))
 
 
+@dataclass
+class CylinderStats:
+    """Per cylinder: points within the half length, the median and robust spread (1.4826 MAD)
+    of their projections on the axis (from a sample), the points behind it (-behind_length ..
+    -half_length), those within near_length of the centre, and the mean and population
+    variance of all projections."""
+
+    count: np.ndarray
+    median: np.ndarray
+    spread: np.ndarray
+    behind: np.ndarray
+    near: np.ndarray
+    mean: np.ndarray
+    var: np.ndarray
+
+
 class ColumnGrid:
     """Points bucketed in x/y columns sorted by z, for cylinder queries (built once per epoch)."""
 
@@ -213,20 +229,18 @@ class ColumnGrid:
         self.px, self.py, self.pz = K.sort_columns_by_z(order, starts, xyz)
         self.lo, self.cell, self.nx, self.ny, self.starts = lo, cell, nx, ny, starts
 
-    def robust(self, centres, axes, radius, half_length, behind_length, sample: int = 32, chunk: int = 200_000,
-               near_length: float = 0.0):
-        """count, median and robust spread (1.4826 MAD) of the projections per cylinder, the
-        points behind it (at -behind_length .. -half_length along the axis) and the points
-        within near_length of the centre."""
+    def cylinders(self, centres, axes, radius, half_length, behind_length=0.0, sample: int = 32,
+                  chunk: int = 200_000, near_length: float = 0.0) -> CylinderStats:
+        """Statistics of the projections on the axis per cylinder (`CylinderStats`)."""
         from . import _m3c2_kernels as K
 
         m = len(centres)
         count = np.zeros(m, np.int64)
         behind = np.zeros(m, np.int64)
         near = np.zeros(m, np.int64)
-        median, spread = np.full(m, np.nan), np.full(m, np.nan)
+        median, spread, mean, var = (np.full(m, np.nan) for _ in range(4))
         if m == 0 or self.n == 0:
-            return count, median, spread, behind, near
+            return CylinderStats(count, median, spread, behind, near, mean, var)
         c = np.ascontiguousarray(centres, dtype=np.float64)
         a = np.ascontiguousarray(axes, dtype=np.float64)
         r = np.broadcast_to(np.asarray(radius, np.float64), (m,)).copy()
@@ -239,26 +253,8 @@ class ColumnGrid:
             K.cylinder_robust(c[sl, 0].copy(), c[sl, 1].copy(), c[sl, 2].copy(), a[sl, 0].copy(), a[sl, 1].copy(),
                               a[sl, 2].copy(), r[sl], h[sl], hb[sl], hn[sl], self.px, self.py, self.pz, self.starts,
                               self.lo[0], self.lo[1], self.cell, self.nx, self.ny, buf, count[sl], median[sl],
-                              spread[sl], behind[sl], near[sl])
-        return count, median, spread, behind, near
-
-    def moments(self, centres, axes, radius, half_length):
-        """count, mean, population variance, min and max of the projections per cylinder."""
-        from . import _m3c2_kernels as K
-
-        m = len(centres)
-        count = np.zeros(m, np.int64)
-        mean, var, amin, amax = (np.full(m, np.nan) for _ in range(4))
-        if m == 0 or self.n == 0:
-            return count, mean, var, amin, amax
-        c = np.ascontiguousarray(centres, dtype=np.float64)
-        a = np.ascontiguousarray(axes, dtype=np.float64)
-        r = np.broadcast_to(np.asarray(radius, np.float64), (m,)).copy()
-        h = np.broadcast_to(np.asarray(half_length, np.float64), (m,)).copy()
-        K.cylinder_moments(c[:, 0].copy(), c[:, 1].copy(), c[:, 2].copy(), a[:, 0].copy(), a[:, 1].copy(),
-                           a[:, 2].copy(), r, h, self.px, self.py, self.pz, self.starts, self.lo[0], self.lo[1],
-                           self.cell, self.nx, self.ny, count, mean, var, amin, amax)
-        return count, mean, var, amin, amax
+                              spread[sl], behind[sl], near[sl], mean[sl], var[sl])
+        return CylinderStats(count, median, spread, behind, near, mean, var)
 
 
 def _check_inputs(core, normals):
@@ -292,20 +288,16 @@ def m3c2(core, normals, pre: ColumnGrid, post: ColumnGrid, settings: M3C2Setting
     loc1, s1, loc2, s2 = (np.full(m, np.nan) for _ in range(4))
     if ok.any():
         c, a = core[ok], normals[ok] / np.linalg.norm(normals[ok], axis=1, keepdims=True)
-        near = settings.near_m
-        n1[ok], r_loc1, r_s1, _, near1[ok] = pre.robust(c, a, r, settings.max_depth_m, 0.0, settings.sample,
-                                                        near_length=near)
-        n2[ok], r_loc2, r_s2, behind[ok], near2[ok] = post.robust(c, a, r, settings.max_depth_m,
-                                                                  settings.see_through_m, settings.sample,
-                                                                  near_length=near)
+        one = pre.cylinders(c, a, r, settings.max_depth_m, 0.0, settings.sample, near_length=settings.near_m)
+        two = post.cylinders(c, a, r, settings.max_depth_m, settings.see_through_m, settings.sample,
+                             near_length=settings.near_m)
+        n1[ok], near1[ok], n2[ok], near2[ok], behind[ok] = one.count, one.near, two.count, two.near, two.behind
         if settings.statistic == "median":
-            loc1[ok], s1[ok], loc2[ok], s2[ok] = r_loc1, r_s1, r_loc2, r_s2
+            loc1[ok], s1[ok], loc2[ok], s2[ok] = one.median, one.spread, two.median, two.spread
         else:
-            _, loc1[ok], var1, _, _ = pre.moments(c, a, r, settings.max_depth_m)
-            _, loc2[ok], var2, _, _ = post.moments(c, a, r, settings.max_depth_m)
             with np.errstate(invalid="ignore", divide="ignore"):
-                s1[ok] = np.sqrt(var1 * n1[ok] / np.maximum(n1[ok] - 1, 1))
-                s2[ok] = np.sqrt(var2 * n2[ok] / np.maximum(n2[ok] - 1, 1))
+                loc1[ok], s1[ok] = one.mean, np.sqrt(one.var * one.count / np.maximum(one.count - 1, 1))
+                loc2[ok], s2[ok] = two.mean, np.sqrt(two.var * two.count / np.maximum(two.count - 1, 1))
     # the median of n normal values scatters sqrt(pi / 2) times as much as their mean, and it is
     # taken from a sample of at most `sample` of them
     median = settings.statistic == "median"
