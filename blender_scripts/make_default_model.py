@@ -31,7 +31,8 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--work", default=str(REPO / "out" / "default_model"), help="working folder (training set)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--size", choices=("full", "quick"), default="full", help="training set plan (default full)")
+    p.add_argument("--size", choices=("full", "large", "quick"), default="full",
+                   help="training set plan (default full; large: twice the cities, measured in the README)")
     p.add_argument("--threads", type=int, default=-1)
     p.add_argument("-o", "--output", default=str(DEFAULT_MODEL))
     a = p.parse_args(argv)

@@ -466,8 +466,9 @@ def build_parser() -> argparse.ArgumentParser:
     ts = sub.add_parser("training-set", help="the transfer training set of the shipped model: many cities, random "
                         "ULS/ALS/DIM acquisitions, cross-source pairs, descriptor tables (resumable)")
     ts.add_argument("-o", "--output", required=True, help="folder for scenes, clouds, tables and manifest.json")
-    ts.add_argument("--size", choices=("full", "quick"), default="full",
-                    help="full: ~2,900 buildings (the shipped model's); quick: 2 small cities")
+    ts.add_argument("--size", choices=("full", "large", "quick"), default="full",
+                    help="full: ~2,900 buildings (the shipped model's); large: ~5,700 (full and as many again); "
+                    "quick: 2 small cities")
     ts.add_argument("--seed", type=int, default=0)
     ts.add_argument("--threads", type=int, default=-1)
     ts.set_defaults(func=cmd_training_set)

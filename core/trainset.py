@@ -113,21 +113,23 @@ def _mix(n: int) -> dict:
 
 
 def default_plan(seed: int = 0, size: str = "full") -> TrainingPlan:
-    """The training set of the shipped model (`full`, ~2,900 building rows) or a small one for
-    tests and smoke runs (`quick`, 2 small cities).
+    """The training set of the shipped model (`full`, ~2,900 building rows), a larger one
+    (`large`) or a small one for tests and smoke runs (`quick`, 2 small cities).
 
     full: 6 generic and 6 region-specific mixed cities of 64 buildings, 2 mixed cities of the
     Rotterdam buildings (the 15 of its dense cluster), one generic and one region-specific city in the paper's design
     (64 buildings, heavy / extreme / destruction) with a no-change pair each; three pairs per
     mixed city, one per post-event scene of a paper-design city, sensors cycling through
-    SENSOR_PAIRS, every acquisition drawn at random."""
+    SENSOR_PAIRS, every acquisition drawn at random. large: the full plan's cities and pairs
+    (the same draws: a built full set is reused) and as many again (6 + 6 mixed cities, one
+    more paper-design city of each kind): ~5,700 rows."""
     from .acquisition import random_acquisition
 
-    if size not in ("full", "quick"):
-        raise TrainingSetError(f"plan size must be 'full' or 'quick', got {size!r}")
+    if size not in ("full", "quick", "large"):
+        raise TrainingSetError(f"plan size must be 'full', 'large' or 'quick', got {size!r}")
     rng = np.random.default_rng([seed, 7001])
     cities = []
-    if size == "full":
+    if size in ("full", "large"):
         for k in range(6):
             cities.append(CitySpec(f"generic_m{k}", "generic", "mixed", seed * 1000 + 100 + k, 64, _mix(64)))
             cities.append(CitySpec(f"region_m{k}", "region", "mixed", seed * 1000 + 200 + k, 64, _mix(64)))
@@ -136,6 +138,12 @@ def default_plan(seed: int = 0, size: str = "full") -> TrainingPlan:
         cities.append(CitySpec("generic_p0", "generic", "paper", seed * 1000 + 400, 64))
         cities.append(CitySpec("region_p0", "region", "paper", seed * 1000 + 401, 64))
         per_mixed = 3
+        if size == "large":  # the full plan's cities first (the same draws), then as many again
+            for k in range(6, 12):
+                cities.append(CitySpec(f"generic_m{k}", "generic", "mixed", seed * 1000 + 100 + k, 64, _mix(64)))
+                cities.append(CitySpec(f"region_m{k}", "region", "mixed", seed * 1000 + 200 + k, 64, _mix(64)))
+            cities.append(CitySpec("generic_p1", "generic", "paper", seed * 1000 + 402, 64))
+            cities.append(CitySpec("region_p1", "region", "paper", seed * 1000 + 403, 64))
     else:
         cities.append(CitySpec("generic_m0", "generic", "mixed", seed * 1000 + 100, 12, _mix(12)))
         cities.append(CitySpec("region_m0", "region", "mixed", seed * 1000 + 200, 12, _mix(12)))

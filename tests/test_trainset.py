@@ -1,5 +1,6 @@
 """The transfer training set (core/trainset.py) and the shipped model's recipe (core/default_model.py)."""
 import json
+from dataclasses import asdict
 
 import numpy as np
 import pytest
@@ -30,12 +31,23 @@ def test_the_full_plan_varies_buildings_sensors_and_damage_context():
     assert json.dumps(default_plan(1, "full").to_json()) != json.dumps(plan.to_json())
 
 
+def test_plan_sizes_nest_and_name_each_city_once():
+    quick, full, large = (default_plan(0, z) for z in ("quick", "full", "large"))
+    for plan in (quick, full, large):
+        names = [c.name for c in plan.cities]
+        assert len(names) == len(set(names))
+    assert len(quick.cities) == 2 and len(full.cities) == 16 and len(large.cities) == 30
+    # large = full's cities and pairs (same draws, so a built full set is reused) and more
+    assert [asdict(c) for c in large.cities[:16]] == [asdict(c) for c in full.cities]
+    assert [asdict(p) for p in large.pairs[:50]] == [asdict(p) for p in full.pairs]
+
+
 def test_a_plan_naming_a_city_it_lacks_is_refused(tmp_path):
     plan = default_plan(0, "quick")
     bad = TrainingPlan(plan.cities[:1], plan.pairs, 0, "broken")
     with pytest.raises(TrainingSetError, match="region_m0"):
         build(tmp_path, bad, TRANSFER_SETTINGS, say=lambda s: None)
-    with pytest.raises(TrainingSetError, match="full' or 'quick"):
+    with pytest.raises(TrainingSetError, match="'full', 'large' or 'quick'"):
         default_plan(0, "huge")
 
 
