@@ -10,9 +10,9 @@ descriptor is a share of area or a length, never a count of points:
 
 **2.5-D upper surfaces** (`cell_m` = sqrt(points_per_cell / density of the sparser epoch),
 clipped to [cell_min_m, cell_max_m]). The building's cells are those holding its pre-event
-points; the top of a cell is the highest point of *any* kind in it (vegetation over a roof
-included, as on real data where points belong to buildings through footprints), in both
-epochs. Lowering = pre top − post top. At the building's outline and at steps of the roof
+points; before the event the top of a cell is the building's own surface (its points:
+vegetation over a roof included, as on real data where points belong to buildings through
+footprints), after it whatever is there (every point: rubble, a neighbour's debris). Lowering = pre top − post top. At the building's outline and at steps of the roof
 (where one sampling may catch an eave that the other misses) a cell is compared with the
 highest post-event cell of its 3 × 3 neighbourhood instead; interior roof cells are
 compared directly, so a hole of one or two cells is not smoothed away.
@@ -72,7 +72,7 @@ from .m3c2 import ColumnGrid, M3C2Settings, cylinder_radius, m3c2, orient_normal
 GROUND_CLASS = 2
 # Bumped whenever a descriptor's computation changes: cached training tables made with another
 # version are not reused (core.trainset), and a model records the version it was trained on.
-DESCRIPTOR_VERSION = 9
+DESCRIPTOR_VERSION = 10
 RASTER_DESCRIPTORS = ("s_lowered_1m", "s_lowered_storey", "s_lowered_half", "s_raised", "s_volume_loss",
                       "s_volume_gain", "s_height_ratio_mean", "s_height_ratio_p10", "s_post_gap",
                       "s_debris_ring", "s_debris_volume")
@@ -336,8 +336,9 @@ def describe_surfaces(pre_xyz: np.ndarray, pre_bid: np.ndarray, pre_ground: np.n
         if len(idx) == 0:
             raise SurfaceError(f"building {bid} has no pre-event points in its region")
         ground = grounds[bid] = ground_finder.height(pre_xyz[idx])
-        descriptors[bid], edge_keys = _raster(pre_key[idx], pre_tops, post_tops, building_keys, ground, n3,
-                                              ring_offsets, settings, c, width)
+        own_tops = _CellTops(pre_xyz[idx], lo, c, width, layer)
+        descriptors[bid], edge_keys = _raster(pre_key[idx], own_tops, pre_tops, post_tops, building_keys, ground,
+                                              n3, ring_offsets, settings, c, width)
         if quality:
             cells = np.unique(pre_key[idx])
             inside = np.isin(post_key, cells)
@@ -403,18 +404,26 @@ class _GroundFinder:
         raise AssertionError("unreachable: the last set holds every point")
 
 
-def _raster(keys_b, pre_tops, post_tops, building_keys, ground, n3, ring_offsets, s: SurfaceSettings, c, width):
+def _raster(keys_b, own_tops, pre_tops, post_tops, building_keys, ground, n3, ring_offsets, s: SurfaceSettings, c,
+            width):
     """Raster descriptors of one building (its cells: `keys_b`) and the cells around it, and
-    the keys of its outline and step cells."""
+    the keys of its outline and step cells.
+
+    Lowering is measured from the building's *own* pre-event surface (`own_tops`: its points,
+    by footprint on real data) to whatever is there after (`post_tops`, every point): a cell at
+    a party wall also holds the neighbour's roof, and the neighbour's collapse is not this
+    building's. Rises compare with every pre-event point, so that a taller intact neighbour
+    does not read as a rise."""
     z, reg = s.m3c2.z, s.m3c2.registration_error_m
     cells = np.unique(keys_b)
     nb = cells[:, None] + n3[None, :]
-    i_pre, i_post = pre_tops.index(cells), post_tops.index(cells)
-    pre_top, post_top = pre_tops.lookup(cells), post_tops.lookup(cells)
+    i_pre, i_post = own_tops.index(cells), post_tops.index(cells)
+    pre_top, post_top = own_tops.lookup(cells), post_tops.lookup(cells)
     h_pre = np.maximum(pre_top - ground, 0.0)
-    pre_nb = pre_tops.lookup(nb)
+    pre_nb = own_tops.lookup(nb)
     post_nb_max, j_post = _row_argmax(post_tops.lookup(nb))
-    pre_nb_max, j_pre = _row_argmax(pre_nb)
+    pre_nb_max, _ = _row_argmax(pre_nb)
+    all_nb_max, j_all = _row_argmax(pre_tops.lookup(nb))
     # outline cells (a neighbour outside the building) and steps of the roof are compared with
     # the highest cell of the other epoch's 3x3 neighbourhood: one sampling may catch an eave
     # or a dormer wall that the other misses by a few centimetres
@@ -424,16 +433,16 @@ def _raster(keys_b, pre_tops, post_tops, building_keys, ground, n3, ring_offsets
     edge = ~in_building.all(axis=1) | step
     rows = np.arange(len(cells))
     i_post_cmp = np.where(edge, post_tops.index(nb[rows, j_post]), i_post)
-    i_pre_cmp = np.where(edge, pre_tops.index(nb[rows, j_pre]), i_pre)
+    i_all_cmp = np.where(edge, pre_tops.index(nb[rows, j_all]), pre_tops.index(cells))
     post_cmp = np.where(edge, post_nb_max, post_top)
-    pre_cmp = np.where(edge, pre_nb_max, pre_top)
+    all_cmp = np.where(edge, all_nb_max, pre_tops.lookup(cells))
     covered = ~np.isnan(post_top)
     with np.errstate(invalid="ignore"):
         lowered = pre_top - post_cmp
-        raised = post_top - pre_cmp
+        raised = post_top - all_cmp
         # levels of detection of the two differences (M3C2's form on the cells' top layers)
-        lod_low = z * (np.sqrt(pre_tops.variance_of_mean(i_pre) + post_tops.variance_of_mean(i_post_cmp)) + reg)
-        lod_raise = z * (np.sqrt(pre_tops.variance_of_mean(i_pre_cmp) + post_tops.variance_of_mean(i_post)) + reg)
+        lod_low = z * (np.sqrt(own_tops.variance_of_mean(i_pre) + post_tops.variance_of_mean(i_post_cmp)) + reg)
+        lod_raise = z * (np.sqrt(pre_tops.variance_of_mean(i_all_cmp) + post_tops.variance_of_mean(i_post)) + reg)
         low = np.where(lowered > lod_low, lowered, 0.0)
         rise = np.where(raised > lod_raise, raised, 0.0)
     low, rise = np.nan_to_num(low, nan=0.0), np.nan_to_num(rise, nan=0.0)
