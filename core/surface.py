@@ -72,7 +72,7 @@ from .m3c2 import ColumnGrid, M3C2Settings, cylinder_radius, m3c2, orient_normal
 GROUND_CLASS = 2
 # Bumped whenever a descriptor's computation changes: cached training tables made with another
 # version are not reused (core.trainset), and a model records the version it was trained on.
-DESCRIPTOR_VERSION = 10
+DESCRIPTOR_VERSION = 11
 RASTER_DESCRIPTORS = ("s_lowered_1m", "s_lowered_storey", "s_lowered_half", "s_raised", "s_volume_loss",
                       "s_volume_gain", "s_height_ratio_mean", "s_height_ratio_p10", "s_post_gap",
                       "s_debris_ring", "s_debris_volume")
@@ -105,6 +105,10 @@ class SurfaceSettings:
     # changes count only in patches of at least this many core points / raster cells
     min_patch_cores: int = 3
     min_patch_cells: int = 3
+    # a share of the footprint (or relative volume) below this is no structural damage at any
+    # EMS-98 grade >= 3 (the catalogue's smallest heavy patterns: roof holes over 5-30 % of the
+    # roof): it counts as 0, as it does for every simulated undamaged building
+    min_share: float = 0.005
     m3c2: M3C2Settings = field(default_factory=M3C2Settings)
 
     def __post_init__(self):
@@ -372,6 +376,7 @@ def describe_surfaces(pre_xyz: np.ndarray, pre_bid: np.ndarray, pre_ground: np.n
         cc, dm = _core_change(pre_xyz[core_of[bid]], normals[bid], res, lost_all[sl], res.seen_through[sl], sl,
                               settings, c, grounds[bid])
         descriptors[bid].update(dm)
+        _dead_zone(descriptors[bid], settings.min_share)
         cores[bid] = cc
     if quality:
         return descriptors, cores, qual
@@ -573,6 +578,19 @@ def _core_change(cxyz, normals, res, lost, seen_through, sl, s: SurfaceSettings,
         "m_lod_median": float(np.median(lod_raw[comparable])) if comparable.any() else 0.0,
     }
     return CoreChange(cxyz, distance, lod_raw, comparable, changed), out
+
+
+# shares of the footprint (or volumes relative to the building's): the dead zone applies. Not to
+# the core-point shares: those are over roofs and walls together, where a 2 x 2 m roof hole in
+# a 10 x 10 x 6 m box is 0.5 % of the surface but 4 % of its roof
+SHARES = ("s_lowered_1m", "s_lowered_storey", "s_lowered_half", "s_raised", "s_volume_loss", "s_volume_gain",
+          "s_post_gap", "s_debris_ring", "s_debris_volume")
+
+
+def _dead_zone(d: dict, min_share: float) -> None:
+    for k in SHARES:
+        if k in d and abs(d[k]) < min_share:
+            d[k] = 0.0
 
 
 def _in_patches(cells: np.ndarray, mask: np.ndarray, width: int, min_cells: int) -> np.ndarray:
