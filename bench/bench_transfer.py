@@ -209,7 +209,7 @@ def _pct(v):
 
 def report(res: dict, args) -> str:
     prov = res["provenance"]
-    lines = [f"## Transfer to data QuakeScan did not make (`bench/bench_transfer.py`)", "",
+    lines = ["## Transfer to data QuakeScan did not make (`bench/bench_transfer.py`)", "",
              f"Machine: {machine()}. Command: `.venv/bin/python bench/bench_transfer.py`; "
              f"{res['seconds'] / 60:.1f} min from nothing but the shipped model's training set, peak "
              f"{res['peak_mib']:,} MiB. Model: {prov.get('dataset', '?')}; classifier "

@@ -88,7 +88,7 @@ DIM_POINT_STEP_PX = (6.0, 12.0)
 DIM_NADIR_ONLY_SHARE = 0.25
 
 # Density measurement (see the module docstring): the one measure of core.surface.
-from .surface import DENSITY_CELL_M, ROOF_BAND_M  # noqa: E402
+from .surface import DENSITY_CELL_M  # noqa: E402
 
 
 @dataclass(frozen=True)
