@@ -269,8 +269,10 @@ def _check_inputs(core, normals):
 
 
 def m3c2(core, normals, pre: ColumnGrid, post: ColumnGrid, settings: M3C2Settings,
-         radius_m: float | None = None) -> M3C2Result:
+         radius_m: float | None = None, student: bool = True) -> M3C2Result:
     """Distances and levels of detection at the core points (all in one local frame).
+    `student=False` uses the normal quantile `settings.z` (Lague et al., py4dgeo) instead of
+    Student's for the spreads' degrees of freedom.
 
     Core points whose normal is undefined (NaN: a degenerate neighbourhood) are not
     comparable: their distance and LoD are NaN and they are neither significant nor lost."""
@@ -311,7 +313,7 @@ def m3c2(core, normals, pre: ColumnGrid, post: ColumnGrid, settings: M3C2Setting
         comparable = (n1 >= k) & (n2 >= k)
         distance = np.where(comparable, loc2 - loc1, np.nan)
         v1, v2 = s1 ** 2 / m1, s2 ** 2 / m2
-        factor = _critical_value(settings.z, v1, v2, m1, m2, median)
+        factor = _critical_value(settings.z, v1, v2, m1, m2, median) if student else settings.z
         lod = np.where(comparable, factor * efficiency * np.sqrt(v1 + v2)
                        + settings.z * settings.registration_error_m, np.nan)
     return M3C2Result(distance, lod, n1, n2, s1, s2, r, k, behind, near1, near2)
