@@ -56,19 +56,24 @@ def test_quick_training_set_builds_resumes_and_trains_a_model_that_classifies_cr
     from core.classify import classify
     from core.model import load_model, save_model
 
+    from core.cli import main
+
     plan = default_plan(0, "quick")
-    said = []
-    table = build(tmp_path / "ts", plan, TABLE_SETTINGS, workers=2, say=said.append)
+    assert main(["training-set", "-o", str(tmp_path / "ts"), "--size", "quick", "--threads", "2"]) == 0
+    table = build(tmp_path / "ts", plan, TABLE_SETTINGS, workers=2, say=lambda s: None)
     assert table.x.shape == (len(table.y), len(TABLE_SETTINGS.descriptor_names()))
     assert len(table.y) >= 40 and set(np.unique(table.y)) <= {0, 3, 4, 5}
     assert np.all(np.isfinite(table.x))
     manifest = json.loads((tmp_path / "ts" / "manifest.json").read_text())
     assert manifest["rows"] == len(table.y) and manifest["plan"]["name"] == "default-quick"
     clouds = sorted((tmp_path / "ts" / "clouds").rglob("*.las"))
+    assert len(clouds) == 8  # two clouds per pair
     stamps = {p: p.stat().st_mtime_ns for p in clouds}
+    tables = {p: p.stat().st_mtime_ns for p in (tmp_path / "ts" / "tables").glob("*.npz")}
     again = build(tmp_path / "ts", plan, TABLE_SETTINGS, workers=2, say=lambda s: None)
-    np.testing.assert_array_equal(again.x, table.x)  # resumed: same rows, nothing acquired again
+    np.testing.assert_array_equal(again.x, table.x)  # resumed: same rows, nothing acquired or described again
     assert {p: p.stat().st_mtime_ns for p in clouds} == stamps
+    assert {p: p.stat().st_mtime_ns for p in (tmp_path / "ts" / "tables").glob("*.npz")} == tables
 
     table = model_columns(table)
     assert table.names == TRANSFER_SETTINGS.descriptor_names()
