@@ -183,15 +183,18 @@ def _pipeline_settings(args):
     split = SplitSettings(lod_height_m=args.lod_height, lod_curvature=args.lod_curvature,
                           min_changed_share=args.min_changed_share, seed=args.seed)
     which = getattr(args, "descriptors", "paper")
+    per_point = bool(getattr(args, "per_point_lod", False))
     surface = None
-    if which in ("surface", "both"):
+    if which in ("surface", "both") or per_point:
         from .default_model import MODEL_DESCRIPTORS
         from .surface import SurfaceSettings
 
         surface = SurfaceSettings()
     return PipelineSettings(radius_m=args.radius, point_features=_csv_list(args.features) or PAPER_FEATURES,
-                            split=split, paper_descriptors=which in ("paper", "both"), surface=surface,
-                            **({"surface_descriptors": MODEL_DESCRIPTORS} if surface else {}))
+                            split=split, paper_descriptors=which in ("paper", "both"),
+                            surface=surface, per_point_lod=per_point and which != "surface",
+                            **({"surface_descriptors": MODEL_DESCRIPTORS} if which in ("surface", "both") else
+                               {"surface_descriptors": ()} if surface else {}))
 
 
 def cmd_calibrate_lod(args) -> int:
@@ -530,6 +533,9 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--descriptors", choices=("paper", "surface", "both"), default="paper",
                     help="paper: the paper's change descriptors (split, no-change rule); surface: the "
                     "density-invariant descriptors of the shipped model (every building asked); both")
+    tr.add_argument("--per-point-lod", action="store_true",
+                    help="the paper's split with per-point levels of detection (M3C2 and the curvature's "
+                    "standard error; --lod-height/--lod-curvature stay as floors)")
     tr.add_argument("--trees", type=int, default=100)
     tr.add_argument("--depth", type=int, default=5)
     tr.add_argument("--test-size", type=float, default=0.3, help="held-out share of buildings (default 0.3)")

@@ -184,7 +184,7 @@ def settings_for_descriptors(names: Sequence[str], radius_m: float, split: dict 
                             f"surface descriptors: {', '.join(SURFACE_DESCRIPTORS)})")
     newer = _newer_keys(stored or {})
     newer["paper_descriptors"] = "share_changed" in names
-    newer["surface_descriptors"] = tuple(surface_cols) or SURFACE_DESCRIPTORS
+    newer["surface_descriptors"] = tuple(surface_cols)  # none: surface settings only for per-point LoDs
     if surface_cols and newer["surface"] is None:
         newer["surface"] = SurfaceSettings()
     if not surface_cols and not newer["per_point_lod"]:

@@ -207,3 +207,16 @@ def test_train_on_surface_descriptors_asks_the_model_about_every_building(city, 
         rows = {int(r["building_id"]): r for r in csv.DictReader(f)}
     assert [int(rows[b]["predicted_grade"]) for b in sorted(rows)] == list(grades)
     assert {r["decided_by"] for r in rows.values()} == {"model"}
+
+
+def test_train_with_per_point_levels_of_detection_round_trips_through_the_model(city, tmp_path):
+    d, grades = city
+    out = tmp_path / "pp.skops"
+    assert main(["train", "--pair", str(d / "pre.las"), str(d / "post.las"), "--per-point-lod", "--trees", "10",
+                 "--test-size", "0", "-o", str(out)]) == 0
+    s = model_settings(load_model(out))
+    assert s.per_point_lod and s.paper_descriptors and s.surface is not None and s.surface_descriptors == ()
+    classify(d / "pre.las", d / "post.las", tmp_path / "res", model_path=out, write_las=False)
+    with open(tmp_path / "res" / "buildings.csv", newline="") as f:
+        rows = {int(r["building_id"]): r for r in csv.DictReader(f)}
+    assert [int(rows[b]["predicted_grade"]) for b in sorted(rows)] == list(grades)
