@@ -1,4 +1,5 @@
-"""Binary PLY for scene meshes: double vertices, faces with building_id and surface.
+"""Binary PLY for scene meshes: double vertices, faces with building_id and surface
+(and, optionally, `porous`: uchar 1 on tree-crown faces a laser ray may pass).
 
 Writes exactly the layout of the scene contract (DESIGN.md). Reads that layout and the
 variations other tools produce (float vertices, other list/index integer types, big
@@ -30,6 +31,7 @@ class MeshArrays:
     faces: np.ndarray  # (m, 3) int64
     building_id: np.ndarray  # (m,) int32
     surface: np.ndarray  # (m,) uint8
+    porous: np.ndarray | None = None  # (m,) bool, None when the file has no `porous` property
 
 
 def write_ply(path: str | os.PathLike, mesh: MeshArrays, comment: str = "quakescan scene mesh") -> None:
@@ -47,14 +49,19 @@ def write_ply(path: str | os.PathLike, mesh: MeshArrays, comment: str = "quakesc
         "property list uchar int vertex_indices\n"
         "property int building_id\n"
         "property uchar surface\n"
-        "end_header\n"
+        + ("property uchar porous\n" if mesh.porous is not None else "")
+        + "end_header\n"
     ).encode("ascii")
-    face_dtype = np.dtype([("n", "u1"), ("v", "<i4", (3,)), ("building_id", "<i4"), ("surface", "u1")])
-    records = np.empty(m, dtype=face_dtype)
+    fields = [("n", "u1"), ("v", "<i4", (3,)), ("building_id", "<i4"), ("surface", "u1")]
+    if mesh.porous is not None:  # written only when asked: meshes without vegetation keep their bytes
+        fields.append(("porous", "u1"))
+    records = np.empty(m, dtype=np.dtype(fields))
     records["n"] = 3
     records["v"] = faces
     records["building_id"] = mesh.building_id
     records["surface"] = mesh.surface
+    if mesh.porous is not None:
+        records["porous"] = mesh.porous
     tmp = path.with_name(path.name + ".tmp")
     with open(tmp, "wb") as f:
         f.write(header)
@@ -109,7 +116,7 @@ def read_ply(path: str | os.PathLike) -> MeshArrays:
         raise SceneError(f"{path}: mesh file is missing") from None
     endian, elements, pos = _parse_header(path, raw)
     data = memoryview(raw)
-    vertices = faces = building_id = surface = None
+    vertices = faces = building_id = surface = porous = None
     for el in elements:
         name, count, props = el["name"], el["count"], el["props"]
         has_list = any(isinstance(t, tuple) for _, t in props)
@@ -129,12 +136,12 @@ def read_ply(path: str | os.PathLike) -> MeshArrays:
             continue
         arr, pos = _read_list_element(path, data, pos, endian, name, count, props)
         if name == "face":
-            faces, building_id, surface = arr
+            faces, building_id, surface, porous = arr
     if vertices is None:
         raise SceneError(f"{path}: no vertex element")
     if faces is None:
         raise SceneError(f"{path}: no face element")
-    return MeshArrays(vertices, faces, building_id, surface)
+    return MeshArrays(vertices, faces, building_id, surface, porous)
 
 
 def _read_list_element(path, data, pos, endian, name, count, props):
@@ -150,9 +157,10 @@ def _read_list_element(path, data, pos, endian, name, count, props):
     for needed in ("building_id", "surface"):
         if needed not in prop_names:
             raise SceneError(f"{path}: face element lacks property {needed!r} (scene contract)")
+    has_porous = "porous" in prop_names
     if count == 0:
         empty = np.zeros((0, 3), np.int64)
-        return (empty, np.zeros(0, np.int32), np.zeros(0, np.uint8)), pos
+        return (empty, np.zeros(0, np.int32), np.zeros(0, np.uint8), np.zeros(0, bool) if has_porous else None), pos
     first_len_type = next(t for _, t in props if isinstance(t, tuple))[1]
     # Probe the first record's list length, assume it is uniform, verify.
     fields_before = []
@@ -177,8 +185,8 @@ def _read_list_element(path, data, pos, endian, name, count, props):
         if np.all(arr["__n"] == n0):
             polys = arr["__v"].astype(np.int64)
             faces, owner = _fan(polys)
-            return (faces, arr["building_id"][owner].astype(np.int32),
-                    arr["surface"][owner].astype(np.uint8)), pos + need
+            return (faces, arr["building_id"][owner].astype(np.int32), arr["surface"][owner].astype(np.uint8),
+                    arr["porous"][owner] != 0 if has_porous else None), pos + need
     return _read_faces_slow(path, data, pos, endian, count, props)
 
 
@@ -192,7 +200,8 @@ def _fan(polys: np.ndarray):
 
 
 def _read_faces_slow(path, data, pos, endian, count, props):
-    tris, bids, surfs = [], [], []
+    tris, bids, surfs, porous = [], [], [], []
+    has_porous = any(p == "porous" for p, _ in props)
     for i in range(count):
         values = {}
         for p, t in props:
@@ -219,5 +228,6 @@ def _read_faces_slow(path, data, pos, endian, count, props):
             tris.append((poly[0], poly[j], poly[j + 1]))
             bids.append(values["building_id"])
             surfs.append(values["surface"])
+            porous.append(values.get("porous", 0))
     return (np.array(tris, np.int64).reshape(-1, 3), np.array(bids, np.int32),
-            np.array(surfs, np.uint8)), pos
+            np.array(surfs, np.uint8), np.array(porous) != 0 if has_porous else None), pos

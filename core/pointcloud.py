@@ -24,9 +24,11 @@ POINT_FORMAT = 6
 GRADE_UNKNOWN = 255
 # ASPRS classes
 UNCLASSIFIED, GROUND_CLASS, BUILDING_CLASS = 1, 2, 6
+LOW_VEGETATION_CLASS, HIGH_VEGETATION_CLASS = 3, 5
+VEGETATION_CLASSES = (3, 4, 5)  # low, medium, high vegetation
 EXTRA_DIMS = (("building_id", np.uint32, "building ID, 0 = none"),
               ("grade", np.uint8, "EMS-98 grade, 255 = unknown"),
-              ("surface", np.uint8, "0grd 1roof 2wall 3debris 4int"))
+              ("surface", np.uint8, "0grd1roof2wall3deb4int5veg6obj"))
 _INT32 = np.iinfo(np.int32)
 
 

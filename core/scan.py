@@ -44,7 +44,7 @@ import numpy as np
 from .errors import PointCloudError, SceneError, SurveyError
 from .pointcloud import (BUILDING_CLASS, GRADE_UNKNOWN, GROUND_CLASS, SCALE, UNCLASSIFIED, LasChunkWriter,
                          PointChunk)
-from .scene import GROUND, SURFACE_NAMES, Scene
+from .scene import GROUND, SURFACE_NAMES, VEGETATION, Scene
 from .survey import FlightLine, FlightPlan, Survey, plan_flight
 
 log = logging.getLogger(__name__)
@@ -82,24 +82,39 @@ class RayCaster:
         self.face_class = np.where(self.face_building > 0, BUILDING_CLASS,
                                    np.where(self.face_surface == GROUND, GROUND_CLASS, UNCLASSIFIED)
                                    ).astype(np.uint8)
+        # Porous faces (tree crowns) let rays pass (core.vegetation); None: every face is opaque
+        # and casting is exactly what it was before vegetation existed.
+        self.face_porous = scene.face_porous.astype(bool) if scene.has_porous else None
+        self.transmission = float(scene.transmission)
+        is_veg = (self.face_building == 0) & (self.face_surface == VEGETATION)
+        if is_veg.any():
+            from .vegetation import vegetation_face_classes
+
+            veg_class = vegetation_face_classes(v, f, is_veg, self.face_porous)
+            self.face_class[is_veg] = veg_class[is_veg]
         self._embree = rtcore_scene.EmbreeScene()
         self._mesh = TriangleMesh(self._embree, v.astype(np.float32), f.astype(np.int32))
         # Committing is lazy in embreex and not thread-safe: do it now with one ray.
         self._embree.run(np.zeros((1, 3), np.float32), np.array([[0, 0, 1]], np.float32))
 
     def cast(self, origins: np.ndarray, directions: np.ndarray, max_range: float,
-             origins32=None, directions32=None, fast: bool = True):
+             origins32=None, directions32=None, fast: bool = True, ray_ids=None):
         """Cast rays (local frame, float64 (n, 3), unit directions).
 
         Returns (face, t): face index per ray (-1 = no hit) and the float64 distance to
         the hit on that face's plane (inf where there is no hit). Embree releases the GIL,
         so calls from several threads run in parallel. `origins32`/`directions32` skip the
         float32 conversion when the caller has them; `fast=False` refines with the numpy
-        reference instead of the compiled loop.
+        reference instead of the compiled loop. `ray_ids` (`core.vegetation.RayIds`) lets
+        rays pass porous faces (tree crowns); without it every face is opaque (DIM).
         """
         o32 = origins.astype(np.float32) if origins32 is None else origins32
         d32 = directions.astype(np.float32) if directions32 is None else directions32
         face = self.embree_faces(o32, d32, max_range).astype(np.int64)
+        if ray_ids is not None and self.face_porous is not None:
+            from .vegetation import pass_porous
+
+            face = pass_porous(self, origins, directions, face, max_range, ray_ids)
         if fast:
             from ._scan_kernels import refine_hits
 
@@ -107,8 +122,10 @@ class RayCaster:
         return face, self._refine_reference(origins, directions, face, max_range)
 
     def embree_faces(self, origins32: np.ndarray, directions32: np.ndarray, max_range: float) -> np.ndarray:
-        """Face hit by each float32 ray (int32, -1 = none); Embree alone, GIL released."""
-        return self._embree.run(origins32, directions32, dists=float(max_range), output=0)
+        """Face hit by each float32 ray (int32, -1 = none); Embree alone, GIL released.
+        `max_range`: one distance, or one per ray (float32 array)."""
+        dists = max_range if isinstance(max_range, np.ndarray) else float(max_range)
+        return self._embree.run(origins32, directions32, dists=dists, output=0)
 
     def _refine_reference(self, origins, directions, face, max_range):
         """Numpy reference of `_scan_kernels.refine_hits` (same results, more passes)."""
@@ -333,13 +350,15 @@ class _Simulator:
         o, d, o32, d32 = pulses.rays(self.fast)
         # Every output point: a ray (row of o/d: the pulse's central ray) and a pulse index.
         if s.beam == "single":
-            face, t = self.caster.cast(o, d, s.max_range_m, o32, d32, self.fast)
+            face, t = self.caster.cast(o, d, s.max_range_m, o32, d32, self.fast,
+                                       self.ray_ids(batch.line, pulses.j))
             stats["rays_cast"] = len(pulses)
             ray = np.flatnonzero(face >= 0)
             face, rng_m = face[ray], t[ray]
             ret = nret = np.ones(len(ray), np.uint8)
         elif s.beam == "full":
-            ray, face, rng_m, ret, nret = self._full_beam(o, d, pulses.plane_normal, stats)
+            ray, face, rng_m, ret, nret = self._full_beam(o, d, pulses.plane_normal, stats,
+                                                          ids=(batch.line, pulses.j))
         else:
             ray, face, rng_m, ret, nret = self._adaptive(batch, pulses, o, d, o32, d32, stats)
         pulse = ray  # rays are the batch's pulses, in order
@@ -352,6 +371,15 @@ class _Simulator:
         stats["points"] = len(ray)
         out = self._output(pulses, batch.line.index, ray, pulse, face, rng_m, noise, ret, nret, o, d, shift, stats)
         return out, stats
+
+    def ray_ids(self, line: FlightLine, j: np.ndarray, k: int = 1):
+        """Identities of rays for the transmission draws of porous faces (None when the scene
+        has none: nothing is drawn)."""
+        if self.caster.face_porous is None:
+            return None
+        from .vegetation import RayIds
+
+        return RayIds(self.seed, line.index, j, k)
 
     def line_shift(self, line_index: int) -> np.ndarray:
         """Local → LAS-offset coordinates for the points of one flight line: `shift` plus the
@@ -371,6 +399,13 @@ class _Simulator:
         o32, d32, cs = pulse_rays32(pulses.t, pulses.theta, ln.t_start, pulses.start_local, pulses.velocity,
                                     pulses.down, pulses.right)
         face = c.embree_faces(o32, d32, s.max_range_m)
+        if c.face_porous is not None:
+            from ._scan_kernels import pulse_rays
+            from .vegetation import pass_porous
+
+            o64, d64 = pulse_rays(pulses.t, pulses.theta, ln.t_start, pulses.start_local, pulses.velocity,
+                                  pulses.down, pulses.right)[:2]
+            face = pass_porous(c, o64, d64, face, float(s.max_range_m), self.ray_ids(ln, pulses.j))
         stats["rays_cast"] = len(pulses)
         hits = int(np.count_nonzero(face >= 0))
         rng = np.random.default_rng([self.seed, ln.index, batch.number])
@@ -443,7 +478,8 @@ class _Simulator:
                                    (after, before.n_fov + pulses.n_fov, None)):
             if rays is None:
                 rays = part.rays(self.fast)
-            f_, t_ = self.caster.cast(rays[0], rays[1], s.max_range_m, rays[2], rays[3], self.fast)
+            f_, t_ = self.caster.cast(rays[0], rays[1], s.max_range_m, rays[2], rays[3], self.fast,
+                                      self.ray_ids(line, part.j))
             stats["rays_cast"] += len(part)
             segments.append((offset + part.rank, rays[0], rays[1], np.where(f_ >= 0, t_, 0.0), f_))
         offsets = np.array(self.neighbour_offsets, np.int64)
@@ -459,7 +495,7 @@ class _Simulator:
         stats["pulses_with_sub_rays"] += len(flagged)
         plain = np.flatnonzero(~flag & (face >= 0))
         f_ray, f_face, f_rng, f_ret, f_nret = self._full_beam(o[flagged], d[flagged], pulses.plane_normal, stats,
-                                                              count=False)
+                                                              count=False, ids=(line, pulses.j[flagged]))
         ray = np.concatenate([plain, flagged[f_ray]])
         order = np.argsort(ray, kind="stable")  # back to scan order
         ones = np.ones(len(plain), np.uint8)
@@ -490,8 +526,9 @@ class _Simulator:
             flag[b] |= edge
         return [flag[pos] for pos, *_ in segments]
 
-    def _full_beam(self, origins, dirs, plane_normal, stats, count=True):
+    def _full_beam(self, origins, dirs, plane_normal, stats, count=True, ids=None):
         """Sub-rays over the footprints of the given pulses; returns formed per pulse.
+        `ids` = (flight line, pulse index j per given pulse) for the crowns' transmission draws.
 
         Returns (pulse, face, range, return_number, number_of_returns) per detected return,
         pulse-major and return-minor (scan order); `pulse` indexes the given rays."""
@@ -507,7 +544,8 @@ class _Simulator:
         else:
             sub = self._sub_rays_reference(dirs, plane_normal)
         org = np.repeat(origins, k, axis=0)
-        face, t = self.caster.cast(org, sub, s.max_range_m, fast=self.fast)
+        face, t = self.caster.cast(org, sub, s.max_range_m, fast=self.fast,
+                                   ray_ids=self.ray_ids(ids[0], ids[1], k) if ids is not None else None)
         stats["rays_cast"] += n * k
         if count:
             stats["pulses_with_sub_rays"] += n
@@ -702,7 +740,7 @@ def label_counts(scene: Scene, caster: RayCaster, points_by_face: np.ndarray, so
                  kind: str = "points") -> tuple[dict, dict]:
     """Points per surface name and per building ID from points per face; warns about
     buildings that got none (shared by the ULS and DIM simulators)."""
-    by_surface = np.bincount(caster.face_surface, weights=points_by_face, minlength=5)
+    by_surface = np.bincount(caster.face_surface, weights=points_by_face, minlength=len(SURFACE_NAMES))
     surfaces = {SURFACE_NAMES.get(k, str(k)): int(c) for k, c in enumerate(by_surface) if c}
     by_building = np.bincount(caster.face_building, weights=points_by_face)
     buildings = {int(k): int(by_building[k]) for k in np.flatnonzero(by_building) if k > 0}

@@ -23,9 +23,18 @@ EPOCHS = ("pre", "post")
 MATERIALS = ("masonry", "reinforced_concrete")
 GRADES = range(0, 6)
 
-# Face `surface` codes.
-GROUND, ROOF, WALL, DEBRIS, INTERIOR = 0, 1, 2, 3, 4
-SURFACE_NAMES = {GROUND: "ground", ROOF: "roof", WALL: "wall", DEBRIS: "debris", INTERIOR: "interior"}
+# Face `surface` codes. Vegetation (trees, hedges) and objects (parked cars, street
+# furniture) are not buildings: their faces carry building_id 0.
+GROUND, ROOF, WALL, DEBRIS, INTERIOR, VEGETATION, OBJECT = 0, 1, 2, 3, 4, 5, 6
+SURFACE_NAMES = {GROUND: "ground", ROOF: "roof", WALL: "wall", DEBRIS: "debris", INTERIOR: "interior",
+                 VEGETATION: "vegetation", OBJECT: "object"}
+MAX_SURFACE = OBJECT
+
+# Share of a laser (sub-)ray that passes one porous face (a tree crown's surface) when the
+# scene does not say otherwise (scene.json "vegetation": {"transmission": t}). Crossing a
+# crown means two faces, so t = 0.5 lets t² = 25 % of the rays through a whole crown: the
+# middle of the 10-40 % ground returns under leaf-on broadleaf crowns in ALS studies.
+DEFAULT_TRANSMISSION = 0.5
 
 # Faces smaller than this (m²) are degenerate: their normal is undefined and a ray hit on
 # them cannot be labelled reliably.
@@ -61,6 +70,14 @@ class Scene:
     crs: str | None = None
     epoch: str = "pre"
     units: str = "m"
+    # (m,) bool: faces a laser ray may pass (tree crowns; PLY face property `porous`), or
+    # None when no face is porous.
+    face_porous: np.ndarray | None = None
+    transmission: float = DEFAULT_TRANSMISSION  # per porous face crossed
+
+    @property
+    def has_porous(self) -> bool:
+        return self.face_porous is not None and bool(self.face_porous.any())
 
     @property
     def building_ids(self) -> np.ndarray:
@@ -90,9 +107,10 @@ def crop_to_buildings(scene: Scene, building_ids, margin_m: float = 20.0) -> Sce
     near = np.all((tri[:, :, :2] >= lo) & (tri[:, :, :2] <= hi), axis=(1, 2))
     faces_kept = is_kept | ((scene.face_building == 0) & near)
     used, faces = np.unique(scene.faces[faces_kept], return_inverse=True)
+    porous = scene.face_porous[faces_kept] if scene.face_porous is not None else None
     return Scene(scene.vertices[used], faces.reshape(-1, 3).astype(np.int64), scene.face_building[faces_kept],
                  scene.face_surface[faces_kept], [b for b in scene.buildings if b.id in keep_ids],
-                 scene.origin.copy(), scene.crs, scene.epoch, scene.units)
+                 scene.origin.copy(), scene.crs, scene.epoch, scene.units, porous, scene.transmission)
 
 
 def _manifest_error(path, msg):
@@ -138,12 +156,25 @@ def read_scene(folder: str | os.PathLike, validate: bool = True) -> Scene:
     mesh_path = folder / mesh_name
     if not mesh_path.is_file():
         raise SceneError(f"{mesh_path}: mesh file named in scene.json is missing")
+    transmission = _parse_vegetation(manifest_path, manifest.get("vegetation", {}))
     mesh = read_ply(mesh_path)
     scene = Scene(mesh.vertices, mesh.faces, mesh.building_id, mesh.surface, buildings,
-                  origin=np.array(origin, dtype=np.float64), crs=crs, epoch=epoch)
+                  origin=np.array(origin, dtype=np.float64), crs=crs, epoch=epoch,
+                  face_porous=mesh.porous, transmission=transmission)
     if validate:
         validate_scene(scene, manifest_path, mesh_path)
     return scene
+
+
+def _parse_vegetation(path, veg) -> float:
+    """The optional "vegetation" record: {"transmission": t}, 0 <= t <= 1."""
+    if not isinstance(veg, dict):
+        raise _manifest_error(path, f"'vegetation' must be an object like {{\"transmission\": 0.5}}, got {veg!r}")
+    t = veg.get("transmission", DEFAULT_TRANSMISSION)
+    if isinstance(t, bool) or not isinstance(t, (int, float)) or not 0.0 <= t <= 1.0:
+        raise _manifest_error(path, f"vegetation.transmission must be a number in [0, 1] (share of a laser ray "
+                              f"passing one porous crown face), got {t!r}")
+    return float(t)
 
 
 _BUILDING_KEYS = {"id", "grade", "material", "storeys", "typology", "patterns", "seed"}
@@ -200,11 +231,26 @@ def validate_scene(scene: Scene, manifest_path="scene.json", mesh_path="mesh.ply
             raise SceneError(f"{mesh_path}: {len(idx)} degenerate faces (area <= {DEGENERATE_AREA_M2} m², "
                              f"repeated or collinear vertices), first: face {idx[0]} "
                              f"(vertices {f[idx[0]].tolist()}); remove them before export")
-    surf_bad = scene.face_surface > INTERIOR
+    surf_bad = scene.face_surface > MAX_SURFACE
     if surf_bad.any():
         face = int(np.flatnonzero(surf_bad)[0])
         raise SceneError(f"{mesh_path}: face {face} has surface code {int(scene.face_surface[face])}; "
                          f"valid codes are {SURFACE_NAMES}")
+    if scene.face_porous is not None:
+        if len(scene.face_porous) != len(f):
+            raise SceneError(f"{mesh_path}: {len(scene.face_porous)} porous flags for {len(f)} faces")
+        not_veg = scene.face_porous.astype(bool) & (scene.face_surface != VEGETATION)
+        if not_veg.any():
+            face = int(np.flatnonzero(not_veg)[0])
+            raise SceneError(f"{mesh_path}: face {face} is porous but its surface is "
+                             f"{SURFACE_NAMES.get(int(scene.face_surface[face]))!r}; only vegetation "
+                             f"(surface {VEGETATION}) can be porous")
+    non_building = (scene.face_building > 0) & (scene.face_surface >= VEGETATION)
+    if non_building.any():
+        face = int(np.flatnonzero(non_building)[0])
+        raise SceneError(f"{mesh_path}: face {face} is {SURFACE_NAMES[int(scene.face_surface[face])]} but carries "
+                         f"building_id {int(scene.face_building[face])}; vegetation and objects are not "
+                         "buildings (building_id 0)")
     if (scene.face_building < 0).any():
         face = int(np.flatnonzero(scene.face_building < 0)[0])
         raise SceneError(f"{mesh_path}: face {face} has negative building_id {int(scene.face_building[face])}")
@@ -241,12 +287,16 @@ def write_scene(scene: Scene, folder: str | os.PathLike, validate: bool = True) 
     if validate:
         validate_scene(scene, folder / "scene.json", folder / "mesh.ply")
     folder.mkdir(parents=True, exist_ok=True)
-    write_ply(folder / "mesh.ply", MeshArrays(scene.vertices, scene.faces, scene.face_building, scene.face_surface))
+    porous = scene.face_porous.astype(np.uint8) if scene.has_porous else None
+    write_ply(folder / "mesh.ply", MeshArrays(scene.vertices, scene.faces, scene.face_building, scene.face_surface,
+                                              porous))
     manifest = {
         "format": FORMAT, "version": VERSION, "epoch": scene.epoch,
         "origin": [float(x) for x in scene.origin], "crs": scene.crs, "units": "m", "mesh": "mesh.ply",
         "buildings": [b.to_json() for b in scene.buildings],
     }
+    if scene.has_porous or scene.transmission != DEFAULT_TRANSMISSION:
+        manifest["vegetation"] = {"transmission": scene.transmission}
     tmp = folder / "scene.json.tmp"
     tmp.write_text(json.dumps(manifest, indent=1) + "\n")
     os.replace(tmp, folder / "scene.json")

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .scene import GROUND, ROOF, WALL, Building, Scene
+from .scene import GROUND, ROOF, VEGETATION, WALL, Building, Scene
 
 
 def box_mesh(x0, y0, x1, y1, z0, z1):
@@ -81,3 +81,46 @@ def flat_ground(size: float = 400.0, z: float = 0.0, origin=(0.0, 0.0, 0.0)) -> 
     h = size / 2
     v, f, s = ground_mesh(-h, -h, h, h, z)
     return Scene(v, f, np.zeros(len(f), np.int32), s, [], origin=np.asarray(origin, dtype=np.float64))
+
+
+def ellipsoid_mesh(centre, radii, rings: int = 8, segments: int = 12):
+    """Closed UV ellipsoid (outward triangles): a tree crown. Vertices, triangles."""
+    cx, cy, cz = centre
+    rx, ry, rz = radii
+    verts = [(cx, cy, cz + rz)]
+    for i in range(1, rings):
+        phi = np.pi * i / rings
+        for j in range(segments):
+            a = 2 * np.pi * j / segments
+            verts.append((cx + rx * np.sin(phi) * np.cos(a), cy + ry * np.sin(phi) * np.sin(a), cz + rz * np.cos(phi)))
+    verts.append((cx, cy, cz - rz))
+    bottom = len(verts) - 1
+    ring = lambda i, j: 1 + (i - 1) * segments + j % segments  # noqa: E731
+    tris = [(0, ring(1, j), ring(1, j + 1)) for j in range(segments)]
+    for i in range(1, rings - 1):
+        for j in range(segments):
+            tris += [(ring(i, j), ring(i + 1, j), ring(i + 1, j + 1)), (ring(i, j), ring(i + 1, j + 1), ring(i, j + 1))]
+    tris += [(ring(rings - 1, j), bottom, ring(rings - 1, j + 1)) for j in range(segments)]
+    return np.array(verts, np.float64), np.array(tris, np.int64)
+
+
+def with_trees(scene: Scene, trees, transmission: float | None = None) -> Scene:
+    """`scene` plus trees: each (x, y, trunk_height, crown_radius) gives an opaque square
+    trunk (0.3 m) from z = 0 to the crown's centre and a porous spherical crown there
+    (surface vegetation, building_id 0)."""
+    v, f, b, s = [scene.vertices], [scene.faces], [scene.face_building], [scene.face_surface]
+    porous = [np.zeros(len(scene.faces), bool) if scene.face_porous is None else scene.face_porous]
+    n = len(scene.vertices)
+    for x, y, trunk_h, r in trees:
+        tv, tf, _ = box_mesh(x - 0.15, y - 0.15, x + 0.15, y + 0.15, 0.0, trunk_h)
+        cv, cf = ellipsoid_mesh((x, y, trunk_h), (r, r, r))
+        for verts, faces, is_porous in ((tv, tf, False), (cv, cf, True)):
+            v.append(verts)
+            f.append(faces + n)
+            b.append(np.zeros(len(faces), np.int32))
+            s.append(np.full(len(faces), VEGETATION, np.uint8))
+            porous.append(np.full(len(faces), is_porous))
+            n += len(verts)
+    return Scene(np.concatenate(v), np.concatenate(f), np.concatenate(b), np.concatenate(s), scene.buildings,
+                 scene.origin.copy(), scene.crs, scene.epoch, scene.units, np.concatenate(porous),
+                 scene.transmission if transmission is None else transmission)

@@ -158,6 +158,8 @@ def test_stable_mask():
     assert stable_mask(cls, None).tolist() == [True, False, False, True, False, False, False]
     with pytest.raises(AlignmentError):
         stable_mask(cls, bid[:3])
+    # vegetation outside buildings (low 3, high 5) moves in the wind: not stable
+    assert stable_mask(np.array([3, 5, 1], np.uint8), np.zeros(3, int)).tolist() == [False, False, True]
 
 
 def test_json_and_summary(aligned):
