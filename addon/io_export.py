@@ -9,7 +9,12 @@ writer: the add-on never imports the core package.
 Objects take part by their ``qs_building.role``: BUILDING objects are one building each
 (ID from the object's properties), TERRAIN objects give building_id 0; others are skipped.
 Face surfaces come from the ``qs_surface`` face attribute, or from the face normal when an
-object has none (up: roof, down: interior, else wall; terrain: ground).
+object has none (up: roof, down: interior, else wall; terrain: ground). Trees, hedges, cars
+and street furniture are TERRAIN objects (building_id 0) with surfaces 5 (vegetation) and
+6 (object); an int face attribute ``qs_porous`` = 1 marks tree-crown faces a laser ray may
+pass, written as the PLY face property ``porous`` (only when some face is porous, so
+scenes without vegetation keep their bytes) with scene.json ``"vegetation":
+{"transmission": 0.5}``.
 """
 from __future__ import annotations
 
@@ -25,6 +30,11 @@ VERSION = 1
 EPOCHS = ("pre", "post")
 SURFACE_ATTR = "qs_surface"
 GROUND, ROOF, WALL, DEBRIS, INTERIOR = 0, 1, 2, 3, 4
+VEGETATION, OBJECT = 5, 6
+SURFACE_CODES = "ground, roof, wall, debris, interior, vegetation, object"
+POROUS_ATTR = "qs_porous"
+# Share of a laser ray passing one porous crown face (core.scene.DEFAULT_TRANSMISSION).
+DEFAULT_TRANSMISSION = 0.5
 # The contract rejects faces with area <= 1e-10 m²; drop anything near that.
 MIN_AREA = 1e-9
 
@@ -35,8 +45,10 @@ class ExportError(ValueError):
 
 # --- PLY / JSON writers (numpy only) --------------------------------------------------------
 
-def write_ply(path, vertices, faces, building_id, surface, comment="quakescan scene mesh (blender add-on)"):
-    """Write the contract's binary little-endian PLY atomically (temp file + os.replace)."""
+def write_ply(path, vertices, faces, building_id, surface, comment="quakescan scene mesh (blender add-on)",
+              porous=None):
+    """Write the contract's binary little-endian PLY atomically (temp file + os.replace);
+    `porous` (per face, optional) adds the face property ``porous``."""
     path = Path(path)
     v = np.ascontiguousarray(vertices, dtype="<f8").reshape(-1, 3)
     f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
@@ -49,12 +61,16 @@ def write_ply(path, vertices, faces, building_id, surface, comment="quakescan sc
               "property list uchar int vertex_indices\n"
               "property int building_id\n"
               "property uchar surface\n"
-              "end_header\n").encode("ascii")
-    rec = np.empty(m, dtype=np.dtype([("n", "u1"), ("v", "<i4", (3,)), ("b", "<i4"), ("s", "u1")]))
+              + ("property uchar porous\n" if porous is not None else "")
+              + "end_header\n").encode("ascii")
+    fields = [("n", "u1"), ("v", "<i4", (3,)), ("b", "<i4"), ("s", "u1")] + ([("p", "u1")] if porous is not None else [])
+    rec = np.empty(m, dtype=np.dtype(fields))
     rec["n"] = 3
     rec["v"] = f
     rec["b"] = building_id
     rec["s"] = surface
+    if porous is not None:
+        rec["p"] = porous
     tmp = path.with_name(path.name + ".tmp")
     with open(tmp, "wb") as fh:
         fh.write(header)
@@ -86,9 +102,11 @@ def parse_origin(text) -> list[float]:
 
 
 def write_bundle(folder, vertices, faces, building_id, surface, buildings, epoch="pre", origin=(0.0, 0.0, 0.0),
-                 crs=None, extra=None):
+                 crs=None, extra=None, porous=None, transmission=DEFAULT_TRANSMISSION):
     """Validate and write a bundle: mesh.ply first, scene.json last (both atomic), so a
-    folder holding a scene.json is complete. Returns the folder path."""
+    folder holding a scene.json is complete. Returns the folder path. `porous` (per face,
+    optional): tree-crown faces, written with the scene's `transmission` only when some
+    face is porous."""
     folder = Path(folder)
     if epoch not in EPOCHS:
         raise ExportError(f"epoch must be one of {EPOCHS}, got {epoch!r}")
@@ -97,18 +115,24 @@ def write_bundle(folder, vertices, faces, building_id, surface, buildings, epoch
     faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
     building_id = np.asarray(building_id, dtype=np.int32)
     surface = np.asarray(surface, dtype=np.int64)
-    _validate(vertices, faces, building_id, surface, buildings)
+    porous = None if porous is None or not np.any(porous) else np.asarray(porous, dtype=np.uint8) != 0
+    _validate(vertices, faces, building_id, surface, buildings, porous)
+    if not 0.0 <= float(transmission) <= 1.0:
+        raise ExportError(f"vegetation transmission must be in [0, 1], got {transmission!r}")
     folder.mkdir(parents=True, exist_ok=True)
-    write_ply(folder / "mesh.ply", vertices, faces, building_id, surface.astype(np.uint8))
+    write_ply(folder / "mesh.ply", vertices, faces, building_id, surface.astype(np.uint8),
+              porous=None if porous is None else porous.astype(np.uint8))
     manifest = {"format": FORMAT, "version": VERSION, "epoch": epoch, "origin": origin, "crs": crs or None,
                 "units": "m", "mesh": "mesh.ply", "buildings": buildings}
+    if porous is not None:
+        manifest["vegetation"] = {"transmission": float(transmission)}
     if extra:
         manifest.update(extra)
     write_json(folder / "scene.json", manifest)
     return folder
 
 
-def _validate(v, f, bid, surf, buildings):
+def _validate(v, f, bid, surf, buildings, porous=None):
     if not np.isfinite(v).all():
         bad = int(np.flatnonzero(~np.isfinite(v).all(axis=1))[0])
         raise ExportError(f"vertex {bad} has NaN/inf coordinates")
@@ -119,10 +143,18 @@ def _validate(v, f, bid, surf, buildings):
         area = 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - a, v[f[:, 2]] - a), axis=1)
         if (area <= 1e-10).any():
             raise ExportError(f"{int((area <= 1e-10).sum())} degenerate faces left after cleaning")
-    if ((surf < 0) | (surf > INTERIOR)).any():
-        bad = int(np.flatnonzero((surf < 0) | (surf > INTERIOR))[0])
-        raise ExportError(f"face {bad} has surface code {int(surf[bad])}; valid codes are 0..4 "
-                          "(ground, roof, wall, debris, interior)")
+    if ((surf < 0) | (surf > OBJECT)).any():
+        bad = int(np.flatnonzero((surf < 0) | (surf > OBJECT))[0])
+        raise ExportError(f"face {bad} has surface code {int(surf[bad])}; valid codes are 0..6 "
+                          f"({SURFACE_CODES})")
+    not_building = (surf >= VEGETATION) & (bid != 0)
+    if not_building.any():
+        bad = int(np.flatnonzero(not_building)[0])
+        raise ExportError(f"face {bad} is vegetation or an object on building {int(bid[bad])}: trees, cars and "
+                          "street furniture must be Terrain objects (building ID 0)")
+    if porous is not None and (porous & (surf != VEGETATION)).any():
+        bad = int(np.flatnonzero(porous & (surf != VEGETATION))[0])
+        raise ExportError(f"face {bad} is porous but not vegetation (surface {int(surf[bad])})")
     ids = [b["id"] for b in buildings]
     if len(set(ids)) != len(ids):
         raise ExportError("duplicate building IDs in the manifest")
@@ -177,13 +209,18 @@ def _mesh_arrays(obj, depsgraph=None):
         if attr is not None and attr.domain == 'FACE' and attr.data_type == 'INT':
             surf_face = np.empty(len(me.polygons), dtype=np.int32)
             attr.data.foreach_get("value", surf_face)
+        porous_face = None
+        attr = me.attributes.get(POROUS_ATTR)
+        if attr is not None and attr.domain == 'FACE' and attr.data_type == 'INT':
+            porous_face = np.empty(len(me.polygons), dtype=np.int32)
+            attr.data.foreach_get("value", porous_face)
         normals = None
         if surf_face is None:
             normals = np.empty(len(me.polygons) * 3, dtype=np.float32)
             me.polygons.foreach_get("normal", normals)
             normals = normals.reshape(-1, 3).astype(np.float64) @ np.linalg.inv(M[:3, :3])  # normal transform
             normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
-        return world, tris.reshape(-1, 3).astype(np.int64), poly, surf_face, normals
+        return world, tris.reshape(-1, 3).astype(np.int64), poly, surf_face, normals, porous_face
     finally:
         if depsgraph is not None:
             ob.to_mesh_clear()
@@ -218,8 +255,8 @@ def building_record(obj, epoch: str) -> dict:
 
 def collect(objects, epoch="pre", depsgraph=None):
     """Arrays and manifest entries of the BUILDING and TERRAIN objects among `objects`.
-    Returns (vertices, faces, building_id, surface, buildings, report)."""
-    vs, fs, bs, ss = [], [], [], []
+    Returns (vertices, faces, building_id, surface, buildings, report, porous)."""
+    vs, fs, bs, ss, ps = [], [], [], [], []
     buildings = {}
     owner = {}
     offset = 0
@@ -229,11 +266,12 @@ def collect(objects, epoch="pre", depsgraph=None):
         role = obj.qs_building.role
         if role not in ("BUILDING", "TERRAIN"):
             continue
-        world, tris, poly, surf_face, normals = _mesh_arrays(obj, depsgraph)
+        world, tris, poly, surf_face, normals, porous_face = _mesh_arrays(obj, depsgraph)
         if surf_face is not None:
             surf = surf_face[poly].astype(np.int64)
         else:
             surf = _infer_surface(normals, role == "TERRAIN")[poly]
+        porous = porous_face[poly] != 0 if porous_face is not None else np.zeros(len(poly), bool)
         if role == "BUILDING":
             bid = int(obj.qs_building.building_id)
             if bid <= 0:
@@ -256,11 +294,12 @@ def collect(objects, epoch="pre", depsgraph=None):
             area = 0.5 * np.linalg.norm(np.cross(world[tris[:, 1]] - a, world[tris[:, 2]] - a), axis=1)
             keep = area > MIN_AREA
             dropped += int((~keep).sum())
-            tris, surf = tris[keep], surf[keep]
+            tris, surf, porous = tris[keep], surf[keep], porous[keep]
         vs.append(world)
         fs.append(tris + offset)
         bs.append(np.full(len(tris), bid, np.int32))
         ss.append(surf)
+        ps.append(porous)
         offset += len(world)
     if not vs:
         raise ExportError("nothing to export: no object has the role Building or Terrain")
@@ -268,6 +307,7 @@ def collect(objects, epoch="pre", depsgraph=None):
     f = np.concatenate(fs) if fs else np.zeros((0, 3), np.int64)
     b = np.concatenate(bs)
     s = np.concatenate(ss)
+    p = np.concatenate(ps)
     # drop unused vertices
     used = np.unique(f)
     remap = np.full(len(v), -1, np.int64)
@@ -277,12 +317,12 @@ def collect(objects, epoch="pre", depsgraph=None):
     recs = [buildings[k] for k in sorted(buildings)]
     report = {"objects": len(objects), "buildings": len(recs), "faces": int(len(f)), "vertices": int(len(v)),
               "dropped_degenerate": dropped}
-    return v, f, b, s, recs, report
+    return v, f, b, s, recs, report, p
 
 
 def export_objects(folder, objects, epoch="pre", origin=(0.0, 0.0, 0.0), crs=None, depsgraph=None, extra=None):
     """Export BUILDING/TERRAIN objects as a scene bundle in `folder`; returns a report."""
-    v, f, b, s, recs, report = collect(objects, epoch, depsgraph)
-    write_bundle(folder, v, f, b, s, recs, epoch=epoch, origin=origin, crs=crs, extra=extra)
+    v, f, b, s, recs, report, porous = collect(objects, epoch, depsgraph)
+    write_bundle(folder, v, f, b, s, recs, epoch=epoch, origin=origin, crs=crs, extra=extra, porous=porous)
     report["folder"] = str(folder)
     return report

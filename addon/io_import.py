@@ -52,7 +52,8 @@ class BundleError(ValueError):
 
 def read_ply(path):
     """Read the contract's PLY: returns (vertices (n, 3) float64, faces: list of index arrays,
-    building_id (m,) int64, surface (m,) int64). Polygons are allowed."""
+    building_id (m,) int64, surface (m,) int64, porous (m,) bool or None when the file has no
+    ``porous`` face property). Polygons are allowed."""
     path = Path(path)
     try:
         raw = path.read_bytes()
@@ -90,21 +91,26 @@ def read_ply(path):
     if vprops != [("double", "x"), ("double", "y"), ("double", "z")]:
         raise BundleError(f"{path}: vertex properties must be 'double x, double y, double z', got {vprops}")
     want = [("list", "uchar", "int", "vertex_indices"), ("int", "building_id"), ("uchar", "surface")]
-    if fprops != want:
+    has_porous = fprops == want + [("uchar", "porous")]
+    if fprops != want and not has_porous:
         raise BundleError(f"{path}: face properties must be 'list uchar int vertex_indices, int building_id, "
-                          f"uchar surface', got {fprops}")
+                          f"uchar surface' (and optionally 'uchar porous'), got {fprops}")
+    tail = 6 if has_porous else 5  # bytes after a face's index list
     data = memoryview(raw)[end + len(b"end_header\n"):]
     vbytes = nv * 24
     if len(data) < vbytes:
         raise BundleError(f"{path}: file ends inside the vertex data ({nv} vertices announced)")
     verts = np.frombuffer(data[:vbytes], dtype="<f8").reshape(nv, 3).astype(np.float64)
     fdata = data[vbytes:]
-    tri = np.dtype([("n", "u1"), ("v", "<i4", (3,)), ("b", "<i4"), ("s", "u1")])
+    tri = np.dtype([("n", "u1"), ("v", "<i4", (3,)), ("b", "<i4"), ("s", "u1")] + ([("p", "u1")] if has_porous else []))
+    porous = np.zeros(nf, bool) if has_porous else None
     if len(fdata) == nf * tri.itemsize and (nf == 0 or
                                             (np.frombuffer(fdata, dtype=tri, count=nf)["n"] == 3).all()):
         rec = np.frombuffer(fdata, dtype=tri, count=nf)
         faces = [r for r in rec["v"].astype(np.int64)]
         bid, surf = rec["b"].astype(np.int64), rec["s"].astype(np.int64)
+        if has_porous:
+            porous = rec["p"] != 0
     else:
         faces, bid, surf = [], np.empty(nf, np.int64), np.empty(nf, np.int64)
         buf, pos = bytes(fdata), 0
@@ -112,12 +118,15 @@ def read_ply(path):
             if pos >= len(buf):
                 raise BundleError(f"{path}: file ends inside face {k} of {nf}")
             n = buf[pos]
-            stop = pos + 1 + 4 * n + 5
+            stop = pos + 1 + 4 * n + tail
             if stop > len(buf):
                 raise BundleError(f"{path}: file ends inside face {k} of {nf}")
             faces.append(np.frombuffer(buf, dtype="<i4", count=n, offset=pos + 1).astype(np.int64))
-            bid[k] = int.from_bytes(buf[stop - 5:stop - 1], "little", signed=True)
-            surf[k] = buf[stop - 1]
+            b0 = pos + 1 + 4 * n
+            bid[k] = int.from_bytes(buf[b0:b0 + 4], "little", signed=True)
+            surf[k] = buf[b0 + 4]
+            if has_porous:
+                porous[k] = buf[b0 + 5] != 0
             pos = stop
         if pos != len(buf):
             raise BundleError(f"{path}: {len(buf) - pos} unexpected bytes after the last face")
@@ -128,12 +137,13 @@ def read_ply(path):
             raise BundleError(f"{path}: face {k} points at vertex {f.tolist()} but the mesh has {nv} vertices")
     if not np.isfinite(verts).all():
         raise BundleError(f"{path}: vertices with NaN/inf coordinates")
-    if (surf > gm.INTERIOR).any():
-        k = int(np.flatnonzero(surf > gm.INTERIOR)[0])
-        raise BundleError(f"{path}: face {k} has surface code {int(surf[k])}; valid codes are 0..4")
+    if (surf > gm.OBJECT).any():
+        k = int(np.flatnonzero(surf > gm.OBJECT)[0])
+        raise BundleError(f"{path}: face {k} has surface code {int(surf[k])}; valid codes are 0..6 "
+                          f"({io_export.SURFACE_CODES})")
     if (bid < 0).any():
         raise BundleError(f"{path}: negative building_id on face {int(np.flatnonzero(bid < 0)[0])}")
-    return verts, faces, bid, surf
+    return verts, faces, bid, surf, porous
 
 
 def read_manifest(folder):
@@ -183,13 +193,13 @@ def read_manifest(folder):
 
 
 def read_bundle(folder):
-    """(manifest dict, vertices, faces, building_id, surface), cross-checked."""
+    """(manifest dict, vertices, faces, building_id, surface, porous or None), cross-checked."""
     folder = Path(folder)
     m = read_manifest(folder)
     mesh_path = folder / m.get("mesh", "mesh.ply")
     if not mesh_path.is_file():
         raise BundleError(f"{mesh_path}: mesh file named in scene.json is missing")
-    v, f, b, s = read_ply(mesh_path)
+    v, f, b, s, p = read_ply(mesh_path)
     ids = {int(x["id"]) for x in m["buildings"]}
     in_mesh = set(np.unique(b).tolist()) - {0}
     if in_mesh - ids:
@@ -198,7 +208,7 @@ def read_bundle(folder):
     if ids - in_mesh:
         raise BundleError(f"{folder / 'scene.json'}: buildings {sorted(ids - in_mesh)[:10]} have no faces in "
                           f"{mesh_path}")
-    return m, v, f, b, s
+    return m, v, f, b, s, p
 
 
 # --- geometry helpers -----------------------------------------------------------------------
@@ -249,7 +259,7 @@ def _set_points(me, co32, res):
     a.data.foreach_set("vector", np.ascontiguousarray(res, dtype=np.float32).ravel())
 
 
-def _make_object(collection, name, verts, faces, bid, surf, align):
+def _make_object(collection, name, verts, faces, bid, surf, align, porous=None):
     """Object holding `faces` (index arrays into `verts`, float64 bundle coordinates)."""
     used = np.unique(np.concatenate(faces))
     remap = np.full(int(used.max()) + 1, -1, np.int64)
@@ -275,7 +285,10 @@ def _make_object(collection, name, verts, faces, bid, surf, align):
     co = ((x - M[:3, 3]) @ np.linalg.inv(M[:3, :3]).T).astype(np.float32)
     world = co.astype(np.float64) @ M[:3, :3].T + M[:3, 3]
     _set_points(me, co, x - world)
-    for layer, values in ((gm.SURFACE_LAYER, surf), (gm.BUILDING_LAYER, bid)):
+    layers = [(gm.SURFACE_LAYER, surf), (gm.BUILDING_LAYER, bid)]
+    if porous is not None and np.any(porous):
+        layers.append((gm.POROUS_LAYER, porous))
+    for layer, values in layers:
         a = me.attributes.new(layer, 'INT', 'FACE')
         a.data.foreach_set("value", np.ascontiguousarray(values, dtype=np.int32))
     me.update()
@@ -292,7 +305,7 @@ def import_bundle(folder, collection, scene=None, building_ids=None, align=True)
     imported. `scene`: when given, its export settings get the bundle's origin and CRS.
     """
     folder = Path(folder)
-    m, verts, faces, bid, surf = read_bundle(folder)
+    m, verts, faces, bid, surf, porous = read_bundle(folder)
     recs = {int(b["id"]): b for b in m["buildings"]}
     want = sorted(recs) if building_ids is None else sorted(int(i) for i in building_ids)
     missing = [i for i in want if i not in recs]
@@ -324,7 +337,8 @@ def import_bundle(folder, collection, scene=None, building_ids=None, align=True)
     terrain = None
     tsel = np.flatnonzero(bid == 0)
     if len(tsel):
-        terrain = _make_object(collection, "terrain", verts, [faces[k] for k in tsel], bid[tsel], surf[tsel], False)
+        terrain = _make_object(collection, "terrain", verts, [faces[k] for k in tsel], bid[tsel], surf[tsel], False,
+                               porous[tsel] if porous is not None else None)
         terrain.qs_building.role = "TERRAIN"
     origin = [float(x) for x in m.get("origin", [0.0, 0.0, 0.0])]
     crs = m.get("crs")
@@ -437,21 +451,27 @@ def _arrays(obj):
         sf = np.where(nz > 0.5, gm.ROOF, np.where(nz < -0.5, gm.INTERIOR, gm.WALL))
         if obj.qs_building.role == "TERRAIN":
             sf[:] = gm.GROUND
-    return world, tris.reshape(-1, 3).astype(np.int64), sf[poly].astype(np.int64)
+    pattr = me.attributes.get(gm.POROUS_LAYER)
+    porous = np.zeros(len(poly), bool)
+    if pattr is not None and pattr.domain == 'FACE' and pattr.data_type == 'INT':
+        pf = np.empty(len(me.polygons), np.int32)
+        pattr.data.foreach_get("value", pf)
+        porous = pf[poly] != 0
+    return world, tris.reshape(-1, 3).astype(np.int64), sf[poly].astype(np.int64), porous
 
 
 def export_bundle(folder, objects, epoch="pre", origin=(0.0, 0.0, 0.0), crs=None, extra=None):
     """Like io_export.export_objects (no depsgraph), but vertices keep the float64 precision
     they had at import when they were not moved, and manifest keys the add-on does not know
     (e.g. CityJSON ``source_id``) are written back. Returns a report."""
-    vs, fs, bs, ss, recs = [], [], [], [], {}
+    vs, fs, bs, ss, ps, recs = [], [], [], [], [], {}
     off = 0
     objs = sorted((o for o in objects if o.type == 'MESH' and o.qs_building.role in ("BUILDING", "TERRAIN")),
                   key=lambda o: o.name)
     if not objs:
         raise io_export.ExportError("nothing to export: no object has the role Building or Terrain")
     for obj in objs:
-        world, tris, surf = _arrays(obj)
+        world, tris, surf, porous = _arrays(obj)
         if obj.qs_building.role == "BUILDING":
             b = int(obj.qs_building.building_id)
             if b <= 0:
@@ -473,11 +493,13 @@ def export_bundle(folder, objects, epoch="pre", origin=(0.0, 0.0, 0.0), crs=None
         if len(tris):
             a = world[tris[:, 0]]
             area = 0.5 * np.linalg.norm(np.cross(world[tris[:, 1]] - a, world[tris[:, 2]] - a), axis=1)
-            tris, surf = tris[area > CONTRACT_MIN_AREA], surf[area > CONTRACT_MIN_AREA]
+            keep = area > CONTRACT_MIN_AREA
+            tris, surf, porous = tris[keep], surf[keep], porous[keep]
         vs.append(world)
         fs.append(tris + off)
         bs.append(np.full(len(tris), b, np.int32))
         ss.append(surf)
+        ps.append(porous)
         off += len(world)
     v, f = np.concatenate(vs), np.concatenate(fs)
     used = np.unique(f)
@@ -485,5 +507,5 @@ def export_bundle(folder, objects, epoch="pre", origin=(0.0, 0.0, 0.0), crs=None
     remap[used] = np.arange(len(used))
     buildings = [recs[k] for k in sorted(recs)]
     io_export.write_bundle(folder, v[used], remap[f], np.concatenate(bs), np.concatenate(ss), buildings,
-                           epoch=epoch, origin=origin, crs=crs, extra=extra)
+                           epoch=epoch, origin=origin, crs=crs, extra=extra, porous=np.concatenate(ps))
     return {"folder": str(folder), "buildings": len(buildings), "faces": len(f), "vertices": len(used)}

@@ -17,6 +17,11 @@ seeded sample of that many of its buildings (default: all), the others are left 
 output keeps the source's origin, CRS and float64 coordinates. Imported LoD2 shells are
 damaged as box-like buildings (see addon/io_import.py and the README for the limits).
 
+--streetscape typical adds trees (porous crowns, some overhanging roofs), hedges, parked
+cars and street furniture (addon/streetscape.py); every post-event scene keeps the trees,
+hedges and furniture and gets its own mix of parked cars. Default none: no streetscape, the
+output is what it was before the option existed.
+
 Each scene is a bundle (scene.json + mesh.ply, DESIGN.md "Scene bundle"). Bundles are
 written to a temporary folder and renamed into place, so DIR/<scene> is either complete or
 absent. A complete bundle made with the same settings is skipped (resume after an
@@ -88,6 +93,9 @@ def parse_args(argv):
     p.add_argument("--seed", type=_seed, default=0, help="random seed (default 0)")
     p.add_argument("--out", required=True, help="output folder (created)")
     p.add_argument("--force", action="store_true", help="regenerate bundles made with other settings")
+    p.add_argument("--streetscape", choices=("none", "typical"), default="none",
+                   help="typical: trees, hedges, parked cars and street furniture at the set's density; "
+                   "post-event scenes keep the trees and get their own cars (default none)")
     args = p.parse_args(argv)
     if args.set_name == "bundle" and not args.source:
         p.error("--set bundle needs --source SCENE_DIR")
@@ -135,6 +143,8 @@ def generator_info(args, scene_name):
         info["grade_mix"] = {str(g): n for g, n in sorted(args.grade_mix.items())}
     if args.set_name == "bundle":
         info["source"] = {"name": Path(args.source).resolve().name, "sha256": getattr(args, "source_sha256", None)}
+    if getattr(args, "streetscape", "none") != "none":  # absent with none: older bundles stay valid
+        info["streetscape"] = args.streetscape
     return info
 
 
@@ -200,6 +210,30 @@ def build_bundle_pre(args, pre, manifest):
                                    .integers(0, 2 ** 31 - 1))
         obj.qs_building.patterns_json = "[]"
     return ids, info
+
+
+def add_streetscape(args, pre, plan):
+    """Trees, hedges, furniture and cars around the buildings of collection `pre` (a CityPlan's
+    footprints, or the xy extents of an imported bundle's buildings on its terrain).
+    Returns (streetscape, footprints, bounds, ground_z, density set) for the post scenes."""
+    from addon import scene_tools, street_objects, streetscape
+    objs = scene_tools.scene_objects(pre)
+    if plan is not None:
+        footprints, bounds, ground_z, set_name = streetscape.plan_footprints(plan), plan.bounds, None, plan.set_name
+    else:
+        footprints = street_objects.building_footprints(objs)
+        terrain = street_objects.terrain_mesh(objs)
+        if terrain is None:
+            raise RuntimeError("--streetscape needs a terrain in the --source bundle (faces with building_id 0)")
+        bounds = street_objects.terrain_bounds(terrain[0])
+        ground_z = streetscape.terrain_height_function(*terrain)
+        set_name = "bundle"
+    t0 = time.perf_counter()
+    scape = streetscape.plan_streetscape(footprints, bounds, set_name, args.seed, ground_z)
+    street_objects.add_objects(pre, scape)
+    log(f"pre: streetscape {len(scape.trees)} trees, {len(scape.hedges)} hedges, {len(scape.cars)} cars, "
+        f"{len(scape.furniture)} furniture in {time.perf_counter() - t0:.1f} s")
+    return scape, footprints, bounds, ground_z, set_name
 
 
 def run(args) -> int:
@@ -285,6 +319,9 @@ def run(args) -> int:
                                                    seed=b.seed)
                 if (k + 1) % step == 0 or k + 1 == n:
                     log(f"pre: built {k + 1}/{n} buildings")
+        street = None
+        if args.streetscape != "none":
+            street = add_streetscape(args, pre, plan)
         pre_objs = scene_tools.scene_objects(pre)
         log(f"pre: {n} buildings built in {time.perf_counter() - t0:.1f} s")
         for name, grades, info in todo:
@@ -302,7 +339,16 @@ def run(args) -> int:
                 def progress(i, total, name=name):
                     if i % max(1, total // 10) == 0 or i == total:
                         log(f"{name}: damaged {i}/{total} objects")
-                scene_tools.make_post_scene(pre_objs, coll, grades=grades, on_progress=progress)
+                if street is None:
+                    scene_tools.make_post_scene(pre_objs, coll, grades=grades, on_progress=progress)
+                else:  # trees, hedges, furniture copied; the pre-event cars replaced by this scene's
+                    from addon import street_objects, streetscape
+                    scene_tools.make_post_scene([o for o in pre_objs if not street_objects.is_car_object(o)], coll,
+                                                grades=grades, on_progress=progress)
+                    scape, footprints, bounds, ground_z, set_name = street
+                    cars = streetscape.post_event_cars(scape, footprints, bounds, set_name, args.seed, name, ground_z)
+                    street_objects.add_objects(coll, streetscape.Streetscape(cars=cars), kinds=("cars",),
+                                               suffix=".post")
                 objs = scene_tools.scene_objects(coll)
             if plan is None:  # keeps the source's float64 coordinates, origin and CRS
                 rep = io_import.export_bundle(tmp, objs, epoch="pre" if name == "pre" else "post",

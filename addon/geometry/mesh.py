@@ -3,7 +3,8 @@
 Every face carries integer labels in bmesh face layers (they become int FACE attributes
 of the Blender mesh, same names):
 
-- ``qs_surface``      scene-contract surface code: 0 ground, 1 roof, 2 wall, 3 debris, 4 interior
+- ``qs_surface``      scene-contract surface code: 0 ground, 1 roof, 2 wall, 3 debris, 4 interior,
+                      5 vegetation, 6 object
 - ``qs_building_id``  building ID (0 = terrain / not a building)
 - ``qs_part``         building element (PART_* below) the patterns select by
 - ``qs_storey``       storey index of walls/slabs (slab k is the floor of storey k), -1 otherwise
@@ -29,6 +30,9 @@ LAYER_NAMES = (SURFACE_LAYER, BUILDING_LAYER, PART_LAYER, STOREY_LAYER, ELEM_LAY
 
 # Scene-contract surface codes.
 GROUND, ROOF, WALL, DEBRIS, INTERIOR = 0, 1, 2, 3, 4
+VEGETATION, OBJECT = 5, 6  # trees and hedges; cars and street furniture (building ID 0)
+# Optional int face layer: 1 on tree-crown faces a laser ray may pass (PLY `porous`).
+POROUS_LAYER = "qs_porous"
 
 # Building elements.
 P_OTHER, P_WALL, P_ROOF, P_SLAB, P_INNER, P_GABLE, P_PARAPET, P_CHIMNEY, P_DEBRIS, P_BASE, P_STUB = range(11)
