@@ -141,3 +141,23 @@ def test_bundle_with_vegetation_round_trips_and_bad_labels_are_named(tmp_path):
     (tmp_path / "veg" / "scene.json").write_text(text)
     with pytest.raises(SceneError, match="vegetation.transmission must be a number in"):
         read_scene(tmp_path / "veg")
+
+
+def test_dim_sees_crowns_as_opaque_surfaces(tmp_path):
+    """Photogrammetry reconstructs a crown's outer surface: class 5 points on it, no ground
+    matched beside the trunk under a crown reaching down to 0.5 m, where no camera sees the
+    ground past the crown's surface (the laser scan, seeing through, has some there)."""
+    from core.dim import preset_dim, simulate_dim
+    scene = with_trees(box_city(rows=1, cols=1, height=6.0), [(30.0, 6.0, 3.5, 3.0)])
+    simulate_dim(scene, preset_dim("paper").replace(margin_m=60.0), tmp_path / "dim.las", seed=1)
+    las = laspy.read(tmp_path / "dim.las")
+    x, y, z = np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)
+    crown = np.asarray(las.surface) == VEGETATION
+    assert crown.sum() > 100 and set(np.unique(las.classification[crown])) == {5}
+    def near_trunk(x, y, z):
+        r = np.hypot(np.asarray(x) - 30.0, np.asarray(y) - 6.0)
+        return (r > 0.2) & (r < 0.6) & (np.asarray(z) < 0.1)
+    assert not near_trunk(x, y, z).any()
+    scan(scene, preset("paper").replace(pulse_rate_hz=100_000.0), tmp_path / "uls.las", seed=1)
+    u = laspy.read(tmp_path / "uls.las")
+    assert near_trunk(u.x, u.y, u.z).any()
