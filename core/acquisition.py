@@ -223,6 +223,9 @@ def scene_fingerprint(scene: str | os.PathLike | Scene) -> str:
             h.update(a.tobytes())
         h.update(json.dumps([b.to_json() for b in scene.buildings], sort_keys=True).encode())
         h.update(json.dumps([scene.crs, scene.epoch, scene.units]).encode())
+        if scene.has_porous:  # only then: fingerprints of scenes without vegetation stay what they were
+            h.update(np.ascontiguousarray(scene.face_porous, dtype=bool).tobytes())
+            h.update(json.dumps(scene.transmission).encode())
         return h.hexdigest()
     folder = Path(scene)
     manifest = folder / "scene.json"

@@ -403,9 +403,10 @@ class _Simulator:
             from ._scan_kernels import pulse_rays
             from .vegetation import pass_porous
 
-            o64, d64 = pulse_rays(pulses.t, pulses.theta, ln.t_start, pulses.start_local, pulses.velocity,
+            def rays_of(idx):  # float64 rays of the few pulses that hit a crown, as refine_and_pack forms them
+                return pulse_rays(pulses.t[idx], pulses.theta[idx], ln.t_start, pulses.start_local, pulses.velocity,
                                   pulses.down, pulses.right)[:2]
-            face = pass_porous(c, o64, d64, face, float(s.max_range_m), self.ray_ids(ln, pulses.j))
+            face = pass_porous(c, rays_of, None, face, float(s.max_range_m), self.ray_ids(ln, pulses.j))
         stats["rays_cast"] = len(pulses)
         hits = int(np.count_nonzero(face >= 0))
         rng = np.random.default_rng([self.seed, ln.index, batch.number])

@@ -71,25 +71,28 @@ class RayIds:
         return (h >> np.uint64(11)).astype(np.float64) * (1.0 / (1 << 53))
 
 
-def pass_porous(caster, origins: np.ndarray, directions: np.ndarray, face: np.ndarray, max_range: float,
-                ids: RayIds) -> np.ndarray:
+def pass_porous(caster, origins, directions, face: np.ndarray, max_range: float, ids: RayIds) -> np.ndarray:
     """Faces where the rays stop once porous hits may pass (see the module docstring).
 
-    `origins`, `directions`: float64 rays in the caster's local frame; `face`: Embree's
-    first hit per ray (-1 = none), changed in place and returned. Ranges are not returned:
-    every stop lies on the original ray, so the caller refines the distance to the final
-    face's plane from the original origin as for any hit."""
+    `origins`, `directions`: float64 rays in the caster's local frame, as arrays or as one
+    function of ray indices returning both (so that a caller without float64 rays builds
+    them only for the few rays that hit a crown); `face`: Embree's first hit per ray (-1 =
+    none), changed in place and returned. Ranges are not returned: every stop lies on the
+    original ray, so the caller refines the distance to the final face's plane from the
+    original origin as for any hit."""
     porous, t_pass = caster.face_porous, caster.transmission
-    rays = np.flatnonzero(face >= 0)
+    rays_of = origins if callable(origins) else (lambda idx: (origins[idx], directions[idx]))
+    rays = np.flatnonzero(porous[face] & (face >= 0))  # porous[-1] is read, then masked
     for crossing in range(MAX_CROSSINGS):
-        rays = rays[porous[face[rays]]]
+        if crossing:
+            rays = rays[porous[face[rays]] & (face[rays] >= 0)]
         if not len(rays):
             break
         rays = rays[ids.uniforms(rays, crossing) < t_pass]
         if not len(rays):
             break
         f = face[rays]
-        o, d = origins[rays], directions[rays]
+        o, d = rays_of(rays)
         nrm = caster.normals[f]
         with np.errstate(divide="ignore", invalid="ignore"):
             t_hit = (caster.plane_d[f] - np.einsum("ij,ij->i", nrm, o)) / np.einsum("ij,ij->i", nrm, d)

@@ -161,3 +161,15 @@ def test_dim_sees_crowns_as_opaque_surfaces(tmp_path):
     scan(scene, preset("paper").replace(pulse_rate_hz=100_000.0), tmp_path / "uls.las", seed=1)
     u = laspy.read(tmp_path / "uls.las")
     assert near_trunk(u.x, u.y, u.z).any()
+
+
+def test_scene_fingerprint_sees_the_porous_faces_and_transmission():
+    from core.acquisition import scene_fingerprint
+    plain = box_city(rows=1, cols=1)
+    a = with_trees(plain, [(20.0, 5.0, 5.0, 3.0)])
+    b = with_trees(plain, [(20.0, 5.0, 5.0, 3.0)], transmission=0.2)
+    c = with_trees(plain, [(20.0, 5.0, 5.0, 3.0)])
+    c.face_porous = np.zeros_like(c.face_porous)
+    c.face_porous[-1] = True
+    assert len({scene_fingerprint(x) for x in (a, b, c)}) == 3
+    assert scene_fingerprint(plain) == scene_fingerprint(box_city(rows=1, cols=1))
