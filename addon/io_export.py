@@ -63,7 +63,9 @@ def write_ply(path, vertices, faces, building_id, surface, comment="quakescan sc
               "property uchar surface\n"
               + ("property uchar porous\n" if porous is not None else "")
               + "end_header\n").encode("ascii")
-    fields = [("n", "u1"), ("v", "<i4", (3,)), ("b", "<i4"), ("s", "u1")] + ([("p", "u1")] if porous is not None else [])
+    fields = [("n", "u1"), ("v", "<i4", (3,)), ("b", "<i4"), ("s", "u1")]
+    if porous is not None:
+        fields.append(("p", "u1"))
     rec = np.empty(m, dtype=np.dtype(fields))
     rec["n"] = 3
     rec["v"] = f
