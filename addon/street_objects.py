@@ -60,8 +60,9 @@ def building_footprints(objects):
 
 
 def terrain_mesh(objects):
-    """World vertices and triangles of the Terrain objects that are not streetscape (None
-    when there is none)."""
+    """World vertices and ground triangles (surface 0, or all when unlabelled) of the
+    Terrain objects that are not streetscape (None when there is none): a source bundle's
+    own trees or cars are no ground to stand on."""
     vs, ts, off = [], [], 0
     for obj in objects:
         if obj.type != 'MESH' or obj.qs_building.role != "TERRAIN" or obj.get(STREET_PROP):
@@ -74,8 +75,16 @@ def terrain_mesh(objects):
         me.calc_loop_triangles()
         tris = np.empty(len(me.loop_triangles) * 3, np.int32)
         me.loop_triangles.foreach_get("vertices", tris)
+        tris = tris.reshape(-1, 3).astype(np.int64)
+        attr = me.attributes.get(gm.SURFACE_LAYER)
+        if attr is not None and attr.domain == 'FACE' and attr.data_type == 'INT':
+            surf = np.empty(len(me.polygons), np.int32)
+            attr.data.foreach_get("value", surf)
+            poly = np.empty(len(me.loop_triangles), np.int32)
+            me.loop_triangles.foreach_get("polygon_index", poly)
+            tris = tris[surf[poly] == gm.GROUND]
         vs.append(world)
-        ts.append(tris.reshape(-1, 3).astype(np.int64) + off)
+        ts.append(tris + off)
         off += len(world)
     if not vs:
         return None
