@@ -23,6 +23,11 @@ Beam model (`Survey.beam`):
   hit within a fraction of a millimetre (measured in bench/bench_scan.py).
   Discontinuities narrower than the pulse spacing (wires, antennas) can be missed.
 
+Vegetation (`core.vegetation`): a ray that hits a porous face (a tree crown) is returned
+there with probability 1 - transmission, else cast again from just beyond the hit; every
+beam model's rays do this, seeded per (seed, line, pulse, sub-ray, crossing). Re-cast rays
+are not counted in `rays_cast`. A scene without porous faces is cast as before.
+
 Strip misalignment (`Survey.strip_misalignment_m`, default 0): every point of flight line k
 is moved by one 3-D offset `strip_offset(survey, seed, k)`, added where the final float64
 point is formed (local hit + the line's shift to LAS coordinates), in the compiled and the
