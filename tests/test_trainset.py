@@ -124,3 +124,19 @@ def test_damage_the_acquisition_did_not_see_is_left_out_of_training():
                       ["uls-uls"])
     assert visible_damage(t).tolist() == [True, True, True, False]
     assert training_rows(t).y.tolist() == [0, 3, 0]
+
+
+def test_the_realistic_plan_is_the_clean_plan_with_scene_detail_and_footprint_labels():
+    clean, real = default_plan(0, "full"), default_plan(0, "full", "realistic")
+    assert real.labels == "footprints" and clean.labels == "simulator"
+    assert len(real.cities) == len(clean.cities) and len(real.pairs) == len(clean.pairs)
+    for a, b in zip(clean.cities, real.cities):
+        assert b.name == f"{a.name}-real" and (b.details, b.streetscape) == ("typical", "typical")
+        assert (a.source, a.dataset, a.seed, a.grade_mix) == (b.source, b.dataset, b.seed, b.grade_mix)
+    for a, b in zip(clean.pairs, real.pairs):  # the same acquisitions and seeds: like for like
+        assert (a.pre, a.post, a.pre_seed, a.post_seed, a.post_scene) == (b.pre, b.post, b.pre_seed, b.post_seed,
+                                                                         b.post_scene)
+    with pytest.raises(TrainingSetError, match="scenes must be"):
+        default_plan(0, "full", "photoreal")
+    with pytest.raises(TrainingSetError, match="labels must be"):
+        TrainingPlan(labels="guess")
