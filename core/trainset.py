@@ -214,6 +214,26 @@ class TransferTable:
         return self.city.astype(np.int64) * 1_000_000 + self.building_id.astype(np.int64)
 
 
+def combine_tables(clean: TransferTable, realistic: TransferTable) -> TransferTable:
+    """One table of a clean and a realistic build of the same plan. A realistic city's rows take
+    the index of the clean city it was made from (its name without "-real"): the same buildings,
+    grades and acquisitions, so a cross-validation that holds out cities keeps both versions of
+    a building on the same side."""
+    if clean.names != realistic.names:
+        raise TrainingSetError("the clean and realistic tables have different descriptor columns")
+    index = {name: i for i, name in enumerate(clean.cities)}
+    try:
+        city = np.array([index[realistic.cities[i].removesuffix("-real")] for i in realistic.city], np.int64)
+    except KeyError as e:
+        raise TrainingSetError(f"the realistic table's city {e} has no clean counterpart") from None
+    return TransferTable(
+        x=np.vstack([clean.x, realistic.x]), y=np.concatenate([clean.y, realistic.y]), names=list(clean.names),
+        city=np.concatenate([clean.city, city]), pair=np.concatenate([clean.pair, realistic.pair + len(clean.pairs)]),
+        building_id=np.concatenate([clean.building_id, realistic.building_id]),
+        density=np.vstack([clean.density, realistic.density]), cities=list(clean.cities),
+        pairs=list(clean.pairs) + list(realistic.pairs), sensors=list(clean.sensors) + list(realistic.sensors))
+
+
 def _settings_key(settings, labels: str = "simulator") -> str:
     """Tables are reused only for the same settings, labels and descriptor code."""
     from .surface import DESCRIPTOR_VERSION
