@@ -511,7 +511,7 @@ def _slope_spot(rng, site, w, v0, v1):
     if not edges or v1 > site.depth - 0.2:
         return None
     lo, hi = site.slope_range(v1)
-    if hi - lo < w:
+    if hi - lo < w + 1e-6:
         return None
     for _ in range(20):
         i = edges[int(rng.integers(0, len(edges)))]
@@ -566,7 +566,7 @@ def _place_solar(rng, site):
         if v1 - v0 < 1.5:
             return None
         lo, hi = site.slope_range(v1)
-        w = min(_u(rng, 3.0, 8.0), hi - lo)
+        w = min(_u(rng, 3.0, 8.0), hi - lo - 0.01)
         if w < 2.0:
             return None
         spot = _slope_spot(rng, site, w, v0, v1)
@@ -732,11 +732,22 @@ def add_details(plan: CityPlan, level: str = "typical") -> CityPlan:
     if level == "none":
         return plan
     worlds = [_world_polygon(b) for b in plan.buildings]
+    owner = list(range(len(worlds)))
+    boxes = np.array([np.concatenate([w.min(axis=0), w.max(axis=0)]) for w in worlds])
+    reach = 6.0  # an annex reaches at most 5 m out; only buildings this close can be in its way
     for k, b in enumerate(plan.buildings):
-        others = worlds[:k] + worlds[k + 1:]
+        lo, hi = boxes[k, :2] - reach, boxes[k, 2:] + reach
+        near = np.flatnonzero((boxes[:, 2] >= lo[0]) & (boxes[:, 0] <= hi[0]) & (boxes[:, 3] >= lo[1])
+                              & (boxes[:, 1] <= hi[1]))
+        others = [worlds[j] for j in near if owner[j] != k]
         b.shell["details"] = draw_details(b.shell, b.typology, b.seed, (b.location, b.rotation), others)
         # later buildings keep clear of this one's annex (earlier ones were checked by it)
-        worlds += [_annex_world(b, d) for d in b.shell["details"] if d["kind"] == "annex"]
+        for d in b.shell["details"]:
+            if d["kind"] == "annex":
+                w = _annex_world(b, d)
+                worlds.append(w)
+                owner.append(k)
+                boxes = np.vstack([boxes, np.concatenate([w.min(axis=0), w.max(axis=0)])])
     return plan
 
 

@@ -659,7 +659,7 @@ def _spot(rng, poly, sx, sy, taken, margin=0.3, tries=30):
 def add_roof_details(bm, building_id, seed, storey, min_area=6.0) -> list[str]:
     """Roof-top details on an imported building's roof faces (surface roof, part roof, facing
     up, at least `min_area` m²): chimneys, antennas, solar panels (rows on flat faces, flush
-    on slopes), rooftop boxes (flat faces) and skylights (slopes), each drawn with the
+    on slopes), rooftop boxes (flat faces) and skylights, each drawn with the
     probability in BUNDLE_KINDS from the stream (seed, 4242). Returns the kinds added."""
     lab = Labels(bm)
     bm.normal_update()
@@ -676,8 +676,7 @@ def add_roof_details(bm, building_id, seed, storey, min_area=6.0) -> list[str]:
         if not wanted:
             continue
         flat = [f for f in roofs if f.normal.z > 0.97]
-        sloped = [f for f in roofs if f.normal.z <= 0.97]
-        pool = {"rooftop_structure": flat, "skylight": sloped}.get(kind, roofs)
+        pool = flat if kind == "rooftop_structure" else roofs
         if not pool:
             continue
         face = pool[int(rng.integers(0, len(pool)))]
