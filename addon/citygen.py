@@ -620,9 +620,9 @@ def _place_terrace(rng, site):
                  "deck": round(_u(rng, 0.3, 0.6), 2)}]
     if site.ns < 3:
         return None
-    for frac in (_u(rng, 0.4, 0.6), 0.35, 0.25):
-        sx = frac * (site.x1 - site.x0)
-        sy = _u(rng, 0.5, 0.7) * (site.y1 - site.y0)
+    fx, fy = _u(rng, 0.4, 0.6), _u(rng, 0.5, 0.7)
+    for scale in (1.0, 0.7, 0.5):  # smaller on an L-shaped roof, whose arms are narrower than its box
+        sx, sy = scale * fx * (site.x1 - site.x0), scale * fy * (site.y1 - site.y0)
         at = site.free_rect(rng, sx, sy, margin=1.5)
         if at:
             return [{"kind": "terrace", "mode": "penthouse", "x0": round(at[0] - sx / 2, 2), "y0": round(at[1] - sy / 2, 2),
