@@ -398,13 +398,20 @@ DETAIL_ENTRIES = ("overhang", "chimney", "dormer", "skylight", "solar_panels", "
                   "terrace", "antenna", "balcony", "annex", "parapet")
 DETAIL_FITS = {
     "overhang": "pitched roof", "dormer": "pitched roof", "chimney": "the shell has no chimney of its own",
-    "rooftop_structure": "flat roof", "hvac": "flat roof", "terrace": "pitched roof (altana) or flat roof of 3+ storeys",
+    "rooftop_structure": "flat roof", "hvac": "flat roof",
+    "terrace": "pitched roof (altana) or flat roof of 3+ storeys",
     "balcony": "2+ storeys and a free facade of 6+ m", "parapet": "flat roof without a parapet",
 }
 
 
 def entry_kind(entry: str) -> str:
     return "rooftop_structure" if entry == "hvac" else entry
+
+
+def _is_axis_rect(p) -> bool:
+    """Four corners on the bounding box (ShellSpec.is_rect): pitched roofs need it."""
+    lo, hi = p.min(axis=0), p.max(axis=0)
+    return len(p) == 4 and bool(np.all((np.abs(p - lo) < 1e-6) | (np.abs(p - hi) < 1e-6)))
 
 
 class _Site:
@@ -414,9 +421,7 @@ class _Site:
         self.shell = shell
         self.poly = poly2d.ccw(np.asarray(shell["footprint"], dtype=np.float64))
         (self.x0, self.y0), (self.x1, self.y1) = self.poly.min(axis=0), self.poly.max(axis=0)
-        rect = len(self.poly) == 4 and all(
-            (abs(x - self.x0) < 1e-6 or abs(x - self.x1) < 1e-6) and (abs(y - self.y0) < 1e-6 or abs(y - self.y1) < 1e-6)
-            for x, y in self.poly)
+        rect = _is_axis_rect(self.poly)
         self.roof = shell.get("roof", "flat") if (shell.get("roof") in ("gable", "hip") and rect) else "flat"
         self.rect = rect
         self.ns = int(shell.get("storeys", 2))
@@ -479,7 +484,7 @@ class _Site:
 
     def claim_slope(self, i, u0, u1, v0, v1) -> bool:
         a, d, n, _ = self.edge(i)
-        pts = np.array([a + d * u - (-n) * 0 - n * v for u in (u0, u1) for v in (v0, v1)])
+        pts = np.array([a + d * u - n * v for u in (u0, u1) for v in (v0, v1)])
         lo, hi = pts.min(axis=0), pts.max(axis=0)
         return self.claim(lo[0], lo[1], hi[0], hi[1], margin=0.0)
 
@@ -573,8 +578,8 @@ def _place_solar(rng, site):
         if spot is None:
             return None
         i, t = spot
-        return [{"kind": "solar_panels", "mode": "flush", "edge": i, "u0": round(t - w / 2, 2), "u1": round(t + w / 2, 2),
-                 "v0": v0, "v1": v1}]
+        return [{"kind": "solar_panels", "mode": "flush", "edge": i, "u0": round(t - w / 2, 2),
+                 "u1": round(t + w / 2, 2), "v0": v0, "v1": v1}]
     for scale in (1.0, 0.6, 0.35):
         sx = min(_u(rng, 4.0, 10.0) * scale, site.x1 - site.x0 - 2.0)
         sy = min(_u(rng, 3.0, 8.0) * scale, site.y1 - site.y0 - 2.0)
@@ -582,10 +587,14 @@ def _place_solar(rng, site):
             continue
         at = site.free_rect(rng, sx, sy, margin=0.8)
         if at:
-            return [{"kind": "solar_panels", "mode": "rows", "x0": round(at[0] - sx / 2, 2), "y0": round(at[1] - sy / 2, 2),
-                     "x1": round(at[0] + sx / 2, 2), "y1": round(at[1] + sy / 2, 2), "tilt": round(_u(rng, 15, 30), 1),
-                     "depth": round(_u(rng, 1.0, 1.7), 2), "pitch": round(_u(rng, 1.8, 2.6), 2)}]
+            return [{"kind": "solar_panels", "mode": "rows", **_rect_keys(at, sx, sy),
+                     "tilt": round(_u(rng, 15, 30), 1), "depth": round(_u(rng, 1.0, 1.7), 2), "pitch": round(_u(rng, 1.8, 2.6), 2)}]
     return None
+
+
+def _rect_keys(at, sx, sy):
+    return {"x0": round(at[0] - sx / 2, 2), "y0": round(at[1] - sy / 2, 2), "x1": round(at[0] + sx / 2, 2),
+            "y1": round(at[1] + sy / 2, 2)}
 
 
 def _place_box(rng, site, typ, count, sx_range, sy_range, h_range):
@@ -625,8 +634,7 @@ def _place_terrace(rng, site):
         sx, sy = scale * fx * (site.x1 - site.x0), scale * fy * (site.y1 - site.y0)
         at = site.free_rect(rng, sx, sy, margin=1.5)
         if at:
-            return [{"kind": "terrace", "mode": "penthouse", "x0": round(at[0] - sx / 2, 2), "y0": round(at[1] - sy / 2, 2),
-                     "x1": round(at[0] + sx / 2, 2), "y1": round(at[1] + sy / 2, 2),
+            return [{"kind": "terrace", "mode": "penthouse", **_rect_keys(at, sx, sy),
                      "height": round(site.hs, 2), "railing": site.parapet <= 0}]
     return None
 
@@ -767,7 +775,7 @@ def _annex_world(b, d):
     return local @ np.array([[c, s], [-s, c]]) + np.asarray(b.location)
 
 
-def typology_for(material: str, storeys: int, roof: str) -> str:
+def typology_for(material: str, storeys: int) -> str:
     """The city typology whose detail frequencies suit a single building (the Add Building operator)."""
     if material == ems98.MASONRY and storeys <= 2:
         return "detached_house"

@@ -84,7 +84,7 @@ class DAMAGE_OT_add_building(bpy.types.Operator):
         existing = [o.qs_building.building_id for o in bpy.data.objects if o.qs_building.role == "BUILDING"]
         bid = max(existing, default=0) + 1
         if self.details != "none":
-            spec.typology = citygen.typology_for(spec.material, spec.storeys, spec.roof)
+            spec.typology = citygen.typology_for(spec.material, spec.storeys)
             spec.details = citygen.draw_details(json.loads(spec.to_json()), spec.typology, self.details_seed or bid)
         try:
             obj = scene_tools.create_building_object(context.collection, spec, bid,

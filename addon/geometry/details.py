@@ -339,7 +339,8 @@ def balcony(bm, lab, spec, bid, index, d):
             _, tv = _prism(bm, lab, [pts[k_] for k_ in order], z0, z0 + BALCONY_SLAB, bid, P_BALCONY, k, i,
                            top_surface=WALL)
             top = dict(zip(order, tv))
-            outs = [(-float(dd[0]), -float(dd[1]), 0.0), (float(n[0]), float(n[1]), 0.0), (float(dd[0]), float(dd[1]), 0.0)]
+            outs = [(-float(dd[0]), -float(dd[1]), 0.0), (float(n[0]), float(n[1]), 0.0),
+                    (float(dd[0]), float(dd[1]), 0.0)]
             _railing(bm, lab, [top["bl"], top["fl"], top["fr"], top["br"]], rail, bid, P_BALCONY, k, i, outs)
 
 
@@ -493,7 +494,8 @@ def _inside(spec, x, y, sx, sy, what, margin=0.1):
     corners = np.array([[x - hx, y - hy], [x + hx, y - hy], [x + hx, y + hy], [x - hx, y + hy]])
     p = spec.poly
     ok = poly2d.contains(p, corners).all() and poly2d.boundary_distance(p, corners).min() >= margin - 1e-9
-    inner = (p[:, 0] > x - hx + 1e-9) & (p[:, 0] < x + hx - 1e-9) & (p[:, 1] > y - hy + 1e-9) & (p[:, 1] < y + hy - 1e-9)
+    eps = 1e-9
+    inner = (p[:, 0] > x - hx + eps) & (p[:, 0] < x + hx - eps) & (p[:, 1] > y - hy + eps) & (p[:, 1] < y + hy - eps)
     if not ok or inner.any():
         raise DetailError(f"{what} at ({x:.2f}, {y:.2f}) of {sx:.2f} x {sy:.2f} m is not inside the footprint")
 
@@ -573,7 +575,7 @@ def _probe_shift(spec, part, elem):
     return Vector((0.0, 0.0, 0.0))
 
 
-def supported(unit, tree, shift, lab=None) -> bool:
+def supported(unit, tree, shift) -> bool:
     """Some vertex of the unit finds an element (a face of `tree`) at most SUPPORT_TOL below it."""
     if tree is None:
         return False
@@ -635,7 +637,8 @@ def _plane_zfun(face):
     c, n = face.calc_center_median(), face.normal
 
     def z(x, y):
-        return c.z - (n.x * (np.asarray(x, dtype=np.float64) - c.x) + n.y * (np.asarray(y, dtype=np.float64) - c.y)) / n.z
+        x, y = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
+        return c.z - (n.x * (x - c.x) + n.y * (y - c.y)) / n.z
     return z
 
 
@@ -699,8 +702,9 @@ def _add_on_face(bm, lab, rng, kind, face, poly, zfun, floor, taken, bid, storey
         at = _spot(rng, poly, 1.0, 1.0, taken)
         if at:
             dish = bool(rng.uniform() < 0.5)
-            _antenna(bm, lab, zfun, floor, *at, "dish" if dish else "mast", 1.0 if dish else float(rng.uniform(1.5, 3.5)),
-                     float(rng.uniform(0.6, 1.0)), float(rng.uniform(0, 2 * math.pi)), bid, storey, elem)
+            height = 1.0 if dish else float(rng.uniform(1.5, 3.5))
+            _antenna(bm, lab, zfun, floor, *at, "dish" if dish else "mast", height, float(rng.uniform(0.6, 1.0)),
+                     float(rng.uniform(0, 2 * math.pi)), bid, storey, elem)
     elif kind == "rooftop_structure":
         sx, sy = float(rng.uniform(1.0, 3.0)), float(rng.uniform(1.0, 2.5))
         at = _spot(rng, poly, sx, sy, taken)
