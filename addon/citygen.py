@@ -432,6 +432,9 @@ class _Site:
         self.parapet = float(shell.get("parapet_height", 0.0)) if self.roof == "flat" else 0.0
         self.party = set(shell.get("party_walls", []))
         self.taken = []  # roof-top rectangles (local x0, y0, x1, y1) already used
+        if shell.get("chimney"):  # the shell's own chimney
+            cx, cy, size, _ = shell["chimney"]
+            self.taken.append((cx - size / 2, cy - size / 2, cx + size / 2, cy + size / 2))
         self.world = world  # (location, rotation) for the annex's clearance test
         self.obstacles = list(obstacles)  # world polygons of the other buildings (and their annexes)
 

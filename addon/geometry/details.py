@@ -274,7 +274,8 @@ def skylight(bm, lab, spec, bid, index, d):
 
 def overhang(bm, lab, spec, bid, index, d):
     """d: depth (0.3-0.8 m). Eaves: the slopes continue `depth` beyond every eave wall, with a
-    0.15 m fascia; gable roofs also get verges beyond the gable walls."""
+    0.15 m fascia; gable roofs also get verges beyond the gable walls. Nothing reaches over
+    a party wall (the neighbour's roof is there)."""
     t = spec.roof_type
     if t == "flat":
         raise DetailError("an eaves overhang needs a pitched roof")
@@ -282,15 +283,21 @@ def overhang(bm, lab, spec, bid, index, d):
     H = spec.eave_height
     tan = math.tan(math.radians(spec.roof_pitch))
     gables = spec.gable_edges()
+    party = set(spec.party_walls)
     ns = spec.storeys
-    for i in range(len(spec.poly)):
+    m = len(spec.poly)
+    for i in range(m):
+        if i in party:  # the neighbour's roof continues there
+            continue
         a, _, dd, n, L = edge(spec, i)
         if i in gables:
             _verge(bm, lab, spec, bid, i, o, tan)
             continue
+        # run on past the corners, except into a neighbour at a party wall
+        ext0, ext1 = (0.0 if (i - 1) % m in party else o), (0.0 if (i + 1) % m in party else o)
         us = np.linspace(0.0, L, max(1, int(math.ceil(L / PIECE))) + 1)
         for k in range(len(us) - 1):
-            out0, out1 = (-o if k == 0 else us[k]), (L + o if k == len(us) - 2 else us[k + 1])
+            out0, out1 = (-ext0 if k == 0 else us[k]), (L + ext1 if k == len(us) - 2 else us[k + 1])
             in0 = out0 if (t == "gable" and k == 0) else us[k]  # gable eaves run on under the verges
             in1 = out1 if (t == "gable" and k == len(us) - 2) else us[k + 1]
 

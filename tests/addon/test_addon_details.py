@@ -459,3 +459,22 @@ def test_demo_generate_passes_details(monkeypatch, tmp_path):
     assert seen["cmd"][seen["cmd"].index("--details") + 1] == "typical"
     demo.generate("generic", "mixed", 4, 1, tmp_path)
     assert "--details" not in seen["cmd"]
+
+
+@pytest.mark.parametrize("party", [[], [1, 3]])
+def test_overhang_closed_form_and_party_walls(party):
+    from addon_measure import area
+    o, pitch = 0.5, 40.0
+    spec = ShellSpec(rect_footprint(12, 9), storeys=2, roof="gable", roof_pitch=pitch, party_walls=party,
+                     details=[{"kind": "overhang", "depth": o}])
+    v, t, s, b, p = gm.arrays(built(spec))
+    mask = p == gm.P_OVERHANG
+    top = mask & (s == gm.ROOF)
+    cos = math.cos(math.radians(pitch))
+    ends = 0.0 if party else 2 * o  # eaves run past the gable walls, verges beyond them
+    assert area(v, t, top) == pytest.approx(2 * ((12 + ends) * o + (2 * o * 4.5 if not party else 0.0)) / cos)
+    assert area(v, t, mask & (s == gm.WALL)) == pytest.approx(2 * (12 + ends) * 0.15)  # fascia boards
+    xy = v[t[mask]].reshape(-1, 3)
+    assert xy[:, 0].min() == pytest.approx(-6.0 - (o if not party else 0.0))  # nothing over a neighbour
+    assert xy[:, 1].min() == pytest.approx(-4.5 - o)
+    assert xy[:, 2].min() == pytest.approx(spec.eave_height - o * math.tan(math.radians(pitch)) - 0.15)
