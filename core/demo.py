@@ -43,10 +43,13 @@ def generator_command(args: list[str]) -> list[str]:
 
 
 def generate(set_name: str, dataset: str, buildings: int | None, seed: int, out: Path,
-             grade_mix: dict | None = None, source: Path | None = None) -> None:
+             grade_mix: dict | None = None, source: Path | None = None, details: str = "none") -> None:
     """Run the add-on's scene generator; `grade_mix` (grade -> count) fixes a mixed city's grades;
-    `source`: the scene bundle whose buildings `set_name` "bundle" damages."""
+    `source`: the scene bundle whose buildings `set_name` "bundle" damages; `details`: "none" or
+    "typical" roof and facade details (dormers, chimneys, balconies, solar panels, ...)."""
     args = ["--set", set_name, "--dataset", dataset, "--seed", str(seed), "--out", str(out)]
+    if details != "none":
+        args += ["--details", details]
     if source is not None:
         args += ["--source", str(source)]
     if grade_mix:
