@@ -1,12 +1,15 @@
 """Operators: building IDs, procedural shells, interiors, reset."""
 from __future__ import annotations
 
+import json
+
 import bpy
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty
 
-from . import ems98, scene_tools
+from . import citygen, ems98, scene_tools
+from .geometry.details import DetailError
 from .geometry.shell import ROOF_TYPES, ShellSpec, rect_footprint
-from .props import CLASS_ITEMS, MATERIAL_ITEMS
+from .props import CLASS_ITEMS, DETAIL_ITEMS, MATERIAL_ITEMS
 
 
 def _is_building(obj):
@@ -60,6 +63,9 @@ class DAMAGE_OT_add_building(bpy.types.Operator):
     chimney: BoolProperty(name="Chimney", default=False)
     material: EnumProperty(name="Material", items=MATERIAL_ITEMS, default=ems98.MASONRY)
     vulnerability_class: EnumProperty(name="Vulnerability", items=CLASS_ITEMS, default="B")
+    details: EnumProperty(name="Details", items=DETAIL_ITEMS, default="none")
+    details_seed: IntProperty(name="Details seed", min=0, default=0,
+                              description="Seed of the details (0: the building ID)")
 
     @classmethod
     def poll(cls, context):
@@ -77,8 +83,16 @@ class DAMAGE_OT_add_building(bpy.types.Operator):
                          bay_width=4.5 if self.material == ems98.RC else 0.0, material=self.material)
         existing = [o.qs_building.building_id for o in bpy.data.objects if o.qs_building.role == "BUILDING"]
         bid = max(existing, default=0) + 1
-        obj = scene_tools.create_building_object(context.collection, spec, bid, location=context.scene.cursor.location,
-                                                 vulnerability_class=self.vulnerability_class, seed=bid)
+        if self.details != "none":
+            spec.typology = citygen.typology_for(spec.material, spec.storeys)
+            spec.details = citygen.draw_details(json.loads(spec.to_json()), spec.typology, self.details_seed or bid)
+        try:
+            obj = scene_tools.create_building_object(context.collection, spec, bid,
+                                                     location=context.scene.cursor.location,
+                                                     vulnerability_class=self.vulnerability_class, seed=bid)
+        except DetailError as e:
+            self.report({'ERROR'}, f"Details do not fit this building: {e}")
+            return {'CANCELLED'}
         for o in context.selected_objects:
             o.select_set(False)
         obj.select_set(True)

@@ -17,6 +17,10 @@ ROLE_ITEMS = [
 MATERIAL_ITEMS = [(m, ems98.MATERIAL_LABELS[m], "") for m in ems98.MATERIALS]
 CLASS_ITEMS = [(c, ems98.VULNERABILITY_LABELS[c], "EMS-98 vulnerability class") for c in ems98.VULNERABILITY_CLASSES]
 PATTERN_ITEMS = [(n, p.label, p.description or p.label) for n, p in ems98.PATTERNS.items()]
+DETAIL_ITEMS = [("none", "None", "A clean shell"),
+                ("typical", "Typical", "Roof and facade details drawn with the city generator's frequencies for "
+                 "this kind of building (dormers, chimneys, skylights, overhangs, balconies, antennas, solar "
+                 "panels, rooftop structures, terraces)")]
 EPOCH_ITEMS = [("pre", "Pre-event", "Intact buildings (grades written as 0)"),
                ("post", "Post-event", "Damaged buildings with their grades")]
 

@@ -14,6 +14,7 @@ import numpy as np
 
 from . import ems98
 from .geometry import mesh as gm
+from .geometry import details
 from .geometry import patterns as gp
 from .geometry import poly2d
 from .geometry.common import PatternNotApplicable
@@ -68,9 +69,11 @@ def create_building_object(collection, spec: ShellSpec, building_id: int, name=N
     """A new object holding a procedural shell in its local frame, placed at `location`
     rotated `rotation_z` radians about z."""
     bm = bmesh.new()
-    build_shell(bm, spec, building_id)
-    obj = new_mesh_object(collection, name or f"building_{building_id:04d}", bm)
-    bm.free()
+    try:
+        build_shell(bm, spec, building_id)
+        obj = new_mesh_object(collection, name or f"building_{building_id:04d}", bm)
+    finally:
+        bm.free()
     obj.location = location
     obj.rotation_euler = (0.0, 0.0, rotation_z)
     set_building_props(obj, building_id, spec, grade=grade, vulnerability_class=vulnerability_class, seed=seed)
@@ -197,6 +200,21 @@ def add_interior(obj):
     write_bmesh(obj, bm)
     bm.free()
     return n
+
+
+def add_roof_details(obj, seed=None) -> list:
+    """Roof-top details (chimneys, antennas, solar panels, rooftop boxes, skylights) on the roof
+    faces of a building mesh without a shell description (e.g. an imported CityJSON
+    building), seeded by the building's seed. Returns the kinds added."""
+    _check_building(obj)
+    pg = obj.qs_building
+    bm = read_bmesh(obj)
+    try:
+        kinds = details.add_roof_details(bm, pg.building_id, pg.seed if seed is None else seed, int(pg.storeys))
+        write_bmesh(obj, bm)
+    finally:
+        bm.free()
+    return kinds
 
 
 def applied_patterns(obj) -> list:

@@ -9,6 +9,15 @@ from . import ems98
 from .props import param_prop_name
 
 
+def _detail_kinds(shell_json: str) -> list:
+    """Kinds of the roof and facade details of an add-on shell (none for user meshes)."""
+    try:
+        found = json.loads(shell_json).get("details", []) if shell_json else []
+    except (json.JSONDecodeError, AttributeError):
+        return []
+    return sorted({d.get("kind", "?") for d in found})
+
+
 class DAMAGE_PT_main(bpy.types.Panel):
     bl_idname = "DAMAGE_PT_main"
     bl_label = "Building"
@@ -38,6 +47,9 @@ class DAMAGE_PT_main(bpy.types.Panel):
         col.prop(pg, "storey_height")
         col.prop(pg, "typology")
         col.prop(pg, "seed")
+        kinds = _detail_kinds(pg.shell_json)
+        if kinds:
+            col.label(text="Details: " + ", ".join(kinds))
         row = layout.row(align=True)
         row.operator("damage.add_interior")
         row.operator("damage.reset_building")

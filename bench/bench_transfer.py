@@ -22,7 +22,7 @@ on the same clouds in the same run ("before"). Each classification goes through
 Ablation (same run, same test rows): the model's classifier refitted on the training set's
 tables without each descriptor group, and the other classifier candidates, scored on the
 simulated test pairs and the real no-change pairs. Needs the training set of the shipped
-model (`--training-set`, default out/default_model/trainset; built when missing).
+model (`--training-work`, default out/default_model; built when missing).
 
 Writes the tables to stdout, BENCHMARKS.md (section "transfer") and WORK/results.json.
 """
@@ -80,15 +80,19 @@ def real_pairs(work: Path) -> list:
     return out
 
 
-def test_city(work: Path) -> tuple:
-    """The held-out city's scenes and its preset-acquired clouds: {name: (pre, post)}."""
+def test_city(work: Path, realistic: bool = False) -> tuple:
+    """The held-out city's scenes and its preset-acquired clouds: {name: (pre, post)}.
+    `realistic`: the same city with roof and facade detail, trees, hedges, cars and street
+    furniture (the generator's `typical`), to be labelled through its footprints."""
     from core.acquisition import Acquisition, acquire
     from core.demo import generate
     from core.dim import preset_dim
     from core.survey import preset
 
-    city = work / "test_city"
-    generate("region", "mixed", None, TEST_SEED, city, grade_mix=TEST_MIX)
+    city = work / ("test_city_realistic" if realistic else "test_city")
+    look = {"details": "typical", "streetscape": "typical"} if realistic else {}
+    generate("region", "mixed", None, TEST_SEED, city, grade_mix=TEST_MIX, **look)
+    work = work / "realistic" if realistic else work
     acq = {"uls": Acquisition("uls", preset("paper")), "dim": Acquisition("dim", preset_dim("paper")),
            "als": Acquisition("als", preset("als"))}
     clouds = {}
@@ -144,7 +148,12 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--work", default=str(ROOT / "out" / "bench_transfer"))
     p.add_argument("--model", default=str(DEFAULT_MODEL))
-    p.add_argument("--training-set", default=str(ROOT / "out" / "default_model" / "trainset"))
+    p.add_argument("--training-work", default=str(ROOT / "out" / "default_model"),
+                   help="make_default_model's working folder: its training set(s), built when missing")
+    p.add_argument("--also", action="append", default=[], metavar="LABEL=MODEL",
+                   help="another model to run on the same clouds, reported beside the shipped one (repeatable)")
+    p.add_argument("--no-realistic", action="store_true",
+                   help="skip the held-out city made realistic (roof detail, trees, cars; labelled by footprints)")
     p.add_argument("--no-ablation", action="store_true", help="skip the ablation (needs the training set)")
     p.add_argument("--no-write", action="store_true", help="do not write BENCHMARKS.md")
     a = p.parse_args(argv)
@@ -157,7 +166,14 @@ def main(argv=None) -> int:
     prev = previous_model(work)
     if prev is not None:
         models["before"] = prev
-    results = {"model": str(model_path), "provenance": model.provenance, "real": [], "simulated": []}
+    for item in a.also:
+        label, _, path = item.partition("=")
+        if not path or not Path(path).is_file():
+            p.error(f"--also {item!r}: expected LABEL=MODEL with an existing model file")
+        models[label] = Path(path)
+    results = {"model": str(model_path), "provenance": model.provenance, "models": list(models),
+               "provenances": {k: load_model(v).provenance.get("dataset", "") for k, v in models.items()},
+               "real": [], "simulated": []}
 
     print("real no-change pairs", flush=True)
     fp = SHARED / "ahn3_footprints_rd.geojson"
@@ -175,12 +191,19 @@ def main(argv=None) -> int:
 
     print("held-out simulated city", flush=True)
     city, pairs = test_city(work)
-    for name, (pre, post) in pairs.items():
+    cases = [(name, pre, post, city, None) for name, (pre, post) in pairs.items()]
+    if not a.no_realistic:
+        from core.trainset import scene_footprints
+
+        real_city, real_city_pairs = test_city(work, realistic=True)
+        cases += [(f"realistic city: {name}", pre, post, real_city, scene_footprints(real_city))
+                  for name, (pre, post) in real_city_pairs.items()]
+    for name, pre, post, truth_city, footprints in cases:
         row = {"case": name}
         for label, mp in models.items():
-            tag = name.replace(" ", "_").replace("+", "").replace("-", "")
-            summary, secs = run_classify(pre, post, work / "results" / label / tag, mp)
-            ev = evaluate_files(work / "results" / label / tag / "buildings.csv", city / "post")
+            tag = name.replace(" ", "_").replace("+", "").replace("-", "").replace(":", "")
+            summary, secs = run_classify(pre, post, work / "results" / label / tag, mp, footprints=footprints)
+            ev = evaluate_files(work / "results" / label / tag / "buildings.csv", truth_city / "post")
             f1s = ", ".join(f"{g}: {100 * m['f1']:.0f}" for g, m in ev.per_grade.items())
             row[label] = {"overall_accuracy": ev.overall_accuracy, "n": ev.n, "not_assessable": ev.not_assessable,
                           "f1": {str(g): m["f1"] for g, m in ev.per_grade.items()}, "damaged_f1": ev.damaged["f1"],
@@ -191,7 +214,7 @@ def main(argv=None) -> int:
         results["simulated"].append(row)
 
     if not a.no_ablation:
-        results["ablation"] = ablation(work, model, Path(a.training_set), city, pairs, real)
+        results["ablation"] = ablation(work, model, Path(a.training_work), city, pairs, real)
 
     results["seconds"] = round(time.perf_counter() - t_start, 1)
     results["peak_mib"] = round(peak_rss_mb())
@@ -215,10 +238,13 @@ def report(res: dict, args) -> str:
              f"{res['peak_mib']:,} MiB. Model: {prov.get('dataset', '?')}; classifier "
              f"{prov.get('classifier_selection', {}).get('chosen', '?')}. \"before\" = the previous shipped "
              f"model (commit {PREVIOUS_MODEL_COMMIT}, the paper's generic-ULS forest) on the same clouds.", ""]
+    for label in res.get("models", []):
+        if label not in ("shipped", "before"):
+            lines += [f"\"{label}\": {res['provenances'].get(label, '')}", ""]
     rows = []
     for r in res["real"]:
         cells = [r["case"], "<= 1 %"]
-        for label in ("shipped", "before"):
+        for label in res["models"]:
             m = r.get(label)
             cells.append("—" if m is None else f"{_pct(m['damaged'] / max(m['assessable'], 1))} % "
                          f"({m['damaged']}/{m['assessable']})")
@@ -226,22 +252,25 @@ def report(res: dict, args) -> str:
         cells.append(f"{m['describe_s']:.1f} / {m['seconds']:.1f}")
         rows.append(cells)
     lines += ["Real no-change pairs (real footprints): share of assessable buildings called damaged.", "",
-              table(["case", "target", "shipped", "before", "describe / classify s (shipped)"], rows), ""]
+              table(["case", "target", *res["models"], "describe / classify s (shipped)"], rows), ""]
     targets = {"DIM pair": "OA >= 85 %, every F1 >= 80, damaged F1 >= 95", "ULS pair": "OA >= 90 %",
                "ALS-like pre + DIM post": "OA >= 80 %", "ALS-like pre + ULS post": "—"}
     rows = []
     for r in res["simulated"]:
-        for label in ("shipped", "before"):
+        for label in res["models"]:
             m = r.get(label)
             if m is None:
                 continue
-            rows.append([r["case"] if label == "shipped" else "", label, targets.get(r["case"], "") if label == "shipped"
+            rows.append([r["case"] if label == "shipped" else "", label, targets.get(r["case"].removeprefix(
+                "realistic city: "), "") if label == "shipped"
                          else "", f"{_pct(m['overall_accuracy'])}", *(f"{100 * m['f1'][g]:.0f}" for g in ("0", "3", "4", "5")),
                          f"{100 * m['damaged_f1']:.1f}", f"{m['n']} ({m['not_assessable']})",
                          f"{m['describe_s']:.1f} / {m['seconds']:.1f}"])
     lines += [f"Held-out simulated region-specific city (seed {TEST_SEED}, 121 buildings, the paper's mix "
               "35/19/32/35), preset sensors (paper ULS, paper DIM, `als` preset): overall accuracy %, F1 % per "
-              "grade, damaged vs undamaged F1 %.", "",
+              "grade, damaged vs undamaged F1 %. \"realistic city\": the same city with the generator's typical "
+              "roof and facade detail, trees, hedges, cars and street furniture, its buildings labelled through "
+              "its footprints as real clouds are.", "",
               table(["pair", "model", "target", "OA", "F1 0", "F1 3", "F1 4", "F1 5", "F1 damaged",
                      "assessed (not)", "describe / classify s"], rows), ""]
     lines += [f"Shipped model on its own held-out set (cross-validation holding out whole cities, pooled "
@@ -286,21 +315,20 @@ def _describe_rows(pre, post, settings, footprints=None, limits=None):
     return [r for r in rows if r.assessable]
 
 
-def ablation(work: Path, model, trainset_dir: Path, city: Path, pairs: dict, real: list) -> dict:
+def ablation(work: Path, model, training_work: Path, city: Path, pairs: dict, real: list) -> dict:
     """Refit the shipped classifier without each descriptor group (and the other candidates)
     on the training set; score all on the same test rows."""
     from core.classify import model_settings
-    from core.default_model import CANDIDATES, TABLE_SETTINGS, cv_groups, training_rows
+    from core.default_model import CANDIDATES, TABLE_SETTINGS, cv_groups, training_rows, training_table
     from core.evaluate import evaluate_grades, read_truth
     from core.model import fit_classifier
     from core.pipeline import descriptor_matrix
-    from core.trainset import build, default_plan
 
     print("ablation: training set and test descriptor tables", flush=True)
     t0 = time.perf_counter()
     # the rows the shipped model was fitted on: damage its acquisition did not see left out
-    tab = training_rows(build(trainset_dir, default_plan(model.provenance.get("seed", 0) or 0, "full"),
-                              TABLE_SETTINGS, say=lambda s: None))
+    tab = training_rows(training_table(training_work, seed=model.provenance.get("seed", 0) or 0, size="full",
+                                       scenes=model.provenance.get("scenes", "clean"), say=lambda s: None)[1])
     names = tab.names
     truth = read_truth(city / "post")
     limits = model_settings(model)

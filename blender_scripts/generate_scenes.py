@@ -11,6 +11,10 @@ Run inside Blender or with the bpy module:
 (every building at EMS-98 grade 3, 4 and 5: the seed paper's design); --dataset mixed
 writes DIR/pre and DIR/post with grades drawn per building (0-5).
 
+--details typical adds roof and facade details to the buildings (dormers, chimneys, skylights,
+eaves overhangs, balconies, antennas, solar panels, rooftop structures, annexes, terraces;
+frequencies by typology in addon/citygen.py); default none.
+
 --set bundle --source SCENE_DIR takes the buildings and terrain of an existing scene bundle
 (e.g. one imported from CityJSON) instead of a procedural city; --buildings then picks a
 seeded sample of that many of its buildings (default: all), the others are left out. The
@@ -91,6 +95,10 @@ def parse_args(argv):
                    help="--dataset mixed: exact counts per grade instead of random draws, e.g. "
                    "0:35,3:19,4:32,5:35 (the paper's L'Aquila evaluation set); sets --buildings to their sum")
     p.add_argument("--seed", type=_seed, default=0, help="random seed (default 0)")
+    p.add_argument("--details", choices=("none", "typical"), default="none",
+                   help="roof and facade details (dormers, chimneys, skylights, overhangs, balconies, antennas, "
+                   "solar panels, rooftop structures, annexes, terraces): none (clean shells, default) or typical "
+                   "(frequencies by typology, addon/citygen.py); --set bundle: roof-top details on the roof faces")
     p.add_argument("--out", required=True, help="output folder (created)")
     p.add_argument("--force", action="store_true", help="regenerate bundles made with other settings")
     p.add_argument("--streetscape", choices=("none", "typical"), default="none",
@@ -139,6 +147,8 @@ def scene_list(dataset, ids, seed, grade_mix=None):
 def generator_info(args, scene_name):
     info = {"script": PROG, "version": GENERATOR_VERSION, "set": args.set_name, "dataset": args.dataset,
             "buildings": args.buildings, "seed": args.seed, "scene": scene_name}
+    if getattr(args, "details", "none") != "none":  # absent for "none": older bundles stay resumable
+        info["details"] = args.details
     if getattr(args, "grade_mix", None):
         info["grade_mix"] = {str(g): n for g, n in sorted(args.grade_mix.items())}
     if args.set_name == "bundle":
@@ -201,7 +211,7 @@ def build_bundle_pre(args, pre, manifest):
     (labels, storey splits, coarse interiors; a per-building damage seed from --seed)."""
     import numpy as np
 
-    from addon import io_import
+    from addon import io_import, scene_tools
     ids = bundle_ids(args, manifest)
     info = io_import.import_bundle(args.source, pre, building_ids=ids)
     for obj in info["buildings"]:
@@ -209,6 +219,8 @@ def build_bundle_pre(args, pre, manifest):
         obj.qs_building.seed = int(np.random.default_rng([args.seed, 505, obj.qs_building.building_id])
                                    .integers(0, 2 ** 31 - 1))
         obj.qs_building.patterns_json = "[]"
+        if args.details != "none":
+            scene_tools.add_roof_details(obj)
     return ids, info
 
 
@@ -279,7 +291,7 @@ def run(args) -> int:
         ids = bundle_ids(args, manifest)
         origin, crs = manifest.get("origin", [0.0, 0.0, 0.0]), manifest.get("crs")
     else:
-        plan = citygen.city_plan(args.set_name, args.buildings, args.seed)
+        plan = citygen.city_plan(args.set_name, args.buildings, args.seed, details=args.details)
         ids = [b.id for b in plan.buildings]
     scenes = scene_list(args.dataset, ids, args.seed, args.grade_mix)
     todo = []

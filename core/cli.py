@@ -132,6 +132,17 @@ def cmd_validate(args) -> int:
     return 0
 
 
+def cmd_footprints(args) -> int:
+    from .footprints import footprints_from_scene, write_footprints
+    from .scene import read_scene
+
+    fp = footprints_from_scene(read_scene(args.scene))
+    write_footprints(fp, args.output)
+    print(f"{args.output}: {len(fp)} building footprints (top-view outlines) of {args.scene}"
+          + (f" in {fp.crs}" if fp.crs else ""))
+    return 0
+
+
 def cmd_survey_template(args) -> int:
     from .survey import load_survey, write_survey_template
 
@@ -346,7 +357,7 @@ def cmd_training_set(args) -> int:
     from .default_model import TABLE_SETTINGS
     from .trainset import build, default_plan
 
-    table = build(args.output, default_plan(args.seed, args.size), TABLE_SETTINGS, workers=args.threads)
+    table = build(args.output, default_plan(args.seed, args.size, args.scenes), TABLE_SETTINGS, workers=args.threads)
     counts = dict(zip(*(v.tolist() for v in np.unique(table.y, return_counts=True))))
     print(f"{args.output}: {len(table.y)} building rows, grades {counts}; manifest.json and tables/")
     return 0
@@ -430,6 +441,12 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("scene")
     v.set_defaults(func=cmd_validate)
 
+    fo = sub.add_parser("footprints", help="building footprints (top-view outlines) of a scene bundle as GeoJSON, "
+                        "to label simulated clouds as real ones are labelled (classify --footprints)")
+    fo.add_argument("scene", help="scene bundle folder (the pre-event scene: a cadastre predates the event)")
+    fo.add_argument("-o", "--output", required=True, help="GeoJSON file to write")
+    fo.set_defaults(func=cmd_footprints)
+
     t = sub.add_parser("survey-template", help="write a documented survey JSON file to edit")
     t.add_argument("-o", "--output", required=True)
     t.add_argument("--preset", default="paper")
@@ -473,6 +490,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="full: ~2,900 buildings (the shipped model's); large: ~5,700 (full and as many again); "
                     "quick: 2 small cities")
     ts.add_argument("--seed", type=int, default=0)
+    ts.add_argument("--scenes", choices=("clean", "realistic"), default="clean",
+                    help="realistic: the same cities and acquisitions with roof and facade detail, trees, cars and "
+                    "street furniture, buildings labelled through footprints as on real data")
     ts.add_argument("--threads", type=int, default=-1)
     ts.set_defaults(func=cmd_training_set)
 

@@ -179,15 +179,37 @@ def fit_default_model(table, plan, config: dict, scores, *, seed: int = 0, comma
                        no_change_rule=False)
 
 
-def make_default_model(work: Path, output: Path, *, seed: int = 0, size: str = "full", workers: int = -1,
-                       say: Callable[[str], None] = print, command: str = ""):
+def training_table(work: Path, *, seed: int = 0, size: str = "full", scenes: str = "clean", workers: int = -1,
+                   say: Callable[[str], None] = print):
+    """The plan and the descriptor table of the training set under `work`: `scenes` clean (the
+    generator's bare scenes, under work/trainset), realistic (the same cities with roof detail,
+    trees and cars, labelled through footprints, under work/trainset_realistic) or both."""
+    from .trainset import TrainingPlan, build, combine_tables, default_plan
+
+    if scenes not in ("clean", "realistic", "both"):
+        raise ValueError(f"scenes must be clean, realistic or both, got {scenes!r}")
+    work = Path(work)
+    parts = {}
+    for kind in (("clean", "realistic") if scenes == "both" else (scenes,)):
+        plan = default_plan(seed, size, kind)
+        folder = work / ("trainset" if kind == "clean" else "trainset_realistic")
+        parts[kind] = (plan, build(folder, plan, TABLE_SETTINGS, workers=workers, say=say))
+    if scenes != "both":
+        return parts[scenes]
+    (clean_plan, clean), (real_plan, real) = parts["clean"], parts["realistic"]
+    plan = TrainingPlan(clean_plan.cities + real_plan.cities, clean_plan.pairs + real_plan.pairs, seed,
+                        f"{clean_plan.name}+realistic", labels="simulator")
+    return plan, combine_tables(clean, real)
+
+
+def make_default_model(work: Path, output: Path, *, seed: int = 0, size: str = "full", scenes: str = "clean",
+                       workers: int = -1, say: Callable[[str], None] = print, command: str = ""):
     """Build the training set under `work`, choose and fit the classifier, write `output`."""
     from .model import save_model
-    from .trainset import build, default_plan
 
     t0 = time.perf_counter()
-    plan = default_plan(seed, size)
-    full = model_columns(build(Path(work) / "trainset", plan, TABLE_SETTINGS, workers=workers, say=say))
+    plan, table = training_table(work, seed=seed, size=size, scenes=scenes, workers=workers, say=say)
+    full = model_columns(table)
     table = training_rows(full)
     say(f"{len(full.y) - len(table.y)} of {len(full.y)} rows left out: damage their acquisition did not see")
     t_build = round(time.perf_counter() - t0, 1)
@@ -198,6 +220,7 @@ def make_default_model(work: Path, output: Path, *, seed: int = 0, size: str = "
     say(comparison_table(scores))
     say(f"chosen: {config['name']}")
     model = fit_default_model(table, plan, config, scores, seed=seed, command=command, seconds_building=t_build)
+    model.provenance["scenes"] = scenes
     model.provenance["rows_left_out"] = {"count": int(len(full.y) - len(table.y)), "of": int(len(full.y)),
                                          "why": "labelled damaged, but no change seen in any of " + ", ".join(EVIDENCE)}
     output = Path(output)

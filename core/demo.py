@@ -43,11 +43,15 @@ def generator_command(args: list[str]) -> list[str]:
 
 
 def generate(set_name: str, dataset: str, buildings: int | None, seed: int, out: Path,
-             grade_mix: dict | None = None, source: Path | None = None, streetscape: str = "none") -> None:
+             grade_mix: dict | None = None, source: Path | None = None, details: str = "none",
+             streetscape: str = "none") -> None:
     """Run the add-on's scene generator; `grade_mix` (grade -> count) fixes a mixed city's grades;
-    `source`: the scene bundle whose buildings `set_name` "bundle" damages; `streetscape`
-    "typical" adds trees, hedges, parked cars and street furniture ("none": without)."""
+    `source`: the scene bundle whose buildings `set_name` "bundle" damages; `details`: "none" or
+    "typical" roof and facade details (dormers, chimneys, balconies, solar panels, ...);
+    `streetscape` "typical" adds trees, hedges, parked cars and street furniture ("none": without)."""
     args = ["--set", set_name, "--dataset", dataset, "--seed", str(seed), "--out", str(out)]
+    if details != "none":
+        args += ["--details", details]
     if streetscape != "none":  # the generator's default: its command line stays what it was
         args += ["--streetscape", streetscape]
     if source is not None:

@@ -7,6 +7,7 @@ more specific part (a BGT building part inside a larger outline).
 """
 from __future__ import annotations
 
+import json
 import logging
 import os
 import re
@@ -151,3 +152,74 @@ def assign_buildings_reference(x, y, footprints: Footprints) -> np.ndarray:
         take = inside & (out == 0)
         out[take] = footprints.ids[k]
     return out
+
+
+def footprints_from_scene(scene, simplify_m: float = 0.02, min_hole_m2: float = 1.0) -> Footprints:
+    """Top-view outlines of a scene's buildings, as a cadastre draws them (the Dutch BAG's
+    "bovenaanzicht": roof overhangs included), in the scene's world coordinates.
+
+    Simulated clouds carry the simulator's perfect `building_id`; real ones get theirs from
+    footprints, where everything inside the polygon that is not ground (a tree crown over the
+    roof, a parked car under the eaves) belongs to the building and debris outside it does
+    not. Footprints made from the pre-event scene let training and evaluation label simulated
+    clouds the same way `classify --footprints` labels real ones.
+
+    A building's outline is the union of the x/y projections of its roof and wall faces
+    (interior and debris faces are left out: slabs lie inside the walls, debris is not the
+    building's outline); vertical faces project to nothing. Holes smaller than `min_hole_m2`
+    (slivers between touching roof triangles) are filled; courtyards stay."""
+    import shapely
+
+    from .scene import ROOF, WALL
+
+    tri = np.asarray(scene.vertices)[np.asarray(scene.faces)][:, :, :2]  # (m, 3, 2) local x/y
+    cross = ((tri[:, 1, 0] - tri[:, 0, 0]) * (tri[:, 2, 1] - tri[:, 0, 1])
+             - (tri[:, 1, 1] - tri[:, 0, 1]) * (tri[:, 2, 0] - tri[:, 0, 0]))
+    usable = (np.asarray(scene.face_building) > 0) & np.isin(scene.face_surface, (ROOF, WALL)) & (np.abs(cross) > 1e-6)
+    ox, oy = float(scene.origin[0]), float(scene.origin[1])
+    ids, polygons, props = [], [], []
+    for b in scene.buildings:
+        sel = usable & (scene.face_building == b.id)
+        if not sel.any():
+            continue
+        rings = np.concatenate([tri[sel], tri[sel][:, :1]], axis=1)  # closed triangles
+        outline = shapely.union_all(shapely.polygons(rings)).buffer(0)
+        outline = _fill_small_holes(outline.simplify(simplify_m), min_hole_m2)
+        if outline.is_empty or outline.area <= 0:
+            continue
+        ids.append(b.id)
+        polygons.append(shapely.transform(outline, lambda c: c + (ox, oy)))
+        props.append({"building_id": int(b.id), "typology": b.typology, "storeys": int(b.storeys)})
+    if not polygons:
+        raise FootprintError("the scene has no building with roof or wall faces: no footprints")
+    return Footprints(np.array(ids, dtype=np.int64), polygons, scene.crs, "scene", props)
+
+
+def _fill_small_holes(geom, min_hole_m2: float):
+    import shapely.geometry
+
+    parts = list(geom.geoms) if hasattr(geom, "geoms") else [geom]
+    kept = [shapely.geometry.Polygon(p.exterior, [r for r in p.interiors
+                                                 if shapely.geometry.Polygon(r).area >= min_hole_m2])
+            for p in parts if p.geom_type == "Polygon"]
+    return kept[0] if len(kept) == 1 else shapely.geometry.MultiPolygon(kept)
+
+
+def write_footprints(footprints: Footprints, path: str | os.PathLike) -> Path:
+    """A GeoJSON FeatureCollection that `read_footprints` (and `classify --footprints`) reads
+    back with the same IDs; the CRS, when known, as a GeoJSON 2008 `crs` member. Written
+    atomically."""
+    import shapely.geometry
+
+    path = Path(path)
+    features = [{"type": "Feature", "properties": {**(p or {}), "building_id": int(i)},
+                 "geometry": shapely.geometry.mapping(poly)}
+                for i, poly, p in zip(footprints.ids, footprints.polygons,
+                                      footprints.properties or [None] * len(footprints))]
+    doc = {"type": "FeatureCollection", "features": features}
+    if footprints.crs:
+        doc["crs"] = {"type": "name", "properties": {"name": footprints.crs}}
+    tmp = path.with_name(path.name + ".part")
+    tmp.write_text(json.dumps(doc))
+    os.replace(tmp, path)
+    return path

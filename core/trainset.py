@@ -35,7 +35,7 @@ import json
 import os
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -51,6 +51,8 @@ SENSOR_PAIRS = (("uls", "uls"), ("dim", "dim"), ("als", "uls"), ("als", "dim"), 
                 ("dim", "uls"))
 ROTTERDAM = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "rotterdam_subset.json"
 CLUSTER_RADIUS_M = 150.0
+LABELS = ("simulator", "footprints")
+SCENES = ("clean", "realistic")
 
 
 class TrainingSetError(QuakeScanError):
@@ -67,6 +69,8 @@ class CitySpec:
     seed: int
     buildings: int | None = None  # None with rotterdam: every building of the model
     grade_mix: dict | None = None  # mixed: exact counts per grade
+    details: str = "none"  # roof and facade detail of the generator: none | typical
+    streetscape: str = "none"  # trees, hedges, cars, street furniture: none | typical
 
     @property
     def post_scenes(self) -> tuple:
@@ -96,10 +100,18 @@ class TrainingPlan:
     pairs: list = field(default_factory=list)
     seed: int = 0
     name: str = "custom"
+    # where building IDs of the clouds come from: the simulator's perfect per-point IDs, or
+    # the pre-event scene's footprints as on real data (everything inside a polygon that is
+    # not ground is the building's: a tree crown over the roof, a car under the eaves)
+    labels: str = "simulator"
+
+    def __post_init__(self):
+        if self.labels not in LABELS:
+            raise TrainingSetError(f"labels must be one of {LABELS}, got {self.labels!r}")
 
     def to_json(self) -> dict:
-        return {"name": self.name, "seed": self.seed, "cities": [asdict(c) for c in self.cities],
-                "pairs": [asdict(p) for p in self.pairs]}
+        return {"name": self.name, "seed": self.seed, "labels": self.labels,
+                "cities": [asdict(c) for c in self.cities], "pairs": [asdict(p) for p in self.pairs]}
 
 
 def _mix(n: int) -> dict:
@@ -112,7 +124,7 @@ def _mix(n: int) -> dict:
     return {0: counts[0], 1: slight, 2: slight, 3: counts[1], 4: counts[2], 5: counts[3]}
 
 
-def default_plan(seed: int = 0, size: str = "full") -> TrainingPlan:
+def default_plan(seed: int = 0, size: str = "full", scenes: str = "clean") -> TrainingPlan:
     """The training set of the shipped model (`full`, ~2,900 building rows), a larger one
     (`large`) or a small one for tests and smoke runs (`quick`, 2 small cities).
 
@@ -122,11 +134,17 @@ def default_plan(seed: int = 0, size: str = "full") -> TrainingPlan:
     mixed city, one per post-event scene of a paper-design city, sensors cycling through
     SENSOR_PAIRS, every acquisition drawn at random. large: the full plan's cities and pairs
     (the same draws: a built full set is reused) and as many again (6 + 6 mixed cities, one
-    more paper-design city of each kind): ~5,700 rows."""
+    more paper-design city of each kind): ~5,700 rows.
+
+    scenes: `clean` (the generator's bare buildings, the simulator's building IDs) or
+    `realistic` (the same cities and acquisitions with roof and facade detail, trees, hedges,
+    cars and street furniture, building IDs from the pre-event footprints as on real data)."""
     from .acquisition import random_acquisition
 
     if size not in ("full", "quick", "large"):
         raise TrainingSetError(f"plan size must be 'full', 'large' or 'quick', got {size!r}")
+    if scenes not in SCENES:
+        raise TrainingSetError(f"scenes must be one of {SCENES}, got {scenes!r}")
     rng = np.random.default_rng([seed, 7001])
     cities = []
     if size in ("full", "large"):
@@ -166,7 +184,13 @@ def default_plan(seed: int = 0, size: str = "full") -> TrainingPlan:
             for scene in city.post_scenes:
                 add(city, scene)
             add(city, "pre")  # the same city acquired twice: every building grade 0
-    return TrainingPlan(cities, pairs, seed, f"default-{size}")
+    if scenes == "clean":
+        return TrainingPlan(cities, pairs, seed, f"default-{size}")
+    # the same cities, grades and acquisitions, made to look like a real city: the two
+    # variants differ only in what the scenes hold, so their models compare like for like
+    real = {c.name: replace(c, name=f"{c.name}-real", details="typical", streetscape="typical") for c in cities}
+    return TrainingPlan(list(real.values()), [replace(p, city=real[p.city].name) for p in pairs], seed,
+                        f"default-{size}-realistic", labels="footprints")
 
 
 @dataclass
@@ -190,11 +214,33 @@ class TransferTable:
         return self.city.astype(np.int64) * 1_000_000 + self.building_id.astype(np.int64)
 
 
-def _settings_key(settings) -> str:
-    """Tables are reused only for the same settings and the same descriptor code."""
+def combine_tables(clean: TransferTable, realistic: TransferTable) -> TransferTable:
+    """One table of a clean and a realistic build of the same plan. A realistic city's rows take
+    the index of the clean city it was made from (its name without "-real"): the same buildings,
+    grades and acquisitions, so a cross-validation that holds out cities keeps both versions of
+    a building on the same side."""
+    if clean.names != realistic.names:
+        raise TrainingSetError("the clean and realistic tables have different descriptor columns")
+    index = {name: i for i, name in enumerate(clean.cities)}
+    try:
+        city = np.array([index[realistic.cities[i].removesuffix("-real")] for i in realistic.city], np.int64)
+    except KeyError as e:
+        raise TrainingSetError(f"the realistic table's city {e} has no clean counterpart") from None
+    return TransferTable(
+        x=np.vstack([clean.x, realistic.x]), y=np.concatenate([clean.y, realistic.y]), names=list(clean.names),
+        city=np.concatenate([clean.city, city]), pair=np.concatenate([clean.pair, realistic.pair + len(clean.pairs)]),
+        building_id=np.concatenate([clean.building_id, realistic.building_id]),
+        density=np.vstack([clean.density, realistic.density]), cities=list(clean.cities),
+        pairs=list(clean.pairs) + list(realistic.pairs), sensors=list(clean.sensors) + list(realistic.sensors))
+
+
+def _settings_key(settings, labels: str = "simulator") -> str:
+    """Tables are reused only for the same settings, labels and descriptor code."""
     from .surface import DESCRIPTOR_VERSION
 
     doc = {"settings": settings.to_json(), "descriptor_version": DESCRIPTOR_VERSION}
+    if labels != "simulator":  # keeps the keys of tables made before labels were a choice
+        doc["labels"] = labels
     return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()[:12]
 
 
@@ -220,10 +266,16 @@ def generate_city(city: CitySpec, folder: Path) -> None:
             tmp = folder.parent / f".{city.name}_source.part"
             write_scene(densest_cluster(import_cityjson(ROTTERDAM)), tmp)
             os.replace(tmp, source)
-        generate("bundle", city.dataset, city.buildings, city.seed, folder, grade_mix=city.grade_mix, source=source)
+        generate("bundle", city.dataset, city.buildings, city.seed, folder, grade_mix=city.grade_mix, source=source,
+                 **_scene_look(city))
     else:
         generate(city.source, city.dataset, None if city.grade_mix else city.buildings, city.seed, folder,
-                 grade_mix=city.grade_mix)
+                 grade_mix=city.grade_mix, **_scene_look(city))
+
+
+def _scene_look(city: CitySpec) -> dict:
+    """The generator's detail and streetscape options a city asks for (none: the bare call)."""
+    return {k: v for k, v in (("details", city.details), ("streetscape", city.streetscape)) if v != "none"}
 
 
 def densest_cluster(scene, radius_m: float = CLUSTER_RADIUS_M, margin_m: float = 20.0):
@@ -239,6 +291,18 @@ def densest_cluster(scene, radius_m: float = CLUSTER_RADIUS_M, margin_m: float =
     d = np.linalg.norm(centres[:, None, :] - centres[None, :, :], axis=2)
     best = int(np.argmax((d <= radius_m).sum(axis=1)))
     return crop_to_buildings(scene, ids[d[best] <= radius_m], margin_m)
+
+
+def scene_footprints(city_dir: Path) -> Path:
+    """The city's footprints (from its pre-event scene: a cadastre predates the event),
+    written once beside the scenes."""
+    from .footprints import footprints_from_scene, write_footprints
+    from .scene import read_scene
+
+    path = city_dir / "footprints.geojson"
+    if not path.is_file():
+        write_footprints(footprints_from_scene(read_scene(city_dir / "pre")), path)
+    return path
 
 
 def _grades(scene_dir: Path) -> dict:
@@ -268,7 +332,7 @@ def build(out_dir, plan: TrainingPlan, settings, *, workers: int = -1,
         t = time.perf_counter()
         generate_city(city, out / "scenes" / city.name)
         say(f"  [{k}/{len(plan.cities)}] {city.name} ({city.source}, {city.dataset}) {time.perf_counter() - t:.0f} s")
-    key = _settings_key(settings)
+    key = _settings_key(settings, plan.labels)
     names = settings.descriptor_names()
     say(f"training set 2/3 and 3/3: acquiring and describing {len(plan.pairs)} pairs")
     parts, manifest_pairs = [], []
@@ -291,7 +355,8 @@ def build(out_dir, plan: TrainingPlan, settings, *, workers: int = -1,
             d = np.load(table_path)
             part = {k2: d[k2] for k2 in d.files}
         else:
-            data = load_pair(*paths)
+            data = load_pair(*paths, footprints_path=scene_footprints(scenes) if plan.labels == "footprints"
+                             else None)
             truth = _grades(scenes / pair.post_scene)
             rows = [r for r in describe_pair(data.pre, data.post, settings, workers=workers)
                     if r.assessable and r.building_id in truth]

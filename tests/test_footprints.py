@@ -76,3 +76,51 @@ def test_ahn3_points_fall_in_bgt_footprints(shared_data):
     assert (ids[cls == 2] > 0).mean() < 0.02
     hit = np.unique(ids[ids > 0])
     assert len(hit) > 50  # many of the 160 footprints get points on this tile
+
+
+def test_footprints_of_a_box_scene_are_its_rectangles_in_world_coordinates(tmp_path):
+    from core.footprints import footprints_from_scene, write_footprints
+    from core.synthetic import box_city
+
+    scene = box_city(rows=1, cols=2, height=(9.0, 12.0), origin=(500000.0, 5000000.0, 0.0))
+    fp = footprints_from_scene(scene)
+    assert sorted(fp.ids.tolist()) == sorted(scene.building_ids.tolist())
+    for bid, poly in zip(fp.ids, fp.polygons):
+        faces = scene.faces[scene.face_building == bid]
+        xy = scene.vertices[np.unique(faces)][:, :2] + scene.origin[:2]
+        lo, hi = xy.min(axis=0), xy.max(axis=0)
+        assert poly.area == pytest.approx((hi - lo).prod(), rel=1e-6)  # a box's outline is its rectangle
+        assert np.allclose(poly.bounds, [*lo, *hi], atol=1e-6)
+    back = read_footprints(write_footprints(fp, tmp_path / "fp.geojson"))
+    assert back.ids.tolist() == fp.ids.tolist()
+    assert [p.area for p in back.polygons] == pytest.approx([p.area for p in fp.polygons])
+
+
+@pytest.fixture(scope="module")
+def scanned_region_city(tmp_path_factory):
+    """A generated L'Aquila-like block city (attached buildings, courtyards, pitched roofs)
+    scanned with the airborne preset."""
+    from core.demo import generate
+    from core.scan import scan
+    from core.scene import read_scene
+    from core.survey import preset
+
+    folder = tmp_path_factory.mktemp("region_city")
+    generate("region", "mixed", 12, 4, folder / "city")
+    scene = read_scene(folder / "city" / "pre")
+    scan(scene, preset("als"), folder / "pre.las", seed=1)
+    return scene, folder / "pre.las"
+
+
+def test_footprint_labels_of_a_simulated_cloud_agree_with_the_simulator_on_roofs(scanned_region_city):
+    from core.footprints import footprints_from_scene
+
+    scene, las_path = scanned_region_city
+    fp = footprints_from_scene(scene)
+    las = laspy.read(las_path)
+    bid = assign_buildings(np.asarray(las.x), np.asarray(las.y), fp)
+    roof = np.asarray(las.surface) == 1
+    assert roof.sum() > 5000
+    assert (bid[roof] == np.asarray(las.building_id)[roof]).mean() >= 0.99
+    ground = np.asarray(las.surface) == 0
+    assert (bid[ground] > 0).mean() < 0.01  # the terrain between blocks stays outside

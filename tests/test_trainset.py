@@ -124,3 +124,38 @@ def test_damage_the_acquisition_did_not_see_is_left_out_of_training():
                       ["uls-uls"])
     assert visible_damage(t).tolist() == [True, True, True, False]
     assert training_rows(t).y.tolist() == [0, 3, 0]
+
+
+def test_the_realistic_plan_is_the_clean_plan_with_scene_detail_and_footprint_labels():
+    clean, real = default_plan(0, "full"), default_plan(0, "full", "realistic")
+    assert real.labels == "footprints" and clean.labels == "simulator"
+    assert len(real.cities) == len(clean.cities) and len(real.pairs) == len(clean.pairs)
+    for a, b in zip(clean.cities, real.cities):
+        assert b.name == f"{a.name}-real" and (b.details, b.streetscape) == ("typical", "typical")
+        assert (a.source, a.dataset, a.seed, a.grade_mix) == (b.source, b.dataset, b.seed, b.grade_mix)
+    for a, b in zip(clean.pairs, real.pairs):  # the same acquisitions and seeds: like for like
+        assert (a.pre, a.post, a.pre_seed, a.post_seed, a.post_scene) == (b.pre, b.post, b.pre_seed, b.post_seed,
+                                                                         b.post_scene)
+    with pytest.raises(TrainingSetError, match="scenes must be"):
+        default_plan(0, "full", "photoreal")
+    with pytest.raises(TrainingSetError, match="labels must be"):
+        TrainingPlan(labels="guess")
+
+
+def test_combined_tables_keep_both_versions_of_a_city_in_one_cross_validation_group():
+    from core.trainset import TransferTable, combine_tables
+
+    def tab(cities, city, pairs):
+        n = len(city)
+        return TransferTable(x=np.arange(2 * n, dtype=float).reshape(n, 2), y=np.zeros(n, np.int64), names=["a", "b"],
+                             city=np.array(city), pair=np.zeros(n, np.int64), building_id=np.arange(1, n + 1),
+                             density=np.ones((n, 2)), cities=cities, pairs=pairs, sensors=["uls-uls"] * len(pairs))
+
+    clean = tab(["g0", "r0"], [0, 1, 1], ["p0"])
+    real = tab(["r0-real", "g0-real"], [0, 0, 1], ["q0"])  # another order: matched by name
+    both = combine_tables(clean, real)
+    assert both.city.tolist() == [0, 1, 1, 1, 1, 0]
+    assert both.pair.tolist() == [0, 0, 0, 1, 1, 1] and both.pairs == ["p0", "q0"]
+    assert len(both.y) == 6 and both.x.shape == (6, 2)
+    with pytest.raises(TrainingSetError, match="no clean counterpart"):
+        combine_tables(clean, tab(["z9-real"], [0], ["q0"]))

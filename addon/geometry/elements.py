@@ -87,7 +87,7 @@ def parapet_loss(bm, spec, rng, building_id, length_fraction=0.3, solid_fraction
         intervals.append((s, s + L))
         s += L + g
     removed_len, removed_area, dvol, peak = 0.0, 0.0, 0.0, 0.0
-    ph = spec.parapet_height
+    ph = spec.effective_parapet_height
     H = spec.eave_height
     for s0, s1 in intervals:
         for rep in (0.0, per):  # wrap around the start of the perimeter

@@ -39,6 +39,11 @@ P_OTHER, P_WALL, P_ROOF, P_SLAB, P_INNER, P_GABLE, P_PARAPET, P_CHIMNEY, P_DEBRI
 PART_NAMES = {P_OTHER: "other", P_WALL: "wall", P_ROOF: "roof", P_SLAB: "slab", P_INNER: "inner wall",
               P_GABLE: "gable", P_PARAPET: "parapet", P_CHIMNEY: "chimney", P_DEBRIS: "debris",
               P_BASE: "base", P_STUB: "wall stub"}
+# Procedural details (geometry/details.py): roof-top details (dormers, chimney stacks,
+# skylights, antennas, solar panels, rooftop structures, terraces), eaves overhangs,
+# balconies, annexes. Appended so that the values above never change.
+P_DETAIL, P_OVERHANG, P_BALCONY, P_ANNEX = range(11, 15)
+PART_NAMES.update({P_DETAIL: "roof detail", P_OVERHANG: "overhang", P_BALCONY: "balcony", P_ANNEX: "annex"})
 
 # Triangles at or below this area (m²) are dropped: the scene contract rejects <= 1e-10.
 MIN_TRI_AREA = 1e-8

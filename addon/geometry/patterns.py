@@ -11,7 +11,7 @@ import inspect
 import numpy as np
 
 from .. import ems98
-from . import collapse, elements, openings, rigid
+from . import collapse, details, elements, openings, rigid
 from .common import PatternNotApplicable, rnd
 
 FUNCTIONS = {
@@ -55,6 +55,11 @@ def apply_pattern(bm, spec, name: str, params: dict | None, rng, building_id: in
     if unknown:
         raise ValueError(f"pattern {name!r} has no parameter(s) {sorted(unknown)}; it takes {sorted(accepted)}")
     realised = fn(bm, spec, rng, building_id, **params)
+    # Details resting on an element that fell away fall too (rigid motions carry them along).
+    if ems98.PATTERNS[name].stage < 3:
+        fallen = details.settle(bm, spec, building_id)
+        if fallen:
+            realised["details_fallen"] = fallen
     return {"name": name, "params": rnd(realised)}
 
 

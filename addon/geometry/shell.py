@@ -1,5 +1,6 @@
 """Building shells: outer walls per storey and facade, floor slabs, coarse inner walls and a
-flat (optionally with parapet), gable or hip roof, optionally a chimney.
+flat (optionally with parapet), gable or hip roof, optionally a chimney, and procedural
+roof and facade details (``details``: dormers, overhangs, balconies, ...; see details.py).
 
 Slabs and inner walls are labelled ``interior`` (4) so that a hole shows something behind
 it. The shell is built in the object's local frame: z = 0 is the ground, the footprint is a
@@ -13,8 +14,9 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
+from . import details as dtl
 from . import poly2d
-from .mesh import (INTERIOR, P_CHIMNEY, P_GABLE, P_INNER, P_PARAPET, P_ROOF, P_SLAB, P_WALL, ROOF, WALL,
+from .mesh import (INTERIOR, P_CHIMNEY, P_GABLE, P_INNER, P_ROOF, P_SLAB, P_WALL, ROOF, WALL,
                    Labels, add_polygon)
 
 ROOF_TYPES = ("flat", "gable", "hip")
@@ -36,6 +38,7 @@ class ShellSpec:
     material: str = "masonry"
     typology: str = "generic"
     extra: dict = field(default_factory=dict)
+    details: list = field(default_factory=list)  # [{"kind": ..., params}], see geometry/details.py
 
     def __post_init__(self):
         # counter-clockwise footprint: edge i runs from vertex i to i+1 with the outside on
@@ -127,7 +130,7 @@ class ShellSpec:
             f.add("pitched")
         if t == "gable":
             f.add("gable")
-        if t == "flat" and self.parapet_height > 0:
+        if t == "flat" and self.effective_parapet_height > 0:
             f.add("parapet")
         if self.chimney:
             f.add("chimney")
@@ -136,6 +139,11 @@ class ShellSpec:
         if self.storeys >= 3:
             f.add("storeys>=3")
         return f
+
+    @property
+    def effective_parapet_height(self) -> float:
+        """Parapet of a flat roof: the shell's own, else that of a parapet detail."""
+        return dtl.parapet_height(self)
 
     def exposed_edges(self) -> list[int]:
         """Footprint edges that face a street or yard (not a neighbour's party wall);
@@ -206,12 +214,9 @@ def build_shell(bm, spec: ShellSpec, building_id: int) -> Labels:
     x0, y0, x1, y1 = spec.bbox
     if roof_type == "flat":
         add_polygon(bm, lab, [(x, y, H) for x, y in p], ROOF, bid, P_ROOF, ns, 0)
-        ph = spec.parapet_height
+        ph = spec.effective_parapet_height
         if ph > 0:
-            for i in range(n):
-                a, b = p[i], p[(i + 1) % n]
-                add_polygon(bm, lab, [(a[0], a[1], H), (b[0], b[1], H), (b[0], b[1], H + ph), (a[0], a[1], H + ph)],
-                            WALL, bid, P_PARAPET, ns, i)
+            dtl.parapet(bm, lab, spec, bid, ph)
     else:
         r = spec.ridge_rise
         cy = (y0 + y1) / 2
@@ -267,6 +272,7 @@ def build_shell(bm, spec: ShellSpec, building_id: int) -> Labels:
                 add_polygon(bm, lab, None, ROOF, bid, P_ROOF, ns, e, verts=vs)
     if spec.chimney:
         _chimney(bm, lab, spec, bid)
+    dtl.build_details(bm, lab, spec, bid)
     bm.normal_update()
     return lab
 
@@ -297,20 +303,8 @@ def _inner_walls(bm, lab, spec, p, levels, bid):
 
 def _chimney(bm, lab, spec, bid):
     cx, cy, size, above = spec.chimney
-    h = size / 2
-    xs = np.array([cx - h, cx + h, cx + h, cx - h])
-    ys = np.array([cy - h, cy - h, cy + h, cy + h])
-    zr = spec.roof_z(xs, ys)
-    zb = float(np.min(zr)) - 0.05
-    zt = float(np.max(zr)) + above
-    bot = [(float(x), float(y), zb) for x, y in zip(xs, ys)]
-    top = [(float(x), float(y), zt) for x, y in zip(xs, ys)]
-    bv = [bm.verts.new(c) for c in bot]
-    tv = [bm.verts.new(c) for c in top]
-    for i in range(4):
-        j = (i + 1) % 4
-        add_polygon(bm, lab, None, WALL, bid, P_CHIMNEY, spec.storeys, i, verts=[bv[i], bv[j], tv[j], tv[i]])
-    add_polygon(bm, lab, None, ROOF, bid, P_CHIMNEY, spec.storeys, 4, verts=tv)
+    dtl.roof_box(bm, lab, spec.roof_z, cx, cy, size, size, above, bid, P_CHIMNEY, spec.storeys, 0,
+                 side_elems=[0, 1, 2, 3], top_elem=4)
 
 
 def chimney_top(spec: ShellSpec) -> float:
