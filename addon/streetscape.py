@@ -450,10 +450,26 @@ def terrain_height_function(vertices, triangles):
 
 
 def plan_footprints(plan) -> list:
-    """World footprint polygons of a citygen.CityPlan's buildings."""
-    out = []
+    """World footprint polygons of a citygen.CityPlan's buildings (in plan order), then those
+    of their annexes (``details="typical"``: one-storey extensions outside the footprint)."""
+    from .geometry import poly2d
+
+    out, annexes = [], []
     for b in plan.buildings:
-        p = np.asarray(b.shell["footprint"], np.float64)
         c, s = math.cos(b.rotation), math.sin(b.rotation)
-        out.append(p @ np.array([[c, s], [-s, c]]) + np.asarray(b.location, np.float64))
-    return out
+        R, loc = np.array([[c, s], [-s, c]]), np.asarray(b.location, np.float64)
+        p = np.asarray(b.shell["footprint"], np.float64)
+        out.append(p @ R + loc)
+        ccw = poly2d.ccw(p)
+        for d in b.shell.get("details") or []:
+            if d.get("kind") != "annex":
+                continue
+            # as citygen._place_annex: along edge `edge` of the counter-clockwise footprint, outward
+            a, e = ccw[d["edge"]], ccw[(d["edge"] + 1) % len(ccw)]
+            u = (e - a) / np.linalg.norm(e - a)
+            n = np.array([u[1], -u[0]])
+            t, w, dep = d["t"], d["width"], d["depth"]
+            local = np.array([a + u * (t - w / 2), a + u * (t - w / 2) + n * dep, a + u * (t + w / 2) + n * dep,
+                              a + u * (t + w / 2)])
+            annexes.append(local @ R + loc)
+    return out + annexes  # the buildings' own first, in plan order

@@ -209,3 +209,18 @@ def test_generator_streetscape_around_an_imported_bundle(bpy_registered, tmp_pat
     pts = pre.vertices[pre.faces[opaque]][..., :2].reshape(-1, 2)
     assert ss.FreeSpace(fps, (-1e9, -1e9, 1e9, 1e9)).wall_distance(pts).min() > 0
     np.testing.assert_array_equal(_faces_of(post, VEGETATION), _faces_of(pre, VEGETATION))
+
+
+def test_annexes_of_detailed_plans_are_footprints_too():
+    plan = citygen.city_plan("generic", 40, 3, details="typical")
+    annexes = [(b, d) for b in plan.buildings for d in b.shell.get("details") or [] if d["kind"] == "annex"]
+    assert annexes
+    fps = ss.plan_footprints(plan)
+    assert len(fps) == len(plan.buildings) + len(annexes)
+    # every annex polygon touches its building's footprint along one edge and lies outside it
+    space_main = ss.FreeSpace(fps[:len(plan.buildings)], plan.bounds)
+    for poly in fps[len(plan.buildings):]:
+        d = space_main.wall_distance(poly)
+        assert np.isclose(d, 0, atol=1e-6).sum() == 2 and (d > 0.5).sum() == 2
+    scape = ss.plan_streetscape(fps, plan.bounds, "generic", 3)
+    assert ss.FreeSpace(fps, plan.bounds).wall_distance(_object_points(scape)).min() >= ss.CLEARANCE_M - 1e-9
