@@ -255,9 +255,10 @@ def building_record(obj, epoch: str) -> dict:
     return rec
 
 
-def collect(objects, epoch="pre", depsgraph=None):
+def collect(objects, epoch="pre", depsgraph=None, with_porous=False):
     """Arrays and manifest entries of the BUILDING and TERRAIN objects among `objects`.
-    Returns (vertices, faces, building_id, surface, buildings, report, porous)."""
+    Returns (vertices, faces, building_id, surface, buildings, report), and with
+    `with_porous` also the per-face porous flags (tree crowns) as a seventh item."""
     vs, fs, bs, ss, ps = [], [], [], [], []
     buildings = {}
     owner = {}
@@ -319,12 +320,14 @@ def collect(objects, epoch="pre", depsgraph=None):
     recs = [buildings[k] for k in sorted(buildings)]
     report = {"objects": len(objects), "buildings": len(recs), "faces": int(len(f)), "vertices": int(len(v)),
               "dropped_degenerate": dropped}
-    return v, f, b, s, recs, report, p
+    if with_porous:
+        return v, f, b, s, recs, report, p
+    return v, f, b, s, recs, report
 
 
 def export_objects(folder, objects, epoch="pre", origin=(0.0, 0.0, 0.0), crs=None, depsgraph=None, extra=None):
     """Export BUILDING/TERRAIN objects as a scene bundle in `folder`; returns a report."""
-    v, f, b, s, recs, report, porous = collect(objects, epoch, depsgraph)
+    v, f, b, s, recs, report, porous = collect(objects, epoch, depsgraph, with_porous=True)
     write_bundle(folder, v, f, b, s, recs, epoch=epoch, origin=origin, crs=crs, extra=extra, porous=porous)
     report["folder"] = str(folder)
     return report
