@@ -319,7 +319,7 @@ def ablation(work: Path, model, training_work: Path, city: Path, pairs: dict, re
     """Refit the shipped classifier without each descriptor group (and the other candidates)
     on the training set; score all on the same test rows."""
     from core.classify import model_settings
-    from core.default_model import CANDIDATES, TABLE_SETTINGS, cv_groups, training_rows, training_table
+    from core.default_model import CANDIDATES, TABLE_SETTINGS, cv_groups, training_rows, transfer_training_table
     from core.evaluate import evaluate_grades, read_truth
     from core.model import fit_classifier
     from core.pipeline import descriptor_matrix
@@ -327,7 +327,7 @@ def ablation(work: Path, model, training_work: Path, city: Path, pairs: dict, re
     print("ablation: training set and test descriptor tables", flush=True)
     t0 = time.perf_counter()
     # the rows the shipped model was fitted on: damage its acquisition did not see left out
-    tab = training_rows(training_table(training_work, seed=model.provenance.get("seed", 0) or 0, size="full",
+    tab = training_rows(transfer_training_table(training_work, seed=model.provenance.get("seed", 0) or 0, size="full",
                                        scenes=model.provenance.get("scenes", "clean"), say=lambda s: None)[1])
     names = tab.names
     truth = read_truth(city / "post")

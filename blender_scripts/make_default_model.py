@@ -33,9 +33,9 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--size", choices=("full", "large", "quick"), default="full",
                    help="training set plan (default full; large: twice the cities, measured in the README)")
-    p.add_argument("--scenes", choices=("clean", "realistic", "both"), default="clean",
+    p.add_argument("--scenes", choices=("clean", "realistic", "both"), default="both",
                    help="training scenes: the generator's bare ones, realistic ones (roof detail, trees, cars; "
-                   "labels through footprints) or both")
+                   "labels through footprints) or both (default: the shipped model's)")
     p.add_argument("--threads", type=int, default=-1)
     p.add_argument("-o", "--output", default=str(DEFAULT_MODEL))
     a = p.parse_args(argv)

@@ -179,8 +179,8 @@ def fit_default_model(table, plan, config: dict, scores, *, seed: int = 0, comma
                        no_change_rule=False)
 
 
-def training_table(work: Path, *, seed: int = 0, size: str = "full", scenes: str = "clean", workers: int = -1,
-                   say: Callable[[str], None] = print):
+def transfer_training_table(work: Path, *, seed: int = 0, size: str = "full", scenes: str = "both",
+                            workers: int = -1, say: Callable[[str], None] = print):
     """The plan and the descriptor table of the training set under `work`: `scenes` clean (the
     generator's bare scenes, under work/trainset), realistic (the same cities with roof detail,
     trees and cars, labelled through footprints, under work/trainset_realistic) or both."""
@@ -202,13 +202,13 @@ def training_table(work: Path, *, seed: int = 0, size: str = "full", scenes: str
     return plan, combine_tables(clean, real)
 
 
-def make_default_model(work: Path, output: Path, *, seed: int = 0, size: str = "full", scenes: str = "clean",
+def make_default_model(work: Path, output: Path, *, seed: int = 0, size: str = "full", scenes: str = "both",
                        workers: int = -1, say: Callable[[str], None] = print, command: str = ""):
     """Build the training set under `work`, choose and fit the classifier, write `output`."""
     from .model import save_model
 
     t0 = time.perf_counter()
-    plan, table = training_table(work, seed=seed, size=size, scenes=scenes, workers=workers, say=say)
+    plan, table = transfer_training_table(work, seed=seed, size=size, scenes=scenes, workers=workers, say=say)
     full = model_columns(table)
     table = training_rows(full)
     say(f"{len(full.y) - len(table.y)} of {len(full.y)} rows left out: damage their acquisition did not see")
