@@ -110,10 +110,11 @@ def _split(las_path, tmp_path, pre_mask, post_mask):
 def test_two_random_halves_of_a_real_tile_are_a_no_change_pair(ahn3, tmp_path):
     """The issue's real no-change rescan: AHN3 tile 1 split into two random halves
     (default_rng(5).random(n) < 0.5, ~3.7 pts/m² each), real footprints, the shipped model.
-    At most 2 of the ~116 assessable buildings are called damaged (measured: 2, 1.7 %; the
-    issue's target is 1 %, not reached: see BENCHMARKS.md "transfer"; the previous model
-    called all 118 damaged); the rest are not assessable with a stated reason (too sparse for
-    the model, too few points), never guessed."""
+    At most 1 of the ~116 assessable buildings is called damaged (the issue's target, 1 %;
+    measured: 1, since the model also learns from realistic scenes; the model trained on
+    bare scenes alone called 2, the paper's forest all 118: BENCHMARKS.md "transfer"); the
+    rest are not assessable with a stated reason (too sparse for the model, too few points),
+    never guessed."""
     las, fp = ahn3
     pre, post = _split(las, tmp_path, lambda n: np.random.default_rng(5).random(n) < 0.5,
                        lambda n: ~(np.random.default_rng(5).random(n) < 0.5))
@@ -122,7 +123,7 @@ def test_two_random_halves_of_a_real_tile_are_a_no_change_pair(ahn3, tmp_path):
     ok = [r for r in rows.values() if r["assessable"] == "1"]
     damaged = [b for b, r in rows.items() if r["assessable"] == "1" and r["label"] != "no damage"]
     assert len(ok) >= 100
-    assert len(damaged) <= 2, damaged
+    assert len(damaged) <= 0.01 * len(ok), damaged
     assert all(r["reason"] for r in rows.values() if r["assessable"] == "0")
     assert all(0.0 <= float(r["confidence"]) <= 1.0 for r in ok)
 
