@@ -272,10 +272,15 @@ def cmd_classify(args) -> int:
                        progress=_Progress("classify", args.progress or sys.stderr.isatty()),
                        write_las=not args.no_las)
     out = Path(args.output)
+    reg = summary.get("registration", {})
     if "alignment" in summary:
         a = summary["alignment"]
-        print(f"alignment (ICP on stable areas): std {a['std_after_m']:.3f} m, rmse {a['rmse_before_m']:.3f} -> "
+        why = (f"the epochs disagreed by up to {reg['offset_m']:.2f} m on stable ground (tolerance "
+               f"{reg['tolerance_m']:.2f} m); " if reg.get("mode") == "auto" else "")
+        print(f"alignment (ICP on stable areas): {why}std {a['std_after_m']:.3f} m, rmse {a['rmse_before_m']:.3f} -> "
               f"{a['rmse_after_m']:.3f} m")
+    elif reg.get("mode") == "auto" and not reg.get("checked"):
+        print(f"registration not checked ({reg.get('reason')}): an offset between the epochs would read as damage")
     labels = ", ".join(f"{k}: {v}" for k, v in sorted(summary["by_label"].items()))
     print(f"classify: {summary['buildings']} buildings ({labels}) in {summary['seconds']['total']:.1f} s")
     print(f"results -> {out / 'buildings.csv'}, {out / 'buildings.geojson'}, {out / 'damage_map.png'}"
@@ -572,7 +577,12 @@ def build_parser() -> argparse.ArgumentParser:
                     "(default: the clouds' building_id dimension)")
     cl.add_argument("--id-field", help="footprint property holding the building ID")
     cl.add_argument("--model", help="model file (default: the shipped generic model)")
-    cl.add_argument("--align", action="store_true", help="ICP-align post to pre on stable areas first")
+    reg = cl.add_mutually_exclusive_group()
+    reg.add_argument("--align", dest="align", action="store_const", const=True, default=None,
+                     help="ICP-align post to pre on stable areas first (default: check the registration and "
+                     "align only where the epochs disagree beyond the model's tolerance)")
+    reg.add_argument("--no-align", dest="align", action="store_const", const=False,
+                     help="take the epochs as they are, unchecked")
     cl.add_argument("--no-las", action="store_true", help="skip the per-point LAS of predicted grades")
     cl.add_argument("--threads", type=int, default=-1)
     cl.add_argument("--progress", action="store_true")

@@ -136,3 +136,40 @@ def test_calibrate_lod_takes_footprints_for_real_clouds(ahn3, tmp_path, capsys):
     lod = json.loads((tmp_path / "lod.json").read_text())
     assert lod["points"] > 10_000 and lod["lod_height_m"] >= 0.3 and lod["lod_curvature"] >= 0.2
     assert "--lod-height" in capsys.readouterr().out
+
+
+def test_an_unregistered_post_epoch_is_aligned_without_being_asked_and_says_so(ahn3, tmp_path, capsys):
+    """The same tile moved by (0.4, 0, 0.15) m as the post epoch, no --align: the epochs'
+    stable ground disagrees by more than the model tolerates, so classify aligns them and
+    says so; every building stays undamaged. --no-align takes them as they are (and the
+    offset reads as damage, which is why it is not the default)."""
+    las_path, fp = ahn3
+    las = laspy.read(las_path)
+    las.x = np.asarray(las.x) + 0.4
+    las.z = np.asarray(las.z) + 0.15
+    post = tmp_path / "post.laz"
+    las.write(post)
+    assert main(["classify", "--pre", str(las_path), "--post", str(post), "--footprints", str(fp), "--no-las",
+                 "-o", str(tmp_path / "auto")]) == 0
+    assert "disagreed by up to 0.4" in capsys.readouterr().out
+    summary = json.loads((tmp_path / "auto" / "summary.json").read_text())
+    reg = summary["registration"]
+    assert reg["mode"] == "auto" and reg["applied"] and 0.38 < reg["offset_m"] < 0.5
+    assert np.allclose(summary["alignment"]["translation_m"], [-0.4, 0.0, -0.15], atol=0.03)
+    rows = [r for r in _rows(tmp_path / "auto" / "buildings.csv").values() if r["assessable"] == "1"]
+    assert len(rows) > 100 and {r["label"] for r in rows} == {"no damage"}
+
+    assert main(["classify", "--pre", str(las_path), "--post", str(post), "--footprints", str(fp), "--no-las",
+                 "--no-align", "-o", str(tmp_path / "off")]) == 0
+    summary = json.loads((tmp_path / "off" / "summary.json").read_text())
+    assert summary["registration"] == {"mode": "off", "checked": False} and "alignment" not in summary
+    rows = [r for r in _rows(tmp_path / "off" / "buildings.csv").values() if r["assessable"] == "1"]
+    assert sum(r["label"] != "no damage" for r in rows) > 0.5 * len(rows)
+
+
+def test_registered_epochs_are_checked_and_left_as_they_are(same_tile_result):
+    summary, rows, out = same_tile_result
+    reg = summary["registration"]
+    assert reg["mode"] == "auto" and reg["checked"] and not reg["applied"]
+    assert reg["offset_m"] < 0.01 and reg["tolerance_m"] == pytest.approx(0.2)
+    assert "alignment" not in summary
