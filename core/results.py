@@ -375,7 +375,8 @@ def write_grade_las(path, epoch_xyz, origin, crs: str | None, building_id,
                     grade_by_building: dict) -> None:
     """A LAS 1.4 (point format 7: RGB) of the given points for viewing, e.g. in CloudCompare.
 
-    Extra dimensions `building_id` (uint32) and `predicted_grade` (uint8; 255 = not a building
+    Extra dimensions `building_id` (uint32, or uint64 when an ID needs it: a national
+    register's 15-digit IDs must not wrap) and `predicted_grade` (uint8; 255 = not a building
     or not assessable); RGB as on the map (16-bit = 8-bit × 257): the grade's colour, grey
     for a building not assessed, light grey for points of no building. `epoch_xyz` is float64
     relative to `origin`; stored with scale 0.001 and offset = origin, CRS as WKT when known.
@@ -392,9 +393,10 @@ def write_grade_las(path, epoch_xyz, origin, crs: str | None, building_id,
     if len(ids) != n:
         raise ResultsError(f"{path}: {len(ids)} building IDs for {n} points")
 
+    id_type = np.uint32 if not n or ids.max() <= np.iinfo(np.uint32).max else np.uint64
     header = laspy.LasHeader(point_format=7, version="1.4")
     header.add_extra_dims([
-        laspy.ExtraBytesParams(name="building_id", type=np.uint32, description="building ID, 0 = none"),
+        laspy.ExtraBytesParams(name="building_id", type=id_type, description="building ID, 0 = none"),
         laspy.ExtraBytesParams(name="predicted_grade", type=np.uint8, description="EMS-98 grade, 255 = n.a.")])
     header.offsets = origin
     header.scales = np.array([SCALE] * 3)
@@ -432,7 +434,7 @@ def write_grade_las(path, epoch_xyz, origin, crs: str | None, building_id,
     a["X"], a["Y"], a["Z"] = ints[:, 0], ints[:, 1], ints[:, 2]
     a["bit_fields"] = 1 | (1 << 4)  # return 1 of 1
     a["red"], a["green"], a["blue"] = rgb_u[inv, 0], rgb_u[inv, 1], rgb_u[inv, 2]
-    a["building_id"] = np.clip(ids, 0, np.iinfo(np.uint32).max).astype(np.uint32)
+    a["building_id"] = np.maximum(ids, 0).astype(id_type)
     a["predicted_grade"] = g_u[inv]
     compress = path.suffix.lower() == ".laz"
     with _atomic(path) as tmp:

@@ -241,6 +241,19 @@ def test_grade_las(tmp_path):
     _no_part(tmp_path)
 
 
+def test_grade_las_keeps_register_ids_longer_than_32_bits(tmp_path):
+    """Dutch BAG IDs have 15-16 digits: uint32 would wrap every one to 4294967295."""
+    ids = np.array([0, 363100012185103, 363100012185103, 4294967296, 7], np.int64)
+    path = tmp_path / "post_grades.las"
+    R.write_grade_las(path, np.zeros((5, 3)), ORIGIN, None, ids, {363100012185103: 4, 4294967296: 0, 7: 5})
+    las = laspy.read(path)
+    assert las.point_format.dimension_by_name("building_id").dtype == np.uint64
+    assert np.array_equal(np.asarray(las.building_id).astype(np.int64), ids)
+    assert np.asarray(las.predicted_grade).tolist() == [255, 4, 4, 0, 5]
+    R.write_grade_las(path, np.zeros((2, 3)), ORIGIN, None, np.array([1, 2]), {1: 0})
+    assert laspy.read(path).point_format.dimension_by_name("building_id").dtype == np.uint32  # as before
+
+
 def test_grade_las_without_ids_or_crs_and_laz(tmp_path):
     path = tmp_path / "g.laz"
     R.write_grade_las(path, np.array([[1.0, 2.0, 3.0]]), ORIGIN, None, None, {1: 5})
