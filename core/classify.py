@@ -204,13 +204,16 @@ def predict_rows(rows, model: DamageModel, rule: bool | None = None) -> list:
 
 
 def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=None, id_field=None,
-             align: bool | None = None, workers: int = -1, progress=None, write_las: bool = True) -> dict:
+             align: bool | None = None, workers: int = -1, progress=None, write_las: bool = True,
+             laz: bool | None = None) -> dict:
     """Run the whole classification and write OUT/buildings.csv, .geojson, damage_map.png,
     post_grades.las and summary.json. Returns the summary.
 
     `align`: True aligns the post epoch to the pre epoch on stable ground (ICP) first; False
     takes the epochs as they are; None (default) checks their registration and aligns when
-    they disagree beyond what the model tolerates, saying so (`check_registration`)."""
+    they disagree beyond what the model tolerates, saying so (`_register`). The graded
+    post-event cloud keeps every attribute of the post-event file and is compressed
+    (post_grades.laz) when `laz`, or when `laz` is None and the post-event file is LAZ."""
     from . import results
 
     t0 = time.perf_counter()
@@ -249,8 +252,11 @@ def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=N
     results.write_map_png(res, outlines, out / "damage_map.png",
                           f"Damage grades: {Path(post_path).name}", points_xy=sub)
     if write_las:
-        results.write_grade_las(out / "post_grades.las", post.xyz, post.origin, post.crs, post.building_id,
-                                {r.building_id: r.grade for r in res})
+        compress = Path(post_path).suffix.lower() == ".laz" if laz is None else laz
+        graded = out / ("post_grades.laz" if compress else "post_grades.las")
+        results.write_grade_las(graded, post.xyz, post.origin, post.crs, post.building_id,
+                                {r.building_id: r.grade for r in res}, source=post_path)
+        summary["post_grades"] = str(graded)
     counts: dict[str, int] = {}
     for r in res:
         counts[r.label] = counts.get(r.label, 0) + 1

@@ -270,7 +270,7 @@ def cmd_classify(args) -> int:
     summary = classify(args.pre, args.post, args.output, model_path=args.model, footprints_path=args.footprints,
                        id_field=args.id_field, align=args.align, workers=args.threads,
                        progress=_Progress("classify", args.progress or sys.stderr.isatty()),
-                       write_las=not args.no_las)
+                       write_las=not args.no_las, laz=args.laz)
     out = Path(args.output)
     reg = summary.get("registration", {})
     if "alignment" in summary:
@@ -284,7 +284,7 @@ def cmd_classify(args) -> int:
     labels = ", ".join(f"{k}: {v}" for k, v in sorted(summary["by_label"].items()))
     print(f"classify: {summary['buildings']} buildings ({labels}) in {summary['seconds']['total']:.1f} s")
     print(f"results -> {out / 'buildings.csv'}, {out / 'buildings.geojson'}, {out / 'damage_map.png'}"
-          + ("" if args.no_las else f", {out / 'post_grades.las'}"))
+          + (f", {summary['post_grades']}" if "post_grades" in summary else ""))
     return 0
 
 
@@ -584,6 +584,8 @@ def build_parser() -> argparse.ArgumentParser:
     reg.add_argument("--no-align", dest="align", action="store_const", const=False,
                      help="take the epochs as they are, unchecked")
     cl.add_argument("--no-las", action="store_true", help="skip the per-point LAS of predicted grades")
+    cl.add_argument("--laz", action="store_const", const=True, default=None,
+                    help="compress the per-point grades (post_grades.laz); default: as the post-event file is")
     cl.add_argument("--threads", type=int, default=-1)
     cl.add_argument("--progress", action="store_true")
     cl.add_argument("-o", "--output", required=True, help="output folder")

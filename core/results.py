@@ -372,7 +372,7 @@ def write_map_png(rows, outlines: dict, path, title: str, points_xy=None, crs: s
 # ---------------------------------------------------------------------------------------- LAS
 
 def write_grade_las(path, epoch_xyz, origin, crs: str | None, building_id,
-                    grade_by_building: dict) -> None:
+                    grade_by_building: dict, source=None) -> None:
     """A LAS 1.4 (point format 7: RGB) of the given points for viewing, e.g. in CloudCompare.
 
     Extra dimensions `building_id` (uint32, or uint64 when an ID needs it: a national
@@ -380,7 +380,10 @@ def write_grade_las(path, epoch_xyz, origin, crs: str | None, building_id,
     or not assessable); RGB as on the map (16-bit = 8-bit × 257): the grade's colour, grey
     for a building not assessed, light grey for points of no building. `epoch_xyz` is float64
     relative to `origin`; stored with scale 0.001 and offset = origin, CRS as WKT when known.
-    `.laz` output is compressed."""
+    `source`: the LAS/LAZ file these points were read from, in the same order: every one of
+    its attributes (classification, intensity, returns, GPS time, scan angle, point source,
+    its extra dimensions) is kept, converted to format 7 as laspy converts formats. `.laz`
+    output is compressed."""
     import laspy
 
     path = Path(path)
@@ -394,7 +397,12 @@ def write_grade_las(path, epoch_xyz, origin, crs: str | None, building_id,
         raise ResultsError(f"{path}: {len(ids)} building IDs for {n} points")
 
     id_type = np.uint32 if not n or ids.max() <= np.iinfo(np.uint32).max else np.uint64
+    kept = _source_points(source, n, path)
     header = laspy.LasHeader(point_format=7, version="1.4")
+    if kept is not None:
+        header.add_extra_dims([laspy.ExtraBytesParams(name=name, type=kept.array[name].dtype)
+                               for name in kept.point_format.extra_dimension_names
+                               if name not in ("building_id", "predicted_grade")])
     header.add_extra_dims([
         laspy.ExtraBytesParams(name="building_id", type=id_type, description="building ID, 0 = none"),
         laspy.ExtraBytesParams(name="predicted_grade", type=np.uint8, description="EMS-98 grade, 255 = n.a.")])
@@ -431,8 +439,13 @@ def write_grade_las(path, epoch_xyz, origin, crs: str | None, building_id,
     las = laspy.LasData(header)
     las.points = laspy.ScaleAwarePointRecord.zeros(n, header=header)
     a = las.points.array
+    if kept is not None:  # every attribute of the input first; coordinates, colours and ours below
+        for name in kept.array.dtype.names:
+            if name in a.dtype.names and name not in ("X", "Y", "Z", "building_id", "predicted_grade"):
+                a[name] = kept.array[name]
+    else:
+        a["bit_fields"] = 1 | (1 << 4)  # return 1 of 1
     a["X"], a["Y"], a["Z"] = ints[:, 0], ints[:, 1], ints[:, 2]
-    a["bit_fields"] = 1 | (1 << 4)  # return 1 of 1
     a["red"], a["green"], a["blue"] = rgb_u[inv, 0], rgb_u[inv, 1], rgb_u[inv, 2]
     a["building_id"] = np.maximum(ids, 0).astype(id_type)
     a["predicted_grade"] = g_u[inv]
@@ -444,6 +457,25 @@ def write_grade_las(path, epoch_xyz, origin, crs: str | None, building_id,
             else:  # laspy leaves an empty file's bounds at ±inf
                 w.header.mins = origin
                 w.header.maxs = origin
+
+
+def _source_points(source, n: int, path: Path):
+    """The source file's points converted to point format 7 (None without a source)."""
+    if source is None:
+        return None
+    import laspy
+
+    src = laspy.read(source)
+    if len(src.points) != n:
+        raise ResultsError(f"{path}: the source {source} has {len(src.points)} points, the epoch {n}")
+    if src.point_format.id != 7:
+        legacy = "scan_angle_rank" in src.point_format.dimension_names
+        rank = np.asarray(src.scan_angle_rank, dtype=np.float64) if legacy else None
+        src = laspy.convert(src, point_format_id=7, file_version="1.4")
+        if legacy:  # laspy copies fields by name: whole degrees become 0.006° steps (LAS 1.4)
+            src.points.array["scan_angle"] = np.rint(rank / 0.006).astype(np.int16)
+    return src.points
+
 
 __all__ = ["BACKGROUND_COLOUR", "BuildingResult", "GRADE_COLOURS", "GRADE_NONE", "NOT_ASSESSABLE",
            "NOT_ASSESSABLE_COLOUR", "Outline", "ResultsError", "building_outlines", "colour_of", "read_csv",

@@ -173,3 +173,24 @@ def test_registered_epochs_are_checked_and_left_as_they_are(same_tile_result):
     assert reg["mode"] == "auto" and reg["checked"] and not reg["applied"]
     assert reg["offset_m"] < 0.01 and reg["tolerance_m"] == pytest.approx(0.2)
     assert "alignment" not in summary
+
+
+def test_the_graded_cloud_keeps_every_input_attribute_and_stays_compressed(ahn3, same_tile_result):
+    """AHN3 is LAZ with classes 1/2/6/9/26, GPS time, scan angle and point source IDs: the
+    graded cloud is LAZ too (not a tenfold larger LAS) and keeps all of them."""
+    las_path, fp = ahn3
+    summary, rows, out = same_tile_result
+    graded = out / "post_grades.laz"
+    assert summary["post_grades"] == str(graded) and not (out / "post_grades.las").exists()
+    assert graded.stat().st_size < 2 * las_path.stat().st_size
+    src, got = laspy.read(las_path), laspy.read(graded)
+    assert got.point_format.id == 7 and len(got.points) == len(src.points)
+    assert np.array_equal(np.asarray(got.classification), np.asarray(src.classification))
+    assert set(np.unique(np.asarray(got.classification)).tolist()) >= {2, 6}
+    for name in ("gps_time", "intensity", "point_source_id", "return_number", "number_of_returns"):
+        assert np.array_equal(np.asarray(got[name]), np.asarray(src[name])), name
+    # format 1 keeps whole degrees; format 7 stores 0.006° steps (laspy's conversion)
+    assert np.allclose(np.asarray(got.scan_angle) * 0.006, np.asarray(src.scan_angle_rank), atol=0.006)
+    assert np.allclose(np.asarray(got.x), np.asarray(src.x), atol=0.001)
+    ids = np.asarray(got.building_id)
+    assert set(np.unique(ids[ids > 0]).tolist()) <= set(rows)
