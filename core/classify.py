@@ -242,12 +242,15 @@ def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=N
     res = predict_rows(rows, model)
     classes = model.grades
     out.mkdir(parents=True, exist_ok=True)
-    results.write_csv(res, out / "buildings.csv", classes)
+    fp = data.footprints
+    results.write_csv(res, out / "buildings.csv", classes, own_ids=fp.own_ids() if fp is not None else None)
     xy_by = None
     if data.footprints is None:
         xy_by = _xy_by_building(pre)
     outlines = results.building_outlines(res, data.footprints, xy_by, pre.origin)
-    results.write_geojson(res, outlines, out / "buildings.geojson", pre.crs, classes)
+    attributes = ({int(b): p for b, p in zip(fp.ids.tolist(), fp.properties) if p}
+                  if fp is not None and fp.properties else None)
+    results.write_geojson(res, outlines, out / "buildings.geojson", pre.crs, classes, attributes)
     sub = pre.xyz[:: max(1, len(pre) // 200_000), :2] + pre.origin[:2]
     results.write_map_png(res, outlines, out / "damage_map.png",
                           f"Damage grades: {Path(post_path).name}", points_xy=sub)

@@ -532,7 +532,8 @@ def build_parser() -> argparse.ArgumentParser:
     lc.add_argument("-o", "--output", help="also write the levels as JSON")
     lc.add_argument("--footprints", help="GeoJSON building footprints in the clouds' CRS (real clouds without a "
                     "building_id dimension)")
-    lc.add_argument("--id-field", default=None, help="footprint property holding the building ID")
+    lc.add_argument("--id-field", default=None, help="footprint property holding the building ID (integer, or "
+                    "text: buildings are then numbered and keep it as footprint_id)")
     lc.add_argument("--radius", type=float, default=1.5, help="feature radius in m (default 1.5)")
     lc.add_argument("--quantile", type=float, default=0.999, help="quantile of |change| (default 0.999)")
     lc.add_argument("--seed", type=int, default=0)
@@ -575,7 +576,8 @@ def build_parser() -> argparse.ArgumentParser:
     cl.add_argument("--post", required=True, help="post-event LAS/LAZ (same CRS)")
     cl.add_argument("--footprints", help="GeoJSON building footprints in the clouds' CRS "
                     "(default: the clouds' building_id dimension)")
-    cl.add_argument("--id-field", help="footprint property holding the building ID")
+    cl.add_argument("--id-field", help="footprint property holding the building ID (integer, or text: buildings "
+                    "are then numbered and keep it as footprint_id)")
     cl.add_argument("--model", help="model file (default: the shipped generic model)")
     reg = cl.add_mutually_exclusive_group()
     reg.add_argument("--align", dest="align", action="store_const", const=True, default=None,

@@ -32,6 +32,18 @@ class Footprints:
     crs: str | None = None
     source: str = "footprints"
     properties: list = field(default_factory=list)
+    id_field: str | None = None  # the property the IDs came from (None: position or building_id)
+
+    def own_ids(self) -> dict:
+        """{building ID: the footprint's own ID} where they differ (text IDs numbered 1, 2, …)."""
+        if not self.id_field or not self.properties:
+            return {}
+        out = {}
+        for b, p in zip(self.ids.tolist(), self.properties):
+            own = (p or {}).get(self.id_field)
+            if own != b:
+                out[int(b)] = own
+        return out
 
     def __len__(self):
         return len(self.ids)
@@ -57,6 +69,10 @@ def read_footprints(path: str | os.PathLike, id_field: str | None = None) -> Foo
 
     The building ID of a polygon is the integer property `id_field` when given, else the
     property `building_id` when every feature has one, else the feature's position + 1.
+    An `id_field` holding text (a GML id such as "b3fe1a…"), or mixing text and numbers,
+    cannot be a point cloud's integer ID: the polygons are then numbered 1, 2, … in file
+    order and each keeps its own ID, with all its other attributes, in `properties`
+    (classify writes them into buildings.geojson and the ID into buildings.csv).
     """
     import shapely.geometry
 
@@ -85,9 +101,9 @@ def read_footprints(path: str | os.PathLike, id_field: str | None = None) -> Foo
         p = f.get("properties") or {}
         if use_field:
             value = p.get(use_field)
-            if not isinstance(value, int) or isinstance(value, bool) or value <= 0:
-                raise FootprintError(f"{path}: feature {i}: property {use_field!r} must be an integer > 0, "
-                                     f"got {value!r}")
+            if value is None or isinstance(value, (bool, dict, list)) or value == "":
+                raise FootprintError(f"{path}: feature {i}: property {use_field!r} must be an ID (an integer > 0 "
+                                     f"or a text), got {value!r}")
             bid = value
         else:
             bid = i + 1
@@ -96,7 +112,12 @@ def read_footprints(path: str | os.PathLike, id_field: str | None = None) -> Foo
         props.append(p)
     if not polygons:
         raise FootprintError(f"{path}: no polygon footprints in the file")
-    return Footprints(np.array(ids, dtype=np.int64), polygons, parse_geojson_crs(doc), str(path), props)
+    if not all(isinstance(b, int) and b > 0 for b in ids):
+        log.info("%s: %r holds text IDs; buildings are numbered 1..%d and keep their own ID as %r",
+                 path, use_field, len(ids), use_field)
+        ids = list(range(1, len(ids) + 1))
+    return Footprints(np.array(ids, dtype=np.int64), polygons, parse_geojson_crs(doc), str(path), props,
+                      use_field)
 
 
 def assign_buildings(x: np.ndarray, y: np.ndarray, footprints: Footprints) -> np.ndarray:

@@ -139,15 +139,17 @@ def _record(r: BuildingResult, classes) -> dict:
     return rec
 
 
-def write_csv(rows, path, classes) -> None:
+def write_csv(rows, path, classes, own_ids: dict | None = None) -> None:
     """One line per building, sorted by building_id. Columns: building_id, assessable (1/0),
     predicted_grade (empty when not assessable), label, p_<grade> per model class (empty when
     not assessable), share_changed, n_pre, n_post, decided_by, reason, confidence (probability
-    of the predicted grade; empty when not assessable). `core.evaluate` reads it."""
+    of the predicted grade; empty when not assessable). `core.evaluate` reads it. `own_ids`
+    ({building_id: footprint ID}, for footprints whose IDs are text) adds a last column
+    `footprint_id`."""
     classes = [int(c) for c in classes]
     with _atomic(path) as tmp, open(tmp, "w", newline="") as f:
         w = csv.writer(f, lineterminator="\n")
-        w.writerow(csv_columns(classes))
+        w.writerow(csv_columns(classes) + (["footprint_id"] if own_ids else []))
         for r in _sorted(rows):
             rec = _record(r, classes)
             line = []
@@ -159,6 +161,9 @@ def write_csv(rows, path, classes) -> None:
                     line.append(_fmt(v))
                 else:
                     line.append("" if v is None else str(v))
+            if own_ids:
+                own = own_ids.get(int(r.building_id))
+                line.append("" if own is None else str(own))
             w.writerow(line)
 
 
@@ -256,7 +261,7 @@ def geojson_crs_member(crs: str | None) -> dict | None:
     return {"type": "name", "properties": {"name": f"urn:ogc:def:crs:EPSG::{code}"}} if code else None
 
 
-def write_geojson(rows, outlines: dict, path, crs: str | None, classes) -> None:
+def write_geojson(rows, outlines: dict, path, crs: str | None, classes, attributes: dict | None = None) -> None:
     """A FeatureCollection, one Feature per building (sorted by ID) with the CSV's fields as
     properties (JSON types: assessable true/false, empty → null) plus `outline` (where the
     geometry comes from) and `colour` (the map's hex colour). A building without outline has
@@ -266,6 +271,8 @@ def write_geojson(rows, outlines: dict, path, crs: str | None, classes) -> None:
     WGS 84 longitude/latitude that RFC 7946 assumes; hence the GeoJSON 2008 `crs` member
     ("urn:ogc:def:crs:EPSG::n") when the CRS has an EPSG code, which QGIS/GDAL honour and
     `core.footprints.read_footprints` reads back. Coordinates are rounded to 1 mm.
+    `attributes` ({building_id: the footprint's properties}) adds them as `footprint`: the
+    cadastre's own ID, address or use stay with the result whatever their types.
     """
     import shapely.geometry
 
@@ -280,6 +287,8 @@ def write_geojson(rows, outlines: dict, path, crs: str | None, classes) -> None:
             geom = {"type": g["type"], "coordinates": _round_coords(g["coordinates"])}
         props["outline"] = o.source if o is not None else None
         props["colour"] = r.colour
+        if attributes and int(r.building_id) in attributes:
+            props["footprint"] = attributes[int(r.building_id)]
         feats.append({"type": "Feature", "id": int(r.building_id), "properties": props, "geometry": geom})
     doc = {"type": "FeatureCollection"}
     member = geojson_crs_member(crs)

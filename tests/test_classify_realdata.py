@@ -194,3 +194,19 @@ def test_the_graded_cloud_keeps_every_input_attribute_and_stays_compressed(ahn3,
     assert np.allclose(np.asarray(got.x), np.asarray(src.x), atol=0.001)
     ids = np.asarray(got.building_id)
     assert set(np.unique(ids[ids > 0]).tolist()) <= set(rows)
+
+
+def test_text_footprint_ids_and_attributes_reach_the_results(ahn3, tmp_path):
+    """BGT's gml_id is text: buildings are numbered, the CSV keeps each one's gml_id and the
+    GeoJSON every footprint attribute (the 15-digit BAG ID among them)."""
+    las_path, fp = ahn3
+    assert main(["classify", "--pre", str(las_path), "--post", str(las_path), "--footprints", str(fp),
+                 "--id-field", "gml_id", "--no-las", "--no-align", "-o", str(tmp_path / "res")]) == 0
+    with open(tmp_path / "res" / "buildings.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == 160 and all(r["footprint_id"].startswith("b") for r in rows)
+    assert len({r["footprint_id"] for r in rows}) == 160
+    gj = json.loads((tmp_path / "res" / "buildings.geojson").read_text())
+    first = gj["features"][0]["properties"]
+    assert first["footprint"]["gml_id"] == rows[0]["footprint_id"]
+    assert len(str(first["footprint"]["identificatiebagpnd"])) >= 15

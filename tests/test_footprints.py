@@ -39,8 +39,11 @@ def test_squares_holes_and_overlaps(tmp_path):
 def test_id_field(tmp_path):
     path = _write(tmp_path, [_square(0, 0, 1, props={"pand": 7}), _square(2, 0, 1, props={"pand": 9})])
     assert list(read_footprints(path, id_field="pand").ids) == [7, 9]
-    bad = _write(tmp_path, [_square(0, 0, 1, props={"pand": "x"})])
-    with pytest.raises(FootprintError, match="property 'pand' must be an integer > 0"):
+    text = _write(tmp_path, [_square(0, 0, 1, props={"pand": "b3e-1"}), _square(2, 0, 1, props={"pand": 9})])
+    fp = read_footprints(text, id_field="pand")  # text IDs: numbered in file order, their own kept
+    assert list(fp.ids) == [1, 2] and fp.own_ids() == {1: "b3e-1", 2: 9}
+    bad = _write(tmp_path, [_square(0, 0, 1, props={"pand": None})])
+    with pytest.raises(FootprintError, match="property 'pand' must be an ID"):
         read_footprints(bad, id_field="pand")
 
 
