@@ -67,6 +67,15 @@ def cmd_scan(args) -> int:
         except json.JSONDecodeError:
             pass
     scene = read_scene(scene_dir)
+    from .scan import LARGE_SCAN_POINTS, estimate_scan
+
+    plan = estimate_scan(scene, survey, laz=out.suffix.lower() == ".laz")
+    print(plan.describe())
+    if args.dry_run:
+        return 0
+    if plan.large:
+        print(f"warning: a large scan (more than {LARGE_SCAN_POINTS / 1e6:.0f} M points): check the scene's extent "
+              f"(`quakescan validate`) and the survey; `--dry-run` shows the plan without scanning", file=sys.stderr)
     progress = _Progress(f"scan {scene_dir.name}", args.progress or sys.stderr.isatty())
     summary = scan(scene, survey, out, seed=args.seed, threads=args.threads, progress=progress,
                    source=str(scene_dir))
@@ -433,6 +442,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--trajectory", help="also write the platform trajectory as CSV")
     s.add_argument("--summary", help="summary JSON path (default: OUTPUT.summary.json)")
     s.add_argument("--force", action="store_true", help="rescan even if the output is up to date")
+    s.add_argument("--dry-run", action="store_true",
+                   help="print the flight plan (lines, flight time, pulses, points, file size) and stop")
     s.add_argument("--progress", action="store_true", help="show progress even when stderr is not a terminal")
     s.set_defaults(func=cmd_scan)
 

@@ -48,7 +48,7 @@ import numpy as np
 
 from .errors import PointCloudError, SceneError, SurveyError
 from .pointcloud import (BUILDING_CLASS, GRADE_UNKNOWN, GROUND_CLASS, SCALE, UNCLASSIFIED, LasChunkWriter,
-                         PointChunk)
+                         PointChunk, make_header)
 from .scene import GROUND, SURFACE_NAMES, VEGETATION, Scene
 from .survey import FlightLine, FlightPlan, Survey, plan_flight
 
@@ -768,3 +768,44 @@ def _las_offset(scene: Scene, caster: RayCaster):
     log.warning("scene coordinates reach %s m from its origin; LAS offset moved by %s", np.abs(lo).max(),
                 step.tolist())
     return scene.origin + step, lo - step
+
+
+# A scan above this many estimated points is announced as large before it starts: about
+# 3.6 GB of LAS and, at the few million pulses per second of 2 cores, tens of minutes.
+LARGE_SCAN_POINTS = 100_000_000
+LAZ_RATIO = 0.18  # LAZ / LAS size of our clouds, the upper end measured: 0.07 (paper ULS) to 0.18 (ALS)
+
+
+@dataclass(frozen=True)
+class FlightPlanEstimate:
+    """What a scan will cost, before it runs: from the flight plan alone."""
+
+    lines: int
+    line_km: float
+    flight_time_s: float
+    pulses: int  # pulses that leave the scanner (the FOV's share of the sweep)
+    points: int  # one return per pulse: an upper bound (pulses that miss the scene give none;
+    # the paper survey over the demo city: 7.4 M estimated, 2.6 M scanned)
+    megabytes: float  # of the output file (LAZ when `laz`)
+    area_km2: float
+
+    @property
+    def large(self) -> bool:
+        return self.points > LARGE_SCAN_POINTS
+
+    def describe(self) -> str:
+        return (f"flight plan: {self.lines} lines, {self.line_km:.1f} km, {self.flight_time_s / 60:.1f} min of "
+                f"flight over {self.area_km2:.2f} km²; {self.pulses / 1e6:,.1f} M pulses, at most "
+                f"{self.points / 1e6:,.1f} M points and {self.megabytes:,.0f} MB")
+
+
+def estimate_scan(scene: Scene, survey: Survey, laz: bool = False) -> FlightPlanEstimate:
+    """The flight plan's lines, flight time, pulses, points and file size (see FlightPlanEstimate)."""
+    plan = plan_flight(survey, scene.bounds(), ground_level(scene))
+    pulses = int(sum(_pulse_count(survey, ln) for ln in plan.lines) * survey.fov_fraction)
+    record = make_header(scene.origin, None).point_format.size
+    size = pulses * record / 1e6 * (LAZ_RATIO if laz else 1.0)
+    b = scene.bounds()
+    area = float((b[1, 0] - b[0, 0]) * (b[1, 1] - b[0, 1])) / 1e6
+    return FlightPlanEstimate(len(plan.lines), sum(ln.length_m for ln in plan.lines) / 1e3, plan.duration_s,
+                              pulses, pulses, size, area)

@@ -460,3 +460,23 @@ def test_als_over_a_300_m_scene_with_one_line_or_the_plan(tmp_path):
         assert set(summary.points_by_building) == set(range(1, 101))
     # one strip against two: about half the points
     assert 0.4 < single.points / planned.points < 0.6
+
+
+def test_the_flight_plan_is_estimated_before_scanning_and_dry_run_scans_nothing(tmp_path, capsys):
+    from core.cli import main
+    from core.scan import estimate_scan, scan
+    from core.scene import write_scene
+    from core.survey import preset
+    from core.synthetic import box_city
+
+    scene = box_city(rows=1, cols=2)
+    survey = preset("paper").replace(pulse_rate_hz=100_000.0)
+    est = estimate_scan(scene, survey)
+    summary = scan(scene, survey, tmp_path / "a.las", seed=1)
+    assert est.pulses == pytest.approx(summary.pulses_emitted, rel=1e-3)  # the same plan, counted before
+    assert est.lines == summary.lines and abs(est.flight_time_s - summary.flight_duration_s) < 1.0
+    assert summary.points <= est.points and est.megabytes >= (tmp_path / "a.las").stat().st_size / 1e6
+    assert not est.large
+    write_scene(scene, tmp_path / "scene")
+    assert main(["scan", str(tmp_path / "scene"), "-o", str(tmp_path / "b.las"), "--dry-run"]) == 0
+    assert "flight plan:" in capsys.readouterr().out and not (tmp_path / "b.las").exists()
