@@ -125,11 +125,37 @@ def cmd_import_cityjson(args) -> int:
     from .cityjson import import_cityjson
     from .scene import write_scene
 
-    scene = import_cityjson(args.input, lod=args.lod)
+    scene = import_cityjson(args.input, lod=args.lod, terrain_margin=args.buffer)
+    if args.bbox is not None:
+        from .scene import buildings_in_box, crop_to_buildings
+
+        keep = buildings_in_box(scene, args.bbox)
+        if not len(keep):
+            raise QuakeScanError(f"--bbox {args.bbox}: no building of {args.input} has its centre inside")
+        scene = crop_to_buildings(scene, keep, args.buffer)
     write_scene(scene, args.output)
+    b = scene.bounds()
+    span = (b[1, :2] - b[0, :2]) / 1e3
     print(f"{args.output}: {len(scene.buildings)} buildings, {len(scene.faces):,} triangles, "
-          f"origin {scene.origin.tolist()}, crs {scene.crs}")
+          f"{span[0]:.2f} × {span[1]:.2f} km, origin {scene.origin.tolist()}, crs {scene.crs}")
+    if span.max() > LARGE_SCENE_KM:
+        print(f"warning: the scene spans {span[0]:.1f} × {span[1]:.1f} km and a survey flies over all of it; "
+              "--bbox X0,Y0,X1,Y1 keeps the buildings of an area (`quakescan scan --dry-run` shows the cost)",
+              file=sys.stderr)
     return 0
+
+
+LARGE_SCENE_KM = 2.0  # a scene wider than this makes every survey a long flight
+
+
+def _bbox(text: str) -> tuple:
+    try:
+        x0, y0, x1, y1 = (float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected X0,Y0,X1,Y1 (four numbers), got {text!r}") from None
+    if not (x0 < x1 and y0 < y1):
+        raise argparse.ArgumentTypeError(f"expected X0 < X1 and Y0 < Y1, got {text!r}")
+    return x0, y0, x1, y1
 
 
 def cmd_validate(args) -> int:
@@ -451,6 +477,10 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("input", help="CityJSON file (1.0, 1.1, 2.0)")
     c.add_argument("-o", "--output", required=True, help="scene bundle folder to write")
     c.add_argument("--lod", default=None, help="level of detail to use (default: the highest per building)")
+    c.add_argument("--bbox", type=_bbox, default=None, metavar="X0,Y0,X1,Y1",
+                   help="keep the buildings whose centre lies in this box (the model's coordinates)")
+    c.add_argument("--buffer", type=float, default=20.0,
+                   help="terrain kept around the buildings, m (default 20)")
     c.set_defaults(func=cmd_import_cityjson)
 
     v = sub.add_parser("validate", help="check a scene bundle and report the first problem")

@@ -113,6 +113,21 @@ def crop_to_buildings(scene: Scene, building_ids, margin_m: float = 20.0) -> Sce
                  scene.origin.copy(), scene.crs, scene.epoch, scene.units, porous, scene.transmission)
 
 
+def buildings_in_box(scene: Scene, box) -> np.ndarray:
+    """IDs of the buildings whose centre (mean of their vertices' x/y, world coordinates)
+    lies in `box` = (x0, y0, x1, y1)."""
+    x0, y0, x1, y1 = box
+    keep = []
+    for b in scene.buildings:
+        v = scene.vertices[np.unique(scene.faces[scene.face_building == b.id])]
+        if not len(v):
+            continue
+        cx, cy = v[:, :2].mean(axis=0) + scene.origin[:2]
+        if x0 <= cx <= x1 and y0 <= cy <= y1:
+            keep.append(b.id)
+    return np.array(keep, dtype=np.int64)
+
+
 def _manifest_error(path, msg):
     return SceneError(f"{path}: {msg}")
 

@@ -465,3 +465,26 @@ def test_error_buildings_without_geometry(tmp_path):
     m.add("B", "Building", [])
     with pytest.raises(SceneError, match=r"c\.json: none of the 1 buildings has surface geometry"):
         import_cityjson(m.write(tmp_path / "c.json"))
+
+
+@pytest.mark.realdata
+def test_import_keeps_the_buildings_of_a_box_and_warns_about_wide_scenes(tmp_path, capsys):
+    """Rotterdam: 15 buildings within 80 m and one 500 m away; a box around the cluster
+    keeps the 15 and the terrain around them only. Zurich's 49 buildings span kilometres:
+    the import says so before anyone flies a survey over it."""
+    from core.cli import main
+    from core.scene import read_scene
+
+    if not ROTTERDAM.is_file() or not ZURICH.is_file():
+        pytest.skip("real city models absent")
+    assert main(["import-cityjson", str(ROTTERDAM), "-o", str(tmp_path / "box"), "--bbox",
+                 "90900,435600,91000,435700", "--buffer", "10"]) == 0
+    scene = read_scene(tmp_path / "box")
+    assert len(scene.buildings) == 15
+    span = scene.bounds()[1, :2] - scene.bounds()[0, :2]
+    assert span.max() < 150  # not the 590 m of the whole model
+    with pytest.raises(SystemExit):
+        main(["import-cityjson", str(ROTTERDAM), "-o", str(tmp_path / "bad"), "--bbox", "1,2,0,3"])
+    capsys.readouterr()
+    assert main(["import-cityjson", str(ZURICH), "-o", str(tmp_path / "zurich")]) == 0
+    assert "warning: the scene spans" in capsys.readouterr().err
