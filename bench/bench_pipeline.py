@@ -85,7 +85,7 @@ def classify_run(pre: Path, post: Path, out: Path, model: Path | None = None) ->
                "print(json.dumps({'rc': r.returncode, 'err': r.stderr[-2000:], 'wall': time.perf_counter() - t0, "
                "'peak_kb': resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss}))")
     cmd = [str(Path(sys.executable).with_name("quakescan")), "classify", "--pre", str(pre), "--post", str(post),
-           "-o", str(out)] + (["--model", str(model)] if model else [])
+           "-o", str(out), "--force"] + (["--model", str(model)] if model else [])  # timed: never skipped
     res = subprocess.run([sys.executable, "-c", wrapper, *cmd], capture_output=True, text=True)
     info = json.loads(res.stdout.strip().splitlines()[-1])
     if info["rc"] != 0:

@@ -205,7 +205,7 @@ def predict_rows(rows, model: DamageModel, rule: bool | None = None) -> list:
 
 def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=None, id_field=None,
              align: bool | None = None, workers: int = -1, progress=None, write_las: bool = True,
-             laz: bool | None = None) -> dict:
+             laz: bool | None = None, force: bool = False) -> dict:
     """Run the whole classification and write OUT/buildings.csv, .geojson, damage_map.png,
     post_grades.las and summary.json. Returns the summary.
 
@@ -213,12 +213,21 @@ def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=N
     takes the epochs as they are; None (default) checks their registration and aligns when
     they disagree beyond what the model tolerates, saying so (`_register`). The graded
     post-event cloud keeps every attribute of the post-event file and is compressed
-    (post_grades.laz) when `laz`, or when `laz` is None and the post-event file is LAZ."""
+    (post_grades.laz) when `laz`, or when `laz` is None and the post-event file is LAZ.
+    A folder that holds the finished results of the same inputs, model and options is up to
+    date: its summary is returned (with "up_to_date": True) and nothing is recomputed,
+    unless `force`."""
     from . import results
 
     t0 = time.perf_counter()
     out = Path(out_dir)
     model_path = Path(model_path) if model_path else default_model_path()
+    fingerprint = _fingerprint([pre_path, post_path, footprints_path], model_path, align)
+    options = {"id_field": id_field, "write_las": bool(write_las), "laz": laz}
+    done = _finished(out, fingerprint, options)
+    if done is not None and not force:
+        log.info("%s: up to date (same inputs, model and options); force=True recomputes", out)
+        return {**done, "up_to_date": True}
     model = load_model(model_path)
     settings = model_settings(model, str(model_path))
     data = load_pair(pre_path, post_path, footprints_path, id_field)
@@ -228,8 +237,7 @@ def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=N
                      "points": {"pre": len(pre), "post": len(post)}, "crs": pre.crs}
     summary["registration"] = _register(pre, post, settings, align, summary)
     t_read = time.perf_counter()
-    ckpt = _Checkpoint(out / ".checkpoint.jsonl",
-                       _fingerprint([pre_path, post_path, footprints_path], model_path, align))
+    ckpt = _Checkpoint(out / ".checkpoint.jsonl", fingerprint)
     resumed = len(ckpt.rows)
     if resumed:
         log.warning("%s: resuming, %d buildings already described", out, resumed)
@@ -266,6 +274,8 @@ def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=N
     summary.update({"buildings": len(res), "by_label": counts, "resumed_buildings": resumed,
                     "seconds": {"read": round(t_read - t0, 2), "describe": round(t_describe - t_read, 2),
                                 "total": round(time.perf_counter() - t0, 2)}})
+    summary["fingerprint"] = fingerprint
+    summary["options"] = options
     tmp = out / "summary.json.part"
     tmp.write_text(json.dumps(summary, indent=1, default=_json_default))
     os.replace(tmp, out / "summary.json")
@@ -321,7 +331,7 @@ def _register(pre, post, settings: PipelineSettings, align: bool | None, summary
                         "tolerates): aligned the post-event epoch to the pre-event one (%s); --no-align keeps "
                         "them as they are", offset, tolerance, format_alignment(a))
         else:
-            log.warning("alignment: %s", format_alignment(a))
+            log.info("alignment: %s", format_alignment(a))
         if a.std_after_m * 1.96 > settings.split.lod_height_m:
             log.warning("the alignment's noise (std %.3f m) exceeds what the model's level of detection "
                         "(%.2f m) tolerates: expect undamaged buildings to look changed",
@@ -335,6 +345,20 @@ def max_displacement_m(a, xyz: np.ndarray) -> float:
     lo, hi = xyz.min(axis=0), xyz.max(axis=0)
     corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
     return float(np.linalg.norm(a.apply(corners) - corners, axis=1).max())
+
+
+def _finished(out: Path, fingerprint: str, options: dict) -> dict | None:
+    """The summary of a finished classification of the same inputs in `out`, else None."""
+    try:
+        summary = json.loads((out / "summary.json").read_text())
+    except (OSError, json.JSONDecodeError):
+        return None
+    if summary.get("fingerprint") != fingerprint or summary.get("options") != options:
+        return None
+    wanted = ["buildings.csv", "buildings.geojson", "damage_map.png"]
+    if options["write_las"]:
+        wanted.append(Path(summary.get("post_grades", "post_grades.las")).name)
+    return summary if all((out / name).is_file() for name in wanted) else None
 
 
 def _json_default(o):

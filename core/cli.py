@@ -305,7 +305,10 @@ def cmd_classify(args) -> int:
     summary = classify(args.pre, args.post, args.output, model_path=args.model, footprints_path=args.footprints,
                        id_field=args.id_field, align=args.align, workers=args.threads,
                        progress=_Progress("classify", args.progress or sys.stderr.isatty()),
-                       write_las=not args.no_las, laz=args.laz)
+                       write_las=not args.no_las, laz=args.laz, force=args.force)
+    if summary.get("up_to_date"):
+        print(f"{args.output}: up to date (same inputs, model and options); --force recomputes")
+        return 0
     out = Path(args.output)
     reg = summary.get("registration", {})
     if "alignment" in summary:
@@ -627,6 +630,8 @@ def build_parser() -> argparse.ArgumentParser:
     reg.add_argument("--no-align", dest="align", action="store_const", const=False,
                      help="take the epochs as they are, unchecked")
     cl.add_argument("--no-las", action="store_true", help="skip the per-point LAS of predicted grades")
+    cl.add_argument("--force", action="store_true", help="recompute even when OUT_DIR holds the finished results "
+                    "of the same inputs, model and options")
     cl.add_argument("--laz", action="store_const", const=True, default=None,
                     help="compress the per-point grades (post_grades.laz); default: as the post-event file is")
     cl.add_argument("--threads", type=int, default=-1)

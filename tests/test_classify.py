@@ -220,3 +220,23 @@ def test_train_with_per_point_levels_of_detection_round_trips_through_the_model(
     with open(tmp_path / "res" / "buildings.csv", newline="") as f:
         rows = {int(r["building_id"]): r for r in csv.DictReader(f)}
     assert [int(rows[b]["predicted_grade"]) for b in sorted(rows)] == list(grades)
+
+
+def test_a_rerun_into_a_finished_folder_is_up_to_date(city, tmp_path, capsys):
+    from core.cli import main
+
+    d, grades = city
+    args = ["classify", "--pre", str(d / "pre.las"), "--post", str(d / "post.las"), "--model", str(d / "model.skops"),
+            "-o", str(tmp_path / "res")]
+    assert main(args) == 0
+    first = (tmp_path / "res" / "buildings.csv").stat().st_mtime_ns
+    capsys.readouterr()
+    assert main(args) == 0
+    assert "up to date" in capsys.readouterr().out
+    assert (tmp_path / "res" / "buildings.csv").stat().st_mtime_ns == first  # nothing rewritten
+    assert main(args + ["--no-las"]) == 0  # other options: recomputed
+    assert "up to date" not in capsys.readouterr().out
+    assert main(args + ["--no-las", "--force"]) == 0
+    assert "up to date" not in capsys.readouterr().out
+    (tmp_path / "res" / "buildings.csv").unlink()  # an incomplete folder is not up to date
+    assert main(args + ["--no-las"]) == 0 and (tmp_path / "res" / "buildings.csv").is_file()
