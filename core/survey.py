@@ -315,13 +315,14 @@ class FlightPlan:
         return last.t_start + last.duration_s - self.lines[0].t_start
 
     def trajectory(self, rate_hz: float = 10.0) -> np.ndarray:
-        """Sampled trajectory rows (gps_time, x, y, z, heading_deg, line) in the local frame."""
+        """Sampled trajectory rows (gps_time, x, y, z, heading_deg, line) in the local frame;
+        `line` is the scan's `point_source_id` of that strip (line index + 1)."""
         rows = []
         for ln in self.lines:
             t = ln.t_start + np.arange(0.0, ln.duration_s + 1e-9, 1.0 / rate_hz)
             p = ln.position(t)
             hd = math.degrees(math.atan2(ln.heading[1], ln.heading[0]))
-            rows.append(np.column_stack([t, p, np.full(len(t), hd), np.full(len(t), ln.index)]))
+            rows.append(np.column_stack([t, p, np.full(len(t), hd), np.full(len(t), ln.index + 1)]))
         return np.concatenate(rows) if rows else np.zeros((0, 6))
 
 

@@ -172,3 +172,23 @@ def test_robustness_command_writes_the_report(tmp_path, capsys):
     assert report["radii_m"] == [1.0, 2.0] and report["best_radius_m"] in (1.0, 2.0)
     for name in ("README.md", "robustness.csv", "features_vs_threshold.png", "difference_heatmap.png"):
         assert (out / name).is_file(), name
+
+
+def test_trajectory_lines_are_the_points_source_ids(tmp_path):
+    import laspy
+
+    from core.scene import write_scene
+    from core.synthetic import box_city
+
+    write_scene(box_city(rows=1, cols=2), tmp_path / "scene")
+    out = tmp_path / "a.las"
+    assert main(["scan", str(tmp_path / "scene"), "-o", str(out), "--survey", "als",
+                 "--trajectory", str(tmp_path / "traj.csv")]) == 0
+    traj = np.loadtxt(tmp_path / "traj.csv", delimiter=",", skiprows=1)
+    las = laspy.read(out)
+    assert set(np.unique(traj[:, 5]).astype(int)) == set(np.unique(np.asarray(las.point_source_id)).tolist())
+    # and each point's GPS time lies within its line's stretch of the trajectory
+    for line in np.unique(traj[:, 5]):
+        t = np.asarray(las.gps_time)[np.asarray(las.point_source_id) == line]
+        span = traj[traj[:, 5] == line, 0]
+        assert t.min() >= span.min() - 0.11 and t.max() <= span.max() + 0.11
