@@ -240,7 +240,8 @@ def write_footprints(footprints: Footprints, path: str | os.PathLike) -> Path:
     doc = {"type": "FeatureCollection", "features": features}
     if footprints.crs:
         doc["crs"] = {"type": "name", "properties": {"name": footprints.crs}}
-    tmp = path.with_name(path.name + ".part")
-    tmp.write_text(json.dumps(doc))
-    os.replace(tmp, path)
+    from .results import _atomic  # the results' atomic writer: a failed write leaves no .part
+
+    with _atomic(path) as tmp:
+        tmp.write_text(json.dumps(doc))
     return path
