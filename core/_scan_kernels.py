@@ -64,13 +64,13 @@ def refine_hits(origins, directions, face, normals, plane_d, max_range):
 
 @njit(inline="always", **_JIT)
 def _write_point(cols, m, xyz_int, gps, theta, forward, edge, ret, nret, line_id, building, grade_, surface_,
-                 cls):
+                 cls, intensity_):
     """Fill row m of the LAS columns (X, Y, Z, intensity, gps_time, scan_angle, bit_fields,
     classification_flags, classification, user_data, point_source_id, building_id, grade, surface)."""
     cols[0][m] = np.int32(xyz_int[0])
     cols[1][m] = np.int32(xyz_int[1])
     cols[2][m] = np.int32(xyz_int[2])
-    cols[3][m] = 0
+    cols[3][m] = intensity_
     cols[4][m] = gps
     # LAS 1.4 scan angle: int16 in units of 0.006°
     cols[5][m] = np.int16(np.rint((theta * (180.0 / math.pi)) / 0.006))
@@ -82,6 +82,17 @@ def _write_point(cols, m, xyz_int, gps, theta, forward, edge, ret, nret, line_id
     cols[11][m] = building
     cols[12][m] = grade_
     cols[13][m] = surface_
+
+
+@njit(inline="always", **_JIT)
+def _intensity(reflect, normals, f, d, rng, ref2):
+    """ρ · |cos θ_inc| · R_ref² / R² scaled to uint16 (see core.reflectance; its numpy
+    reference `intensity` does the same arithmetic in the same order)."""
+    cos = abs(normals[f, 0] * d[0] + normals[f, 1] * d[1] + normals[f, 2] * d[2])
+    v = 65535.0 * reflect * cos * ref2 / (rng * rng)
+    if v >= 65535.0:
+        return np.uint16(65535)
+    return np.uint16(np.rint(v))
 
 
 @njit(**_JIT)
@@ -100,9 +111,11 @@ def _to_ints(o, d, dist, shift, scale, xyz_int, mins, maxs):
 
 @njit(**_JIT)
 def pack_points(ray, pulse, face, rng, noise, noise_sigma, ret, nret, origins, directions, shift, scale,
-                gps, theta, forward, edge, line_id, f_building, f_grade, f_surface, f_class, cols):
+                gps, theta, forward, edge, line_id, f_building, f_grade, f_surface, f_class, normals, f_reflect,
+                ref2, cols):
     """Write point k (ray[k] of the batch's rays, pulse[k] of its pulses) into the LAS columns
-    `cols` (see `_write_point`); the range is rng[k] + noise_sigma * noise[k].
+    `cols` (see `_write_point`); the range is rng[k] + noise_sigma * noise[k]; the intensity
+    comes from rng[k] (without noise), the face's reflectance and normal (`_intensity`).
 
     Returns (ok, int mins (3,), int maxs (3,), points by return number (16,), points by face):
     ok is False when a coordinate does not fit int32 at `scale` (the caller raises)."""
@@ -117,7 +130,8 @@ def pack_points(ray, pulse, face, rng, noise, noise_sigma, ret, nret, origins, d
                         xyz_int, mins, maxs):
             return False, mins, maxs, by_return, by_face
         _write_point(cols, k, xyz_int, gps[p], theta[p], forward[p], edge[p], ret[k], nret[k], line_id,
-                     f_building[f], f_grade[f], f_surface[f], f_class[f])
+                     f_building[f], f_grade[f], f_surface[f], f_class[f],
+                     _intensity(f_reflect[f], normals, f, directions[r], rng[k], ref2))
         by_return[ret[k] & 15] += 1
         by_face[f] += 1
     return True, mins, maxs, by_return, by_face
@@ -365,7 +379,7 @@ def pulse_rays32(t, theta, t_start, start, velocity, down, right):
 @njit(**_JIT)
 def refine_and_pack(face, t, cs, t_start, start, velocity, down, right, normals, plane_d, max_range,
                     noise, noise_sigma, shift, scale, theta, forward, edge, line_id,
-                    f_building, f_grade, f_surface, f_class, cols):
+                    f_building, f_grade, f_surface, f_class, f_reflect, ref2, cols):
     """Single-ray beam in one pass: for every ray Embree saw hit a face, rebuild the float64
     ray, intersect it with the face's plane (dropping grazing or out-of-range hits, as
     `refine_hits`), add noise and write the LAS point. Returns (points written, ok, int mins,
@@ -398,7 +412,8 @@ def refine_and_pack(face, t, cs, t_start, start, velocity, down, right, normals,
         if not _to_ints(o, d, ti + noise_sigma * np.float64(noise[m]), shift, scale, xyz_int, mins, maxs):
             return m, False, mins, maxs, by_return, by_face
         _write_point(cols, m, xyz_int, t[i], theta[i], forward[i], edge[i], np.uint8(1), np.uint8(1), line_id,
-                     f_building[f], f_grade[f], f_surface[f], f_class[f])
+                     f_building[f], f_grade[f], f_surface[f], f_class[f],
+                     _intensity(f_reflect[f], normals, f, d, ti, ref2))
         by_return[1] += 1
         by_face[f] += 1
         m += 1

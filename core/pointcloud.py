@@ -48,6 +48,7 @@ class PointChunk:
     point_source_id: np.ndarray
     scan_direction: np.ndarray | None = None
     edge_of_flight_line: np.ndarray | None = None
+    intensity: np.ndarray | None = None  # uint16; None = 0 (photogrammetry has none)
 
     def __len__(self):
         return len(self.xyz)
@@ -165,6 +166,8 @@ def pack_points(header, chunk: PointChunk, name="point cloud"):
                               f"{list(header.offsets)} at scale {SCALE} m")
     a["X"], a["Y"], a["Z"] = ints[:, 0], ints[:, 1], ints[:, 2]
     a["gps_time"] = chunk.gps_time
+    if chunk.intensity is not None:
+        a["intensity"] = chunk.intensity
     # LAS 1.4 scan angle: int16 in units of 0.006°
     a["scan_angle"] = np.rint(chunk.scan_angle_deg / 0.006)
     # bit_fields: return number (bits 0-3), number of returns (bits 4-7)

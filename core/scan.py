@@ -84,6 +84,9 @@ class RayCaster:
         for bid, g in grades.items():
             lut[bid] = g
         self.face_grade = lut[self.face_building]
+        from .reflectance import face_reflectance
+
+        self.face_reflectance = face_reflectance(scene)
         self.face_class = np.where(self.face_building > 0, BUILDING_CLASS,
                                    np.where(self.face_surface == GROUND, GROUND_CLASS, UNCLASSIFIED)
                                    ).astype(np.uint8)
@@ -422,8 +425,8 @@ class _Simulator:
             face, pulses.t, cs, ln.t_start, pulses.start_local, pulses.velocity, pulses.down, pulses.right,
             c.normals, c.plane_d, float(s.max_range_m), noise, s.range_noise_sigma_m, shift, SCALE,
             pulses.theta, pulses.forward, pulses.edge, np.uint16(ln.index + 1),
-            c.face_building, c.face_grade, c.face_surface, c.face_class,
-            _las_columns(a))
+            c.face_building, c.face_grade, c.face_surface, c.face_class, c.face_reflectance,
+            s.intensity_reference_range_m ** 2, _las_columns(a))
         stats["points"] = m
         return _kernel_record(h, a[:m], ok, mins, maxs, by_return, by_face, stats), stats
 
@@ -431,6 +434,8 @@ class _Simulator:
         """Points → a packed LAS record (when the simulator has a header) or a PointChunk;
         fills stats with counts by return and by face, and the record's bounds. A point is
         o + d · (range + noise) + shift, `shift` being the line's (see `line_shift`)."""
+        from .reflectance import intensity
+
         c, sigma = self.caster, self.survey.range_noise_sigma_m
         n_faces = len(c.face_surface)
         if self.header is not None and self.fast:
@@ -443,8 +448,8 @@ class _Simulator:
             ok, mins, maxs, by_return, by_face = pack_points(
                 ray, pulse, face, rng_m, noise, sigma, ret.astype(np.uint8), nret.astype(np.uint8), o, d,
                 shift, SCALE, pulses.t, pulses.theta, pulses.forward, pulses.edge, np.uint16(line_index + 1),
-                c.face_building, c.face_grade, c.face_surface, c.face_class,
-                _las_columns(a))
+                c.face_building, c.face_grade, c.face_surface, c.face_class, c.normals, c.face_reflectance,
+                self.survey.intensity_reference_range_m ** 2, _las_columns(a))
             return _kernel_record(h, a, ok, mins, maxs, by_return, by_face, stats)
         stats["by_return"] = np.bincount(ret, minlength=16)[:16]
         stats["by_face"] = np.bincount(face, minlength=n_faces)
@@ -458,6 +463,8 @@ class _Simulator:
             point_source_id=np.full(len(ray), line_index + 1, np.uint16),
             scan_direction=pulses.forward[pulse],
             edge_of_flight_line=pulses.edge[pulse],
+            intensity=intensity(c.face_reflectance[face], c.normals[face], d[ray], rng_m,
+                                self.survey.intensity_reference_range_m),
         )
         if self.header is None:
             return chunk

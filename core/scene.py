@@ -219,6 +219,11 @@ def _parse_building(path, i, b) -> Building:
     seed = b.get("seed", 0)
     if not isinstance(seed, int):
         raise _manifest_error(path, f"{where}: seed must be an integer, got {seed!r}")
+    rho = b.get("reflectance")
+    if rho is not None and (isinstance(rho, bool) or not isinstance(rho, (int, float)) or not math.isfinite(rho)
+                            or not 0 < rho <= 1):
+        raise _manifest_error(path, f"{where}: reflectance must be a number in (0, 1] (share of the laser light "
+                              f"its surfaces return; absent: by material), got {rho!r}")
     extra = {k: v for k, v in b.items() if k not in _BUILDING_KEYS}
     return Building(bid, grade, material, storeys, str(b.get("typology", "generic")), patterns, seed, extra)
 

@@ -55,6 +55,9 @@ FIELD_DOC = {
                              "3-D offset drawn per line (Gaussian, this standard deviation per axis, seeded "
                              "by the scan seed and the line number); 0 = strips perfectly registered"), "m"),
     "max_range_m": ("maximum range; farther surfaces give no return", "m"),
+    "intensity_reference_range_m": ("range at which a white face (reflectance 1) at normal incidence has "
+                                    "intensity 65535; intensity falls with range², so only closer faces "
+                                    "saturate", "m"),
     "beam_divergence_mrad": ("full beam divergence at 1/e² intensity", "mrad"),
     "beam": ("'single' (one ray per pulse), 'full' (sub-rays over the footprint for every pulse) or "
              "'adaptive' (sub-rays only for pulses next to a depth discontinuity)", "-"),
@@ -90,6 +93,7 @@ class Survey:
     range_noise_sigma_m: float = 0.01
     strip_misalignment_m: float = 0.0
     max_range_m: float = 400.0
+    intensity_reference_range_m: float = 20.0
     # beam model
     beam_divergence_mrad: float = 0.5
     beam: str = "single"
@@ -108,7 +112,7 @@ class Survey:
             raise SurveyError(f"{source}: {msg}")
 
         positive = ["altitude_agl_m", "speed_m_s", "scan_rate_hz", "pulse_rate_hz", "fov_deg", "max_range_m",
-                    "sweep_deg"]
+                    "sweep_deg", "intensity_reference_range_m"]
         for name in positive:
             v = getattr(self, name)
             if not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
@@ -214,7 +218,8 @@ def _als() -> Survey:
     roof area 10.37. `als_for_density` moves it to other densities."""
     return Survey(name="als", altitude_agl_m=500.0, speed_m_s=60.0, strip_overlap_pct=50.0, run_in_m=50.0,
                   deflector="oscillating_mirror", scan_rate_hz=140.0, pulse_rate_hz=140_000.0, fov_deg=50.0,
-                  range_noise_sigma_m=0.025, max_range_m=2000.0, beam_divergence_mrad=0.3)
+                  range_noise_sigma_m=0.025, max_range_m=2000.0, beam_divergence_mrad=0.3,
+                  intensity_reference_range_m=100.0)
 
 
 PRESETS = {"paper": Survey, "als": _als}
