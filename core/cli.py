@@ -47,49 +47,112 @@ def _fingerprint(scene_dir: Path, survey, seed: int) -> str:
     return h.hexdigest()[:16]
 
 
+def _say(*args, **kwargs) -> None:
+    """print() that survives a closed stdout (`quakescan scan … | head -1`): the command goes on
+    and finishes its files, its remaining messages are dropped."""
+    try:
+        print(*args, **kwargs)
+        if kwargs.get("file") is None:
+            sys.stdout.flush()
+    except BrokenPipeError:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())  # so that the flush at exit does not fail again
+        os.close(devnull)
+
+
+def _file_digest(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _scan_is_up_to_date(out: Path, summary_path: Path, fp: str) -> bool:
+    """The summary has the same fingerprint and the output is the file the scan wrote (size and
+    SHA-256 as recorded): a truncated or replaced output is scanned again."""
+    if not (out.is_file() and summary_path.is_file()):
+        return False
+    try:
+        summary = json.loads(summary_path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError, OSError):
+        return False
+    if not isinstance(summary, dict) or summary.get("fingerprint") != fp:
+        return False
+    recorded = summary.get("output_file")
+    if not isinstance(recorded, dict) or recorded.get("bytes") != out.stat().st_size:
+        return False
+    return recorded.get("sha256") == _file_digest(out)
+
+
+def _check_scan_flags(args) -> None:
+    if args.seed < 0:
+        raise QuakeScanError(f"--seed: expected an integer >= 0 (the same seed gives the same bytes), got {args.seed}")
+    if args.threads is not None and args.threads != -1 and args.threads < 1:
+        raise QuakeScanError(f"--threads: expected a number of worker threads >= 1 (or -1: all cores), "
+                             f"got {args.threads}")
+
+
 def cmd_scan(args) -> int:
     from .scan import scan
     from .scene import read_scene
     from .survey import load_survey
 
+    _check_scan_flags(args)
+    threads = None if args.threads in (None, -1) else args.threads
     scene_dir = Path(args.scene)
     out = Path(args.output)
+    if out.suffix.lower() not in (".las", ".laz"):
+        raise QuakeScanError(f"-o {out}: a point cloud's name must end in .las or .laz")
+    if out.is_dir():
+        raise QuakeScanError(f"-o {out}: is a folder; give the point cloud's file name (.las or .laz)")
     survey = load_survey(args.survey)
     if args.beam:
         survey = survey.replace(beam=args.beam)
     summary_path = Path(args.summary) if args.summary else out.with_name(out.name + ".summary.json")
     fp = _fingerprint(scene_dir, survey, args.seed)
-    if not args.force and out.is_file() and summary_path.is_file():
-        try:
-            if json.loads(summary_path.read_text()).get("fingerprint") == fp:
-                print(f"{out}: up to date (same scene, survey and seed); use --force to rescan")
-                return 0
-        except json.JSONDecodeError:
-            pass
+    if not args.force and _scan_is_up_to_date(out, summary_path, fp):
+        if args.trajectory:
+            _write_trajectory(read_scene(scene_dir), survey, Path(args.trajectory))
+        _say(f"{out}: up to date (same scene, survey and seed); use --force to rescan"
+             + (f"; trajectory -> {args.trajectory}" if args.trajectory else ""))
+        return 0
     scene = read_scene(scene_dir)
-    from .scan import LARGE_SCAN_POINTS, estimate_scan
+    from .scan import LARGE_SCAN_POINTS, MAX_SCAN_POINTS, estimate_scan
 
     plan = estimate_scan(scene, survey, laz=out.suffix.lower() == ".laz")
-    print(plan.describe())
+    _say(plan.describe())
     if args.dry_run:
         return 0
+    if plan.too_large and not args.force:
+        raise QuakeScanError(f"{args.survey} over {scene_dir}: the plan reaches {plan.points / 1e6:,.0f} M points and "
+                             f"{plan.megabytes / 1e3:,.1f} GB, beyond the limit of {MAX_SCAN_POINTS / 1e6:,.0f} M "
+                             "points; check the scene's extent and the survey (pulse rate, speed, overlap), "
+                             "or --force to scan anyway")
     if plan.large:
         print(f"warning: a large scan (more than {LARGE_SCAN_POINTS / 1e6:.0f} M points): check the scene's extent "
               f"(`quakescan validate`) and the survey; `--dry-run` shows the plan without scanning", file=sys.stderr)
     progress = _Progress(f"scan {scene_dir.name}", args.progress or sys.stderr.isatty())
-    summary = scan(scene, survey, out, seed=args.seed, threads=args.threads, progress=progress,
-                   source=str(scene_dir))
+    # Finished flight lines are kept here; a rerun after an interruption continues from them.
+    checkpoint = out.with_name(out.name + ".lines")
+    summary = scan(scene, survey, out, seed=args.seed, threads=threads, progress=progress,
+                   source=str(scene_dir), checkpoint=checkpoint, fingerprint=fp)
     report = summary.to_json()
     report["fingerprint"] = fp
+    report["output_file"] = {"bytes": out.stat().st_size, "sha256": _file_digest(out)}
     report["survey"] = survey.to_json()
     _write_json_atomic(summary_path, report)
     if args.trajectory:
         _write_trajectory(scene, survey, Path(args.trajectory))
+    if summary.lines_resumed:
+        _say(f"resumed: {summary.lines_resumed} of {summary.lines} flight lines came from the interrupted run "
+             f"({checkpoint})")
     _print_summary(summary, scene)
     return 0
 
 
 def _write_json_atomic(path: Path, data) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_text(json.dumps(data, indent=1) + "\n")
     os.replace(tmp, path)
@@ -102,6 +165,7 @@ def _write_trajectory(scene, survey, path: Path) -> None:
     plan = plan_flight(survey, scene.bounds(), ground_level(scene))
     traj = plan.trajectory()
     traj[:, 1:4] += scene.origin
+    path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".tmp")
     np.savetxt(tmp, traj, delimiter=",", fmt=["%.6f", "%.3f", "%.3f", "%.3f", "%.3f", "%d"],
                header="gps_time_s,x_m,y_m,z_m,heading_deg,line", comments="")
@@ -112,13 +176,13 @@ def _print_summary(summary, scene) -> None:
     s = summary
     n_b = len(scene.buildings)
     hit_b = len(s.points_by_building)
-    print(f"{s.output}: {s.points:,} points from {s.pulses_emitted:,} pulses "
-          f"({s.rays_cast:,} rays, beam {s.beam}) over {s.lines} flight lines, "
-          f"{s.flight_duration_s:.0f} s of flight, {s.wall_time_s:.1f} s wall time "
-          f"({s.pulses_emitted / max(s.wall_time_s, 1e-9) / 1e6:.2f} M pulses/s)")
-    print("  by surface: " + ", ".join(f"{k} {v:,}" for k, v in s.points_by_surface.items()))
-    print("  by return:  " + ", ".join(f"{k}: {v:,}" for k, v in s.points_by_return.items()))
-    print(f"  buildings with points: {hit_b} of {n_b}")
+    _say(f"{s.output}: {s.points:,} points from {s.pulses_emitted:,} pulses "
+         f"({s.rays_cast:,} rays, beam {s.beam}) over {s.lines} flight lines, "
+         f"{s.flight_duration_s:.0f} s of flight, {s.wall_time_s:.1f} s wall time "
+         f"({s.pulses_emitted / max(s.wall_time_s, 1e-9) / 1e6:.2f} M pulses/s)")
+    _say("  by surface: " + ", ".join(f"{k} {v:,}" for k, v in s.points_by_surface.items()))
+    _say("  by return:  " + ", ".join(f"{k}: {v:,}" for k, v in s.points_by_return.items()))
+    _say(f"  buildings with points: {hit_b} of {n_b}")
 
 
 def cmd_import_cityjson(args) -> int:
@@ -467,10 +531,12 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--survey", default="paper", help="preset name (paper, als) or survey JSON file")
     s.add_argument("--beam", choices=("single", "adaptive", "full"), help="override the survey's beam model")
     s.add_argument("--seed", type=int, default=0, help="seed of the range noise (same seed, same bytes)")
-    s.add_argument("--threads", type=int, default=None, help="worker threads (default: all cores)")
-    s.add_argument("--trajectory", help="also write the platform trajectory as CSV")
+    s.add_argument("--threads", type=int, default=None, help="worker threads, >= 1 (default or -1: all cores)")
+    s.add_argument("--trajectory", help="also write the platform trajectory as CSV (also when the scan is "
+                   "up to date)")
     s.add_argument("--summary", help="summary JSON path (default: OUTPUT.summary.json)")
-    s.add_argument("--force", action="store_true", help="rescan even if the output is up to date")
+    s.add_argument("--force", action="store_true", help="rescan even if the output is up to date, and scan a plan "
+                   "beyond the size limit (500 M points)")
     s.add_argument("--dry-run", action="store_true",
                    help="print the flight plan (lines, flight time, pulses, points, file size) and stop")
     s.add_argument("--progress", action="store_true", help="show progress even when stderr is not a terminal")

@@ -46,10 +46,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .errors import PointCloudError, SceneError, SurveyError
+from .errors import PointCloudError, QuakeScanError, SceneError, SurveyError
 from .pointcloud import (BUILDING_CLASS, GRADE_UNKNOWN, GROUND_CLASS, SCALE, UNCLASSIFIED, LasChunkWriter,
                          PointChunk, make_header)
-from .scene import GROUND, SURFACE_NAMES, VEGETATION, Scene
+from .scene import GROUND, SURFACE_NAMES, VEGETATION, Scene, check_crs
 from .survey import FlightLine, FlightPlan, Survey, plan_flight
 
 log = logging.getLogger(__name__)
@@ -173,6 +173,7 @@ class ScanSummary:
     wall_time_s: float = 0.0
     beam: str = "single"
     seed: int = 0
+    lines_resumed: int = 0  # flight lines taken from the checkpoint of an interrupted run
 
     def to_json(self) -> dict:
         d = dict(self.__dict__)
@@ -341,6 +342,14 @@ class _Simulator:
         self.sub_offsets = np.array(offsets)
         w = np.array(weights)
         self.sub_weights = w / w.sum()
+
+    def record_from_bytes(self, raw: bytes):
+        """A packed LAS record from the bytes of one (`core.scan_checkpoint`)."""
+        import laspy
+
+        h = self.header
+        a = np.frombuffer(bytearray(raw), dtype=h.point_format.dtype())
+        return laspy.ScaleAwarePointRecord(a, h.point_format, h.scales, h.offsets)
 
     def pulses(self, line: FlightLine, j0: int, j1: int) -> _Pulses:
         return _Pulses(self.survey, line, j0, j1, self.caster.local_origin, self.box, self.fast)
@@ -692,15 +701,26 @@ def check_scannable(scene: Scene, source="scene") -> None:
 def scan(scene: Scene, survey: Survey, out_path: str | os.PathLike, seed: int = 0,
          threads: int | None = None, batch_rays: int = DEFAULT_BATCH_RAYS,
          lines: list | None = None, progress=None, source: str = "scene",
-         require_buildings: bool = True, fast: bool = True) -> ScanSummary:
+         require_buildings: bool = True, fast: bool = True,
+         checkpoint: str | os.PathLike | None = None, fingerprint: str = "") -> ScanSummary:
     """Scan `scene` with `survey` and write the point cloud to `out_path` (.las / .laz).
 
     `lines` replaces the planned flight lines (tests use a single line); `progress` is
     called with (pulses_done, pulses_total). Same scene, survey and seed give the same
     bytes, whatever the number of threads. `fast=False` runs the numpy reference of the
     compiled loops (same bytes, slower).
+
+    `checkpoint`: a folder where every finished flight line is kept
+    (`core.scan_checkpoint`); a rerun with the same `fingerprint` (the caller's digest of
+    scene, survey and seed) takes the finished lines from there instead of scanning them
+    again, and writes the same bytes as an uninterrupted scan. Removed on success.
     """
     started = time.perf_counter()
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise QuakeScanError(f"seed must be an integer >= 0, got {seed!r}")
+    if threads is not None and (isinstance(threads, bool) or not isinstance(threads, int) or threads < 1):
+        raise QuakeScanError(f"threads must be an integer >= 1 (or None: all cores), got {threads!r}")
+    check_crs(scene.crs, source)
     if require_buildings:
         check_scannable(scene, source)
     elif len(scene.faces) == 0:
@@ -717,32 +737,78 @@ def scan(scene: Scene, survey: Survey, out_path: str | os.PathLike, seed: int = 
     offset, shift = _las_offset(scene, caster)
     by_return = np.zeros(16, np.int64)
     by_face = np.zeros(len(scene.faces), np.int64)
+    saved = None
+    if checkpoint is not None:
+        from .scan_checkpoint import LineCheckpoint, plan_key
+
+        saved = LineCheckpoint(checkpoint, plan_key(fingerprint, batch_rays, plan.lines))
     with LasChunkWriter(out_path, offset, scene.crs, survey.acquisition_date) as writer, \
             ThreadPoolExecutor(max_workers=threads) as pool:
         sim = _Simulator(caster, survey, seed, shift=shift, header=writer.header, fast=fast)
         pending: deque = deque()
+        line_return = np.zeros(16, np.int64)
+        line_face = np.zeros(len(scene.faces), np.int64)
 
-        def consume(future):
-            record, stats = future.result()
-            writer.write_record(record, stats.pop("las_bounds", None))
-            by_return[:] += stats.pop("by_return")
-            by_face[:] += stats.pop("by_face")
+        def take(record, bounds, stats):
+            writer.write_record(record, bounds)
             for k, v in stats.items():
                 setattr(summary, k, getattr(summary, k) + v)
+
+        def consume(item):
+            if isinstance(item, FlightLine):  # a finished line of an earlier run
+                info = saved.finished(item.index)
+                for record, bounds, stats in saved.batches(item.index, sim.record_from_bytes):
+                    take(record, bounds, stats)
+                by_return[:] += info["by_return"]
+                np.add.at(by_face, np.asarray(info["by_face"][0], np.int64), np.asarray(info["by_face"][1], np.int64))
+                summary.lines_resumed += 1
+            else:
+                batch, future = item
+                record, stats = future.result()
+                bounds = stats.pop("las_bounds", None)
+                b_return, b_face = stats.pop("by_return"), stats.pop("by_face")
+                take(record, bounds, stats)
+                by_return[:] += b_return
+                by_face[:] += b_face
+                if saved is not None:
+                    saved.add_batch(batch.line.index, record, bounds, stats)
+                    line_return[:] += b_return
+                    line_face[:] += b_face
+                    if batch.j1 == _pulse_count(survey, batch.line):
+                        saved.finish_line(batch.line.index, line_return, line_face)
+                        line_return[:] = 0
+                        line_face[:] = 0
             if progress:
                 progress(summary.pulses_swept, total)
 
         # Workers simulate and pack batches; this thread only writes, in order. A bounded
         # window of batches in flight keeps memory flat.
-        for batch in _batches(survey, plan, batch_rays):
-            pending.append(pool.submit(sim.run_batch, batch))
-            if len(pending) >= 2 * threads:
+        done = {ln.index for ln in plan.lines if saved is not None and saved.finished(ln.index) is not None}
+        if done:
+            log.info("%s: %d of %d flight lines were finished by an earlier run", source, len(done), len(plan.lines))
+        try:
+            for batch in _batches(survey, plan, batch_rays):
+                if batch.line.index in done:
+                    if batch.j0 == 0:
+                        pending.append(batch.line)
+                    continue
+                pending.append((batch, pool.submit(sim.run_batch, batch)))
+                if len(pending) >= 2 * threads:
+                    consume(pending.popleft())
+            while pending:
                 consume(pending.popleft())
-        while pending:
-            consume(pending.popleft())
+        except BaseException:
+            for item in pending:  # stop what has not started; the checkpoint keeps finished lines
+                if not isinstance(item, FlightLine):
+                    item[1].cancel()
+            if saved is not None:
+                saved.abandon()
+            raise
         if summary.points == 0:
             raise SurveyError(f"{source}: the survey recorded no points: its flight lines miss the scene "
                               f"or every surface is beyond max_range_m={survey.max_range_m}")
+    if saved is not None:
+        saved.remove()
     summary.points_by_return = {str(r): int(c) for r, c in enumerate(by_return) if c}
     summary.points_by_surface, summary.points_by_building = label_counts(scene, caster, by_face, source)
     summary.wall_time_s = time.perf_counter() - started
@@ -780,6 +846,9 @@ def _las_offset(scene: Scene, caster: RayCaster):
 # A scan above this many estimated points is announced as large before it starts: about
 # 3.6 GB of LAS and, at the few million pulses per second of 2 cores, tens of minutes.
 LARGE_SCAN_POINTS = 100_000_000
+# Beyond this many estimated points `quakescan scan` refuses to start unless forced: about
+# 18 GB of LAS and hours on 2 cores, which no survey of a damaged district needs.
+MAX_SCAN_POINTS = 500_000_000
 LAZ_RATIO = 0.18  # LAZ / LAS size of our clouds, the upper end measured: 0.07 (paper ULS) to 0.18 (ALS)
 
 
@@ -799,6 +868,10 @@ class FlightPlanEstimate:
     @property
     def large(self) -> bool:
         return self.points > LARGE_SCAN_POINTS
+
+    @property
+    def too_large(self) -> bool:
+        return self.points > MAX_SCAN_POINTS
 
     def describe(self) -> str:
         return (f"flight plan: {self.lines} lines, {self.line_km:.1f} km, {self.flight_time_s / 60:.1f} min of "

@@ -128,6 +128,31 @@ def buildings_in_box(scene: Scene, box) -> np.ndarray:
     return np.array(keep, dtype=np.int64)
 
 
+# No projected CRS has coordinates beyond this (UTM northings reach 10⁷ m): an origin or a
+# vertex farther out is a unit or export error, and a survey over it would never end.
+MAX_COORDINATE_M = 1e8
+
+
+def check_crs(crs, where: str) -> None:
+    """Refuse a CRS that PROJ does not know, or whose horizontal axes are not in metres (the
+    scene's coordinates are metres); None (no CRS) is allowed. Raises SceneError naming `where`."""
+    if crs is None:
+        return
+    if not isinstance(crs, str):
+        raise SceneError(f"{where}: crs must be a string like 'EPSG:2056' or null, got {crs!r}")
+    import pyproj
+
+    try:
+        parsed = pyproj.CRS.from_user_input(crs)
+    except pyproj.exceptions.CRSError:
+        raise SceneError(f"{where}: crs {crs!r} is not a coordinate reference system PROJ knows "
+                         "(give an EPSG code of a projected CRS in metres, such as 'EPSG:2056', or null)") from None
+    units = {a.unit_name for a in parsed.axis_info[:2]}
+    if not units <= {"metre", "meter"}:
+        raise SceneError(f"{where}: crs {crs!r} ({parsed.name}) has axes in {sorted(units)}; a scene's coordinates "
+                         "are metres: give a projected CRS in metres")
+
+
 def _manifest_error(path, msg):
     return SceneError(f"{path}: {msg}")
 
@@ -154,13 +179,15 @@ def read_scene(folder: str | os.PathLike, validate: bool = True) -> Scene:
         raise _manifest_error(manifest_path, f"epoch must be one of {EPOCHS}, got {epoch!r}")
     origin = manifest.get("origin", [0, 0, 0])
     if (not isinstance(origin, list) or len(origin) != 3
-            or not all(isinstance(v, (int, float)) and math.isfinite(v) for v in origin)):
+            or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in origin)):
         raise _manifest_error(manifest_path, f"origin must be three finite numbers, got {origin!r}")
+    if max(abs(v) for v in origin) > MAX_COORDINATE_M:
+        raise _manifest_error(manifest_path, f"origin {origin} lies more than {MAX_COORDINATE_M:g} m from 0 in some "
+                              "axis; no projected CRS reaches that far (a unit or export error?)")
     if manifest.get("units", "m") != "m":
         raise _manifest_error(manifest_path, f"units must be 'm', got {manifest.get('units')!r}")
     crs = manifest.get("crs")
-    if crs is not None and not isinstance(crs, str):
-        raise _manifest_error(manifest_path, f"crs must be a string like 'EPSG:2056' or null, got {crs!r}")
+    check_crs(crs, str(manifest_path))
     raw_buildings = manifest.get("buildings")
     if not isinstance(raw_buildings, list):
         raise _manifest_error(manifest_path, "'buildings' must be a list")
@@ -203,13 +230,13 @@ def _parse_building(path, i, b) -> Building:
         raise _manifest_error(path, f"buildings[{i}].id must be an integer > 0, got {bid!r}")
     where = f"building {bid} (buildings[{i}])"
     grade = b.get("grade", 0)
-    if not isinstance(grade, int) or grade not in GRADES:
+    if isinstance(grade, bool) or not isinstance(grade, int) or grade not in GRADES:
         raise _manifest_error(path, f"{where}: grade must be an EMS-98 grade 0..5, got {grade!r}")
     material = b.get("material", "masonry")
     if material not in MATERIALS:
         raise _manifest_error(path, f"{where}: material must be one of {MATERIALS}, got {material!r}")
     storeys = b.get("storeys", 1)
-    if not isinstance(storeys, int) or storeys < 0:
+    if isinstance(storeys, bool) or not isinstance(storeys, int) or storeys < 0:
         raise _manifest_error(path, f"{where}: storeys must be an integer >= 0, got {storeys!r}")
     patterns = b.get("patterns", [])
     if not isinstance(patterns, list) or not all(
@@ -217,7 +244,7 @@ def _parse_building(path, i, b) -> Building:
             for p in patterns):
         raise _manifest_error(path, f"{where}: patterns must be a list of {{'name': str, 'params': {{…}}}}")
     seed = b.get("seed", 0)
-    if not isinstance(seed, int):
+    if isinstance(seed, bool) or not isinstance(seed, int):
         raise _manifest_error(path, f"{where}: seed must be an integer, got {seed!r}")
     rho = b.get("reflectance")
     if rho is not None and (isinstance(rho, bool) or not isinstance(rho, (int, float)) or not math.isfinite(rho)
@@ -238,6 +265,15 @@ def validate_scene(scene: Scene, manifest_path="scene.json", mesh_path="mesh.ply
         idx = np.flatnonzero(bad)
         raise SceneError(f"{mesh_path}: {len(idx)} vertices have NaN/inf coordinates "
                          f"(first: vertex {idx[0]} = {v[idx[0]].tolist()})")
+    far = np.abs(v).max(axis=1) > MAX_COORDINATE_M if len(v) else np.zeros(0, bool)
+    if far.any():
+        idx = np.flatnonzero(far)
+        raise SceneError(f"{mesh_path}: {len(idx)} vertices lie more than {MAX_COORDINATE_M:g} m from the origin "
+                         f"(first: vertex {idx[0]} = {v[idx[0]].tolist()}); a unit or export error?")
+    if not np.all(np.isfinite(scene.origin)) or np.abs(scene.origin).max() > MAX_COORDINATE_M:
+        raise SceneError(f"{manifest_path}: origin {scene.origin.tolist()} must be finite and within "
+                         f"{MAX_COORDINATE_M:g} m of 0")
+    check_crs(scene.crs, str(manifest_path))
     if len(f):
         out = (f < 0) | (f >= len(v))
         if out.any():
@@ -304,6 +340,8 @@ def write_scene(scene: Scene, folder: str | os.PathLike, validate: bool = True) 
     """Write a scene bundle. The mesh is written first and scene.json last, each atomically,
     so a folder with a scene.json is always complete."""
     folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        raise SceneError(f"{folder}: exists and is not a folder; a scene bundle is a folder (give a new name)")
     if validate:
         validate_scene(scene, folder / "scene.json", folder / "mesh.ply")
     folder.mkdir(parents=True, exist_ok=True)

@@ -71,6 +71,30 @@ FIELD_DOC = {
 }
 
 
+# Bounds of the fields beyond which no real survey goes: crewed aircraft fly ALS at up to
+# ~5 km and 150 m/s, UAVs at down to ~1 m/s; today's fastest scanners emit a few MHz at up
+# to a few hundred lines/s. Without them a typo (1e12 Hz, 99.999 % overlap, 1e-6 m/s) makes
+# a scan of hours and tens of GB. quakescan scan also refuses a plan beyond
+# core.scan.MAX_SCAN_POINTS unless forced.
+FIELD_RANGES = {
+    "altitude_agl_m": (1.0, 6000.0),
+    "speed_m_s": (0.5, 150.0),
+    "strip_overlap_pct": (0.0, 95.0),
+    "line_direction_deg": (-360.0, 360.0),
+    "run_in_m": (0.0, 5000.0),
+    "gps_start_s": (0.0, 1e10),
+    "scan_rate_hz": (1.0, 2000.0),
+    "pulse_rate_hz": (1000.0, 10_000_000.0),
+    "max_range_m": (1.0, 10_000.0),
+    "range_noise_sigma_m": (0.0, 1.0),
+    "strip_misalignment_m": (0.0, 10.0),
+    "beam_divergence_mrad": (0.0, 20.0),
+    "echo_separation_m": (0.0, 100.0),
+    "adaptive_edge_m": (0.0, 100.0),
+    "intensity_reference_range_m": (0.1, 10_000.0),
+}
+
+
 @dataclass(frozen=True)
 class Survey:
     name: str = "paper"
@@ -111,19 +135,32 @@ class Survey:
         def bad(msg):
             raise SurveyError(f"{source}: {msg}")
 
+        def number(name):
+            v = getattr(self, name)
+            # JSON true/false are not numbers (Python would read true as 1)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                bad(f"{name} must be a finite number [{FIELD_DOC[name][1]}], got {v!r}")
+            return v
+
+        for name in ("name", "pattern", "deflector", "beam", "acquisition_date"):
+            if not isinstance(getattr(self, name), str):
+                bad(f"{name} must be a string, got {getattr(self, name)!r}")
         positive = ["altitude_agl_m", "speed_m_s", "scan_rate_hz", "pulse_rate_hz", "fov_deg", "max_range_m",
                     "sweep_deg", "intensity_reference_range_m"]
         for name in positive:
-            v = getattr(self, name)
-            if not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
-                bad(f"{name} must be a positive number [{FIELD_DOC[name][1]}], got {v!r}")
+            if number(name) <= 0:
+                bad(f"{name} must be a positive number [{FIELD_DOC[name][1]}], got {getattr(self, name)!r}")
         for name in ("run_in_m", "range_noise_sigma_m", "strip_misalignment_m", "beam_divergence_mrad",
                      "echo_separation_m", "adaptive_edge_m", "min_echo_energy", "gps_start_s"):
+            if number(name) < 0:
+                bad(f"{name} must be a number >= 0 [{FIELD_DOC[name][1]}], got {getattr(self, name)!r}")
+        for name in ("strip_overlap_pct", "line_direction_deg", "scan_pitch_deg"):
+            number(name)
+        for name, (lo, hi) in FIELD_RANGES.items():
             v = getattr(self, name)
-            if not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
-                bad(f"{name} must be a number >= 0 [{FIELD_DOC[name][1]}], got {v!r}")
-        if not 0 <= self.strip_overlap_pct < 100:
-            bad(f"strip_overlap_pct must be in [0, 100), got {self.strip_overlap_pct!r}")
+            if not lo <= v <= hi:
+                bad(f"{name} must lie in [{lo:g}, {hi:g}] {FIELD_DOC[name][1]} (the range of real surveys; "
+                    f"outside it a scan runs for hours or writes nothing useful), got {v!r}")
         if not 0 < self.fov_deg < 180:
             bad(f"fov_deg must be in (0, 180), got {self.fov_deg!r}")
         if not -60 <= self.scan_pitch_deg <= 60:
@@ -136,9 +173,10 @@ class Survey:
             bad(f"beam must be one of {BEAM_MODES}, got {self.beam!r}")
         if self.pattern not in PATTERNS:
             bad(f"pattern must be one of {PATTERNS}, got {self.pattern!r}")
-        if not isinstance(self.beam_rings, int) or not 0 <= self.beam_rings <= 6:
+        if isinstance(self.beam_rings, bool) or not isinstance(self.beam_rings, int) or not 0 <= self.beam_rings <= 6:
             bad(f"beam_rings must be an integer 0..6, got {self.beam_rings!r}")
-        if not isinstance(self.max_returns, int) or not 1 <= self.max_returns <= 15:
+        if isinstance(self.max_returns, bool) or not isinstance(self.max_returns, int) \
+                or not 1 <= self.max_returns <= 15:
             bad(f"max_returns must be an integer 1..15 (LAS 1.4 limit), got {self.max_returns!r}")
         if self.min_echo_energy >= 1:
             bad(f"min_echo_energy must be < 1, got {self.min_echo_energy!r}")
@@ -331,6 +369,11 @@ class FlightPlan:
         return np.concatenate(rows) if rows else np.zeros((0, 6))
 
 
+# More lines than this in one direction is a scene or a survey set up wrongly (50 km of scene
+# at the paper's 92 m spacing is 540 lines), and would take long just to plan.
+MAX_FLIGHT_LINES = 10_000
+
+
 def plan_flight(survey: Survey, bounds: np.ndarray, ground_z: float) -> FlightPlan:
     """Parallel lines over the scene's xy extent `bounds` ((2, 3) min/max, local frame).
 
@@ -357,6 +400,10 @@ def plan_flight(survey: Survey, bounds: np.ndarray, ground_z: float) -> FlightPl
         width = across.max() - across.min()
         spacing = survey.line_spacing_m
         n = max(1, math.ceil(width / spacing) + 1) if width > 0 else 1
+        if n > MAX_FLIGHT_LINES:
+            raise SurveyError(f"survey '{survey.name}': {width:,.0f} m of scene need {n:,} flight lines of "
+                              f"{spacing:.3g} m spacing (more than {MAX_FLIGHT_LINES:,}); check the scene's extent "
+                              "and the survey's altitude, field of view and overlap")
         centre = 0.5 * (across.max() + across.min())
         a0 = along.min() - survey.run_in_m - reach
         a1 = along.max() + survey.run_in_m + reach
