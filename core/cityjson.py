@@ -11,7 +11,8 @@
 - the per-face `surface` label comes from the CityJSON semantics, or from the face normal
   where a surface carries none;
 - a terrain TIN (building_id 0, surface "ground") is laid through the bottoms of the
-  buildings and out to the scene's bounding box plus a margin.
+  buildings, one patch per cluster of buildings out to the cluster's bounding box plus a
+  margin (`building_clusters`): scattered buildings do not make terrain of the whole extent.
 
 Coordinates are float64 relative to the scene origin (the file's `transform.translate`), so
 projected coordinates of millions of metres keep their millimetres: nothing here goes through
@@ -32,7 +33,8 @@ import numpy as np
 from scipy.spatial import Delaunay, QhullError
 
 from .errors import SceneError, read_json_file
-from .scene import DEGENERATE_AREA_M2, GROUND, INTERIOR, ROOF, WALL, Building, Scene, triangle_areas
+from .scene import (DEGENERATE_AREA_M2, GROUND, INTERIOR, MATERIALS, ROOF, WALL, Building, Scene, check_crs,
+                    triangle_areas)
 
 __all__ = ["import_cityjson", "parse_reference_system", "SUPPORTED_VERSIONS"]
 
@@ -100,7 +102,8 @@ _EPSG_PATTERNS = (
 # --------------------------------------------------------------------------- public API
 
 
-def import_cityjson(path: str | os.PathLike, lod: str | None = None, terrain_margin: float = 20.0) -> Scene:
+def import_cityjson(path: str | os.PathLike, lod: str | None = None, terrain_margin: float = 20.0,
+                    crs: str | None = None, material: str = "masonry") -> Scene:
     """Read a CityJSON city model into a scene of labelled buildings on a terrain TIN.
 
     Parameters
@@ -110,8 +113,15 @@ def import_cityjson(path: str | os.PathLike, lod: str | None = None, terrain_mar
     lod : str, optional
         Level of detail to use, e.g. "2" or "2.2". "2" also accepts the highest "2.x" of an
         object that has no plain "2". Default: the highest LoD of each object.
+    crs : str, optional
+        The CRS ("EPSG:NNNN") of a file whose metadata names none (or names one that is not an
+        EPSG code). When the file names an EPSG code, `crs` must be the same.
+    material : str
+        Material of every imported building (`core.scene.MATERIALS`), for the damage patterns
+        and the scanner's reflectance.
     terrain_margin : float
-        How far (m) the terrain reaches beyond the buildings' x/y bounding box.
+        How far (m) the terrain reaches beyond the x/y bounding box of each cluster of
+        buildings (buildings closer than twice this are one cluster).
 
     Returns
     -------
@@ -127,10 +137,14 @@ def import_cityjson(path: str | os.PathLike, lod: str | None = None, terrain_mar
         buildings, no building geometry at `lod`, or refers to vertices it does not have.
     """
     path = Path(path)
-    if not (isinstance(terrain_margin, (int, float)) and math.isfinite(terrain_margin) and terrain_margin >= 0):
-        raise ValueError(f"terrain_margin must be a finite number >= 0, got {terrain_margin!r}")
+    if isinstance(terrain_margin, bool) or not (isinstance(terrain_margin, (int, float))
+                                                and math.isfinite(terrain_margin) and 0 <= terrain_margin <= 10_000):
+        raise SceneError(f"terrain margin (--buffer) must be a number of metres in [0, 10000], got {terrain_margin!r}")
+    if material not in MATERIALS:
+        raise SceneError(f"material (--material) must be one of {MATERIALS}, got {material!r}")
     want = None if lod is None else _normalise_lod(lod)
     doc = _load(path)
+    scene_crs = _scene_crs(path, doc, crs)
     verts, origin = _vertices(path, doc)
     objects = doc.get("CityObjects")
     if not isinstance(objects, dict):
@@ -141,12 +155,14 @@ def import_cityjson(path: str | os.PathLike, lod: str | None = None, terrain_mar
               for root, members in sorted(groups.items())]
     meshes = _keep_buildings_with_faces(path, meshes, objects, want)
     scene = _assemble(meshes, objects, verts, origin, terrain_margin, counts)
-    scene.crs = parse_reference_system((doc.get("metadata") or {}).get("referenceSystem"))
+    scene.crs = scene_crs
+    for b in scene.buildings:
+        b.material = material
     _log_summary(path, scene, counts)
     return scene
 
 
-def parse_reference_system(value) -> str | None:
+def parse_reference_system(value, warn: bool = True) -> str | None:
     """CityJSON `metadata.referenceSystem` → "EPSG:NNNN" (None when absent or not EPSG).
 
     Accepts the CityJSON 1.1/2.0 form "https://www.opengis.net/def/crs/EPSG/0/2056", the
@@ -159,8 +175,34 @@ def parse_reference_system(value) -> str | None:
         m = pattern.match(text)
         if m:
             return f"EPSG:{int(m.group(1))}"
-    log.warning("referenceSystem %r is not an EPSG code; the scene gets no CRS", value)
+    if warn:
+        log.warning("referenceSystem %r is not an EPSG code; the scene gets no CRS", value)
     return None
+
+
+def _scene_crs(path: Path, doc: dict, given: str | None) -> str | None:
+    """The scene's CRS: the file's EPSG code, else `given` (--crs); refuses a disagreement, a
+    file's reference system that is not an EPSG code (unless `given`), and a CRS PROJ does not
+    know or that is not in metres."""
+    metadata = doc.get("metadata")
+    raw = metadata.get("referenceSystem") if isinstance(metadata, dict) else None
+    wanted = None
+    if given is not None:
+        wanted = parse_reference_system(given, warn=False)
+        if wanted is None:
+            raise SceneError(f"--crs {given!r}: expected an EPSG code such as 'EPSG:2056'")
+    from_file = parse_reference_system(raw, warn=False) if raw is not None else None
+    if raw is not None and from_file is None:
+        if wanted is None:
+            raise SceneError(f"{path}: metadata.referenceSystem {raw!r} is not an EPSG code QuakeScan can read; "
+                             "give the CRS with --crs EPSG:NNNN")
+        log.warning("%s: referenceSystem %r is not an EPSG code; using --crs %s", path, raw, wanted)
+    if from_file is not None and wanted is not None and from_file != wanted:
+        raise SceneError(f"{path}: the file names its CRS {from_file} ({raw!r}) but --crs is {given!r}; "
+                         "leave --crs out, or fix the file")
+    chosen = from_file or wanted
+    check_crs(chosen, str(path) if from_file else f"--crs {given}")
+    return chosen
 
 
 # --------------------------------------------------------------------------- file, vertices
@@ -202,6 +244,18 @@ def _vertices(path: Path, doc: dict) -> tuple[np.ndarray, np.ndarray]:
         raise SceneError(f"{path}: 'vertices' must be a list of [x, y, z] finite numbers")
     transform = doc.get("transform")
     if transform is None:
+        # CityJSON 1.0 stores real coordinates when it has no transform; 1.1 and 2.0 always
+        # store integers scaled by one. Integers without it have no known scale (mm? cm?):
+        # reading them as metres made buildings 1000 times too large.
+        version = str(doc.get("version"))
+        if not version.startswith("1.0"):
+            if len(raw) and np.all(raw == np.round(raw)):
+                raise SceneError(f"{path}: CityJSON {version} requires 'transform' (its vertices are integers "
+                                 "scaled by transform.scale) and this file has none; its scale is unknown. "
+                                 "Add the transform (scale and translate) to the file")
+            log.warning("%s: CityJSON %s without 'transform' (required since 1.1); its vertices are not "
+                        "integers, so they are read as coordinates in metres, as CityJSON 1.0 stores them",
+                        path, version)
         origin = np.floor(raw.min(axis=0)) if len(raw) else np.zeros(3)
         return raw - origin, origin
     try:
@@ -708,6 +762,42 @@ def _terrain(base: np.ndarray, xy_min: np.ndarray, xy_max: np.ndarray, margin: f
     return _compact(points, tris)
 
 
+def building_clusters(boxes: np.ndarray, margin: float) -> np.ndarray:
+    """Cluster label (0..k-1) of each building: buildings whose x/y boxes, grown by `margin`,
+    overlap belong together, and so do clusters whose grown boxes overlap (so that no two
+    terrain patches overlap).
+
+    boxes : (n, 4) float64, x0 y0 x1 y1 per building. A city model's scattered buildings
+    then get a terrain patch each instead of one TIN over the whole extent: 49 buildings
+    spread over 9 × 10 km need a few hectares, not 90 km².
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    def overlapping_pairs(b):
+        grown = b + np.array([-margin, -margin, margin, margin])
+        centres = 0.5 * (grown[:, :2] + grown[:, 2:])
+        reach = 0.5 * np.hypot(grown[:, 2] - grown[:, 0], grown[:, 3] - grown[:, 1])
+        pairs = cKDTree(centres).query_pairs(2 * reach.max() + 1e-9, output_type="ndarray")
+        i, j = pairs[:, 0], pairs[:, 1]
+        hit = ((grown[i, 0] <= grown[j, 2]) & (grown[j, 0] <= grown[i, 2]) & (grown[i, 1] <= grown[j, 3])
+               & (grown[j, 1] <= grown[i, 3]))
+        return i[hit], j[hit]
+
+    labels = np.arange(len(boxes))
+    current = boxes
+    while True:
+        i, j = overlapping_pairs(current)
+        if not len(i):
+            return labels
+        k, merged = connected_components(coo_matrix((np.ones(len(i)), (i, j)), shape=(len(current),) * 2),
+                                         directed=False)
+        labels = merged[labels]
+        current = np.array([np.concatenate([current[merged == c, :2].min(axis=0), current[merged == c, 2:].max(axis=0)])
+                            for c in range(k)])
+
+
 def _compact(verts: np.ndarray, tris: np.ndarray):
     """Keep only the vertices the triangles use: → ((u, 3) vertices, (m, 3) reindexed tris)."""
     used, inverse = np.unique(tris, return_inverse=True)
@@ -733,9 +823,19 @@ def _assemble(meshes, objects, verts, origin, margin, counts) -> Scene:
         storeys = _estimate_storeys(objects[mesh.source_id].get("attributes"), verts, mesh)
         buildings.append(Building(bid, grade=0, material="masonry", storeys=storeys, typology="cityjson",
                                   seed=bid, extra={"source_id": mesh.source_id}))
-    all_v = np.concatenate(parts_v)
-    tv, tf = _terrain(np.concatenate(base), all_v[:, :2].min(axis=0), all_v[:, :2].max(axis=0), margin)
+    boxes = np.array([np.concatenate([v[:, :2].min(axis=0), v[:, :2].max(axis=0)]) for v in parts_v])
+    labels = building_clusters(boxes, margin)
+    tv_parts, tf_parts, n_tv = [], [], 0
+    for k in range(int(labels.max()) + 1):
+        members = np.flatnonzero(labels == k)
+        tv, tf = _terrain(np.concatenate([base[i] for i in members]), boxes[members, :2].min(axis=0),
+                          boxes[members, 2:].max(axis=0), margin)
+        tv_parts.append(tv)
+        tf_parts.append(tf + n_tv)
+        n_tv += len(tv)
+    tv, tf = np.concatenate(tv_parts), np.concatenate(tf_parts)
     counts["terrain_triangles"] = len(tf)
+    counts["terrain_patches"] = int(labels.max()) + 1
     # Terrain first, like the synthetic scenes.
     vertices = np.concatenate([tv] + parts_v)
     faces = np.concatenate([tf] + [f + len(tv) for f in parts_f])

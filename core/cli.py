@@ -189,7 +189,14 @@ def cmd_import_cityjson(args) -> int:
     from .cityjson import import_cityjson
     from .scene import write_scene
 
-    scene = import_cityjson(args.input, lod=args.lod, terrain_margin=args.buffer)
+    out = Path(args.output)
+    if out.exists() and not out.is_dir():
+        raise QuakeScanError(f"-o {out}: exists and is not a folder; a scene bundle is a folder (give a new name)")
+    if out.is_dir() and any(out.iterdir()) and not (out / "scene.json").is_file():
+        raise QuakeScanError(f"-o {out}: a folder that holds other files than a scene bundle; give a new or empty "
+                             "folder")
+    scene = import_cityjson(args.input, lod=args.lod, terrain_margin=args.buffer, crs=args.crs,
+                            material=args.material)
     if args.bbox is not None:
         from .scene import buildings_in_box, crop_to_buildings
 
@@ -200,8 +207,8 @@ def cmd_import_cityjson(args) -> int:
     write_scene(scene, args.output)
     b = scene.bounds()
     span = (b[1, :2] - b[0, :2]) / 1e3
-    print(f"{args.output}: {len(scene.buildings)} buildings, {len(scene.faces):,} triangles, "
-          f"{span[0]:.2f} × {span[1]:.2f} km, origin {scene.origin.tolist()}, crs {scene.crs}")
+    _say(f"{args.output}: {len(scene.buildings)} buildings ({args.material}), {len(scene.faces):,} triangles, "
+         f"{span[0]:.2f} × {span[1]:.2f} km, origin {scene.origin.tolist()}, crs {scene.crs}")
     if span.max() > LARGE_SCENE_KM:
         print(f"warning: the scene spans {span[0]:.1f} × {span[1]:.1f} km and a survey flies over all of it; "
               "--bbox X0,Y0,X1,Y1 keeps the buildings of an area (`quakescan scan --dry-run` shows the cost)",
@@ -226,8 +233,8 @@ def cmd_validate(args) -> int:
     from .scene import read_scene
 
     scene = read_scene(args.scene)
-    print(f"{args.scene}: valid scene bundle ({scene.epoch}), {len(scene.buildings)} buildings, "
-          f"{len(scene.faces):,} triangles")
+    _say(f"{args.scene}: valid scene bundle ({scene.epoch}), {len(scene.buildings)} buildings, "
+         f"{len(scene.faces):,} triangles" + (f", crs {scene.crs}" if scene.crs else ", no crs"))
     return 0
 
 
@@ -542,6 +549,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--progress", action="store_true", help="show progress even when stderr is not a terminal")
     s.set_defaults(func=cmd_scan)
 
+    from .scene import MATERIALS
+
     c = sub.add_parser("import-cityjson", help="convert a CityJSON city model into a scene bundle")
     c.add_argument("input", help="CityJSON file (1.0, 1.1, 2.0)")
     c.add_argument("-o", "--output", required=True, help="scene bundle folder to write")
@@ -549,7 +558,13 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--bbox", type=_bbox, default=None, metavar="X0,Y0,X1,Y1",
                    help="keep the buildings whose centre lies in this box (the model's coordinates)")
     c.add_argument("--buffer", type=float, default=20.0,
-                   help="terrain kept around the buildings, m (default 20)")
+                   help="terrain around each cluster of buildings, m (default 20; buildings closer than twice "
+                   "this share one terrain patch)")
+    c.add_argument("--crs", default=None, metavar="EPSG:NNNN",
+                   help="CRS of a file whose metadata names none (must agree with the file's when it names one)")
+    c.add_argument("--material", choices=MATERIALS, default="masonry",
+                   help="material of every imported building (default masonry): damage patterns and the "
+                   "scanner's reflectance depend on it")
     c.set_defaults(func=cmd_import_cityjson)
 
     v = sub.add_parser("validate", help="check a scene bundle and report the first problem")

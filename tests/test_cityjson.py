@@ -488,3 +488,105 @@ def test_import_keeps_the_buildings_of_a_box_and_warns_about_wide_scenes(tmp_pat
     capsys.readouterr()
     assert main(["import-cityjson", str(ZURICH), "-o", str(tmp_path / "zurich")]) == 0
     assert "warning: the scene spans" in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------- terrain patches, --crs, --material
+
+
+def test_terrain_only_around_each_cluster_of_buildings(tmp_path):
+    """Two clusters 5.8 km apart: the terrain is the two clusters' boxes grown by the margin
+    (65 m × 48 m and 50 m × 48 m = 5 520 m²), not the 15 km² of the whole extent."""
+    m = _Model()
+    m.add("A1", "Building", [m.box_geometry(0, 0, 10, 8, 0, 9)])
+    m.add("A2", "Building", [m.box_geometry(15, 0, 25, 8, 0, 6)])  # 5 m from A1: the same cluster
+    m.add("B", "Building", [m.box_geometry(5000, 3000, 5010, 3008, 0, 12)])
+    scene = import_cityjson(m.write(tmp_path / "two.json", translate=(0.0, 0.0, 0.0)), terrain_margin=20.0)
+    terrain = scene.face_building == 0
+    area = triangle_areas(scene.vertices, scene.faces[terrain]).sum()
+    assert area == pytest.approx(65 * 48 + 50 * 48, rel=1e-9)
+    # each building still stands on terrain, and the patches do not overlap
+    for b in scene.buildings:
+        v = scene.vertices[np.unique(scene.faces[scene.face_building == b.id])]
+        assert np.isfinite(_terrain_z(scene, v[:, :2].mean(axis=0, keepdims=True))).all()
+
+
+def test_clusters_whose_grown_boxes_overlap_share_one_patch():
+    from core.cityjson import building_clusters
+
+    boxes = np.array([[0, 0, 10, 10], [55, 0, 65, 10], [200, 0, 210, 10], [30, 60, 40, 70.0]])
+    # 0 and 1 are 45 m apart (< 2 × 25): one cluster; its grown box [-25, 90] × [-25, 35] and
+    # box 3's grown [5, 65] × [35, 95] touch at y = 35: merged as well; 2 stays alone
+    labels = building_clusters(boxes, 25.0)
+    assert labels[0] == labels[1] == labels[3] != labels[2]
+    assert len(set(building_clusters(boxes, 1.0).tolist())) == 4
+
+
+def test_crs_for_files_that_name_none_and_a_disagreement_is_refused(tmp_path, caplog):
+    m = _Model()
+    m.add("B", "Building", [m.box_geometry(0, 0, 10, 8, 0, 9)])
+    none = m.write(tmp_path / "none.json", crs=None)
+    assert import_cityjson(none).crs is None
+    assert import_cityjson(none, crs="EPSG:2056").crs == "EPSG:2056"
+    named = m.write(tmp_path / "named.json")  # urn:ogc:def:crs:EPSG::2056
+    assert import_cityjson(named, crs="epsg:2056").crs == "EPSG:2056"
+    with pytest.raises(SceneError, match=r"named\.json: the file names its CRS EPSG:2056 .* but --crs is 'EPSG:28992'"):
+        import_cityjson(named, crs="EPSG:28992")
+    for bad, text in (("EPSG:999999", "not a coordinate reference system PROJ knows"),
+                      ("EPSG:4326", r"axes in \['degree'\]")):
+        with pytest.raises(SceneError, match=text):
+            import_cityjson(m.write(tmp_path / "bad.json", crs=bad))
+        with pytest.raises(SceneError, match=f"--crs {bad}: .*{text}"):
+            import_cityjson(none, crs=bad)
+    with pytest.raises(SceneError, match=r"--crs 'garbage': expected an EPSG code"):
+        import_cityjson(none, crs="garbage")
+    garbage = m.write(tmp_path / "garbage.json", crs="garbage")
+    with pytest.raises(SceneError, match=r"garbage\.json: metadata\.referenceSystem 'garbage' is not an EPSG code"):
+        import_cityjson(garbage)
+    with caplog.at_level(logging.WARNING):
+        assert import_cityjson(garbage, crs="EPSG:2056").crs == "EPSG:2056"
+    assert "using --crs EPSG:2056" in caplog.text
+
+
+def test_material_for_every_imported_building(tmp_path):
+    m = _Model()
+    m.add("B", "Building", [m.box_geometry(0, 0, 10, 8, 0, 9)])
+    m.add("C", "Building", [m.box_geometry(20, 0, 30, 8, 0, 9)])
+    path = m.write(tmp_path / "c.json")
+    assert {b.material for b in import_cityjson(path).buildings} == {"masonry"}
+    assert {b.material for b in import_cityjson(path, material="reinforced_concrete").buildings} == \
+        {"reinforced_concrete"}
+    with pytest.raises(SceneError, match=r"--material\) must be one of"):
+        import_cityjson(path, material="wood")
+
+
+@pytest.mark.parametrize("version", ["1.1", "2.0"])
+def test_a_file_without_transform_is_read_by_its_version(tmp_path, version, caplog):
+    """1.1 and 2.0 require a transform: integers without one have no known scale and are
+    refused (they were read as metres: 1000 times too large); real numbers are coordinates."""
+    m = _Model(version)
+    m.add("B", "Building", [m.box_geometry(2600000.5, 1200000.25, 2600010.5, 1200008.25, 400.0, 409.0)])
+    doc = json.loads(m.write(tmp_path / "c.json").read_text())
+    del doc["transform"]  # the integer millimetres stay
+    (tmp_path / "c.json").write_text(json.dumps(doc))
+    with pytest.raises(SceneError, match=rf"c\.json: CityJSON {version} requires 'transform'"):
+        import_cityjson(tmp_path / "c.json")
+    doc["vertices"] = m.vertices
+    (tmp_path / "c.json").write_text(json.dumps(doc))
+    with caplog.at_level(logging.WARNING):
+        scene = import_cityjson(tmp_path / "c.json")
+    assert "read as coordinates in metres" in caplog.text
+    span = scene.bounds()[1] - scene.bounds()[0]
+    assert span[0] == pytest.approx(10.0 + 40.0)  # the building and 20 m of terrain either side
+
+
+def test_cityjson_1_0_without_transform_has_real_coordinates(tmp_path):
+    m = _Model("1.0")
+    m.add("B", "Building", [m.box_geometry(1000, 2000, 1010, 2008, 0, 9)])
+    doc = json.loads(m.write(tmp_path / "c.json").read_text())
+    doc["vertices"] = m.vertices  # integers, and metres
+    del doc["transform"]
+    (tmp_path / "c.json").write_text(json.dumps(doc))
+    scene = import_cityjson(tmp_path / "c.json")
+    v = scene.vertices[np.unique(scene.faces[scene.face_building == 1])] + scene.origin
+    np.testing.assert_allclose(v.min(axis=0), [1000, 2000, 0])
+    np.testing.assert_allclose(v.max(axis=0), [1010, 2008, 9])
