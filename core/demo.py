@@ -63,6 +63,9 @@ def generate(set_name: str, dataset: str, buildings: int | None, seed: int, out:
     cmd = generator_command(args)
     proc = subprocess.run(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     if proc.returncode != 0:
+        usage = [ln for ln in proc.stderr.splitlines() if ln.startswith(f"{GENERATOR.name}: error:")]
+        if usage:  # its argument parser refused what it was given: say so without its usage text
+            raise DemoError(f"the scene generator refused {' '.join(args)}: {usage[-1].split('error:', 1)[1].strip()}")
         tail = "\n".join(proc.stderr.strip().splitlines()[-8:])
         raise DemoError(f"scene generation failed (exit {proc.returncode}): {' '.join(cmd)}\n{tail}")
 
@@ -77,7 +80,22 @@ def scan_scene(scene_dir: Path, out: Path, seed: int, progress=None) -> None:
     scan(read_scene(scene_dir), preset("paper"), out, seed=seed, progress=progress, source=str(scene_dir))
 
 
+# The demo is a small city; larger ones are generated with blender_scripts/generate_scenes.py.
+MAX_DEMO_BUILDINGS = 500
+
+
+def check_demo_options(seed, buildings) -> None:
+    """Refuse what the generator would refuse, in `quakescan demo`'s words (its own errors
+    name generate_scenes.py, which the user never called)."""
+    if isinstance(buildings, bool) or not isinstance(buildings, int) or not 1 <= buildings <= MAX_DEMO_BUILDINGS:
+        raise DemoError(f"demo --buildings: expected 1..{MAX_DEMO_BUILDINGS} buildings, got {buildings!r}")
+    # the scans use 2·seed + 1 and 2·seed + 2, the generator seeds below 2^32
+    if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed < 2 ** 31 - 1:
+        raise DemoError(f"demo --seed: expected an integer in 0..{2 ** 31 - 2}, got {seed!r}")
+
+
 def run_demo(out_dir, seed: int = 0, buildings: int = 30, say=print, progress_factory=None) -> dict:
+    check_demo_options(seed, buildings)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     city = out / "city"
