@@ -69,7 +69,7 @@ import numpy as np
 from numba import njit, prange
 
 from . import settings_file
-from .errors import SurveyError
+from .errors import QuakeScanError, SurveyError
 from .pointcloud import LasChunkWriter, PointChunk
 from .scene import Scene
 
@@ -119,6 +119,31 @@ FIELD_DOC = {
                            "(rounded edges and corners); 0 = off"), "m"),
     "crease_angle_deg": ("mesh edges whose faces meet at more than this are creases", "deg"),
     "acquisition_date": ("date written to the LAS header (fixed so that reruns are byte-identical)", "YYYY-MM-DD"),
+}
+
+
+# Bounds beyond which no UAV photo flight goes (see core.survey.FIELD_RANGES): without them a
+# typo (99.999 % overlap, a point per 10⁻⁶ pixels, probes every nanometre) plans millions of
+# images or points and runs for hours.
+DIM_FIELD_RANGES = {
+    "altitude_agl_m": (1.0, 6000.0),
+    "speed_m_s": (0.5, 150.0),
+    "forward_overlap_pct": (0.0, 95.0),
+    "side_overlap_pct": (0.0, 95.0),
+    "line_direction_deg": (-360.0, 360.0),
+    "margin_m": (0.0, 5000.0),
+    "gps_start_s": (0.0, 1e10),
+    "image_width_px": (2, 100_000),
+    "image_height_px": (2, 100_000),
+    "pixel_pitch_um": (0.5, 100.0),
+    "focal_length_mm": (1.0, 2000.0),
+    "oblique_focal_length_mm": (1.0, 2000.0),
+    "point_step_px": (0.5, 1000.0),
+    "probe_spacing_m": (0.01, 100.0),
+    "visibility_tolerance_m": (0.0, 10.0),
+    "noise_px": (0.0, 100.0),
+    "noise_angle_exponent": (0.0, 10.0),
+    "smoothing_radius_m": (0.0, 10.0),
 }
 
 
@@ -189,6 +214,11 @@ class PhotoSurvey:
             v = getattr(self, name)
             if not isinstance(v, int) or isinstance(v, bool) or v < 2:
                 bad(f"{name} must be an integer >= 2 [px], got {v!r}")
+        for name, (lo, hi) in DIM_FIELD_RANGES.items():
+            v = getattr(self, name)
+            if not lo <= v <= hi:
+                bad(f"{name} must lie in [{lo:g}, {hi:g}] {FIELD_DOC[name][1]} (the range of real photo flights; "
+                    f"outside it a simulation runs for hours or sees nothing), got {v!r}")
         if self.oblique_cameras not in (0, 4) or isinstance(self.oblique_cameras, bool):
             bad(f"oblique_cameras must be 0 or 4, got {self.oblique_cameras!r}")
         if not 0 < num("oblique_tilt_deg") < 80:
@@ -715,6 +745,11 @@ def simulate_dim(scene: Scene, photo_survey: PhotoSurvey, out_path: str | os.Pat
     from .scan import RayCaster, _las_offset, check_scannable, ground_level, label_counts
 
     started = time.perf_counter()
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise QuakeScanError(f"seed must be an integer >= 0, got {seed!r}")
+    if threads is not None and (isinstance(threads, bool) or not isinstance(threads, int)
+                                or (threads < 1 and threads != -1)):
+        raise QuakeScanError(f"threads must be an integer >= 1 (or None or -1: all cores), got {threads!r}")
     s = photo_survey
     check_scannable(scene, source)
     caster = RayCaster(scene)
@@ -729,7 +764,7 @@ def simulate_dim(scene: Scene, photo_survey: PhotoSurvey, out_path: str | os.Pat
                           f"cameras of the photo survey '{s.name}' (is altitude_agl_m={s.altitude_agl_m} above "
                           f"the buildings?)")
     sim = _Sim(s, cams, pieces, caster, seed, geometry)
-    threads = threads or min(4, os.cpu_count() or 1)
+    threads = (threads if threads != -1 else None) or min(4, os.cpu_count() or 1)
     results = []
     with ThreadPoolExecutor(max_workers=threads) as pool:
         futures = [pool.submit(sim.run, k, i0, i1) for k, (i0, i1) in enumerate(chunks)]

@@ -718,8 +718,9 @@ def scan(scene: Scene, survey: Survey, out_path: str | os.PathLike, seed: int = 
     started = time.perf_counter()
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise QuakeScanError(f"seed must be an integer >= 0, got {seed!r}")
-    if threads is not None and (isinstance(threads, bool) or not isinstance(threads, int) or threads < 1):
-        raise QuakeScanError(f"threads must be an integer >= 1 (or None: all cores), got {threads!r}")
+    if threads is not None and (isinstance(threads, bool) or not isinstance(threads, int)
+                                or (threads < 1 and threads != -1)):
+        raise QuakeScanError(f"threads must be an integer >= 1 (or None or -1: all cores), got {threads!r}")
     check_crs(scene.crs, source)
     if require_buildings:
         check_scannable(scene, source)
@@ -730,7 +731,7 @@ def scan(scene: Scene, survey: Survey, out_path: str | os.PathLike, seed: int = 
     plan = plan_flight(survey, scene.bounds(), ground_z)
     if lines is not None:
         plan = FlightPlan(list(lines), plan.ground_z, plan.flight_z)
-    threads = threads or os.cpu_count() or 1
+    threads = (threads if threads != -1 else None) or os.cpu_count() or 1
     summary = ScanSummary(output=str(out_path), lines=len(plan.lines), flight_duration_s=plan.duration_s,
                           beam=survey.beam, seed=seed)
     total = sum(_pulse_count(survey, ln) for ln in plan.lines)

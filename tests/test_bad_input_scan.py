@@ -157,6 +157,38 @@ def test_library_scan_refuses_bad_seed_and_threads(tmp_path):
             scan(box_city(rows=1, cols=1), preset("paper"), tmp_path / "a.las", **kw)
 
 
+# ---------------------------------------------------------------- photo surveys and templates
+
+
+@pytest.mark.parametrize("field, value, text", [
+    ("forward_overlap_pct", 99.999, "forward_overlap_pct must lie in [0, 95]"),
+    ("point_step_px", 1e-6, "point_step_px must lie in [0.5, 1000]"),
+    ("probe_spacing_m", 1e-9, "probe_spacing_m must lie in [0.01, 100]"),
+    ("speed_m_s", 1e-6, "speed_m_s must lie in [0.5, 150]"),
+    ("altitude_agl_m", True, "altitude_agl_m must be a finite number"),
+])
+def test_photo_survey_fields_are_range_checked(tmp_path, capsys, scene_dir, field, value, text):
+    survey = tmp_path / "p.json"
+    survey.write_text(json.dumps({"format": "quakescan-photo-survey", "version": 1, field: value}))
+    err = _error(capsys, ["dim", str(scene_dir), "-o", str(tmp_path / "d.las"), "--survey", str(survey)])
+    assert f"{survey}: " in err and text in err
+
+
+@pytest.mark.parametrize("flag, value, text", [("--seed", "-1", "seed must be an integer >= 0"),
+                                               ("--threads", "-4", "threads must be an integer >= 1")])
+def test_dim_seed_and_threads(tmp_path, capsys, scene_dir, flag, value, text):
+    assert text in _error(capsys, ["dim", str(scene_dir), "-o", str(tmp_path / "d.las"), flag, value])
+
+
+@pytest.mark.parametrize("command", ["survey-template", "dim-survey-template"])
+def test_templates_onto_a_folder_or_into_a_new_one(tmp_path, capsys, command):
+    err = _error(capsys, [command, "-o", str(tmp_path)])
+    assert f"{tmp_path}: is a folder" in err
+    assert not list(tmp_path.parent.glob(tmp_path.name + ".part"))
+    assert main([command, "-o", str(tmp_path / "new" / "s.json")]) == 0
+    assert json.loads((tmp_path / "new" / "s.json").read_text())["version"] == 1
+
+
 # ---------------------------------------------------------------- scenes
 
 
