@@ -75,9 +75,25 @@ def scan_scene(scene_dir: Path, out: Path, seed: int, progress=None) -> None:
     from .scene import read_scene
     from .survey import preset
 
-    if out.is_file():
+    if out.is_file() and las_is_complete(out):
         return
     scan(read_scene(scene_dir), preset("paper"), out, seed=seed, progress=progress, source=str(scene_dir))
+
+
+def las_is_complete(path: Path) -> bool:
+    """An uncompressed LAS whose size is what its header says (a cut copy is not): its point
+    records end the file (the scanner writes no extended VLRs)."""
+    import laspy
+
+    if path.suffix.lower() != ".las":
+        return True  # a LAZ's chunk table would tell; the demo writes LAS
+    try:
+        with laspy.open(path) as f:
+            h = f.header
+            expected = h.offset_to_point_data + h.point_count * h.point_format.size
+    except Exception:  # an unreadable header: scan again
+        return False
+    return path.stat().st_size == expected
 
 
 # The demo is a small city; larger ones are generated with blender_scripts/generate_scenes.py.

@@ -711,9 +711,10 @@ def scan(scene: Scene, survey: Survey, out_path: str | os.PathLike, seed: int = 
     compiled loops (same bytes, slower).
 
     `checkpoint`: a folder where every finished flight line is kept
-    (`core.scan_checkpoint`); a rerun with the same `fingerprint` (the caller's digest of
-    scene, survey and seed) takes the finished lines from there instead of scanning them
-    again, and writes the same bytes as an uninterrupted scan. Removed on success.
+    (`core.scan_checkpoint`); a rerun of the same scan (same `fingerprint`, the caller's
+    digest of its inputs, and the same scene, survey, seed and batches) takes the finished
+    lines from there instead of scanning them again, and writes the same bytes as an
+    uninterrupted scan. Removed on success.
     """
     started = time.perf_counter()
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
@@ -742,7 +743,7 @@ def scan(scene: Scene, survey: Survey, out_path: str | os.PathLike, seed: int = 
     if checkpoint is not None:
         from .scan_checkpoint import LineCheckpoint, plan_key
 
-        saved = LineCheckpoint(checkpoint, plan_key(fingerprint, batch_rays, plan.lines))
+        saved = LineCheckpoint(checkpoint, plan_key(fingerprint, scene, survey, seed, batch_rays, plan.lines))
     with LasChunkWriter(out_path, offset, scene.crs, survey.acquisition_date) as writer, \
             ThreadPoolExecutor(max_workers=threads) as pool:
         sim = _Simulator(caster, survey, seed, shift=shift, header=writer.header, fast=fast)

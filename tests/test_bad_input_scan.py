@@ -330,6 +330,21 @@ def test_demo_argument_errors_name_quakescan_demo(tmp_path, capsys, flag, value)
     assert f"demo {flag}: expected" in err and "generate_scenes.py" not in err
 
 
+def test_the_demo_scans_again_a_cut_cloud(tmp_path, scene_dir):
+    from core.demo import las_is_complete, scan_scene
+
+    out = tmp_path / "pre.las"
+    scan_scene(scene_dir, out, seed=1)
+    whole = out.read_bytes()
+    assert las_is_complete(out)
+    out.write_bytes(whole[:-100])
+    assert not las_is_complete(out)
+    scan_scene(scene_dir, out, seed=1)
+    assert out.read_bytes() == whole
+    out.write_bytes(b"LASF")
+    assert not las_is_complete(out)
+
+
 def test_the_generators_own_refusals_do_not_name_its_script(monkeypatch, tmp_path):
     import core.demo
     from core.errors import QuakeScanError

@@ -62,20 +62,20 @@ def test_a_checkpoint_of_another_scan_or_a_cut_line_is_not_used(tmp_path):
     whole = tmp_path / "whole.las"
     scan(scene, SURVEY, whole, seed=5, batch_rays=BATCH)
     out, ck = tmp_path / "part.las", tmp_path / "part.las.lines"
-    with pytest.raises(Stop):  # lines of seed 6 under another fingerprint
-        scan(scene, SURVEY, out, seed=6, batch_rays=BATCH, checkpoint=ck, fingerprint="seed 6",
+    with pytest.raises(Stop):  # lines of seed 6; no fingerprint from the caller: the key has the seed
+        scan(scene, SURVEY, out, seed=6, batch_rays=BATCH, checkpoint=ck, fingerprint="",
              progress=_stop_after(ends[1]))
     assert len(list(ck.glob("line_*.json"))) == 2
-    r = scan(scene, SURVEY, out, seed=5, batch_rays=BATCH, checkpoint=ck, fingerprint="seed 5")
+    r = scan(scene, SURVEY, out, seed=5, batch_rays=BATCH, checkpoint=ck, fingerprint="")
     assert r.lines_resumed == 0 and out.read_bytes() == whole.read_bytes()
     # a line whose data file was cut (a full disk, a copy stopped half-way) is scanned again
     with pytest.raises(Stop):
-        scan(scene, SURVEY, out, seed=5, batch_rays=BATCH, checkpoint=ck, fingerprint="seed 5",
+        scan(scene, SURVEY, out, seed=5, batch_rays=BATCH, checkpoint=ck, fingerprint="",
              progress=_stop_after(ends[1]))
     data = ck / "line_000001.bin"
     data.write_bytes(data.read_bytes()[:-10])
     (ck / "line_000000.json").write_text("{\"line\": 0, \"byt")  # and a record cut short
-    r = scan(scene, SURVEY, out, seed=5, batch_rays=BATCH, checkpoint=ck, fingerprint="seed 5")
+    r = scan(scene, SURVEY, out, seed=5, batch_rays=BATCH, checkpoint=ck, fingerprint="")
     assert r.lines_resumed == 0 and out.read_bytes() == whole.read_bytes()
 
 
