@@ -90,6 +90,13 @@ class LasChunkWriter:
         self._writer = None
         self._compress = suffix == ".laz"
         self.count = 0
+        # Where the temporary file goes when writing stops with an error (None: it is removed);
+        # a resumable scan keeps its points this way (core.scan_checkpoint).
+        self.keep_partial_as: Path | None = None
+
+    @property
+    def compressed(self) -> bool:
+        return self._compress
 
     def __enter__(self):
         self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -137,6 +144,8 @@ class LasChunkWriter:
         finally:
             if exc_type is None:
                 os.replace(self.tmp, self.path)
+            elif self.keep_partial_as is not None and self.tmp.is_file():
+                os.replace(self.tmp, self.keep_partial_as)
             else:
                 self.tmp.unlink(missing_ok=True)
         return False

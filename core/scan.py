@@ -739,13 +739,18 @@ def scan(scene: Scene, survey: Survey, out_path: str | os.PathLike, seed: int = 
     offset, shift = _las_offset(scene, caster)
     by_return = np.zeros(16, np.int64)
     by_face = np.zeros(len(scene.faces), np.int64)
+    las_writer = LasChunkWriter(out_path, offset, scene.crs, survey.acquisition_date)
     saved = None
     if checkpoint is not None:
         from .scan_checkpoint import LineCheckpoint, plan_key
 
-        saved = LineCheckpoint(checkpoint, plan_key(fingerprint, scene, survey, seed, batch_rays, plan.lines))
-    with LasChunkWriter(out_path, offset, scene.crs, survey.acquisition_date) as writer, \
-            ThreadPoolExecutor(max_workers=threads) as pool:
+        # Before the writer opens (and truncates) its temporary file: a killed run's is kept.
+        saved = LineCheckpoint(checkpoint, plan_key(fingerprint, scene, survey, seed, batch_rays, plan.lines),
+                               las_part=None if las_writer.compressed else las_writer.tmp,
+                               point_size=las_writer.header.point_format.size)
+        if not las_writer.compressed:
+            las_writer.keep_partial_as = saved.partial_las
+    with las_writer as writer, ThreadPoolExecutor(max_workers=threads) as pool:
         sim = _Simulator(caster, survey, seed, shift=shift, header=writer.header, fast=fast)
         pending: deque = deque()
         line_return = np.zeros(16, np.int64)
@@ -758,7 +763,7 @@ def scan(scene: Scene, survey: Survey, out_path: str | os.PathLike, seed: int = 
 
         def consume(item):
             if isinstance(item, FlightLine):  # a finished line of an earlier run
-                info = saved.finished(item.index)
+                info = saved.line_record(item.index)
                 for record, bounds, stats in saved.batches(item.index, sim.record_from_bytes):
                     take(record, bounds, stats)
                 by_return[:] += info["by_return"]
@@ -769,11 +774,12 @@ def scan(scene: Scene, survey: Survey, out_path: str | os.PathLike, seed: int = 
                 record, stats = future.result()
                 bounds = stats.pop("las_bounds", None)
                 b_return, b_face = stats.pop("by_return"), stats.pop("by_face")
+                first_point = writer.count
                 take(record, bounds, stats)
                 by_return[:] += b_return
                 by_face[:] += b_face
                 if saved is not None:
-                    saved.add_batch(batch.line.index, record, bounds, stats)
+                    saved.add_batch(batch.line.index, record, bounds, stats, first_point)
                     line_return[:] += b_return
                     line_face[:] += b_face
                     if batch.j1 == _pulse_count(survey, batch.line):
@@ -785,7 +791,7 @@ def scan(scene: Scene, survey: Survey, out_path: str | os.PathLike, seed: int = 
 
         # Workers simulate and pack batches; this thread only writes, in order. A bounded
         # window of batches in flight keeps memory flat.
-        done = {ln.index for ln in plan.lines if saved is not None and saved.finished(ln.index) is not None}
+        done = saved.finished_lines(plan.lines) if saved is not None else set()
         if done:
             log.info("%s: %d of %d flight lines were finished by an earlier run", source, len(done), len(plan.lines))
         try:

@@ -46,7 +46,12 @@ def test_a_scan_stopped_after_k_lines_resumes_and_writes_the_same_bytes(tmp_path
         scan(scene, SURVEY, out, seed=5, batch_rays=BATCH, checkpoint=ck, fingerprint="f",
              progress=_stop_after(ends[k - 1] + 1))
     assert not out.exists() and not (tmp_path / f"part.{suffix}.part").exists()
-    assert sorted(p.name for p in ck.glob("line_*")) == [f"line_{i:06d}.{e}" for i in range(k) for e in ("bin", "json")]
+    if suffix == "laz":  # a LAZ cannot be cut by points: the finished lines' records are kept
+        assert sorted(p.name for p in ck.glob("line_*")) == [f"line_{i:06d}.{e}" for i in range(k)
+                                                             for e in ("bin", "json")]
+    else:  # a LAS's partial file holds them: no second copy
+        assert sorted(p.name for p in ck.glob("line_*")) == [f"line_{i:06d}.json" for i in range(k)]
+        assert (ck / "partial.las").is_file()
     resumed = scan(scene, SURVEY, out, seed=5, batch_rays=BATCH, checkpoint=ck, fingerprint="f", threads=1)
     assert resumed.lines_resumed == k
     assert out.read_bytes() == (tmp_path / f"whole.{suffix}").read_bytes()
@@ -68,15 +73,57 @@ def test_a_checkpoint_of_another_scan_or_a_cut_line_is_not_used(tmp_path):
     assert len(list(ck.glob("line_*.json"))) == 2
     r = scan(scene, SURVEY, out, seed=5, batch_rays=BATCH, checkpoint=ck, fingerprint="")
     assert r.lines_resumed == 0 and out.read_bytes() == whole.read_bytes()
-    # a line whose data file was cut (a full disk, a copy stopped half-way) is scanned again
+    # a line whose points were cut (a full disk, a copy stopped half-way) is scanned again,
+    # and so is one whose record was cut short; the lines between are still taken
     with pytest.raises(Stop):
         scan(scene, SURVEY, out, seed=5, batch_rays=BATCH, checkpoint=ck, fingerprint="",
-             progress=_stop_after(ends[1]))
+             progress=_stop_after(ends[2]))
+    partial = ck / "partial.las"
+    partial.write_bytes(partial.read_bytes()[:-10])
+    (ck / "line_000000.json").write_text("{\"line\": 0, \"byt")
+    r = scan(scene, SURVEY, out, seed=5, batch_rays=BATCH, checkpoint=ck, fingerprint="")
+    assert r.lines_resumed == 1 and out.read_bytes() == whole.read_bytes()  # line 1 only
+
+
+def test_a_killed_scan_resumes_from_the_file_it_left(tmp_path):
+    """kill -9 leaves OUT.las.part (its header never finished) and the finished lines' records."""
+    scene = box_city(rows=3, cols=2)
+    ends = _line_ends(scene)
+    whole = tmp_path / "whole.las"
+    scan(scene, SURVEY, whole, seed=5, batch_rays=BATCH)
+    out, ck = tmp_path / "part.las", tmp_path / "part.las.lines"
+    with pytest.raises(Stop):
+        scan(scene, SURVEY, out, seed=5, batch_rays=BATCH, checkpoint=ck, progress=_stop_after(ends[1] + 1))
+    # what a killed writer leaves: its temporary file, no header counts, a point half-written
+    import laspy
+
+    data = (ck / "partial.las").read_bytes()
+    (ck / "partial.las").unlink()
+    line1 = json.loads((ck / "line_000001.json").read_text())
+    with laspy.open(whole) as f:
+        start, size = f.header.offset_to_point_data, f.header.point_format.size
+    end = start + (line1["first_point"] + sum(b["points"] for b in line1["batches"])) * size
+    assert len(data) >= end
+    left = bytearray(data[:end] + bytes(size // 2))  # and half of a next point
+    left[107:111] = bytes(4)  # legacy point count 0
+    (tmp_path / "part.las.part").write_bytes(bytes(left))
+    r = scan(scene, SURVEY, out, seed=5, batch_rays=BATCH, checkpoint=ck)
+    assert r.lines_resumed == 2 and out.read_bytes() == whole.read_bytes()
+    assert not (tmp_path / "part.las.part").exists() and not ck.exists()
+
+
+def test_a_cut_laz_line_is_scanned_again(tmp_path):
+    scene = box_city(rows=3, cols=2)
+    ends = _line_ends(scene)
+    whole = tmp_path / "whole.laz"
+    scan(scene, SURVEY, whole, seed=5, batch_rays=BATCH)
+    out, ck = tmp_path / "part.laz", tmp_path / "part.laz.lines"
+    with pytest.raises(Stop):
+        scan(scene, SURVEY, out, seed=5, batch_rays=BATCH, checkpoint=ck, progress=_stop_after(ends[1]))
     data = ck / "line_000001.bin"
     data.write_bytes(data.read_bytes()[:-10])
-    (ck / "line_000000.json").write_text("{\"line\": 0, \"byt")  # and a record cut short
-    r = scan(scene, SURVEY, out, seed=5, batch_rays=BATCH, checkpoint=ck, fingerprint="")
-    assert r.lines_resumed == 0 and out.read_bytes() == whole.read_bytes()
+    r = scan(scene, SURVEY, out, seed=5, batch_rays=BATCH, checkpoint=ck)
+    assert r.lines_resumed == 1 and out.read_bytes() == whole.read_bytes()
 
 
 def test_the_command_resumes_an_interrupted_scan(tmp_path, capsys, monkeypatch):
