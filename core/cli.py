@@ -47,7 +47,7 @@ def _fingerprint(scene_dir: Path, survey, seed: int) -> str:
     return h.hexdigest()[:16]
 
 
-def _say(*args, **kwargs) -> None:
+def _out(*args, **kwargs) -> None:
     """print() that survives a closed stdout (`quakescan scan … | head -1`): the command goes on
     and finishes its files, its remaining messages are dropped."""
     try:
@@ -114,14 +114,14 @@ def cmd_scan(args) -> int:
     if not args.force and _scan_is_up_to_date(out, summary_path, fp):
         if args.trajectory:
             _write_trajectory(read_scene(scene_dir), survey, Path(args.trajectory))
-        _say(f"{out}: up to date (same scene, survey and seed); use --force to rescan"
+        _out(f"{out}: up to date (same scene, survey and seed); use --force to rescan"
              + (f"; trajectory -> {args.trajectory}" if args.trajectory else ""))
         return 0
     scene = read_scene(scene_dir)
     from .scan import LARGE_SCAN_POINTS, MAX_SCAN_POINTS, estimate_scan
 
     plan = estimate_scan(scene, survey, laz=out.suffix.lower() == ".laz")
-    _say(plan.describe())
+    _out(plan.describe())
     if args.dry_run:
         return 0
     if plan.too_large and not args.force:
@@ -145,7 +145,7 @@ def cmd_scan(args) -> int:
     if args.trajectory:
         _write_trajectory(scene, survey, Path(args.trajectory))
     if summary.lines_resumed:
-        _say(f"resumed: {summary.lines_resumed} of {summary.lines} flight lines came from the interrupted run "
+        _out(f"resumed: {summary.lines_resumed} of {summary.lines} flight lines came from the interrupted run "
              f"({checkpoint})")
     _print_summary(summary, scene)
     return 0
@@ -176,13 +176,13 @@ def _print_summary(summary, scene) -> None:
     s = summary
     n_b = len(scene.buildings)
     hit_b = len(s.points_by_building)
-    _say(f"{s.output}: {s.points:,} points from {s.pulses_emitted:,} pulses "
+    _out(f"{s.output}: {s.points:,} points from {s.pulses_emitted:,} pulses "
          f"({s.rays_cast:,} rays, beam {s.beam}) over {s.lines} flight lines, "
          f"{s.flight_duration_s:.0f} s of flight, {s.wall_time_s:.1f} s wall time "
          f"({s.pulses_emitted / max(s.wall_time_s, 1e-9) / 1e6:.2f} M pulses/s)")
-    _say("  by surface: " + ", ".join(f"{k} {v:,}" for k, v in s.points_by_surface.items()))
-    _say("  by return:  " + ", ".join(f"{k}: {v:,}" for k, v in s.points_by_return.items()))
-    _say(f"  buildings with points: {hit_b} of {n_b}")
+    _out("  by surface: " + ", ".join(f"{k} {v:,}" for k, v in s.points_by_surface.items()))
+    _out("  by return:  " + ", ".join(f"{k}: {v:,}" for k, v in s.points_by_return.items()))
+    _out(f"  buildings with points: {hit_b} of {n_b}")
 
 
 def cmd_import_cityjson(args) -> int:
@@ -207,7 +207,7 @@ def cmd_import_cityjson(args) -> int:
     write_scene(scene, args.output)
     b = scene.bounds()
     span = (b[1, :2] - b[0, :2]) / 1e3
-    _say(f"{args.output}: {len(scene.buildings)} buildings ({args.material}), {len(scene.faces):,} triangles, "
+    _out(f"{args.output}: {len(scene.buildings)} buildings ({args.material}), {len(scene.faces):,} triangles, "
          f"{span[0]:.2f} × {span[1]:.2f} km, origin {scene.origin.tolist()}, crs {scene.crs}")
     if span.max() > LARGE_SCENE_KM:
         print(f"warning: the scene spans {span[0]:.1f} × {span[1]:.1f} km and a survey flies over all of it; "
@@ -233,7 +233,7 @@ def cmd_validate(args) -> int:
     from .scene import read_scene
 
     scene = read_scene(args.scene)
-    _say(f"{args.scene}: valid scene bundle ({scene.epoch}), {len(scene.buildings)} buildings, "
+    _out(f"{args.scene}: valid scene bundle ({scene.epoch}), {len(scene.buildings)} buildings, "
          f"{len(scene.faces):,} triangles" + (f", crs {scene.crs}" if scene.crs else ", no crs"))
     return 0
 
