@@ -51,7 +51,8 @@ class Progress:
         stream = self.stream or sys.stderr
         now = self.clock()
         f = done / total
-        if f >= 1 or f - self.last_f >= 0.05 or now - self.last_t >= self.every_s:
+        step = f - self.last_f >= 0.05 - 1e-9  # 1e-9: 0.06 - 0.01 is less than 0.05 in floats
+        if f >= 1 or step or now - self.last_t >= self.every_s:
             tty = stream.isatty()
             end = "\n" if f >= 1 or not tty else ""
             print(("\r" if tty else "") + self.line(done, total, now), end=end, file=stream, flush=True)
