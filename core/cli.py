@@ -22,23 +22,38 @@ class Progress:
     """The one progress reporter of the command line: `label  done/total  pct  elapsed  ETA`
     on stderr, at most every `every_s` seconds or 5 %, and always at the end.
 
-    Called as progress(done, total), the shape every long core function takes. The ETA
-    assumes the remaining steps go at the average rate so far: elapsed × (total − done) / done.
-    On a terminal a line overwrites itself; elsewhere (a log, `--progress` in a pipe) each
-    report is a line of its own. `clock` and `stream` are for the tests."""
+    Called as progress(done, total), the shape every long core function takes. Elapsed time
+    counts from the reporter's creation (the command's start). The ETA assumes the remaining
+    steps go at the rate since the first report, (t1, d1):
 
-    def __init__(self, label: str, enabled: bool, *, clock=time.monotonic, stream=None, every_s: float = 2.0):
+        ETA = (now − t1) × (total − done) / (done − d1)
+
+    so that what comes before the first step (reading the input, compiling kernels, checking
+    the registration: 26 of classify's 36 s on an AHN3 tile) and a burst of steps that finish
+    together (a tile's buildings) do not skew it; it is unknown ("?") until `min_basis_s` have
+    passed since the first report. On a terminal a line overwrites itself; elsewhere (a log,
+    `--progress` in a pipe) each report is a line of its own. `clock` and `stream` are for
+    the tests."""
+
+    def __init__(self, label: str, enabled: bool, *, clock=time.monotonic, stream=None, every_s: float = 2.0,
+                 min_basis_s: float = 1.0):
         self.label, self.enabled = label, enabled
-        self.clock, self.every_s = clock, every_s
+        self.clock, self.every_s, self.min_basis_s = clock, every_s, min_basis_s
         self.stream = stream
         self.t0 = clock()
+        self.first = None  # (time, done) of the first report
         self.last_t, self.last_f = -float("inf"), -1.0
 
     def eta_s(self, done: int, total: int, now: float) -> float | None:
-        """Seconds left at the average rate so far; None before the first step."""
-        if done <= 0:
+        """Seconds left at the rate since the first report; None while that rate is unknown."""
+        if done >= total:
+            return 0.0
+        if self.first is None:
             return None
-        return (now - self.t0) * max(total - done, 0) / done
+        t1, d1 = self.first
+        if done <= d1 or now - t1 < self.min_basis_s:
+            return None
+        return (now - t1) * max(total - done, 0) / (done - d1)
 
     def line(self, done: int, total: int, now: float) -> str:
         eta = self.eta_s(done, total, now)
@@ -50,6 +65,8 @@ class Progress:
             return
         stream = self.stream or sys.stderr
         now = self.clock()
+        if self.first is None:
+            self.first = (now, done)
         f = done / total
         step = f - self.last_f >= 0.05 - 1e-9  # 1e-9: 0.06 - 0.01 is less than 0.05 in floats
         if f >= 1 or step or now - self.last_t >= self.every_s:

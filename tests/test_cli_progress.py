@@ -30,16 +30,24 @@ class _Stream(io.StringIO):
         return self.tty
 
 
-def test_eta_is_the_average_rate_so_far_in_closed_form():
-    """25 of 100 steps in 10 s: 75 left at 2.5 steps/s is 30 s; none before the first step."""
-    clock = _Clock()
-    p = Progress("classify", True, clock=clock, stream=_Stream(False))
-    assert p.eta_s(0, 100, 110.0) is None
-    assert p.eta_s(25, 100, 110.0) == pytest.approx(30.0)
-    assert p.eta_s(100, 100, 250.0) == 0.0
-    assert p.eta_s(1, 3, 100.0 + 7.0) == pytest.approx(14.0)
-    assert p.line(25, 100, 110.0) == "classify  25/100   25 %  0:10  ETA 0:30"
-    assert p.line(1200, 4800, 100.0 + 3725.0) == "classify  1,200/4,800   25 %  1:02:05  ETA 3:06:15"
+def test_eta_is_the_rate_since_the_first_report_in_closed_form():
+    """First report at 10 s with 5 of 100 done, then 25 done at 30 s: 20 steps in 20 s, 75 left:
+    75 s. Unknown before a second report and within a second of the first (a burst of steps
+    finishing together); the time before the first report (reading, set-up) does not count."""
+    clock, stream = _Clock(), _Stream(False)
+    p = Progress("classify", True, clock=clock, stream=stream)
+    assert p.eta_s(5, 100, 110.0) is None
+    clock.t = 110.0
+    p(5, 100)
+    assert p.first == (110.0, 5)
+    assert p.eta_s(5, 100, 110.0) is None
+    assert p.eta_s(60, 100, 110.5) is None  # a burst: no basis yet
+    assert p.eta_s(25, 100, 130.0) == pytest.approx(75.0)
+    assert p.eta_s(100, 100, 150.0) == 0.0
+    assert p.line(25, 100, 130.0) == "classify  25/100   25 %  0:30  ETA 1:15"
+    assert p.line(5, 100, 110.0) == "classify  5/100    5 %  0:10  ETA ?"
+    assert p.line(1205, 4800, 100.0 + 3725.0) == "classify  1,205/4,800   25 %  1:02:05  ETA 3:05:30"
+    assert stream.getvalue() == "classify  5/100    5 %  0:10  ETA ?\n"
 
 
 def test_reports_are_throttled_and_the_last_one_always_shown():
@@ -68,7 +76,7 @@ def test_on_a_terminal_a_report_overwrites_the_last_and_disabled_prints_nothing(
     p(1, 2)
     clock.t += 1
     p(2, 2)
-    assert stream.getvalue() == "\rdim  1/2   50 %  0:01  ETA 0:01\rdim  2/2  100 %  0:02  ETA 0:00\n"
+    assert stream.getvalue() == "\rdim  1/2   50 %  0:01  ETA ?\rdim  2/2  100 %  0:02  ETA 0:00\n"
     stream = _Stream(True)
     off = Progress("dim", False, clock=clock, stream=stream)
     off(1, 2)
