@@ -393,7 +393,8 @@ def cmd_train(args) -> int:
 
     args.pair = _training_pairs(args)
     if args.truth and len(args.truth) != len(args.pair):
-        raise TrainingError(f"{len(args.truth)} --truth files for {len(args.pair)} --pair: give one per pair "
+        n = len(args.pair)
+        raise TrainingError(f"{len(args.truth)} --truth files for {n} pair{'s' * (n != 1)}: give one per pair "
                             "or none (then grades come from the post epochs' grade dimension)")
     pairs = [TrainingPair(pre, post, args.truth[k] if args.truth else None, args.footprints)
              for k, (pre, post) in enumerate(args.pair)]
