@@ -379,7 +379,8 @@ def _robustness_scenes(args) -> tuple:
         if args.pre or args.post:
             raise QuakeScanError("robustness: give the scenes as --pre/--post or as positional PRE POST, not both")
         if len(args.scenes) < 2:
-            raise QuakeScanError(f"robustness: only one scene ({args.scenes[0]}); give --pre PRE --post POST [POST2 …]")
+            raise QuakeScanError(f"robustness: only one scene ({args.scenes[0]}); "
+                                 "give --pre PRE --post POST [POST2 …]")
         _old_form(args, "robustness PRE POST …", "robustness --pre PRE --post POST …")
         return args.scenes[0], args.scenes[1:]
     if not (args.pre and args.post):
