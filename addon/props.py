@@ -58,7 +58,7 @@ class DAMAGE_PG_building(PropertyGroup):
     building_id: IntProperty(name="Building ID", min=0, default=0,
                              description="Shared by the pre- and post-event versions of a building (> 0)")
     grade: IntProperty(name="EMS-98 grade", min=0, max=5, default=0,
-                       description="Damage grade: 0 none, 3 heavy, 4 very heavy, 5 destruction")
+                       description="EMS-98 damage grade: " + ", ".join(f"{g} {n}" for g, n in ems98.GRADE_NAMES.items()))
     material: EnumProperty(name="Material", items=MATERIAL_ITEMS, default=ems98.MASONRY)
     vulnerability_class: EnumProperty(name="Vulnerability", items=CLASS_ITEMS, default="B")
     storeys: IntProperty(name="Storeys", min=1, max=80, default=2)

@@ -260,8 +260,8 @@ def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=N
                   if fp is not None and fp.properties else None)
     results.write_geojson(res, outlines, out / "buildings.geojson", pre.crs, classes, attributes)
     sub = pre.xyz[:: max(1, len(pre) // 200_000), :2] + pre.origin[:2]
-    results.write_map_png(res, outlines, out / "damage_map.png",
-                          f"Damage grades: {Path(post_path).name}", points_xy=sub)
+    title = f"Damage grades: {Path(post_path).name}"
+    results.write_map_png(res, outlines, out / "damage_map.png", title, points_xy=sub, crs=pre.crs)
     if write_las:
         compress = Path(post_path).suffix.lower() == ".laz" if laz is None else laz
         graded = out / ("post_grades.laz" if compress else "post_grades.las")

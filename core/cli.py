@@ -408,6 +408,7 @@ def cmd_training_set(args) -> int:
 
 def cmd_experiment(args) -> int:
     """The paper's four classifiers evaluated on a held-out region-specific DIM city."""
+    from .evaluate import metric_text
     from .experiment import ExperimentSettings, run_paper_experiment
 
     mix = None
@@ -423,7 +424,7 @@ def cmd_experiment(args) -> int:
                                    say=lambda m: print(m, flush=True))
     for name, ev in results.items():
         print(f"{name}: overall accuracy {100 * ev.overall_accuracy:.1f} %, damaged vs undamaged F1 "
-              f"{100 * ev.damaged['f1']:.1f} %")
+              f"{metric_text(ev.damaged, 'f1')}")
     print(f"report -> {Path(args.output) / 'README.md'}")
     return 0
 
