@@ -57,6 +57,10 @@ def test_classify_finds_the_collapsed_buildings(city, tmp_path):
     gj = json.loads((tmp_path / "res" / "buildings.geojson").read_text())
     assert len(gj["features"]) == 6
     assert (tmp_path / "res" / "damage_map.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    page = (tmp_path / "res" / "damage_map.html").read_text()
+    assert page.count('"type":"Feature"') == 6 and 'data-expected-features="6"' in page
+    assert 'attr="predicted_grade"' in (tmp_path / "res" / "buildings.qml").read_text()
+    assert {r["grade_name"] for r in rows.values()} == {"no damage", "destruction"}
     las = laspy.read(tmp_path / "res" / "post_grades.las")
     g = np.asarray(las["predicted_grade"])
     assert set(np.unique(g[np.asarray(las["building_id"]) == 4])) == {5}
