@@ -443,8 +443,8 @@ def cmd_demo(args) -> int:
     print(f"demo: overall accuracy {100 * ev.overall_accuracy:.1f} % on {ev.n} assessable buildings")
     print(ev.table())
     res = r["result"]
-    print(f"demo: results in {res}/ (buildings.csv, buildings.geojson, damage_map.png, post_grades.las, "
-          "confusion.png, evaluation.json)")
+    print(f"demo: results in {res}/ (buildings.csv, buildings.geojson with its QGIS style buildings.qml, "
+          "damage_map.png, damage_map.html, post_grades.las, confusion.png, evaluation.json)")
     return 0
 
 
