@@ -47,6 +47,10 @@ VULNERABILITY_LABELS = {
     "F": "F: timber / steel",
 }
 
+# What the sidebar's dropdown shows (its width holds ~28 characters); the full label is the tooltip.
+VULNERABILITY_SHORT = {"A": "A: rubble, adobe", "B": "B: stone, brick", "C": "C: massive stone, old RC",
+                       "D": "D: confined masonry, RC", "E": "E: RC, high design", "F": "F: timber, steel"}
+
 # Storey heights (m) by material.
 STOREY_HEIGHT = {MASONRY: (2.8, 3.2), RC: (3.0, 3.5)}
 # Debris: volume = solid fraction x bulking x collapsed (gross) volume.

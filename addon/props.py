@@ -15,7 +15,8 @@ ROLE_ITEMS = [
     ("TERRAIN", "Terrain", "Ground and anything that is not a building (building ID 0)"),
 ]
 MATERIAL_ITEMS = [(m, ems98.MATERIAL_LABELS[m], "") for m in ems98.MATERIALS]
-CLASS_ITEMS = [(c, ems98.VULNERABILITY_LABELS[c], "EMS-98 vulnerability class") for c in ems98.VULNERABILITY_CLASSES]
+CLASS_ITEMS = [(c, ems98.VULNERABILITY_SHORT[c], f"EMS-98 vulnerability class {ems98.VULNERABILITY_LABELS[c]}")
+               for c in ems98.VULNERABILITY_CLASSES]
 PATTERN_ITEMS = [(n, p.label, p.description or p.label) for n, p in ems98.PATTERNS.items()]
 DETAIL_ITEMS = [("none", "None", "A clean shell"),
                 ("typical", "Typical", "Roof and facade details drawn with the city generator's frequencies for "
