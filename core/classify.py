@@ -277,7 +277,8 @@ def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=N
     counts: dict[str, int] = {}
     for r in res:
         counts[r.label] = counts.get(r.label, 0) + 1
-    summary.update({"buildings": len(res), "by_label": counts, "resumed_buildings": resumed,
+    summary.update({"buildings": len(res), "by_label": counts, "by_grade_name": counts_by_grade_name(res),
+                    "resumed_buildings": resumed,
                     "seconds": {"read": round(t_read - t0, 2), "describe": round(t_describe - t_read, 2),
                                 "total": round(time.perf_counter() - t0, 2)}})
     summary["fingerprint"] = fingerprint
@@ -287,6 +288,20 @@ def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=N
     os.replace(tmp, out / "summary.json")
     ckpt.path.unlink(missing_ok=True)
     return summary
+
+
+def counts_by_grade_name(res) -> dict:
+    """{"0 no damage": n, "3 substantial to heavy (heavy)": n, ..., "not assessable": n} in
+    grade order: what the CLI prints (core.grades)."""
+    from .grades import long_label
+    from .results import NOT_ASSESSABLE
+
+    grades = sorted({int(r.grade) for r in res if r.assessable and r.grade is not None})
+    out = {long_label(g): sum(1 for r in res if r.assessable and r.grade == g) for g in grades}
+    missing = sum(1 for r in res if not r.assessable or r.grade is None)
+    if missing:
+        out[NOT_ASSESSABLE] = missing
+    return out
 
 
 # Epochs whose stable ground disagrees by more than this share of the model's level of

@@ -319,9 +319,10 @@ def cmd_classify(args) -> int:
               f"{a['rmse_after_m']:.3f} m")
     elif reg.get("mode") == "auto" and not reg.get("checked"):
         print(f"registration not checked ({reg.get('reason')}): an offset between the epochs would read as damage")
-    labels = ", ".join(f"{k}: {v}" for k, v in sorted(summary["by_label"].items()))
+    labels = ", ".join(f"{k}: {v}" for k, v in summary["by_grade_name"].items())
     print(f"classify: {summary['buildings']} buildings ({labels}) in {summary['seconds']['total']:.1f} s")
-    print(f"results -> {out / 'buildings.csv'}, {out / 'buildings.geojson'}, {out / 'damage_map.png'}"
+    print(f"results -> {out / 'buildings.csv'}, {out / 'buildings.geojson'} (QGIS style buildings.qml), "
+          f"{out / 'damage_map.png'}, {out / 'damage_map.html'} (opens offline)"
           + (f", {summary['post_grades']}" if "post_grades" in summary else ""))
     return 0
 
@@ -438,7 +439,8 @@ def cmd_demo(args) -> int:
                  progress_factory=lambda label: _Progress(label, show))
     ev = r["evaluation"]
     s = r["summary"]
-    labels = ", ".join(f"{k}: {v}" for k, v in sorted(s["by_label"].items()))
+    by_name = s.get("by_grade_name") or dict(sorted(s["by_label"].items()))  # a summary of an older QuakeScan
+    labels = ", ".join(f"{k}: {v}" for k, v in by_name.items())
     print(f"demo: {s['buildings']} buildings classified ({labels})")
     print(f"demo: overall accuracy {100 * ev.overall_accuracy:.1f} % on {ev.n} assessable buildings")
     print(ev.table())
