@@ -445,9 +445,10 @@ def cmd_classify(args) -> int:
               f"{a['rmse_after_m']:.3f} m")
     elif reg.get("mode") == "auto" and not reg.get("checked"):
         print(f"registration not checked ({reg.get('reason')}): an offset between the epochs would read as damage")
-    labels = ", ".join(f"{k}: {v}" for k, v in sorted(summary["by_label"].items()))
+    labels = ", ".join(f"{k}: {v}" for k, v in summary["by_grade_name"].items())
     print(f"classify: {summary['buildings']} buildings ({labels}) in {summary['seconds']['total']:.1f} s")
-    print(f"results -> {out / 'buildings.csv'}, {out / 'buildings.geojson'}, {out / 'damage_map.png'}"
+    print(f"results -> {out / 'buildings.csv'}, {out / 'buildings.geojson'} (QGIS style buildings.qml), "
+          f"{out / 'damage_map.png'}, {out / 'damage_map.html'} (opens offline)"
           + (f", {summary['post_grades']}" if "post_grades" in summary else ""))
     return 0
 
@@ -536,6 +537,7 @@ def cmd_training_set(args) -> int:
 
 def cmd_experiment(args) -> int:
     """The paper's four classifiers evaluated on a held-out region-specific DIM city."""
+    from .evaluate import metric_text
     from .experiment import ExperimentSettings, run_paper_experiment
 
     mix = None
@@ -551,7 +553,7 @@ def cmd_experiment(args) -> int:
                                    progress=_progress(args, "experiment"))
     for name, ev in results.items():
         print(f"{name}: overall accuracy {100 * ev.overall_accuracy:.1f} %, damaged vs undamaged F1 "
-              f"{100 * ev.damaged['f1']:.1f} %")
+              f"{metric_text(ev.damaged, 'f1')}")
     print(f"report -> {Path(args.output) / 'README.md'}")
     return 0
 
@@ -564,13 +566,14 @@ def cmd_demo(args) -> int:
                  progress_factory=lambda label: _progress(args, label))
     ev = r["evaluation"]
     s = r["summary"]
-    labels = ", ".join(f"{k}: {v}" for k, v in sorted(s["by_label"].items()))
+    by_name = s.get("by_grade_name") or dict(sorted(s["by_label"].items()))  # a summary of an older QuakeScan
+    labels = ", ".join(f"{k}: {v}" for k, v in by_name.items())
     print(f"demo: {s['buildings']} buildings classified ({labels})")
     print(f"demo: overall accuracy {100 * ev.overall_accuracy:.1f} % on {ev.n} assessable buildings")
     print(ev.table())
     res = r["result"]
-    print(f"demo: results in {res}/ (buildings.csv, buildings.geojson, damage_map.png, post_grades.las, "
-          "confusion.png, evaluation.json)")
+    print(f"demo: results in {res}/ (buildings.csv, buildings.geojson with its QGIS style buildings.qml, "
+          "damage_map.png, damage_map.html, post_grades.las, confusion.png, evaluation.json)")
     return 0
 
 

@@ -39,9 +39,11 @@ from pathlib import Path
 import numpy as np
 
 from .evaluate import (
+    GRADE_NAMES,
     TARGET_GRADES,
     Evaluation,
     evaluate_grades,
+    metric_text,
     plot_confusion,
     read_truth,
 )
@@ -311,18 +313,19 @@ def shipped_default(pair, truth: dict, workers) -> Evaluation | None:
 
 
 def _cell(m: dict) -> tuple:
-    return tuple(100 * m[k] for k in ("oa", "precision", "recall", "f1"))
+    """The four metrics as report text ("n/a" where a metric has no cases)."""
+    return tuple(metric_text(m, k, unit="") for k in ("oa", "precision", "recall", "f1"))
 
 
 def comparison_table(results: dict) -> str:
-    cols = [("damaged", "damaged vs undamaged"), (0, "no damage"), (3, "heavy"), (4, "extreme"), (5, "destruction")]
+    cols = [("damaged", "damaged vs undamaged")] + [(g, GRADE_NAMES[g]) for g in TARGET_GRADES]
     lines = ["| classifier | metric | " + " | ".join(c for _, c in cols) + " |",
              "|---|---|" + "---|" * len(cols)]
     for name, ev in results.items():
         ours = {"damaged": _cell(ev.damaged), **{g: _cell(ev.per_grade[g]) for g in TARGET_GRADES}}
         paper = PAPER_TABLE[name]
         for i, metric in enumerate(("OA", "precision", "recall", "F1")):
-            cells = [f"{ours[c][i]:.1f} ({paper[c][i]:.1f})" for c, _ in cols]
+            cells = [f"{ours[c][i]} ({paper[c][i]:.1f})" for c, _ in cols]
             lines.append(f"| {name if i == 0 else ''} | {metric} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
@@ -359,12 +362,11 @@ def ablation_table(ablation: dict) -> str:
 def shipped_text(ev: Evaluation | None) -> str:
     if ev is None:
         return "The shipped default model was not found; no comparison with it."
-    f1 = ", ".join(f"{name} {100 * ev.per_grade[g]['f1']:.1f}" for g, name in
-                   ((0, "no damage"), (3, "heavy"), (4, "extreme"), (5, "destruction")))
+    f1 = ", ".join(f"{GRADE_NAMES[g]} {metric_text(ev.per_grade[g], 'f1', unit='')}" for g in TARGET_GRADES)
     return (f"The shipped default model (`core/data/default_model.skops`: the transfer training set of "
             f"`core.trainset`, nothing of this experiment's data), applied as it is to the same test pair: "
             f"overall accuracy {100 * ev.overall_accuracy:.1f} % on {ev.n} buildings ({ev.not_assessable} not "
-            f"assessable); F1 {f1}; damaged vs undamaged F1 {100 * ev.damaged['f1']:.1f} %.")
+            f"assessable); F1 {f1}; damaged vs undamaged F1 {metric_text(ev.damaged, 'f1')}.")
 
 
 def write_report(out: Path, results: dict, s: ExperimentSettings, lod, timings: dict, total_s: float,

@@ -54,9 +54,14 @@ def test_classify_finds_the_collapsed_buildings(city, tmp_path):
         assert conf == (float(rows[bid][f"p_{g}"]) if g else 1.0) and 0.5 <= conf <= 1.0
     assert float(rows[4]["share_changed"]) > 0.5
     assert summary["by_label"] == {"no damage": 4, "destruction": 2}
+    assert summary["by_grade_name"] == {"0 no damage": 4, "5 destruction": 2}  # in grade order
     gj = json.loads((tmp_path / "res" / "buildings.geojson").read_text())
     assert len(gj["features"]) == 6
     assert (tmp_path / "res" / "damage_map.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    page = (tmp_path / "res" / "damage_map.html").read_text()
+    assert page.count('"type":"Feature"') == 6 and 'data-expected-features="6"' in page
+    assert 'attr="predicted_grade"' in (tmp_path / "res" / "buildings.qml").read_text()
+    assert {r["grade_name"] for r in rows.values()} == {"no damage", "destruction"}
     las = laspy.read(tmp_path / "res" / "post_grades.las")
     g = np.asarray(las["predicted_grade"])
     assert set(np.unique(g[np.asarray(las["building_id"]) == 4])) == {5}
@@ -91,6 +96,9 @@ def test_cli_train_classify_evaluate(city, tmp_path, capsys):
     assert main(["evaluate", str(tmp_path / "r" / "buildings.csv"), "--truth", str(d / "truth.csv")]) == 0
     out = capsys.readouterr().out
     assert "6 assessable buildings, overall accuracy 100.0 %" in out
+    assert "classify: 6 buildings (0 no damage: 4, 5 destruction: 2)" in out and "damage_map.html" in out
+    # the truth has no heavy or extreme building: their recall and F1 are not 0 % but n/a
+    assert "| heavy | 100.0 % | n/a | n/a | n/a |" in out
     ev = json.loads((tmp_path / "r" / "evaluation.json").read_text())
     assert ev["damaged_vs_undamaged"]["f1"] == 1.0
 
