@@ -53,15 +53,16 @@ def default_model_path() -> Path:
 
 def model_settings(model: DamageModel, source: str = "model") -> PipelineSettings:
     """The pipeline settings the model was trained with; refuses a model for other features."""
-    stored = model.split or {}
+    stored = model.split if isinstance(model.split, dict) else {}
     try:
         settings = settings_for_descriptors(model.feature_names, model.radius_m, stored.get("split"), stored,
                                             min_points_pre=int(stored.get("min_points_pre", 50)),
                                             min_points_post=int(stored.get("min_points_post", 10)),
                                             tile_m=float(stored.get("tile_m", 150.0)),
                                             core_point_step=int(stored.get("core_point_step", 1)))
-    except PipelineError as e:
-        raise ModelError(f"{source}: {e}") from None
+    except (QuakeScanError, TypeError, ValueError, KeyError, AttributeError) as e:  # settings out of range or of the wrong type
+        raise ModelError(f"{source}: the model's settings are invalid ({e}): an edited or foreign file; "
+                         "retrain it with `quakescan train`") from None
     version = (model.provenance or {}).get("descriptor_version")
     if settings.surface is not None and version is not None:
         from .surface import DESCRIPTOR_VERSION
@@ -130,36 +131,57 @@ def _fingerprint(paths, model_path, align: bool | None) -> str:
 
 
 class _Checkpoint:
-    """Rows of finished tiles, one JSON line each, valid for one fingerprint."""
+    """Rows of finished tiles, one JSON line each, valid for one fingerprint.
+
+    The first line (the fingerprint) is written under a temporary name and renamed, so an
+    interruption never leaves a file without it; a file that is unreadable anyway (cut,
+    edited, another program's) is discarded with a warning and its tiles are recomputed."""
 
     def __init__(self, path: Path, fingerprint: str):
+        from .results import _atomic
+
         self.path, self.fp = path, fingerprint
         self.rows: dict[int, BuildingRow] = {}
         if path.is_file():
-            lines = path.read_text().splitlines()
-            if lines and json.loads(lines[0]).get("fingerprint") == fingerprint:
-                for line in lines[1:]:
-                    try:
-                        d = json.loads(line)
-                    except json.JSONDecodeError:
-                        break  # a line cut by the interruption: that tile is redone
-                    r = BuildingRow(d["building_id"], d["n_pre"], d["n_post"], True, "", d["descriptors"],
-                                    tuple(d["centre_xy"]), d.get("quality", {}))
-                    self.rows[r.building_id] = r
-            else:
-                path.unlink()
+            self._read(path, fingerprint)
         if not path.is_file():
-            path.parent.mkdir(parents=True, exist_ok=True)
-            path.write_text(json.dumps({"fingerprint": fingerprint}) + "\n")
+            with _atomic(path) as tmp:
+                tmp.write_text(json.dumps({"fingerprint": fingerprint}) + "\n")
+
+    def _read(self, path: Path, fingerprint: str) -> None:
+        try:
+            lines = path.read_text().splitlines()
+            head = json.loads(lines[0]) if lines else None
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+            log.warning("%s: unreadable checkpoint (%s), discarded: every tile is recomputed", path, e)
+            head = None
+        if isinstance(head, dict) and head.get("fingerprint") == fingerprint:
+            for line in lines[1:]:
+                try:
+                    d = json.loads(line)
+                    r = BuildingRow(int(d["building_id"]), int(d["n_pre"]), int(d["n_post"]), True, "",
+                                    dict(d["descriptors"]), tuple(d["centre_xy"]), d.get("quality", {}))
+                except (json.JSONDecodeError, KeyError, TypeError, ValueError):
+                    break  # a line cut by the interruption: that tile is redone
+                self.rows[r.building_id] = r
+        else:
+            path.unlink()
 
     def add(self, rows):
-        with open(self.path, "a") as f:
-            for r in rows:
-                f.write(json.dumps({"building_id": r.building_id, "n_pre": r.n_pre, "n_post": r.n_post,
-                                    "descriptors": r.descriptors, "centre_xy": list(r.centre_xy),
-                                    "quality": r.quality}) + "\n")
-            f.flush()
-            os.fsync(f.fileno())
+        from .results import ResultsError, is_write_failure, write_failure_message
+
+        try:
+            with open(self.path, "a") as f:
+                for r in rows:
+                    f.write(json.dumps({"building_id": r.building_id, "n_pre": r.n_pre, "n_post": r.n_post,
+                                        "descriptors": r.descriptors, "centre_xy": list(r.centre_xy),
+                                        "quality": r.quality}) + "\n")
+                f.flush()
+                os.fsync(f.fileno())
+        except OSError as e:  # a rerun reads the lines before the cut one and redoes the rest
+            if not is_write_failure(e):
+                raise
+            raise ResultsError(write_failure_message(self.path, e)) from e
 
 
 def predict_rows(rows, model: DamageModel, rule: bool | None = None) -> list:
@@ -222,6 +244,7 @@ def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=N
     t0 = time.perf_counter()
     out = Path(out_dir)
     model_path = Path(model_path) if model_path else default_model_path()
+    _check_output_folder(out, [pre_path, post_path, footprints_path, model_path])
     fingerprint = _fingerprint([pre_path, post_path, footprints_path], model_path, align)
     options = {"id_field": id_field, "write_las": bool(write_las), "laz": laz}
     done = _finished(out, fingerprint, options)
@@ -276,9 +299,8 @@ def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=N
                                 "total": round(time.perf_counter() - t0, 2)}})
     summary["fingerprint"] = fingerprint
     summary["options"] = options
-    tmp = out / "summary.json.part"
-    tmp.write_text(json.dumps(summary, indent=1, default=_json_default))
-    os.replace(tmp, out / "summary.json")
+    with results._atomic(out / "summary.json") as tmp:
+        tmp.write_text(json.dumps(summary, indent=1, default=_json_default))
     ckpt.path.unlink(missing_ok=True)
     return summary
 
@@ -345,6 +367,17 @@ def max_displacement_m(a, xyz: np.ndarray) -> float:
     lo, hi = xyz.min(axis=0), xyz.max(axis=0)
     corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
     return float(np.linalg.norm(a.apply(corners) - corners, axis=1).max())
+
+
+def _check_output_folder(out: Path, inputs) -> None:
+    """Refuse an output folder that is a file, above all one of the inputs: classify writes
+    several files into it and would otherwise fail half-way or overwrite its own input."""
+    for p in inputs:
+        if p is not None and Path(p).exists() and out.exists() and os.path.samefile(p, out):
+            raise ClassifyError(f"{out}: the output folder (-o) is the input file {p}; give a folder for the results")
+    if out.exists() and not out.is_dir():
+        raise ClassifyError(f"{out}: the output (-o) is an existing file; classify writes a folder of results "
+                            "(buildings.csv, buildings.geojson, damage_map.png, ...): give a folder")
 
 
 def _finished(out: Path, fingerprint: str, options: dict) -> dict | None:

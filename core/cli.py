@@ -198,9 +198,14 @@ def cmd_features(args) -> int:
     from .features import FEATURES, compute_features
     from .pointcloud import read_epoch, read_las
 
+    from .results import _atomic
+
     names = _csv_list(args.features) or FEATURES
     src = Path(args.input)
     out = Path(args.output)
+    _check_cloud_output(out, src)
+    _check_number("--radius", args.radius, low=0.0, low_open=True)
+    _check_threads(args.threads)
     epoch = read_epoch(src)
     las = read_las(src)
     t0 = time.perf_counter()
@@ -214,12 +219,52 @@ def cmd_features(args) -> int:
                                                description=f"{n} r={args.radius:g} m"[:31]) for n in names])
     for n in names:
         las[n] = feats[n].astype(np.float32)
-    tmp = out.with_name(out.name + ".part")
-    las.write(tmp, do_compress=out.suffix.lower() == ".laz")
-    os.replace(tmp, out)
+    with _atomic(out) as tmp:
+        las.write(tmp, do_compress=out.suffix.lower() == ".laz")
     print(f"features: {len(names)} features of {len(epoch):,} points at r = {args.radius:g} m in {dt:.1f} s "
           f"({len(epoch) / max(dt, 1e-9) / 1e3:,.0f} k points/s) -> {out}")
     return 0
+
+
+def _check_cloud_output(out: Path, src: Path) -> None:
+    """A point cloud output that is neither an existing folder nor the input, named .las/.laz
+    (its suffix decides the format: anything else would get LAS bytes under a wrong name)."""
+    if out.suffix.lower() not in (".las", ".laz"):
+        raise QuakeScanError(f"{out}: -o must name a .las or .laz file (the suffix decides the format)")
+    if out.is_dir():
+        raise QuakeScanError(f"{out}: -o is an existing folder; give a .las or .laz file name")
+    if out.exists() and src.exists() and os.path.samefile(out, src):
+        raise QuakeScanError(f"{out}: -o is the input file; write the features to another file")
+
+
+def _check_number(flag: str, value, low=None, high=None, *, low_open=False, high_open=False,
+                  integer=False) -> None:
+    """Refuse a flag's value outside its range, naming the flag (argparse checks types only)."""
+    if value is None:
+        return
+    bad = isinstance(value, float) and not np.isfinite(value)
+    if low is not None:
+        bad |= value <= low if low_open else value < low
+    if high is not None:
+        bad |= value >= high if high_open else value > high
+    if bad:
+        lo = "" if low is None else f"{'>' if low_open else '>='} {low:g}"
+        hi = "" if high is None else f"{'<' if high_open else '<='} {high:g}"
+        what = "an integer" if integer else "a number"
+        raise QuakeScanError(f"{flag}: expected {what} {' and '.join(t for t in (lo, hi) if t)}, got {value}")
+
+
+SEED_MAX = 2 ** 32 - 1  # numpy and scikit-learn take seeds in [0, 2**32)
+
+
+def _check_seed(value) -> None:
+    _check_number("--seed", value, 0, SEED_MAX, integer=True)
+
+
+def _check_threads(value) -> None:
+    """Threads: a positive count, or -1 / None for every core (the libraries' convention)."""
+    if value is not None and value != -1 and value < 1:
+        raise QuakeScanError(f"--threads: expected a number of threads >= 1 (or -1: every core), got {value}")
 
 
 def _pipeline_settings(args):

@@ -44,6 +44,14 @@ GROUND_CLASS = 2
 LOD_FEATURES = ("eigenvalue1", "eigenvalue2", "eigenvalue3", "num_neighbours")
 
 
+# The feature radius a model may use. Below 0.5 m a neighbourhood at UAV spacing (~0.1 m)
+# holds too few points for stable eigenvalues; above 10 m it spans whole buildings and
+# its cost grows with r². The paper uses 1.0-4.0 m.
+RADIUS_RANGE_M = (0.5, 10.0)
+MAX_MIN_POINTS = 1_000_000
+MAX_TILE_M = 10_000.0
+
+
 class PipelineError(QuakeScanError):
     """A pair of epochs cannot be processed as asked."""
 
@@ -78,8 +86,18 @@ class PipelineSettings:
     min_coverage: float = 0.0
 
     def __post_init__(self):
-        if not (math.isfinite(self.radius_m) and self.radius_m > 0):
-            raise PipelineError(f"radius must be a positive number of metres, got {self.radius_m!r}")
+        r = self.radius_m
+        if isinstance(r, bool) or not isinstance(r, (int, float, np.integer, np.floating)) or not (
+                math.isfinite(r) and RADIUS_RANGE_M[0] <= r <= RADIUS_RANGE_M[1]):
+            raise PipelineError(f"radius must lie in [{RADIUS_RANGE_M[0]:g}, {RADIUS_RANGE_M[1]:g}] m, got {r!r}")
+        if not isinstance(self.split, SplitSettings):
+            raise PipelineError(f"split settings must be SplitSettings, got {self.split!r}")
+        for name in ("min_points_pre", "min_points_post"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 1 <= v <= MAX_MIN_POINTS:
+                raise PipelineError(f"{name} must be an integer in [1, {MAX_MIN_POINTS}], got {v!r}")
+        if not (isinstance(self.tile_m, (int, float)) and math.isfinite(self.tile_m) and self.tile_m <= MAX_TILE_M):
+            raise PipelineError(f"tile size must be a number of metres <= {MAX_TILE_M:g}, got {self.tile_m!r}")
         unknown = [f for f in self.point_features if f not in FEATURES]
         if unknown:
             raise PipelineError(f"unknown point features {unknown}; known: {', '.join(FEATURES)}")
@@ -149,6 +167,8 @@ class PipelineSettings:
                        **_newer_keys(d))
         except (KeyError, TypeError, ValueError) as e:
             raise PipelineError(f"incomplete pipeline settings ({e!r}): {d}") from None
+        except QuakeScanError as e:
+            raise PipelineError(str(e)) from None
 
 
 def _newer_keys(d: dict) -> dict:
@@ -192,8 +212,13 @@ def settings_for_descriptors(names: Sequence[str], radius_m: float, split: dict 
     for key in list(newer):
         if key in kw:
             newer.pop(key)
-    return PipelineSettings(radius_m=radius_m, point_features=tuple(feats),
-                            split=SplitSettings(**(split or {})), **newer, **kw)
+    try:
+        split_settings = SplitSettings(**(split or {}))
+    except TypeError as e:  # a key this QuakeScan does not know
+        raise PipelineError(f"split settings {split!r}: {e}") from None
+    except QuakeScanError as e:
+        raise PipelineError(str(e)) from None
+    return PipelineSettings(radius_m=radius_m, point_features=tuple(feats), split=split_settings, **newer, **kw)
 
 
 @dataclass
