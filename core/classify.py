@@ -268,6 +268,10 @@ def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=N
                          on_tile=ckpt.add)
     rows += [BuildingRow(int(b), 0, 0, False, "no point inside the footprint")
              for b in data.footprint_ids_without_points]
+    if data.footprints is not None:  # footprints that cannot be used: the building stays, with the reason
+        described = {r.building_id for r in rows}
+        rows += [BuildingRow(int(b), 0, 0, False, why) for b, why, _ in data.footprints.rejected
+                 if int(b) not in described]
     rows.sort(key=lambda r: r.building_id)
     t_describe = time.perf_counter()
     res = predict_rows(rows, model)
@@ -279,8 +283,7 @@ def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=N
     if data.footprints is None:
         xy_by = _xy_by_building(pre)
     outlines = results.building_outlines(res, data.footprints, xy_by, pre.origin)
-    attributes = ({int(b): p for b, p in zip(fp.ids.tolist(), fp.properties) if p}
-                  if fp is not None and fp.properties else None)
+    attributes = (fp.attributes() or None) if fp is not None else None
     results.write_geojson(res, outlines, out / "buildings.geojson", pre.crs, classes, attributes)
     sub = pre.xyz[:: max(1, len(pre) // 200_000), :2] + pre.origin[:2]
     results.write_map_png(res, outlines, out / "damage_map.png",

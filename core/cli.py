@@ -237,6 +237,15 @@ def _check_cloud_output(out: Path, src: Path) -> None:
         raise QuakeScanError(f"{out}: -o is the input file; write the features to another file")
 
 
+def _check_file_output(out: Path, inputs) -> None:
+    """An output file that is not an existing folder and not one of the inputs."""
+    if out.is_dir():
+        raise QuakeScanError(f"{out}: -o is an existing folder; give a file name")
+    for p in inputs:
+        if p is not None and out.exists() and Path(p).exists() and os.path.samefile(out, p):
+            raise QuakeScanError(f"{out}: -o is the input file {p}; write to another file")
+
+
 def _check_number(flag: str, value, low=None, high=None, *, low_open=False, high_open=False,
                   integer=False) -> None:
     """Refuse a flag's value outside its range, naming the flag (argparse checks types only)."""
@@ -267,6 +276,17 @@ def _check_threads(value) -> None:
         raise QuakeScanError(f"--threads: expected a number of threads >= 1 (or -1: every core), got {value}")
 
 
+def _check_split_flags(args) -> None:
+    """The pipeline's flags in the ranges a model may hold (core.pipeline, core.change), named."""
+    from .change import LOD_CURVATURE_RANGE, LOD_HEIGHT_RANGE_M
+    from .pipeline import RADIUS_RANGE_M
+
+    _check_number("--radius", args.radius, *RADIUS_RANGE_M)
+    _check_number("--lod-height", args.lod_height, *LOD_HEIGHT_RANGE_M, low_open=True)
+    _check_number("--lod-curvature", args.lod_curvature, *LOD_CURVATURE_RANGE, low_open=True)
+    _check_number("--min-changed-share", args.min_changed_share, 0.0, 1.0, high_open=True)
+
+
 def _pipeline_settings(args):
     from .change import SplitSettings
     from .pipeline import PAPER_FEATURES, PipelineSettings
@@ -290,27 +310,29 @@ def _pipeline_settings(args):
 
 def cmd_calibrate_lod(args) -> int:
     """Levels of detection of the split from two acquisitions of the same undamaged buildings."""
+    from .classify import load_pair
     from .lod import calibrate
-    from .pointcloud import read_epoch
 
-    first = read_epoch(args.first)
-    second = read_epoch(args.second, origin=first.origin)
-    if args.footprints:  # real clouds: building points from footprints, as classify assigns them
-        from .footprints import assign_buildings, read_footprints
-
-        fp = read_footprints(args.footprints, args.id_field)
-        for e in (first, second):
-            e.building_id = assign_buildings(e.xyz[:, 0] + e.origin[0], e.xyz[:, 1] + e.origin[1], fp)
+    _check_number("--radius", args.radius, low=0.0, low_open=True)
+    _check_seed(args.seed)
+    _check_threads(args.threads)
+    if args.output:
+        _check_file_output(Path(args.output), [args.first, args.second, args.footprints])
+    # classify's reading and checks (same CRS, overlapping extents, footprints in the clouds'
+    # CRS); building points from footprints for real clouds, as classify assigns them
+    pair = load_pair(args.first, args.second, args.footprints, args.id_field)
+    first, second = pair.pre, pair.post
     lod = calibrate(first, second, radius_m=args.radius, quantile=args.quantile, seed=args.seed,
                     workers=args.threads)
     print(f"calibrate-lod: {lod.points:,} building points; at the {100 * args.quantile:g}th percentile "
           f"|Δheight| {lod.height_at_quantile_m:.3f} m, |Δcurvature| {lod.curvature_at_quantile:.3f} 1/m")
     print(f"levels of detection: --lod-height {lod.lod_height_m:.3f} --lod-curvature {lod.lod_curvature:.3f}")
     if args.output:
+        from .results import _atomic
+
         out = Path(args.output)
-        tmp = out.with_name(out.name + ".part")
-        tmp.write_text(json.dumps(lod.to_json(), indent=1))
-        os.replace(tmp, out)
+        with _atomic(out) as tmp:
+            tmp.write_text(json.dumps(lod.to_json(), indent=1))
         print(f"-> {out}")
     return 0
 
@@ -319,6 +341,14 @@ def cmd_train(args) -> int:
     from .model import save_model
     from .training import TrainingError, TrainingPair, train
 
+    _check_number("--trees", args.trees, 1, integer=True)
+    _check_number("--depth", args.depth, 1, integer=True)
+    _check_number("--test-size", args.test_size, 0.0, 1.0, high_open=True)
+    _check_seed(args.seed)
+    _check_threads(args.threads)
+    _check_split_flags(args)
+    out = Path(args.output)
+    _check_file_output(out, [p for pair in args.pair for p in pair] + list(args.truth or []) + [args.footprints])
     if args.truth and len(args.truth) != len(args.pair):
         raise TrainingError(f"{len(args.truth)} --truth files for {len(args.pair)} --pair: give one per pair "
                             "or none (then grades come from the post epochs' grade dimension)")
@@ -331,8 +361,6 @@ def cmd_train(args) -> int:
                              progress=lambda name, d, t: progress(d, t),
                              command="quakescan " + " ".join(sys.argv[1:]),
                              rule=settings.paper_descriptors)
-    out = Path(args.output)
-    out.parent.mkdir(parents=True, exist_ok=True)
     save_model(model, out)
     counts = dict(zip(*np.unique(table.y, return_counts=True)))
     print(f"train: {len(table.y)} building rows from {len(pairs)} pairs, grades {counts}; "
@@ -347,6 +375,7 @@ def cmd_train(args) -> int:
 def cmd_classify(args) -> int:
     from .classify import classify
 
+    _check_threads(args.threads)
     summary = classify(args.pre, args.post, args.output, model_path=args.model, footprints_path=args.footprints,
                        id_field=args.id_field, align=args.align, workers=args.threads,
                        progress=_Progress("classify", args.progress or sys.stderr.isatty()),
@@ -426,6 +455,9 @@ def cmd_robustness(args) -> int:
         spacing = check_spacing(args.spacing)
     except QuakeScanError as e:
         raise QuakeScanError(f"--spacing {args.spacing}: {e}") from None
+    _check_seed(args.seed)
+    _check_threads(args.threads)
+    _check_number("--threshold", args.threshold, 0.0)
     sample = DEFAULT_SAMPLE if args.sample is None else (None if args.sample == 0 else args.sample)
     if sample is not None and sample < 0:
         raise QuakeScanError(f"--sample: expected a number of points >= 0 (0 = all), got {args.sample}")
@@ -461,6 +493,17 @@ def cmd_experiment(args) -> int:
             mix = {int(g): int(n) for g, n in (p.split(":") for p in args.test_mix.split(","))}
         except ValueError:
             raise QuakeScanError(f"--test-mix: expected GRADE:COUNT,..., got {args.test_mix!r}") from None
+    if mix is not None and (any(g not in (0, 3, 4, 5) or n < 0 for g, n in mix.items()) or sum(mix.values()) < 1):
+        raise QuakeScanError(f"--test-mix: grades must be 0, 3, 4 or 5 with counts >= 0 (at least one building), "
+                             f"got {args.test_mix!r}")
+    _check_number("--buildings", args.buildings, 4, integer=True)
+    _check_number("--trees", args.trees, 1, integer=True)
+    _check_seed(args.seed)
+    _check_threads(args.threads)
+    from .change import LOD_CURVATURE_RANGE, LOD_HEIGHT_RANGE_M
+
+    _check_number("--lod-height", args.lod_height, *LOD_HEIGHT_RANGE_M, low_open=True)
+    _check_number("--lod-curvature", args.lod_curvature, *LOD_CURVATURE_RANGE, low_open=True)
     settings = ExperimentSettings(buildings=args.buildings, test_mix=mix, seed=args.seed, n_estimators=args.trees,
                                   lod_height_m=args.lod_height, lod_curvature=args.lod_curvature,
                                   training=args.training)
