@@ -356,6 +356,23 @@ def describe_pair(pre: Epoch, post: Epoch, settings: PipelineSettings, *, worker
                                     "(not covered by the post-event cloud?)")
         else:
             ok.append(bid)
+    # Points stacked on one spot (a broken export, a sensor stuck on a line) have no geometry:
+    # the features of such a building are undefined and "no change" would read as no damage.
+    distinct_pre = _distinct_positions(pre, ok)
+    distinct_post = _distinct_positions(post, ok)
+    for bid in list(ok):
+        a, b = distinct_pre.get(bid, 0), distinct_post.get(bid, 0)
+        if a < settings.min_points_pre:
+            rows[bid] = BuildingRow(bid, n_pre_of[bid], n_post_of.get(bid, 0), False,
+                                    f"{a} distinct pre-event positions < {settings.min_points_pre} "
+                                    f"(of {n_pre_of[bid]} points, the others coincide)")
+        elif b < settings.min_points_post:
+            rows[bid] = BuildingRow(bid, n_pre_of[bid], n_post_of.get(bid, 0), False,
+                                    f"{b} distinct post-event positions < {settings.min_points_post} "
+                                    f"(of {n_post_of.get(bid, 0)} points, the others coincide)")
+        else:
+            continue
+        ok.remove(bid)
 
     order = np.argsort(pre_ids, kind="stable")
     starts = np.searchsorted(pre_ids[order], uniq_pre)
@@ -397,6 +414,23 @@ def describe_pair(pre: Epoch, post: Epoch, settings: PipelineSettings, *, worker
         if progress:
             progress(finished, total)
     return [_quality_gate(rows[b], settings) for b in all_ids]
+
+
+def _distinct_positions(epoch: Epoch, ids) -> dict:
+    """{building ID: number of distinct point positions} for the buildings `ids`."""
+    from .features import position_keys
+
+    if not len(ids):
+        return {}
+    sel = np.flatnonzero(np.isin(epoch.building_id, np.asarray(ids, dtype=np.int64)))
+    b = epoch.building_id[sel]
+    keys = position_keys(epoch.xyz[sel])
+    order = np.lexsort((keys, b))
+    b, keys = b[order], keys[order]
+    new = np.ones(len(b), bool)
+    new[1:] = (b[1:] != b[:-1]) | (keys[1:] != keys[:-1])
+    uniq, counts = np.unique(b[new], return_counts=True)
+    return dict(zip(uniq.tolist(), counts.tolist()))
 
 
 def _surface_geometry(pre: Epoch, post: Epoch, settings: PipelineSettings):
