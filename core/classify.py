@@ -28,7 +28,6 @@ from .errors import QuakeScanError
 from .model import DamageModel, ModelError, load_model
 from .pipeline import (
     BuildingRow,
-    PipelineError,
     PipelineSettings,
     describe_pair,
     settings_for_descriptors,
@@ -336,10 +335,11 @@ def _register(pre, post, settings: PipelineSettings, align: bool | None, summary
     try:
         a = align_epochs(pre.xyz, post.xyz, stable_mask(pre.classification, pre.building_id),
                          stable_mask(post.classification, post.building_id),
-                         max_points=CHECK_MAX_POINTS if mode == "auto" else 2_000_000)
+                         max_points=CHECK_MAX_POINTS if mode == "auto" else 2_000_000,
+                         pre_name=str(pre.source), post_name=str(post.source))
     except AlignmentError as e:
         if mode == "on":
-            raise
+            raise AlignmentError(f"--align: cannot align {post.source} to {pre.source}: {e}") from None
         log.warning("cannot check that the epochs are registered (%s); classifying them as they are: an offset "
                     "between them would read as damage", e)
         return {"mode": mode, "checked": False, "reason": str(e)}
