@@ -90,9 +90,10 @@ def cmd_scan(args) -> int:
 
 
 def _write_json_atomic(path: Path, data) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(data, indent=1) + "\n")
-    os.replace(tmp, path)
+    from .results import _atomic
+
+    with _atomic(path) as tmp:
+        tmp.write_text(json.dumps(data, indent=1) + "\n")
 
 
 def _write_trajectory(scene, survey, path: Path) -> None:
@@ -409,7 +410,9 @@ def cmd_evaluate(args) -> int:
           + (f", {len(ev.missing)} in the truth but not in the result" if ev.missing else ""))
     print(ev.table())
     out = Path(args.output) if args.output else Path(args.result).parent
-    out.mkdir(parents=True, exist_ok=True)
+    if out.exists() and not out.is_dir():
+        raise QuakeScanError(f"{out}: -o is an existing file; evaluate writes a folder (confusion.png, "
+                             "evaluation.json)")
     plot_confusion(ev, out / "confusion.png")
     _write_json_atomic(out / "evaluation.json", ev.to_json())
     print(f"confusion matrix -> {out / 'confusion.png'}, metrics -> {out / 'evaluation.json'}")

@@ -209,8 +209,10 @@ def plot_confusion(ev: Evaluation, path: str | os.PathLike, title: str = "Damage
     ax.set_ylabel("reference")
     ax.set_title(title)
     fig.tight_layout()
-    path = Path(path)
-    tmp = path.with_name(path.stem + ".tmp.png")
-    fig.savefig(tmp)
-    plt.close(fig)
-    os.replace(tmp, path)
+    from .results import _atomic
+
+    try:
+        with _atomic(path) as tmp, open(tmp, "wb") as f:
+            fig.savefig(f, format="png")
+    finally:
+        plt.close(fig)
