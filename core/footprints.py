@@ -172,6 +172,8 @@ def _polygon(geom: dict, path, i: int):
         raise FootprintError(f"{path}: feature {i} has an invalid geometry ({e})") from None
     if poly.is_empty:
         return None, "the polygon is empty"
+    if poly.envelope.area <= 0 or poly.convex_hull.area <= 0:  # every vertex on one line (or one point)
+        return None, "the polygon has no area"
     if not poly.is_valid:
         why = shapely.is_valid_reason(poly)
         if not why.startswith("Ring Self-intersection"):  # a bow-tie: which lobe is the building?
