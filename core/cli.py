@@ -210,7 +210,10 @@ def cmd_features(args) -> int:
     epoch = read_epoch(src)
     las = read_las(src)
     t0 = time.perf_counter()
-    feats = compute_features(epoch.xyz, args.radius, names, workers=args.threads)
+    try:
+        feats = compute_features(epoch.xyz, args.radius, names, workers=args.threads)
+    except QuakeScanError as e:  # e.g. a cloud too wide for the grid: say which file
+        raise QuakeScanError(f"{src}: {e}") from None
     dt = time.perf_counter() - t0
     present = set(las.point_format.dimension_names)
     clash = [n for n in names if n in present]
@@ -236,6 +239,12 @@ def _check_cloud_output(out: Path, src: Path) -> None:
         raise QuakeScanError(f"{out}: -o is an existing folder; give a .las or .laz file name")
     if out.exists() and src.exists() and os.path.samefile(out, src):
         raise QuakeScanError(f"{out}: -o is the input file; write the features to another file")
+
+
+def _check_folder_output(out: Path) -> None:
+    """A report folder that is not an existing file."""
+    if out.exists() and not out.is_dir():
+        raise QuakeScanError(f"{out}: -o is an existing file; give a folder for the report")
 
 
 def _check_file_output(out: Path, inputs) -> None:
@@ -315,6 +324,7 @@ def cmd_calibrate_lod(args) -> int:
     from .lod import calibrate
 
     _check_number("--radius", args.radius, low=0.0, low_open=True)
+    _check_number("--quantile", args.quantile, 0.5, 1.0, low_open=True, high_open=True)
     _check_seed(args.seed)
     _check_threads(args.threads)
     if args.output:
@@ -404,15 +414,15 @@ def cmd_classify(args) -> int:
 def cmd_evaluate(args) -> int:
     from .evaluate import evaluate_files, plot_confusion
 
+    out = Path(args.output) if args.output else Path(args.result).parent
+    if out.exists() and not out.is_dir():
+        raise QuakeScanError(f"{out}: -o is an existing file; evaluate writes a folder (confusion.png, "
+                             "evaluation.json)")
     ev = evaluate_files(args.result, args.truth)
     print(f"evaluate: {ev.n} assessable buildings, overall accuracy {100 * ev.overall_accuracy:.1f} %"
           + (f", {ev.not_assessable} not assessable" if ev.not_assessable else "")
           + (f", {len(ev.missing)} in the truth but not in the result" if ev.missing else ""))
     print(ev.table())
-    out = Path(args.output) if args.output else Path(args.result).parent
-    if out.exists() and not out.is_dir():
-        raise QuakeScanError(f"{out}: -o is an existing file; evaluate writes a folder (confusion.png, "
-                             "evaluation.json)")
     plot_confusion(ev, out / "confusion.png")
     _write_json_atomic(out / "evaluation.json", ev.to_json())
     print(f"confusion matrix -> {out / 'confusion.png'}, metrics -> {out / 'evaluation.json'}")
@@ -453,6 +463,9 @@ def cmd_robustness(args) -> int:
         radii = tuple(float(r) for r in args.radii.split(",")) if args.radii else None
     except ValueError:
         raise QuakeScanError(f"--radii: expected comma-separated numbers of metres, got {args.radii!r}") from None
+    if radii is not None and not all(np.isfinite(r) and r > 0 for r in radii):
+        raise QuakeScanError(f"--radii: every radius must be a positive number of metres, got {args.radii!r}")
+    _check_folder_output(Path(args.output))
     kw = {"radii": radii} if radii else {}
     try:
         spacing = check_spacing(args.spacing)
@@ -500,6 +513,7 @@ def cmd_experiment(args) -> int:
         raise QuakeScanError(f"--test-mix: grades must be 0, 3, 4 or 5 with counts >= 0 (at least one building), "
                              f"got {args.test_mix!r}")
     _check_number("--buildings", args.buildings, 4, integer=True)
+    _check_folder_output(Path(args.output))
     _check_number("--trees", args.trees, 1, integer=True)
     _check_seed(args.seed)
     _check_threads(args.threads)

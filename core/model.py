@@ -418,6 +418,14 @@ def load_model(path: str | os.PathLike) -> DamageModel:
         raise ModelError(f"{path}: no_change_rule must be true or false, got {rule!r}")
     _check_classifier_record(path, meta.get("classifier"), est)
     _check_settings(path, meta)
+    classes = getattr(est, "classes_", None)
+    try:
+        grades = [int(c) for c in classes] if classes is not None else []
+    except (TypeError, ValueError):
+        grades = None
+    if not grades or not set(grades) <= set(GRADE_LABELS) or len(set(grades)) != len(grades):
+        raise ModelError(f"{path}: the classifier's classes {classes!r} are not EMS-98 grades 0–5 (edited or "
+                         "foreign file)")
     return DamageModel(est, names, float(meta["radius_m"]), meta.get("split", {}),
                        dict(meta.get("provenance", {}), versions={"quakescan": meta.get("quakescan"),
                                                                    "sklearn": meta.get("sklearn")}),

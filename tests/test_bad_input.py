@@ -95,7 +95,7 @@ def box_rings(margin=0.5, origin=ORIGIN):
     return out
 
 
-def tiny_model(path, radius_m=1.5, split_edit=None, estimator=None):
+def tiny_model(path, radius_m=1.5, split_edit=None, estimator=None, grades=(0, 3, 4, 5)):
     """A model file for the default paper descriptors (a small forest on random rows)."""
     from sklearn.ensemble import RandomForestClassifier
 
@@ -106,7 +106,7 @@ def tiny_model(path, radius_m=1.5, split_edit=None, estimator=None):
     names = settings.descriptor_names()
     rng = np.random.default_rng(0)
     x = rng.random((40, len(names)))
-    y = np.repeat([0, 3, 4, 5], 10)
+    y = np.resize(np.repeat(grades, 10), 40)
     est = estimator or RandomForestClassifier(n_estimators=3, max_depth=3, random_state=0)
     est.fit(x, y)
     split = dict(settings.to_json(), radius_m=radius_m)
@@ -208,7 +208,9 @@ def test_train_flags_out_of_range_name_the_flag(pair, tmp_path, capsys, flag, va
     (["experiment", "paper", "--lod-height", "-1"], "--lod-height"),
     (["robustness", "pre", "post", "--seed", "-1"], "--seed"),
     (["robustness", "pre", "post", "--threads", "-4"], "--threads"),
+    (["robustness", "pre", "post", "--radii", "1,-1"], "--radii"),
     (["calibrate-lod", "a.las", "b.las", "--seed", "-1"], "--seed"),
+    (["calibrate-lod", "a.las", "b.las", "--quantile", "2"], "--quantile"),
     (["calibrate-lod", "a.las", "b.las", "--radius", "0"], "--radius"),
     (["features", "a.las", "-o", "b.las", "--radius", "-1"], "--radius"),
     (["classify", "--pre", "a.las", "--post", "b.las", "--threads", "0"], "--threads"),
@@ -217,6 +219,15 @@ def test_other_commands_name_a_flag_out_of_range(tmp_path, capsys, argv, flag):
     code, _, err = run([*argv, "-o", tmp_path / "out"] if "-o" not in argv else argv, capsys)
     assert code == 2 and flag in err
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("argv", [["experiment", "paper"], ["robustness", "pre", "post"],
+                                  ["evaluate", "r.csv", "--truth", "t.csv"]])
+def test_report_folders_that_are_files_are_refused(tmp_path, capsys, argv):
+    out = tmp_path / "report"
+    out.write_text("keep me")
+    code, _, err = run([*argv, "-o", out], capsys)
+    assert code == 2 and str(out) in err and "existing file" in err and out.read_text() == "keep me"
 
 
 # ----------------------------------------------------------------------------- full disk
@@ -352,6 +363,7 @@ def test_one_epoch_without_crs_is_warned_naming_both_files(pair, tmp_path, capsy
     ({"min_changed_share": 2.0}, "min_changed_share"),
     ({"unknown_knob": 1}, "invalid split settings"),
     ({"estimator": "dummy"}, "DummyClassifier"),
+    ({"classes": [0, 3, 7]}, "not EMS-98 grades"),
 ])
 def test_edited_or_foreign_models_are_refused(pair, tmp_path, capsys, edit, match):
     from sklearn.dummy import DummyClassifier
@@ -363,6 +375,8 @@ def test_edited_or_foreign_models_are_refused(pair, tmp_path, capsys, edit, matc
         tiny_model(path, radius_m=edit["radius_m"])
     elif "estimator" in edit:
         tiny_model(path, estimator=DummyClassifier())
+    elif "classes" in edit:
+        tiny_model(path, grades=edit["classes"])
     else:
         tiny_model(path, split_edit=edit)
     with pytest.raises(ModelError, match=match):
