@@ -198,7 +198,6 @@ def cmd_features(args) -> int:
 
     from .features import FEATURES, compute_features
     from .pointcloud import read_epoch, read_las
-
     from .results import _atomic
 
     names = _csv_list(args.features) or FEATURES
@@ -501,6 +500,7 @@ def cmd_training_set(args) -> int:
 
 def cmd_experiment(args) -> int:
     """The paper's four classifiers evaluated on a held-out region-specific DIM city."""
+    from .change import LOD_CURVATURE_RANGE, LOD_HEIGHT_RANGE_M
     from .experiment import ExperimentSettings, run_paper_experiment
 
     mix = None
@@ -517,8 +517,6 @@ def cmd_experiment(args) -> int:
     _check_number("--trees", args.trees, 1, integer=True)
     _check_seed(args.seed)
     _check_threads(args.threads)
-    from .change import LOD_CURVATURE_RANGE, LOD_HEIGHT_RANGE_M
-
     _check_number("--lod-height", args.lod_height, *LOD_HEIGHT_RANGE_M, low_open=True)
     _check_number("--lod-curvature", args.lod_curvature, *LOD_CURVATURE_RANGE, low_open=True)
     settings = ExperimentSettings(buildings=args.buildings, test_mix=mix, seed=args.seed, n_estimators=args.trees,

@@ -382,6 +382,8 @@ def load_model(path: str | os.PathLike) -> DamageModel:
     import skops.io as sio
 
     path = Path(path)
+    if path.is_dir():
+        raise ModelError(f"{path}: is a folder, not a model file")
     if not path.is_file():
         raise ModelError(f"{path}: model file does not exist")
     _check_archive_size(path)

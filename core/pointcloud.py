@@ -185,6 +185,8 @@ def pack_points(header, chunk: PointChunk, name="point cloud"):
 
 def read_las(path: str | os.PathLike) -> laspy.LasData:
     path = Path(path)
+    if path.is_dir():
+        raise PointCloudError(f"{path}: is a folder, not a LAS/LAZ point cloud file")
     if not path.is_file():
         raise PointCloudError(f"{path}: point cloud file does not exist")
     try:
