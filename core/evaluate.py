@@ -95,6 +95,8 @@ def _read_csv(path: Path, needed: tuple) -> list[dict]:
             rows = list(csv.DictReader(f))
     except FileNotFoundError:
         raise EvaluationError(f"{path}: file does not exist") from None
+    except (OSError, UnicodeDecodeError, csv.Error) as e:
+        raise EvaluationError(f"{path}: cannot read as a CSV table ({e})") from None
     if not rows:
         raise EvaluationError(f"{path}: no rows")
     missing = [c for c in needed if c not in rows[0]]

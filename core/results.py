@@ -206,6 +206,8 @@ def read_csv(path) -> list[BuildingResult]:
             data = list(reader)
     except FileNotFoundError:
         raise ResultsError(f"{path}: result file does not exist") from None
+    except (OSError, UnicodeDecodeError, csv.Error) as e:
+        raise ResultsError(f"{path}: cannot read as a CSV table ({e})") from None
     missing = [c for c in _FIXED + _TAIL if c not in cols]
     if missing:
         raise ResultsError(f"{path}: missing columns {missing} (has {cols})")

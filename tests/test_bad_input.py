@@ -58,7 +58,7 @@ def write_cloud(path, xyz, building_id=None, crs=RD, classification=None):
     header = laspy.LasHeader(point_format=6, version="1.4")
     if building_id is not None:
         header.add_extra_dims([laspy.ExtraBytesParams(name="building_id", type=np.uint32)])
-    header.offsets = np.floor(xyz.min(axis=0))
+    header.offsets = np.floor(xyz.min(axis=0)) if len(xyz) else ORIGIN
     header.scales = np.array([0.001] * 3)
     if crs:
         import pyproj
@@ -458,6 +458,17 @@ def test_evaluate_names_the_bad_line_of_a_result(tmp_path, capsys, rows, match):
     result.write_text("building_id,assessable,predicted_grade\n" + rows)
     code, _, err = run(["evaluate", result, "--truth", truth], capsys)
     assert code == 2 and str(result) in err and match in err
+
+
+@pytest.mark.parametrize("which", ["result", "truth"])
+def test_evaluate_names_a_table_that_is_not_text(pair, tmp_path, capsys, which):
+    truth, result = tmp_path / "t.csv", tmp_path / "r.csv"
+    truth.write_text("building_id,grade\n1,0\n")
+    result.write_text("building_id,assessable,predicted_grade\n1,1,0\n")
+    argv = {"result": ["evaluate", pair / "pre.las", "--truth", truth],
+            "truth": ["evaluate", result, "--truth", pair / "pre.las"]}[which]
+    code, _, err = run(argv, capsys)
+    assert code == 2 and str(pair / "pre.las") in err
 
 
 def test_evaluate_output_that_is_a_file_is_refused(tmp_path, capsys):
