@@ -492,6 +492,9 @@ def cmd_training_set(args) -> int:
     from .default_model import TABLE_SETTINGS
     from .trainset import build, default_plan
 
+    _check_seed(args.seed)
+    _check_threads(args.threads)
+    _check_folder_output(Path(args.output))
     table = build(args.output, default_plan(args.seed, args.size, args.scenes), TABLE_SETTINGS, workers=args.threads)
     counts = dict(zip(*(v.tolist() for v in np.unique(table.y, return_counts=True))))
     print(f"{args.output}: {len(table.y)} building rows, grades {counts}; manifest.json and tables/")

@@ -209,6 +209,8 @@ def test_train_flags_out_of_range_name_the_flag(pair, tmp_path, capsys, flag, va
     (["robustness", "pre", "post", "--seed", "-1"], "--seed"),
     (["robustness", "pre", "post", "--threads", "-4"], "--threads"),
     (["robustness", "pre", "post", "--radii", "1,-1"], "--radii"),
+    (["training-set", "--seed", "-1"], "--seed"),
+    (["training-set", "--threads", "0"], "--threads"),
     (["calibrate-lod", "a.las", "b.las", "--seed", "-1"], "--seed"),
     (["calibrate-lod", "a.las", "b.las", "--quantile", "2"], "--quantile"),
     (["calibrate-lod", "a.las", "b.las", "--radius", "0"], "--radius"),
@@ -221,7 +223,7 @@ def test_other_commands_name_a_flag_out_of_range(tmp_path, capsys, argv, flag):
     assert not (tmp_path / "out").exists()
 
 
-@pytest.mark.parametrize("argv", [["experiment", "paper"], ["robustness", "pre", "post"],
+@pytest.mark.parametrize("argv", [["experiment", "paper"], ["robustness", "pre", "post"], ["training-set"],
                                   ["evaluate", "r.csv", "--truth", "t.csv"]])
 def test_report_folders_that_are_files_are_refused(tmp_path, capsys, argv):
     out = tmp_path / "report"
