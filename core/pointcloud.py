@@ -91,11 +91,19 @@ class LasChunkWriter:
         self.count = 0
 
     def __enter__(self):
-        self.path.parent.mkdir(parents=True, exist_ok=True)
+        from .results import is_write_failure, write_failure_message
+
         kwargs = {}
         if self._compress:
             kwargs["laz_backend"] = laspy.LazBackend.LazrsParallel
-        self._writer = laspy.open(self.tmp, mode="w", header=self.header, do_compress=self._compress, **kwargs)
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._writer = laspy.open(self.tmp, mode="w", header=self.header, do_compress=self._compress, **kwargs)
+        except Exception as e:
+            self.tmp.unlink(missing_ok=True)
+            if is_write_failure(e):
+                raise PointCloudError(write_failure_message(self.path, e)) from e
+            raise
         return self
 
     def write(self, chunk: PointChunk) -> None:
@@ -127,17 +135,24 @@ class LasChunkWriter:
         self.count += len(rec)
 
     def __exit__(self, exc_type, exc, tb):
+        from .results import is_write_failure, write_failure_message
+
         try:
             if self.count == 0 and exc_type is None:
                 # laspy leaves inf/-inf bounds in an empty file's header
                 self._writer.header.mins = self.offset
                 self._writer.header.maxs = self.offset
-            self._writer.close()
-        finally:
-            if exc_type is None:
-                os.replace(self.tmp, self.path)
-            else:
-                self.tmp.unlink(missing_ok=True)
+            self._writer.close()  # flushes the last chunk: a full disk may show only here
+        except BaseException as e:
+            exc = exc or e
+        if exc is None:
+            os.replace(self.tmp, self.path)
+            return False
+        self.tmp.unlink(missing_ok=True)  # never a cut file under the final name
+        if is_write_failure(exc) and not isinstance(exc, PointCloudError):
+            raise PointCloudError(write_failure_message(self.path, exc)) from exc
+        if exc_type is None:
+            raise exc
         return False
 
 

@@ -298,6 +298,30 @@ def test_model_save_on_a_full_disk(tmp_path, monkeypatch):
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.parametrize("where", ["write", "close"])
+def test_the_streaming_las_writer_on_a_full_disk_leaves_no_file(tmp_path, monkeypatch, where):
+    """Scan, dim and acquisitions stream through LasChunkWriter: a failure while writing, or
+    only when the last chunk is flushed on closing, must not leave a cut file under the name."""
+    from core.pointcloud import LasChunkWriter, PointCloudError
+
+    xyz, _ = town()
+    out = tmp_path / "c.laz"
+    w = LasChunkWriter(out, ORIGIN, RD)
+    if where == "write":
+        monkeypatch.setattr(LasChunkWriter, "write_record", lambda self, rec, bounds: _enospc())
+    with pytest.raises(PointCloudError, match=r"c\.laz: cannot write: no space left"):
+        with w:
+            if where == "close":
+                monkeypatch.setattr(w._writer, "close", lambda: (_ for _ in ()).throw(OSError(errno.ENOSPC, "full")))
+            from core.pointcloud import PointChunk
+
+            n = len(xyz)
+            z = np.zeros(n, np.uint8)
+            w.write(PointChunk(xyz - ORIGIN, np.zeros(n), np.zeros(n), z + 1, z + 1, z + 2, np.zeros(n, np.uint32),
+                               z + 255, z, np.ones(n, np.uint16)))
+    assert list(tmp_path.iterdir()) == []
+
+
 # ---------------------------------------------------------------------------- checkpoints
 
 @pytest.mark.parametrize("content", ['{"fingerpr', "", '\x00\x00garbage\n{"building_id": 1}\n', "[1, 2]\n"])
