@@ -515,7 +515,8 @@ def cmd_experiment(args) -> int:
     if mix is not None and (any(g not in (0, 3, 4, 5) or n < 0 for g, n in mix.items()) or sum(mix.values()) < 1):
         raise QuakeScanError(f"--test-mix: grades must be 0, 3, 4 or 5 with counts >= 0 (at least one building), "
                              f"got {args.test_mix!r}")
-    _check_number("--buildings", args.buildings, 4, integer=True)
+    if args.buildings < 4:
+        raise QuakeScanError(f"--buildings: buildings per training dataset must be >= 4, got {args.buildings}")
     _check_folder_output(Path(args.output))
     _check_number("--trees", args.trees, 1, integer=True)
     _check_seed(args.seed)
