@@ -420,6 +420,8 @@ def load_model(path: str | os.PathLike) -> DamageModel:
         raise ModelError(f"{path}: no_change_rule must be true or false, got {rule!r}")
     _check_classifier_record(path, meta.get("classifier"), est)
     _check_settings(path, meta)
+    if not isinstance(meta.get("provenance", {}), dict) or not all(isinstance(n, str) for n in names):
+        raise ModelError(f"{path}: provenance must be a dict and feature names texts (edited or foreign file)")
     classes = getattr(est, "classes_", None)
     try:
         grades = [int(c) for c in classes] if classes is not None else []

@@ -412,6 +412,23 @@ def test_edited_or_foreign_models_are_refused(pair, tmp_path, capsys, edit, matc
     assert code == 2 and str(path) in err
 
 
+@pytest.mark.parametrize("key,value", [("provenance", "made by hand"), ("radius_m", "1.5"), ("split", "paper"),
+                                       ("feature_names", [1, 2]), ("radius_m", float("nan"))])
+def test_model_metadata_of_the_wrong_type_is_refused(tmp_path, key, value):
+    import skops.io
+
+    from core.model import ModelError, load_model
+
+    path = tiny_model(tmp_path / "m.skops")
+    doc = skops.io.load(path, trusted=skops.io.get_untrusted_types(file=path))
+    doc["meta"][key] = value
+    if key == "feature_names":
+        doc["estimator"].fit(np.zeros((4, 2)), [0, 3, 4, 5])
+    skops.io.dump(doc, path)
+    with pytest.raises(ModelError, match=str(path)):
+        load_model(path)
+
+
 def test_a_model_with_settings_in_range_still_loads(tmp_path):
     from core.model import load_model
 
