@@ -243,6 +243,10 @@ def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=N
     t0 = time.perf_counter()
     out = Path(out_dir)
     model_path = Path(model_path) if model_path else default_model_path()
+    for p, what in ((pre_path, "pre-event point cloud"), (post_path, "post-event point cloud"),
+                    (footprints_path, "footprint file"), (model_path, "model file")):
+        if p is not None and not Path(p).is_file():  # before the fingerprint reads them
+            raise ClassifyError(f"{p}: {what} " + ("is a folder, not a file" if Path(p).is_dir() else "does not exist"))
     _check_output_folder(out, [pre_path, post_path, footprints_path, model_path])
     fingerprint = _fingerprint([pre_path, post_path, footprints_path], model_path, align)
     options = {"id_field": id_field, "write_las": bool(write_las), "laz": laz}

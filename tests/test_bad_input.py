@@ -176,6 +176,24 @@ def test_features_refuses_outputs_it_cannot_write(pair, tmp_path, capsys, case):
     assert not (tmp_path / "f.txt").exists()
 
 
+@pytest.mark.parametrize("which,what", [("--pre", "pre-event point cloud"), ("--post", "post-event point cloud"),
+                                        ("--model", "model file"), ("--footprints", "footprint file")])
+@pytest.mark.parametrize("kind", ["missing", "folder"])
+def test_classify_names_a_missing_input(pair, tmp_path, capsys, which, what, kind):
+    argv = classify_args(pair, tmp_path / "res")
+    bad = tmp_path / "nothing.here"
+    if kind == "folder":
+        bad.mkdir()
+    if which == "--footprints":
+        argv += ["--footprints", bad]
+    else:
+        argv[argv.index(which) + 1] = bad
+    code, _, err = run(argv, capsys)
+    assert code == 2 and f"{bad}: {what}" in err
+    assert ("does not exist" if kind == "missing" else "is a folder") in err
+    assert not (tmp_path / "res").exists()
+
+
 @pytest.mark.parametrize("target", ["pre", "other file"])
 def test_classify_output_that_is_a_file_is_refused(pair, tmp_path, capsys, target):
     pre = tmp_path / "pre.las"
