@@ -15,16 +15,23 @@ RC = "reinforced_concrete"
 MATERIALS = (MASONRY, RC)
 MATERIAL_LABELS = {MASONRY: "Masonry", RC: "Reinforced concrete"}
 
-# EMS-98 grade -> (short label, masonry description, RC description)
+# The one table of grade names (a copy of core/grades.py, which the add-on cannot import;
+# tests/test_grades.py checks they are identical): EMS-98's names, and the paper's short
+# names where space is short.
+GRADE_NAMES = {0: "no damage", 1: "negligible to slight", 2: "moderate", 3: "substantial to heavy",
+               4: "very heavy", 5: "destruction"}
+GRADE_SHORT_NAMES = {0: "no damage", 1: "negligible", 2: "moderate", 3: "heavy", 4: "extreme", 5: "destruction"}
+
+# EMS-98 grade -> (EMS-98 name, masonry description, RC description)
 GRADES = {
-    0: ("no damage", "no visible damage", "no visible damage"),
-    1: ("negligible to slight", "hairline cracks, plaster pieces fall", "fine cracks in plaster/infill"),
-    2: ("moderate", "cracks in many walls, chimneys partly fall", "cracks in columns, beams, infills"),
-    3: ("substantial to heavy", "large cracks in most walls, roof tiles detach, chimneys break, "
+    0: (GRADE_NAMES[0], "no visible damage", "no visible damage"),
+    1: (GRADE_NAMES[1], "hairline cracks, plaster pieces fall", "fine cracks in plaster/infill"),
+    2: (GRADE_NAMES[2], "cracks in many walls, chimneys partly fall", "cracks in columns, beams, infills"),
+    3: (GRADE_NAMES[3], "large cracks in most walls, roof tiles detach, chimneys break, "
         "gable walls or partitions fail", "column/joint cracking, spalling, individual infill panels fail"),
-    4: ("very heavy", "serious failure of walls, partial collapse of roofs and floors",
+    4: (GRADE_NAMES[4], "serious failure of walls, partial collapse of roofs and floors",
         "tilting columns, a few columns or a single upper floor collapse"),
-    5: ("destruction", "total or near-total collapse", "collapse of the ground floor or of parts (wings)"),
+    5: (GRADE_NAMES[5], "total or near-total collapse", "collapse of the ground floor or of parts (wings)"),
 }
 # The paper's target classes: grades 1-2 are geometrically "no damage" at UAV resolution.
 TARGET_GRADES = (0, 3, 4, 5)
@@ -39,6 +46,10 @@ VULNERABILITY_LABELS = {
     "E": "E: RC with high seismic design",
     "F": "F: timber / steel",
 }
+
+# What the sidebar's dropdown shows (its width holds ~28 characters); the full label is the tooltip.
+VULNERABILITY_SHORT = {"A": "A: rubble, adobe", "B": "B: stone, brick", "C": "C: massive stone, old RC",
+                       "D": "D: confined masonry, RC", "E": "E: RC, high design", "F": "F: timber, steel"}
 
 # Storey heights (m) by material.
 STOREY_HEIGHT = {MASONRY: (2.8, 3.2), RC: (3.0, 3.5)}

@@ -15,7 +15,8 @@ ROLE_ITEMS = [
     ("TERRAIN", "Terrain", "Ground and anything that is not a building (building ID 0)"),
 ]
 MATERIAL_ITEMS = [(m, ems98.MATERIAL_LABELS[m], "") for m in ems98.MATERIALS]
-CLASS_ITEMS = [(c, ems98.VULNERABILITY_LABELS[c], "EMS-98 vulnerability class") for c in ems98.VULNERABILITY_CLASSES]
+CLASS_ITEMS = [(c, ems98.VULNERABILITY_SHORT[c], f"EMS-98 vulnerability class {ems98.VULNERABILITY_LABELS[c]}")
+               for c in ems98.VULNERABILITY_CLASSES]
 PATTERN_ITEMS = [(n, p.label, p.description or p.label) for n, p in ems98.PATTERNS.items()]
 DETAIL_ITEMS = [("none", "None", "A clean shell"),
                 ("typical", "Typical", "Roof and facade details drawn with the city generator's frequencies for "
@@ -58,7 +59,7 @@ class DAMAGE_PG_building(PropertyGroup):
     building_id: IntProperty(name="Building ID", min=0, default=0,
                              description="Shared by the pre- and post-event versions of a building (> 0)")
     grade: IntProperty(name="EMS-98 grade", min=0, max=5, default=0,
-                       description="Damage grade: 0 none, 3 heavy, 4 very heavy, 5 destruction")
+                       description="EMS-98 damage grade: " + ", ".join(f"{g} {n}" for g, n in ems98.GRADE_NAMES.items()))
     material: EnumProperty(name="Material", items=MATERIAL_ITEMS, default=ems98.MASONRY)
     vulnerability_class: EnumProperty(name="Vulnerability", items=CLASS_ITEMS, default="B")
     storeys: IntProperty(name="Storeys", min=1, max=80, default=2)

@@ -9,6 +9,31 @@ from . import ems98
 from .props import param_prop_name
 
 
+# Short material names for one-line summaries in the narrow sidebar.
+MATERIAL_SHORT = {ems98.MASONRY: "masonry", ems98.RC: "RC"}
+LINE_CHARS = 28  # a label line at the default sidebar width (Blender 3.4, UI scale 1: ~174 px)
+
+
+def _wrapped(words, first="", chars=LINE_CHARS) -> list:
+    """Lines of comma-separated words, none longer than `chars` (labels do not wrap)."""
+    lines, cur, n = [], first, 0
+    for w in words:
+        sep = ", " if n else ""
+        if n and len(cur) + len(sep) + len(w) > chars:
+            lines.append(cur + ",")
+            cur, n = w, 1
+        else:
+            cur, n = cur + sep + w, n + 1
+    return lines + [cur] if n else lines
+
+
+def _stacked(layout, data, name, text=None):
+    """The property's name on a line of its own, the field under it across the full width:
+    a dropdown or text field beside its label leaves each half of the narrow sidebar."""
+    layout.label(text=text or data.bl_rna.properties[name].name)
+    layout.prop(data, name, text="")
+
+
 def _detail_kinds(shell_json: str) -> list:
     """Kinds of the roof and facade details of an add-on shell (none for user meshes)."""
     try:
@@ -34,25 +59,29 @@ class DAMAGE_PT_main(bpy.types.Panel):
             layout.label(text="Select a mesh object", icon='INFO')
             return
         pg = obj.qs_building
-        col = layout.column(align=True)
-        col.prop(pg, "role")
+        layout.row(align=True).prop(pg, "role", expand=True)
         if pg.role != "BUILDING":
             return
+        col = layout.column(align=True)
         col.prop(pg, "building_id")
         col.prop(pg, "grade")
-        col.label(text=f"EMS-98 {pg.grade}: {ems98.grade_label(pg.grade)}")
-        col.prop(pg, "material")
-        col.prop(pg, "vulnerability_class")
+        layout.label(text=f"{pg.grade}: {ems98.grade_label(pg.grade)}")
+        col = layout.column(align=True)
+        _stacked(col, pg, "material")
+        _stacked(col, pg, "vulnerability_class")
+        col = layout.column(align=True)
         col.prop(pg, "storeys")
         col.prop(pg, "storey_height")
-        col.prop(pg, "typology")
         col.prop(pg, "seed")
+        _stacked(layout.column(align=True), pg, "typology")
         kinds = _detail_kinds(pg.shell_json)
         if kinds:
-            col.label(text="Details: " + ", ".join(kinds))
-        row = layout.row(align=True)
-        row.operator("damage.add_interior")
-        row.operator("damage.reset_building")
+            col = layout.column(align=True)
+            for line in _wrapped(kinds, "Details: "):
+                col.label(text=line)
+        col = layout.column(align=True)
+        col.operator("damage.add_interior")
+        col.operator("damage.reset_building")
 
 
 class DAMAGE_PT_damage(bpy.types.Panel):
@@ -71,10 +100,10 @@ class DAMAGE_PT_damage(bpy.types.Panel):
     def draw(self, context):
         layout = self.layout
         pg = context.active_object.qs_building
-        layout.prop(pg, "pattern")
+        _stacked(layout, pg, "pattern")
         pat = ems98.PATTERNS[pg.pattern]
         layout.label(text=f"grade {'/'.join(map(str, pat.grades))}, "
-                          f"{', '.join(ems98.MATERIAL_LABELS[m] for m in pat.materials)}")
+                          f"{', '.join(MATERIAL_SHORT[m] for m in pat.materials)}")
         col = layout.column(align=True)
         names = list(pat.params)
         for g in pat.grade_params.values():
@@ -104,14 +133,14 @@ class DAMAGE_PT_scene(bpy.types.Panel):
         layout = self.layout
         sc = context.scene.qs_scene
         col = layout.column(align=True)
-        col.prop(sc, "post_collection")
+        _stacked(col, sc, "post_collection")
         col.prop(sc, "seed")
         layout.operator("damage.make_post_scene", icon='DUPLICATE')
         col = layout.column(align=True)
-        col.prop(sc, "origin")
-        col.prop(sc, "crs")
-        col.prop(sc, "epoch")
-        col.prop(sc, "export_dir")
+        _stacked(col, sc, "origin")
+        _stacked(col, sc, "crs")
+        layout.row(align=True).prop(sc, "epoch", expand=True)
+        _stacked(layout.column(align=True), sc, "export_dir")
         layout.operator("damage.export_bundle", icon='EXPORT')
 
 

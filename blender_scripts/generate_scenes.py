@@ -21,6 +21,10 @@ seeded sample of that many of its buildings (default: all), the others are left 
 output keeps the source's origin, CRS and float64 coordinates. Imported LoD2 shells are
 damaged as box-like buildings (see addon/io_import.py and the README for the limits).
 
+--origin X,Y[,Z] and --crs EPSG:n place a generic or region city in the world: the bundles'
+origin and CRS (the mesh stays in local metres around it), e.g. --origin 367000,4690000
+--crs EPSG:32633 puts it at L'Aquila in UTM zone 33N, as `quakescan demo` does.
+
 --streetscape typical adds trees (porous crowns, some overhanging roofs), hedges, parked
 cars and street furniture (addon/streetscape.py); every post-event scene keeps the trees,
 hedges and furniture and gets its own mix of parked cars. Default none: no streetscape, the
@@ -99,6 +103,11 @@ def parse_args(argv):
                    help="roof and facade details (dormers, chimneys, skylights, overhangs, balconies, antennas, "
                    "solar panels, rooftop structures, annexes, terraces): none (clean shells, default) or typical "
                    "(frequencies by typology, addon/citygen.py); --set bundle: roof-top details on the roof faces")
+    p.add_argument("--origin", type=_origin, default=None,
+                   help="generic/region: world coordinates 'X,Y[,Z]' of the city's local origin, written as the "
+                   "bundles' origin (e.g. 367000,4690000 with --crs EPSG:32633: L'Aquila); default 0,0,0")
+    p.add_argument("--crs", default=None,
+                   help="generic/region: the CRS the bundles name, e.g. EPSG:32633 (default: none)")
     p.add_argument("--out", required=True, help="output folder (created)")
     p.add_argument("--force", action="store_true", help="regenerate bundles made with other settings")
     p.add_argument("--streetscape", choices=("none", "typical"), default="none",
@@ -114,12 +123,24 @@ def parse_args(argv):
         if args.buildings is not None and args.buildings != total:
             p.error(f"--buildings {args.buildings} disagrees with --grade-mix, which sums to {total}")
         args.buildings = total
+    if args.set_name == "bundle" and (args.origin is not None or args.crs):
+        p.error("--origin and --crs are not used with --set bundle: the output keeps the source's")
     if args.set_name != "bundle":
         if args.source:
             p.error("--source is only used with --set bundle")
         if args.buildings is None:
             args.buildings = 112
     return args
+
+
+def _origin(text):
+    try:
+        v = [float(t) for t in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected X,Y or X,Y,Z in metres, got {text!r}") from None
+    if len(v) not in (2, 3) or not all(abs(c) < 1e8 for c in v):  # NaN fails too
+        raise argparse.ArgumentTypeError(f"expected X,Y or X,Y,Z, each finite and within 1e8 m, got {text!r}")
+    return tuple(v + [0.0] * (3 - len(v)))
 
 
 def _grade_mix(text):
@@ -155,6 +176,10 @@ def generator_info(args, scene_name):
         info["source"] = {"name": Path(args.source).resolve().name, "sha256": getattr(args, "source_sha256", None)}
     if getattr(args, "streetscape", "none") != "none":  # absent with none: older bundles stay valid
         info["streetscape"] = args.streetscape
+    if getattr(args, "origin", None) is not None:  # absent by default: older bundles stay valid
+        info["origin"] = list(args.origin)
+    if getattr(args, "crs", None):
+        info["crs"] = args.crs
     return info
 
 
@@ -367,7 +392,9 @@ def run(args) -> int:
                                               origin=origin, crs=crs, extra={"generator": info})
             else:
                 rep = io_export.export_objects(tmp, objs, epoch="pre" if name == "pre" else "post",
-                                               origin=(0.0, 0.0, 0.0), crs=None, extra={"generator": info})
+                                               origin=getattr(args, "origin", None) or (0.0, 0.0, 0.0),
+                                               crs=getattr(args, "crs", None) or None,
+                                               extra={"generator": info})
             _swap_into_place(tmp, out / name)
             log(f"{name}: wrote {out / name} ({rep['buildings']} buildings, {rep['faces']} faces) "
                 f"in {time.perf_counter() - t0:.1f} s")

@@ -227,8 +227,9 @@ def predict_rows(rows, model: DamageModel, rule: bool | None = None) -> list:
 def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=None, id_field=None,
              align: bool | None = None, workers: int = -1, progress=None, write_las: bool = True,
              laz: bool | None = None, force: bool = False) -> dict:
-    """Run the whole classification and write OUT/buildings.csv, .geojson, damage_map.png,
-    post_grades.las and summary.json. Returns the summary.
+    """Run the whole classification and write OUT/buildings.csv, .geojson, .qml (its QGIS
+    style), damage_map.png, damage_map.html (offline), post_grades.las and summary.json.
+    Returns the summary.
 
     `align`: True aligns the post epoch to the pre epoch on stable ground (ICP) first; False
     takes the epochs as they are; None (default) checks their registration and aligns when
@@ -239,6 +240,8 @@ def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=N
     date: its summary is returned (with "up_to_date": True) and nothing is recomputed,
     unless `force`."""
     from . import results
+    from .qgis_style import write_qml
+    from .webmap import write_map_html
 
     t0 = time.perf_counter()
     out = Path(out_dir)
@@ -288,9 +291,12 @@ def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=N
     outlines = results.building_outlines(res, data.footprints, xy_by, pre.origin)
     attributes = (fp.attributes() or None) if fp is not None else None
     results.write_geojson(res, outlines, out / "buildings.geojson", pre.crs, classes, attributes)
+    write_qml(out / "buildings.qml")
     sub = pre.xyz[:: max(1, len(pre) // 200_000), :2] + pre.origin[:2]
-    results.write_map_png(res, outlines, out / "damage_map.png",
-                          f"Damage grades: {Path(post_path).name}", points_xy=sub)
+    title = f"Damage grades: {Path(post_path).name}"
+    results.write_map_png(res, outlines, out / "damage_map.png", title, points_xy=sub, crs=pre.crs)
+    write_map_html(res, outlines, out / "damage_map.html", title, pre.crs, classes,
+                   own_ids=fp.own_ids() if fp is not None else None)
     if write_las:
         compress = Path(post_path).suffix.lower() == ".laz" if laz is None else laz
         graded = out / ("post_grades.laz" if compress else "post_grades.las")
@@ -300,7 +306,8 @@ def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=N
     counts: dict[str, int] = {}
     for r in res:
         counts[r.label] = counts.get(r.label, 0) + 1
-    summary.update({"buildings": len(res), "by_label": counts, "resumed_buildings": resumed,
+    summary.update({"buildings": len(res), "by_label": counts, "by_grade_name": counts_by_grade_name(res),
+                    "resumed_buildings": resumed,
                     "seconds": {"read": round(t_read - t0, 2), "describe": round(t_describe - t_read, 2),
                                 "total": round(time.perf_counter() - t0, 2)}})
     summary["fingerprint"] = fingerprint
@@ -309,6 +316,20 @@ def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=N
         tmp.write_text(json.dumps(summary, indent=1, default=_json_default))
     ckpt.path.unlink(missing_ok=True)
     return summary
+
+
+def counts_by_grade_name(res) -> dict:
+    """{"0 no damage": n, "3 substantial to heavy (heavy)": n, ..., "not assessable": n} in
+    grade order: what the CLI prints (core.grades)."""
+    from .grades import long_label
+    from .results import NOT_ASSESSABLE
+
+    grades = sorted({int(r.grade) for r in res if r.assessable and r.grade is not None})
+    out = {long_label(g): sum(1 for r in res if r.assessable and r.grade == g) for g in grades}
+    missing = sum(1 for r in res if not r.assessable or r.grade is None)
+    if missing:
+        out[NOT_ASSESSABLE] = missing
+    return out
 
 
 # Epochs whose stable ground disagrees by more than this share of the model's level of
@@ -395,7 +416,7 @@ def _finished(out: Path, fingerprint: str, options: dict) -> dict | None:
         return None
     if summary.get("fingerprint") != fingerprint or summary.get("options") != options:
         return None
-    wanted = ["buildings.csv", "buildings.geojson", "damage_map.png"]
+    wanted = ["buildings.csv", "buildings.geojson", "buildings.qml", "damage_map.png", "damage_map.html"]
     if options["write_las"]:
         wanted.append(Path(summary.get("post_grades", "post_grades.las")).name)
     return summary if all((out / name).is_file() for name in wanted) else None

@@ -1,6 +1,7 @@
 """The built-in default run (`quakescan demo`): the whole chain on a small simulated city.
 
-generate (the add-on's headless generator: a mixed city, a grade drawn per building)
+generate (the add-on's headless generator: a mixed city, a grade drawn per building, placed
+in L'Aquila, EPSG:32633)
 → scan both epochs with the paper's survey → classify with the shipped model → evaluate
 against the generator's grades → map. Every step writes atomically and is skipped when its
 output is already there, so an interrupted demo continues where it stopped.
@@ -22,6 +23,10 @@ from .errors import QuakeScanError
 
 REPO = Path(__file__).resolve().parent.parent
 GENERATOR = REPO / "blender_scripts" / "generate_scenes.py"
+# The demo city stands in L'Aquila (the paper's test region), in UTM zone 33N: its
+# GeoJSON, maps and clouds land there in QGIS or CloudCompare.
+DEMO_CRS = "EPSG:32633"
+DEMO_ORIGIN = (367000.0, 4690000.0, 0.0)
 
 
 class DemoError(QuakeScanError):
@@ -43,12 +48,20 @@ def generator_command(args: list[str]) -> list[str]:
 
 def generate(set_name: str, dataset: str, buildings: int | None, seed: int, out: Path,
              grade_mix: dict | None = None, source: Path | None = None, details: str = "none",
-             streetscape: str = "none") -> None:
+             streetscape: str = "none", origin=None, crs: str | None = None, force: bool = False) -> None:
     """Run the add-on's scene generator; `grade_mix` (grade -> count) fixes a mixed city's grades;
     `source`: the scene bundle whose buildings `set_name` "bundle" damages; `details`: "none" or
     "typical" roof and facade details (dormers, chimneys, balconies, solar panels, ...);
-    `streetscape` "typical" adds trees, hedges, parked cars and street furniture ("none": without)."""
+    `streetscape` "typical" adds trees, hedges, parked cars and street furniture ("none": without);
+    `origin` (x, y, z) and `crs` place a procedural city in the world; `force` regenerates
+    bundles made with other settings (finished ones with the same settings are kept)."""
     args = ["--set", set_name, "--dataset", dataset, "--seed", str(seed), "--out", str(out)]
+    if origin is not None:
+        args += ["--origin", ",".join(repr(float(v)) for v in origin)]
+    if crs:
+        args += ["--crs", str(crs)]
+    if force:
+        args += ["--force"]
     if details != "none":
         args += ["--details", details]
     if streetscape != "none":  # the generator's default: its command line stays what it was
@@ -71,8 +84,9 @@ def scan_scene(scene_dir: Path, out: Path, seed: int, progress=None) -> None:
     from .scene import read_scene
     from .survey import preset
 
-    if out.is_file():
-        return
+    manifest = Path(scene_dir) / "scene.json"
+    if out.is_file() and out.stat().st_mtime_ns >= manifest.stat().st_mtime_ns:
+        return  # scanned after the scene was (re)generated
     scan(read_scene(scene_dir), preset("paper"), out, seed=seed, progress=progress, source=str(scene_dir))
 
 
@@ -81,7 +95,8 @@ def run_demo(out_dir, seed: int = 0, buildings: int = 30, say=print, progress_fa
     out.mkdir(parents=True, exist_ok=True)
     city = out / "city"
     say(f"demo 1/5: generating a mixed city of {buildings} buildings (seed {seed}) -> {city}")
-    generate("generic", "mixed", buildings, seed, city)
+    # force: a demo folder from an older QuakeScan (its city at another place) is regenerated, then rescanned
+    generate("generic", "mixed", buildings, seed, city, origin=DEMO_ORIGIN, crs=DEMO_CRS, force=True)
     pf = progress_factory or (lambda label: None)
     say("demo 2/5: scanning the pre- and post-event scenes with the paper's UAV survey")
     scan_scene(city / "pre", out / "pre.las", seed=seed * 2 + 1, progress=pf("scan pre"))
@@ -100,5 +115,5 @@ def run_demo(out_dir, seed: int = 0, buildings: int = 30, say=print, progress_fa
 
     with _atomic(result / "evaluation.json") as tmp:
         tmp.write_text(json.dumps(ev.to_json(), indent=1))
-    say(f"demo 5/5: map -> {result / 'damage_map.png'}")
+    say(f"demo 5/5: maps -> {result / 'damage_map.png'}, {result / 'damage_map.html'} (opens offline)")
     return {"summary": summary, "evaluation": ev, "result": result}

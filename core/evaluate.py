@@ -16,9 +16,11 @@ from pathlib import Path
 import numpy as np
 
 from .errors import QuakeScanError
+from .grades import short_name
 
 TARGET_GRADES = (0, 3, 4, 5)
-GRADE_NAMES = {0: "no damage", 3: "heavy", 4: "extreme", 5: "destruction"}
+GRADE_NAMES = {g: short_name(g) for g in TARGET_GRADES}  # tables and plots: the paper's short names
+NOT_AVAILABLE = "n/a"
 
 
 class EvaluationError(QuakeScanError):
@@ -26,7 +28,8 @@ class EvaluationError(QuakeScanError):
 
 
 def binary_metrics(truth: np.ndarray, pred: np.ndarray) -> dict:
-    """OA, precision, recall, F1 of boolean predictions; 0 where a ratio has no cases."""
+    """OA, precision, recall, F1 of boolean predictions; 0 where a ratio has no cases, and
+    those metrics named in `undefined` (reports print them "n/a", see `metric_text`)."""
     truth, pred = np.asarray(truth, bool), np.asarray(pred, bool)
     tp = int(np.sum(truth & pred))
     tn = int(np.sum(~truth & ~pred))
@@ -36,8 +39,27 @@ def binary_metrics(truth: np.ndarray, pred: np.ndarray) -> dict:
     precision = tp / (tp + fp) if tp + fp else 0.0
     recall = tp / (tp + fn) if tp + fn else 0.0
     f1 = 2 * precision * recall / (precision + recall) if precision + recall else 0.0
+    undefined = [k for k, ok in (("oa", n), ("precision", tp + fp), ("recall", tp + fn),
+                                 ("f1", tp + fp and tp + fn)) if not ok]
     return {"oa": (tp + tn) / n if n else 0.0, "precision": precision, "recall": recall, "f1": f1,
-            "tp": tp, "tn": tn, "fp": fp, "fn": fn}
+            "tp": tp, "tn": tn, "fp": fp, "fn": fn, "undefined": undefined}
+
+
+def metric_defined(m: dict, key: str) -> bool:
+    """False for a ratio without cases: recall and F1 of a class absent from the truth,
+    precision of a class never predicted (dicts written before `undefined` existed are read
+    from their counts)."""
+    if "undefined" in m:
+        return key not in m["undefined"]
+    tp, fp, fn, tn = (int(m.get(k, 0)) for k in ("tp", "fp", "fn", "tn"))
+    return bool({"oa": tp + fp + fn + tn, "precision": tp + fp, "recall": tp + fn,
+                 "f1": (tp + fp) and (tp + fn)}.get(key, 1))
+
+
+def metric_text(m: dict, key: str, digits: int = 1, unit: str = " %") -> str:
+    """A metric in percent for reports, "n/a" where it has no cases (never a 0 % that reads
+    as a failure)."""
+    return f"{100 * m[key]:.{digits}f}{unit}" if metric_defined(m, key) else NOT_AVAILABLE
 
 
 def to_target_grade(g: np.ndarray) -> np.ndarray:
@@ -68,13 +90,10 @@ class Evaluation:
 
     def table(self) -> str:
         rows = ["| class | OA | precision | recall | F1 |", "|---|---|---|---|---|"]
-        for g in TARGET_GRADES:
-            m = self.per_grade[g]
-            rows.append(f"| {GRADE_NAMES[g]} | {100 * m['oa']:.1f} % | {100 * m['precision']:.1f} % | "
-                        f"{100 * m['recall']:.1f} % | {100 * m['f1']:.1f} % |")
-        m = self.damaged
-        rows.append(f"| damaged vs undamaged | {100 * m['oa']:.1f} % | {100 * m['precision']:.1f} % | "
-                    f"{100 * m['recall']:.1f} % | {100 * m['f1']:.1f} % |")
+        named = [(GRADE_NAMES[g], self.per_grade[g]) for g in TARGET_GRADES]
+        for name, m in named + [("damaged vs undamaged", self.damaged)]:
+            rows.append(f"| {name} | " + " | ".join(metric_text(m, k) for k in ("oa", "precision", "recall", "f1"))
+                        + " |")
         return "\n".join(rows)
 
 

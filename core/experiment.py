@@ -39,9 +39,11 @@ from pathlib import Path
 import numpy as np
 
 from .evaluate import (
+    GRADE_NAMES,
     TARGET_GRADES,
     Evaluation,
     evaluate_grades,
+    metric_text,
     plot_confusion,
     read_truth,
 )
@@ -190,8 +192,12 @@ def _levels_of_detection(s: ExperimentSettings, pre: Path, rescan: Path, cache: 
 
 
 def run_paper_experiment(out_dir, settings: ExperimentSettings | None = None, *, workers: int = -1,
-                         say: Callable[[str], None] = print) -> dict:
-    """Run everything and write the report to out_dir; returns {classifier: Evaluation}."""
+                         say: Callable[[str], None] = print, progress=None) -> dict:
+    """Run everything and write the report to out_dir; returns {classifier: Evaluation}.
+
+    `progress(done, total)` counts steps: cities generated, clouds acquired, the levels of
+    detection, descriptor tables, the test city described, the classifiers trained (a cached
+    step counts as done)."""
     from .classify import load_pair, predict_rows
     from .demo import generate
     from .model import DamageModel
@@ -208,14 +214,25 @@ def run_paper_experiment(out_dir, settings: ExperimentSettings | None = None, *,
     def step(label):
         timings[label] = round(time.perf_counter() - t0 - sum(timings.values()), 1)
 
+    n_cities = 5 if mixed else 3
+    n_clouds = 3 * (1 + len(TRAINING_SCENES) + (2 if mixed else 0)) + 2
+    total = n_cities + n_clouds + 1 + 3 * (2 if mixed else 1) + 2
+    done = [0]
+
+    def advance(result=None):
+        done[0] += 1
+        if progress:
+            progress(done[0], total)
+        return result
+
     say(f"experiment 1/5: generating the generic and region-specific datasets ({s.buildings} buildings each"
         + (f", and a mixed city {s.mixed_training_mix} each" if mixed else "") + f") and the test city {s.test_mix}")
-    generate("generic", "paper", s.buildings, s.seed, data / "generic")
-    generate("region", "paper", s.buildings, s.seed + 1, data / "region")
-    generate("region", "mixed", None, s.seed + 2, data / "test", grade_mix=s.test_mix)
+    advance(generate("generic", "paper", s.buildings, s.seed, data / "generic"))
+    advance(generate("region", "paper", s.buildings, s.seed + 1, data / "region"))
+    advance(generate("region", "mixed", None, s.seed + 2, data / "test", grade_mix=s.test_mix))
     if mixed:
-        generate("generic", "mixed", None, s.seed + 3, data / "generic_mixed", grade_mix=s.mixed_training_mix)
-        generate("region", "mixed", None, s.seed + 4, data / "region_mixed", grade_mix=s.mixed_training_mix)
+        advance(generate("generic", "mixed", None, s.seed + 3, data / "generic_mixed", grade_mix=s.mixed_training_mix))
+        advance(generate("region", "mixed", None, s.seed + 4, data / "region_mixed", grade_mix=s.mixed_training_mix))
     step("generate")
 
     say("experiment 2/5: acquiring the clouds (ULS: paper survey; DIM: paper photo flight)")
@@ -224,37 +241,39 @@ def run_paper_experiment(out_dir, settings: ExperimentSettings | None = None, *,
     for k, (dataset, kind) in enumerate((("generic", "uls"), ("region", "uls"), ("region", "dim"))):
         c = {}
         for j, (name, scene, _) in enumerate((("pre", "pre", None), *TRAINING_SCENES)):
-            c[name] = _acquire(kind, data / dataset / scene, data / f"{dataset}_{kind}_{name}",
-                               s.seed * 100 + 5 * k + j + 1, say)
+            c[name] = advance(_acquire(kind, data / dataset / scene, data / f"{dataset}_{kind}_{name}",
+                                       s.seed * 100 + 5 * k + j + 1, say))
         if mixed:
             for j, ep in enumerate(("pre", "post")):
-                c[f"mixed_{ep}"] = _acquire(kind, data / f"{dataset}_mixed" / ep, data / f"{dataset}_mixed_{kind}_{ep}",
-                                            s.seed * 100 + 60 + 2 * k + j, say)
+                c[f"mixed_{ep}"] = advance(_acquire(kind, data / f"{dataset}_mixed" / ep,
+                                                    data / f"{dataset}_mixed_{kind}_{ep}",
+                                                    s.seed * 100 + 60 + 2 * k + j, say))
         clouds[(dataset, kind)] = c
-    test_pre = _acquire("dim", data / "test" / "pre", data / "test_dim_pre", s.seed * 100 + 90, say)
-    test_post = _acquire("dim", data / "test" / "post", data / "test_dim_post", s.seed * 100 + 91, say)
+    test_pre = advance(_acquire("dim", data / "test" / "pre", data / "test_dim_pre", s.seed * 100 + 90, say))
+    test_post = advance(_acquire("dim", data / "test" / "post", data / "test_dim_post", s.seed * 100 + 91, say))
     step("acquire")
 
     dim = clouds[("region", "dim")]
-    lod = _levels_of_detection(s, dim["pre"], dim["pre_rescan"], data / f"lod_{dim['pre_rescan'].stem}.json", workers)
+    lod = advance(_levels_of_detection(s, dim["pre"], dim["pre_rescan"], data / f"lod_{dim['pre_rescan'].stem}.json",
+                                       workers))
     pipe = PipelineSettings(split=lod.split())
     say(f"experiment 3/5: change descriptors of every training pair (levels of detection {lod.lod_height_m:.2f} m, "
         f"{lod.lod_curvature:.2f} 1/m; one table per dataset, shared)")
     tables = {}  # cached under a hash of the settings and the input clouds' names (seeds included)
     for key in sorted(clouds):
         c = clouds[key]
-        parts = [_table(c["pre"], [(c[name], g) for name, _, g in TRAINING_SCENES],
-                        data / f"table_{key[0]}_{key[1]}", pipe, workers, say)]
+        parts = [advance(_table(c["pre"], [(c[name], g) for name, _, g in TRAINING_SCENES],
+                                data / f"table_{key[0]}_{key[1]}", pipe, workers, say))]
         if mixed:
             truth = read_truth(data / f"{key[0]}_mixed" / "post")
-            parts.append(_table(c["mixed_pre"], [(c["mixed_post"], truth)],
-                                data / f"table_{key[0]}_mixed_{key[1]}", pipe, workers, say))
+            parts.append(advance(_table(c["mixed_pre"], [(c["mixed_post"], truth)],
+                                        data / f"table_{key[0]}_mixed_{key[1]}", pipe, workers, say)))
         tables[key] = {"paper": parts[0], "mixed": parts[1] if mixed else None}
     step("describe training")
 
     say("experiment 4/5: training the four classifiers and classifying the held-out DIM test city")
     pair = load_pair(test_pre, test_post)
-    test_rows = describe_pair(pair.pre, pair.post, pipe, workers=workers)
+    test_rows = advance(describe_pair(pair.pre, pair.post, pipe, workers=workers))
     truth = read_truth(data / "test" / "post")
     names = pipe.descriptor_names()
 
@@ -281,6 +300,7 @@ def run_paper_experiment(out_dir, settings: ExperimentSettings | None = None, *,
         for rows in ("all, unweighted", "changed, balanced"):
             ablation[("+".join(lay), rows)] = {name: evaluate(parts, lay, rows) for name, parts in CLASSIFIERS.items()}
     shipped = shipped_default(pair, truth, workers)
+    advance()
     step("train + classify")
 
     say(f"experiment 5/5: report -> {out}")
@@ -309,18 +329,19 @@ def shipped_default(pair, truth: dict, workers) -> Evaluation | None:
 
 
 def _cell(m: dict) -> tuple:
-    return tuple(100 * m[k] for k in ("oa", "precision", "recall", "f1"))
+    """The four metrics as report text ("n/a" where a metric has no cases)."""
+    return tuple(metric_text(m, k, unit="") for k in ("oa", "precision", "recall", "f1"))
 
 
 def comparison_table(results: dict) -> str:
-    cols = [("damaged", "damaged vs undamaged"), (0, "no damage"), (3, "heavy"), (4, "extreme"), (5, "destruction")]
+    cols = [("damaged", "damaged vs undamaged")] + [(g, GRADE_NAMES[g]) for g in TARGET_GRADES]
     lines = ["| classifier | metric | " + " | ".join(c for _, c in cols) + " |",
              "|---|---|" + "---|" * len(cols)]
     for name, ev in results.items():
         ours = {"damaged": _cell(ev.damaged), **{g: _cell(ev.per_grade[g]) for g in TARGET_GRADES}}
         paper = PAPER_TABLE[name]
         for i, metric in enumerate(("OA", "precision", "recall", "F1")):
-            cells = [f"{ours[c][i]:.1f} ({paper[c][i]:.1f})" for c, _ in cols]
+            cells = [f"{ours[c][i]} ({paper[c][i]:.1f})" for c, _ in cols]
             lines.append(f"| {name if i == 0 else ''} | {metric} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
@@ -357,12 +378,11 @@ def ablation_table(ablation: dict) -> str:
 def shipped_text(ev: Evaluation | None) -> str:
     if ev is None:
         return "The shipped default model was not found; no comparison with it."
-    f1 = ", ".join(f"{name} {100 * ev.per_grade[g]['f1']:.1f}" for g, name in
-                   ((0, "no damage"), (3, "heavy"), (4, "extreme"), (5, "destruction")))
+    f1 = ", ".join(f"{GRADE_NAMES[g]} {metric_text(ev.per_grade[g], 'f1', unit='')}" for g in TARGET_GRADES)
     return (f"The shipped default model (`core/data/default_model.skops`: the transfer training set of "
             f"`core.trainset`, nothing of this experiment's data), applied as it is to the same test pair: "
             f"overall accuracy {100 * ev.overall_accuracy:.1f} % on {ev.n} buildings ({ev.not_assessable} not "
-            f"assessable); F1 {f1}; damaged vs undamaged F1 {100 * ev.damaged['f1']:.1f} %.")
+            f"assessable); F1 {f1}; damaged vs undamaged F1 {metric_text(ev.damaged, 'f1')}.")
 
 
 def write_report(out: Path, results: dict, s: ExperimentSettings, lod, timings: dict, total_s: float,

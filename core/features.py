@@ -175,9 +175,11 @@ def _needs(names):
 
 CELLS_PER_RADIUS = 3  # grid columns of side r/3: 1.45x the sphere's points tested (side r: 2.5x)
 _BLOCK = 8  # query groups per prange block (blocks are interleaved over the threads)
+PROGRESS_STEPS = 50  # kernel calls when progress is reported (each call a 2 % share of the query groups)
 
 
-def _fast(cloud, query, radius, names, workers, cells_per_radius=None, stats=None, query_index=None):
+def _fast(cloud, query, radius, names, workers, cells_per_radius=None, stats=None, query_index=None,
+          progress=None):
     """Run the numba kernel. cloud: (x, y, z) contiguous arrays in the local frame (z >= 0);
     query: the same for core points, or None for the cloud's own points (all of them, or
     those in `query_index`).
@@ -258,11 +260,19 @@ def _fast(cloud, query, radius, names, workers, cells_per_radius=None, stats=Non
         kcols = int(np.floor(radius / s * (1 + 1e-9))) + 1
         threads = get_num_threads()
         nb = -(-len(gcol) // _BLOCK)
-        blocks = np.concatenate([np.arange(t, nb, threads) for t in range(threads)]).astype(np.int64)
-        K.neighbourhoods(px, py, pz, pkeys, zbits, q, ucol, cstart, qx, qy, qz, qorder, qs, gstart, gcol,
-                         blocks, _BLOCK, nxc, nyc, s, lo[0], lo[1], kcols, radius, MIN_POINTS,
-                         do_eig, do_rough, do_z, do_curv, do_cyl,
-                         count, lam, normal, rough, zrank, zrange, curv, ncyl, nexact)
+        # with a progress callback the blocks go to the kernel in PROGRESS_STEPS calls; each
+        # query's result is its own, so the outputs are the same as in one call
+        parts = np.array_split(np.arange(nb, dtype=np.int64), PROGRESS_STEPS if progress else 1)
+        for k, part in enumerate(parts, 1):
+            if len(part) == 0:
+                continue
+            blocks = np.concatenate([part[t::threads] for t in range(threads)]).astype(np.int64)
+            K.neighbourhoods(px, py, pz, pkeys, zbits, q, ucol, cstart, qx, qy, qz, qorder, qs, gstart, gcol,
+                             blocks, _BLOCK, nxc, nyc, s, lo[0], lo[1], kcols, radius, MIN_POINTS,
+                             do_eig, do_rough, do_z, do_curv, do_cyl,
+                             count, lam, normal, rough, zrank, zrange, curv, ncyl, nexact)
+            if progress:
+                progress(int(gstart[min(int(part[-1] + 1) * _BLOCK, len(gcol))]), m)
     finally:
         set_num_threads(old)
     if stats is not None:
@@ -312,7 +322,8 @@ def duplicate_groups(xyz):
 
 
 def compute_features(xyz, radius: float, features: Sequence[str] | None = None, core_points=None,
-                     workers: int | None = None, fast: bool = True, query_index=None) -> dict[str, np.ndarray]:
+                     workers: int | None = None, fast: bool = True, query_index=None,
+                     progress=None) -> dict[str, np.ndarray]:
     """Geometric features of every point (or of every core point) at a spherical radius.
 
     Parameters
@@ -336,6 +347,9 @@ def compute_features(xyz, radius: float, features: Sequence[str] | None = None, 
         handing the threads interleaved blocks of query groups.
     fast : bool
         False runs the plain numpy reference (slow; for tests).
+    progress : callable, optional
+        Called as progress(points_done, points_total) about 50 times (fast path only); the
+        results are the same with and without it.
 
     Returns
     -------
@@ -364,11 +378,14 @@ def compute_features(xyz, radius: float, features: Sequence[str] | None = None, 
         groups = duplicate_groups(qpts)
         if groups is not None:
             first, inverse = groups
+            # progress in the caller's points: the distinct ones stand for all their copies
+            scaled = None if progress is None else (lambda d, t: progress(m if d >= t else d * m // max(t, 1), m))
             if core_points is not None:
-                once = compute_features(xyz, radius, names, core_points=core_points[first], workers=workers)
+                once = compute_features(xyz, radius, names, core_points=core_points[first], workers=workers,
+                                        progress=scaled)
             else:
                 at = first if query_index is None else query_index[first]
-                once = compute_features(xyz, radius, names, workers=workers, query_index=at)
+                once = compute_features(xyz, radius, names, workers=workers, query_index=at, progress=scaled)
             return {k: v[inverse] for k, v in once.items()}
     origin = xyz.min(axis=0)
     cols = [np.ascontiguousarray(xyz[:, k] - origin[k]) for k in range(3)]
@@ -378,7 +395,7 @@ def compute_features(xyz, radius: float, features: Sequence[str] | None = None, 
         query = None if core_points is None else [np.ascontiguousarray(core_points[:, k] - origin[k])
                                                   for k in range(3)]
         count, lam, normal, rough, zrank, zrange, curv, ncyl = _fast(cols, query, r_test, names, workers,
-                                                                     query_index=query_index)
+                                                                     query_index=query_index, progress=progress)
         ncyl = ncyl.astype(np.float64) if need_cyl else None
     else:
         cloud = np.column_stack(cols)

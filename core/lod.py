@@ -57,10 +57,12 @@ class LevelsOfDetection:
 
 def calibrate(pre: Epoch, rescan: Epoch, radius_m: float = 1.5, *, quantile: float = DEFAULT_QUANTILE,
               floor: SplitSettings | None = None, sample: int = DEFAULT_SAMPLE, seed: int = 0,
-              workers: int = -1) -> LevelsOfDetection:
+              workers: int = -1, progress=None) -> LevelsOfDetection:
     """Levels of detection from two acquisitions of the same undamaged buildings.
 
-    Both epochs in one local frame (read the rescan with the first one's origin)."""
+    Both epochs in one local frame (read the rescan with the first one's origin).
+    `progress(done, 3)` after each step: the first cloud's features, the nearest points, the
+    second cloud's features."""
     from .pipeline import (
         GridIndex,
         PipelineSettings,
@@ -86,10 +88,14 @@ def calibrate(pre: Epoch, rescan: Epoch, radius_m: float = 1.5, *, quantile: flo
     pre_index = GridIndex(pre.xyz[:, :2], settings.tile_m / 4)
     post_index = GridIndex(rescan.xyz[:, :2], settings.tile_m / 4)
     curv = floor.curvature_feature
+    step = progress or (lambda done, total: None)
     pre_f = _features_at(pre, pre_index, q, settings, workers)[curv]
+    step(1, 3)
     nn, _ = _exact_nearest(pre.xyz[q], rescan, post_index, _box(pre.xyz[q, :2], radius_m), workers)
+    step(2, 3)
     uniq, inv = np.unique(nn, return_inverse=True)
     post_f = _features_at(rescan, post_index, uniq, settings, workers)[curv][inv]
+    step(3, 3)
     d_curv = np.abs(post_f - pre_f)
     d_curv = d_curv[np.isfinite(d_curv)]
     d_height = np.abs(rescan.xyz[nn, 2] - pre.xyz[q, 2])

@@ -20,6 +20,7 @@ import numpy as np
 
 from . import __version__
 from .errors import QuakeScanError
+from .grades import GRADE_SHORT_NAMES
 
 FORMAT = "quakescan-model"
 VERSION = 1
@@ -29,7 +30,7 @@ VERSION = 1
 # written as version 1, which older readers read as before.
 VERSION_ALL_ROWS = 2
 SUPPORTED_VERSIONS = (VERSION, VERSION_ALL_ROWS)
-GRADE_LABELS = {0: "no damage", 1: "negligible", 2: "moderate", 3: "heavy", 4: "extreme", 5: "destruction"}
+GRADE_LABELS = GRADE_SHORT_NAMES  # buildings.csv `label`: the paper's short names (core.grades)
 # Everything the classifier kinds need beyond skops' built-in safe types, as
 # `skops.io.get_untrusted_types` reports them for saved files of each kind
 # (tests/test_model.py checks that this list is exactly their union).

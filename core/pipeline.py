@@ -325,7 +325,9 @@ def describe_pair(pre: Epoch, post: Epoch, settings: PipelineSettings, *, worker
     """Descriptor rows of every building of the pair (IDs > 0 in either epoch), tile by tile.
 
     `done` holds rows of tiles finished by an interrupted run (they are not redone);
-    `on_tile` receives the rows of each tile when it is finished (for a checkpoint).
+    `on_tile` receives the rows of each tile when it is finished (for a checkpoint);
+    `progress(done, total)` is called once per building described (`total`: the buildings
+    with enough points in both epochs), when its tile is finished.
 
     Both epochs must carry `building_id` (from the file or from footprints) and share one
     local frame (read the post epoch with the pre epoch's origin)."""
@@ -400,9 +402,7 @@ def describe_pair(pre: Epoch, post: Epoch, settings: PipelineSettings, *, worker
         if all(b in done for b in bids):
             for b in bids:
                 rows[b] = done[b]
-            finished += len(bids)
-            if progress:
-                progress(finished, total)
+            finished = _report_buildings(progress, finished, len(bids), total)
             continue
         members = {b: order[where[b][0]:where[b][1]] for b in bids}
         tile_rows = _describe_tile(pre, post, pre_index, post_index, bids, members, settings, geometry, workers)
@@ -412,10 +412,18 @@ def describe_pair(pre: Epoch, post: Epoch, settings: PipelineSettings, *, worker
             rows[r.building_id] = r
         if on_tile:
             on_tile(tile_rows)
-        finished += len(bids)
+        finished = _report_buildings(progress, finished, len(bids), total)
+    return [_quality_gate(rows[b], settings) for b in all_ids]
+
+
+def _report_buildings(progress, finished: int, n: int, total: int) -> int:
+    """Count the buildings of a finished tile one by one: progress is in buildings, whatever
+    the tiling (a tile's buildings are described together, so they finish together)."""
+    for _ in range(n):
+        finished += 1
         if progress:
             progress(finished, total)
-    return [_quality_gate(rows[b], settings) for b in all_ids]
+    return finished
 
 
 def _few_distinct(xyz: np.ndarray, members: np.ndarray, minimum: int) -> int | None:

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import QuakeScanError
+from .grades import grade_name, long_label
 from .model import GRADE_LABELS
 from .pointcloud import SCALE
 
@@ -42,7 +43,7 @@ _FIXED = ["building_id", "assessable", "predicted_grade", "label"]
 _TAIL = ["share_changed", "n_pre", "n_post", "decided_by", "reason"]
 # Columns added after the first files: written after all others, optional on reading, so
 # readers that look columns up by name (core.evaluate, read_csv) take old and new files.
-_ADDED = ["confidence"]
+_ADDED = ["confidence", "grade_name"]
 
 
 class ResultsError(QuakeScanError):
@@ -69,6 +70,13 @@ class BuildingResult:
         if not self.assessable or self.grade is None:
             return NOT_ASSESSABLE
         return GRADE_LABELS.get(int(self.grade), f"grade {self.grade}")
+
+    @property
+    def grade_name(self) -> str:
+        """EMS-98 name of the grade ("substantial to heavy"); "not assessable" without one."""
+        if not self.assessable or self.grade is None:
+            return NOT_ASSESSABLE
+        return grade_name(self.grade)
 
     @property
     def colour(self) -> str:
@@ -163,7 +171,8 @@ def _record(r: BuildingResult, classes) -> dict:
     rec.update({"share_changed": None if r.share_changed is None else float(r.share_changed),
                 "n_pre": int(r.n_pre), "n_post": int(r.n_post), "decided_by": r.decided_by if ok else "",
                 "reason": r.reason or "",
-                "confidence": float(r.confidence) if ok and r.confidence is not None else None})
+                "confidence": float(r.confidence) if ok and r.confidence is not None else None,
+                "grade_name": r.grade_name})
     return rec
 
 
@@ -171,7 +180,8 @@ def write_csv(rows, path, classes, own_ids: dict | None = None) -> None:
     """One line per building, sorted by building_id. Columns: building_id, assessable (1/0),
     predicted_grade (empty when not assessable), label, p_<grade> per model class (empty when
     not assessable), share_changed, n_pre, n_post, decided_by, reason, confidence (probability
-    of the predicted grade; empty when not assessable). `core.evaluate` reads it. `own_ids`
+    of the predicted grade; empty when not assessable), grade_name (EMS-98 name, core.grades;
+    "not assessable" without a grade). `core.evaluate` reads it. `own_ids`
     ({building_id: footprint ID}, for footprints whose IDs are text) adds a last column
     `footprint_id`."""
     classes = [int(c) for c in classes]
@@ -352,18 +362,77 @@ def _geometry_path(geom):
     return MPath.make_compound_path(*paths) if paths else None
 
 
+# Label every building with its ID up to this many; above, label only those with a grade > 0
+# (and those not assessable), which a responder looks for first.
+LABEL_ALL_MAX = 40
+MAP_MARGIN_SHARE = 0.08  # frame = the outlines' extent plus this share of its larger side...
+MAP_MARGIN_MIN_M = 10.0  # ...but at least this many metres
+
+
+def map_frame(outlines: dict, margin_share: float = MAP_MARGIN_SHARE, margin_min_m: float = MAP_MARGIN_MIN_M):
+    """(xmin, ymin, xmax, ymax) the maps show: the buildings' outlines plus a margin; None
+    without outlines."""
+    bounds = [o.geometry.bounds for o in outlines.values() if o is not None and not o.geometry.is_empty]
+    if not bounds:
+        return None
+    b = np.asarray(bounds, dtype=np.float64)
+    x0, y0, x1, y1 = b[:, 0].min(), b[:, 1].min(), b[:, 2].max(), b[:, 3].max()
+    m = max(margin_min_m, margin_share * max(x1 - x0, y1 - y0))
+    return x0 - m, y0 - m, x1 + m, y1 + m
+
+
+def nice_length(span: float) -> float:
+    """A round scale-bar length (1, 2 or 5 × 10^k m) near a fifth of `span` metres."""
+    target = max(float(span), 1e-9) / 5.0
+    k = math.floor(math.log10(target))
+    for f in (5.0, 2.0, 1.0):
+        if f * 10 ** k <= target:
+            return f * 10 ** k
+    return 10 ** k
+
+
+def crs_text(crs: str | None) -> str:
+    """"CRS: EPSG:32633 (WGS 84 / UTM zone 33N)" for the map; says so when the CRS is unknown."""
+    if not crs:
+        return "CRS: unknown (coordinates in metres as in the point clouds)"
+    text = str(crs).strip()
+    try:
+        import pyproj
+
+        c = pyproj.CRS.from_user_input(text)
+        code = c.to_epsg()
+        text = f"EPSG:{code} ({c.name})" if code else c.name
+    except Exception:
+        text = text if len(text) < 60 else text[:57] + "..."
+    return f"CRS: {text}"
+
+
+def labelled_ids(rows, outlines: dict) -> list[int]:
+    """IDs the maps write on the buildings: all when few, else the damaged and not assessable."""
+    drawn = [r for r in _sorted(rows) if int(r.building_id) in outlines]
+    if len(drawn) <= LABEL_ALL_MAX:
+        return [int(r.building_id) for r in drawn]
+    return [int(r.building_id) for r in drawn
+            if not r.assessable or r.grade is None or int(r.grade) > 0]
+
+
 def _draw_map(rows, outlines: dict, title: str, points_xy=None, crs: str | None = None):
     """(figure, axes) of the damage map; `write_map_png` saves it (kept apart for tests)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.collections import PathCollection
     from matplotlib.figure import Figure
     from matplotlib.patches import Patch
+    from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
 
     fig = Figure(figsize=MAP_SIZE_IN, dpi=MAP_DPI)
     FigureCanvasAgg(fig)
     ax = fig.add_subplot(1, 1, 1)
+    frame = map_frame(outlines)
     if points_xy is not None and len(points_xy):
         pts = np.asarray(points_xy, dtype=np.float64)
+        if frame is not None:  # only what the frame shows: a smaller file, same picture
+            x0, y0, x1, y1 = frame
+            pts = pts[(pts[:, 0] >= x0) & (pts[:, 0] <= x1) & (pts[:, 1] >= y0) & (pts[:, 1] <= y1)]
         ax.scatter(pts[:, 0], pts[:, 1], s=2.0, c=BACKGROUND_COLOUR, marker=".", linewidths=0,
                    rasterized=True, zorder=1)
     paths, colours = [], []
@@ -379,30 +448,51 @@ def _draw_map(rows, outlines: dict, title: str, points_xy=None, crs: str | None 
     if paths:
         ax.add_collection(PathCollection(paths, facecolors=colours, edgecolors="#333333", linewidths=0.4,
                                          zorder=2))
+    labels = labelled_ids(rows, outlines)
+    size = 7 if len(labels) <= LABEL_ALL_MAX else 5
+    for bid in labels:
+        at = outlines[bid].geometry.representative_point()
+        ax.text(at.x, at.y, str(bid), ha="center", va="center", fontsize=size, zorder=3, gid="building-id",
+                bbox={"boxstyle": "round,pad=0.15", "facecolor": "white", "edgecolor": "none", "alpha": 0.7})
+    if frame is not None:
+        ax.set_xlim(frame[0], frame[2])
+        ax.set_ylim(frame[1], frame[3])
+    else:
         ax.autoscale_view()
-    ax.set_aspect("equal", adjustable="datalim")
+    # the frame stays as asked; the axes box takes its shape
+    ax.set_aspect("equal", adjustable="box")
     ax.ticklabel_format(useOffset=False, style="plain")
-    unit = f" [{crs}]" if crs and len(crs) < 40 else ""
-    ax.set_xlabel(f"easting (m){unit}")
-    ax.set_ylabel(f"northing (m){unit}")
+    ax.set_xlabel("easting (m)")
+    ax.set_ylabel("northing (m)")
     ax.set_title(title)
+    x0, x1 = ax.get_xlim()
+    length = nice_length(x1 - x0)
+    bar = AnchoredSizeBar(ax.transData, length, f"{length:g} m", "lower right", pad=0.5, sep=4,
+                          borderpad=0.6, frameon=True, size_vertical=0, color="black", fontproperties={"size": 8})
+    bar.set_gid("scale-bar")
+    ax.add_artist(bar)
+    ax.text(0.01, 0.01, crs_text(crs), transform=ax.transAxes, fontsize=7, ha="left", va="bottom", zorder=4,
+            gid="crs", bbox={"boxstyle": "round,pad=0.2", "facecolor": "white", "edgecolor": "#999999",
+                             "alpha": 0.85})
     shown = [0, 3, 4, 5] + sorted(k for k in counts if k is not None and k not in (0, 3, 4, 5))
-    handles = [Patch(facecolor=colour_of(g), edgecolor="#333333",
-                     label=f"{GRADE_LABELS.get(g, f'grade {g}')} ({counts.get(g, 0)})") for g in shown]
+    handles = [Patch(facecolor=colour_of(g), edgecolor="#333333", label=f"{long_label(g)}: {counts.get(g, 0)}")
+               for g in shown]
     if counts.get(None):
         handles.append(Patch(facecolor=NOT_ASSESSABLE_COLOUR, edgecolor="#333333",
-                             label=f"{NOT_ASSESSABLE} ({counts[None]})"))
-    ax.legend(handles=handles, title=f"{sum(counts.values())} buildings", loc="upper left",
+                             label=f"{NOT_ASSESSABLE}: {counts[None]}"))
+    ax.legend(handles=handles, title=f"EMS-98 grade: {sum(counts.values())} buildings", loc="upper left",
               bbox_to_anchor=(1.02, 1.0), borderaxespad=0.0, fontsize="small")
-    fig.subplots_adjust(left=0.1, right=0.72, bottom=0.08, top=0.93)
+    fig.subplots_adjust(left=0.1, right=0.66, bottom=0.08, top=0.93)
     return fig, ax
 
 
 def write_map_png(rows, outlines: dict, path, title: str, points_xy=None, crs: str | None = None) -> None:
-    """A PNG map: outlines filled by grade colour (green / yellow / orange / red; grey = not
-    assessable), a legend with the count per class, equal aspect, axes in metres of the CRS,
-    `points_xy` (world x/y, subsample them) as a light-grey scatter underneath.
-    Drawn with the Agg canvas directly: no display, no pyplot state."""
+    """A PNG map framed on the buildings (their outlines plus a margin, `map_frame`):
+    outlines filled by grade colour (green / yellow / orange / red; grey = not assessable),
+    building IDs on them (all when few, else the damaged and not assessable: `labelled_ids`),
+    a legend with the EMS-98 name and count per class, a scale bar, the CRS, equal aspect,
+    axes in metres of the CRS, `points_xy` (world x/y, subsample them) as a light-grey
+    scatter underneath. Drawn with the Agg canvas directly: no display, no pyplot state."""
     fig, _ = _draw_map(rows, outlines, title, points_xy, crs)
     with _atomic(path) as tmp, open(tmp, "wb") as f:
         fig.savefig(f, format="png", dpi=MAP_DPI)

@@ -315,9 +315,10 @@ def _grades(scene_dir: Path) -> dict:
 
 
 def build(out_dir, plan: TrainingPlan, settings, *, workers: int = -1,
-          say: Callable[[str], None] = print) -> TransferTable:
+          say: Callable[[str], None] = print, progress=None) -> TransferTable:
     """Generate, acquire and describe everything the plan asks for under out_dir; returns the
-    table of all pairs. Resumable and seeded (see the module docstring)."""
+    table of all pairs. Resumable and seeded (see the module docstring). `progress(done,
+    total)` counts cities generated and pairs acquired and described."""
     from .acquisition import Acquisition, acquire
     from .classify import load_pair
     from .evaluate import to_target_grade
@@ -331,11 +332,14 @@ def build(out_dir, plan: TrainingPlan, settings, *, workers: int = -1,
     unknown = sorted({p.city for p in plan.pairs} - set(cities))
     if unknown:
         raise TrainingSetError(f"pairs name cities the plan does not have: {unknown}")
+    steps = len(plan.cities) + len(plan.pairs)
     say(f"training set 1/3: {len(plan.cities)} cities -> {out / 'scenes'}")
     for k, city in enumerate(plan.cities, 1):
         t = time.perf_counter()
         generate_city(city, out / "scenes" / city.name)
         say(f"  [{k}/{len(plan.cities)}] {city.name} ({city.source}, {city.dataset}) {time.perf_counter() - t:.0f} s")
+        if progress:
+            progress(k, steps)
     key = _settings_key(settings, plan.labels)
     names = settings.descriptor_names()
     say(f"training set 2/3 and 3/3: acquiring and describing {len(plan.pairs)} pairs")
@@ -385,6 +389,8 @@ def build(out_dir, plan: TrainingPlan, settings, *, workers: int = -1,
                                "describe_s": round(float(part["seconds"][1]), 1)})
         say(f"  [{k}/{len(plan.pairs)}] {pair.name}: {len(part['y'])} buildings "
             f"(acquire {part['seconds'][0]:.0f} s, describe {part['seconds'][1]:.0f} s)")
+        if progress:
+            progress(len(plan.cities) + k, steps)
     city_index = {c.name: i for i, c in enumerate(plan.cities)}
     table = TransferTable(
         x=np.vstack([p["x"] for p in parts]) if parts else np.zeros((0, len(names))),

@@ -54,9 +54,14 @@ def test_classify_finds_the_collapsed_buildings(city, tmp_path):
         assert conf == (float(rows[bid][f"p_{g}"]) if g else 1.0) and 0.5 <= conf <= 1.0
     assert float(rows[4]["share_changed"]) > 0.5
     assert summary["by_label"] == {"no damage": 4, "destruction": 2}
+    assert summary["by_grade_name"] == {"0 no damage": 4, "5 destruction": 2}  # in grade order
     gj = json.loads((tmp_path / "res" / "buildings.geojson").read_text())
     assert len(gj["features"]) == 6
     assert (tmp_path / "res" / "damage_map.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    page = (tmp_path / "res" / "damage_map.html").read_text()
+    assert page.count('"type":"Feature"') == 6 and 'data-expected-features="6"' in page
+    assert 'attr="predicted_grade"' in (tmp_path / "res" / "buildings.qml").read_text()
+    assert {r["grade_name"] for r in rows.values()} == {"no damage", "destruction"}
     las = laspy.read(tmp_path / "res" / "post_grades.las")
     g = np.asarray(las["predicted_grade"])
     assert set(np.unique(g[np.asarray(las["building_id"]) == 4])) == {5}
@@ -82,14 +87,18 @@ def test_a_model_trained_on_every_row_is_asked_about_every_building(city, tmp_pa
 def test_cli_train_classify_evaluate(city, tmp_path, capsys):
     d, grades = city
     model = tmp_path / "m.skops"
-    assert main(["train", "--pair", str(d / "pre.las"), str(d / "post.las"), "--truth", str(d / "truth.csv"),
+    assert main(["train", "--pre", str(d / "pre.las"), "--post", str(d / "post.las"), "--truth", str(d / "truth.csv"),
                  "--trees", "10", "--test-size", "0", "-o", str(model)]) == 0
+    assert "note:" not in capsys.readouterr().err  # the form to use; the other tests keep the old --pair
     assert load_model(model).provenance["n_rows"] == 6
     assert main(["classify", "--pre", str(d / "pre.las"), "--post", str(d / "post.las"), "--model", str(model),
                  "--no-las", "-o", str(tmp_path / "r")]) == 0
     assert main(["evaluate", str(tmp_path / "r" / "buildings.csv"), "--truth", str(d / "truth.csv")]) == 0
     out = capsys.readouterr().out
     assert "6 assessable buildings, overall accuracy 100.0 %" in out
+    assert "classify: 6 buildings (0 no damage: 4, 5 destruction: 2)" in out and "damage_map.html" in out
+    # the truth has no heavy or extreme building: their recall and F1 are not 0 % but n/a
+    assert "| heavy | 100.0 % | n/a | n/a | n/a |" in out
     ev = json.loads((tmp_path / "r" / "evaluation.json").read_text())
     assert ev["damaged_vs_undamaged"]["f1"] == 1.0
 
@@ -144,7 +153,7 @@ def test_bad_training_input(city, tmp_path, capsys):
         read_truth_csv(bad)
     assert main(["train", "--pair", str(d / "pre.las"), str(d / "post.las"), "--truth", str(bad), "--truth",
                  str(bad), "-o", str(tmp_path / "m.skops")]) == 2
-    assert "2 --truth files for 1 --pair" in capsys.readouterr().err
+    assert "2 --truth files for 1 pair:" in capsys.readouterr().err
 
 
 def test_no_overlap_and_missing_ids_are_errors(city, tmp_path, capsys):

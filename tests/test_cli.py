@@ -19,12 +19,20 @@ def test_demo_runs_the_whole_chain(tmp_path, capsys):
     assert main(["demo", "-o", str(out), "--buildings", "6", "--seed", "3"]) == 0
     text = capsys.readouterr().out
     res = out / "result"
-    for name in ("buildings.csv", "buildings.geojson", "damage_map.png", "post_grades.las", "confusion.png",
-                 "evaluation.json", "summary.json"):
+    for name in ("buildings.csv", "buildings.geojson", "buildings.qml", "damage_map.png", "damage_map.html",
+                 "post_grades.las", "confusion.png", "evaluation.json", "summary.json"):
         assert (res / name).is_file(), name
+    # the demo city stands in L'Aquila, UTM 33N: the GeoJSON lands there in QGIS
+    gj = json.loads((res / "buildings.geojson").read_text())
+    assert gj["crs"]["properties"]["name"] == "urn:ogc:def:crs:EPSG::32633"
+    xy = np.array([c for f in gj["features"] for c in f["geometry"]["coordinates"][0]])
+    assert len(gj["features"]) == 6 and np.abs(xy - [367000.0, 4690000.0]).max() < 500
+    scene = json.loads((out / "city" / "post" / "scene.json").read_text())
+    assert scene["crs"] == "EPSG:32633" and scene["origin"] == [367000.0, 4690000.0, 0.0]
     ev = json.loads((res / "evaluation.json").read_text())
     assert ev["n"] + ev["not_assessable"] == 6 and "overall accuracy" in text
     pre = laspy.read(out / "pre.las")
+    assert pre.header.parse_crs().to_epsg() == 32633 and abs(float(np.mean(pre.x)) - 367000.0) < 500
     assert len(pre.x) > 100_000 and set(np.unique(pre["building_id"])) == {0, 1, 2, 3, 4, 5, 6}
     mtime = (out / "pre.las").stat().st_mtime_ns
     assert main(["demo", "-o", str(out), "--buildings", "6", "--seed", "3"]) == 0  # resumes: no rescan
@@ -192,3 +200,22 @@ def test_trajectory_lines_are_the_points_source_ids(tmp_path):
         t = np.asarray(las.gps_time)[np.asarray(las.point_source_id) == line]
         span = traj[traj[:, 5] == line, 0]
         assert t.min() >= span.min() - 0.11 and t.max() <= span.max() + 0.11
+
+
+def test_demo_rescans_a_scene_regenerated_after_its_scan(tmp_path):
+    """The demo skips a scan newer than its scene and redoes one older (a city regenerated,
+    e.g. moved to the demo's CRS by a newer QuakeScan)."""
+    import os
+
+    from core.demo import scan_scene
+
+    scene_dir = write_scene(box_city(rows=1, cols=1), tmp_path / "scene")
+    out = tmp_path / "pre.las"
+    scan_scene(scene_dir, out, seed=1)
+    first = out.stat().st_mtime_ns
+    scan_scene(scene_dir, out, seed=1)
+    assert out.stat().st_mtime_ns == first
+    later = first + 10**9
+    os.utime(scene_dir / "scene.json", ns=(later, later))
+    scan_scene(scene_dir, out, seed=1)
+    assert out.stat().st_mtime_ns > first  # rescanned

@@ -46,3 +46,22 @@ def test_bad_tables(tmp_path):
         evaluate_files(tmp_path / "r.csv", tmp_path / "t.csv")
     with pytest.raises(EvaluationError, match="does not exist"):
         evaluate_files(tmp_path / "nope.csv", tmp_path / "t.csv")
+
+
+def test_metrics_of_a_class_absent_from_the_truth_are_na_not_zero():
+    """No truth building is extreme (4), one is predicted extreme: its recall and F1 have no
+    cases ("n/a"), its precision is a real 0 % (the one prediction is wrong); destruction is
+    neither in the truth nor predicted: precision, recall and F1 are all "n/a"."""
+    import json
+
+    from core.evaluate import evaluate_grades, metric_text
+
+    ev = evaluate_grades(np.array([0, 0, 3, 3]), np.array([0, 4, 3, 3]))
+    lines = {line.split(" | ")[0].strip("| "): line for line in ev.table().splitlines()[2:]}
+    assert lines["extreme"] == "| extreme | 75.0 % | 0.0 % | n/a | n/a |"
+    assert lines["destruction"] == "| destruction | 100.0 % | n/a | n/a | n/a |"
+    assert lines["heavy"] == "| heavy | 100.0 % | 100.0 % | 100.0 % | 100.0 % |"
+    doc = json.loads(json.dumps(ev.to_json()))
+    assert doc["per_grade"]["4"]["undefined"] == ["recall", "f1"] and doc["per_grade"]["3"]["undefined"] == []
+    old = {k: v for k, v in doc["per_grade"]["5"].items() if k != "undefined"}  # a dict from before the field
+    assert metric_text(old, "recall") == "n/a" and metric_text(old, "oa") == "100.0 %"

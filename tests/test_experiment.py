@@ -33,11 +33,14 @@ def test_tiny_paper_experiment_writes_the_report(tmp_path, capsys):
     for slug in ("generic_uls", "region_uls", "generic_uls_plus_region_dim", "region_dim"):
         assert (out / f"confusion_{slug}.png").read_bytes()[:4] == b"\x89PNG"
     first = (out / "results.json").read_text()
-    shown = capsys.readouterr().out  # progress: every acquisition and every described pair
+    shown = capsys.readouterr().err  # stage messages (stderr): every acquisition and every described pair
     assert "region_dim_pre_rescan.seed112.las: DIM in" in shown
     assert "generic_uls_post_heavy.seed103.las against generic_uls_pre.seed101.las: 4 buildings in" in shown
-    assert main(args) == 0  # everything cached: same numbers, nothing acquired or described again
-    assert ": DIM in" not in capsys.readouterr().out
+    assert main([*args, "--progress"]) == 0  # everything cached: same numbers, nothing acquired or described again
+    shown = capsys.readouterr().err
+    assert ": DIM in" not in shown
+    steps = 5 + (3 * 7 + 2) + 1 + 6 + 2  # cities, clouds, LoDs, tables, test city, training: each counted once
+    assert f"experiment  {steps}/{steps}  100 %" in shown
     again = json.loads((out / "results.json").read_text())
     assert again["results"] == json.loads(first)["results"]
     # from nothing in another folder, same seed: the same clouds and numbers (reproducible)

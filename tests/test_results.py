@@ -77,14 +77,14 @@ def test_confidence_comes_after_the_first_columns_and_old_files_still_read(tmp_p
     confidence column) reads as before, with confidence empty, in read_csv and evaluate."""
     first = ["building_id", "assessable", "predicted_grade", "label", "p_0", "p_3", "p_4", "p_5",
              "share_changed", "n_pre", "n_post", "decided_by", "reason"]
-    assert R.csv_columns(CLASSES) == first + ["confidence"]
+    assert R.csv_columns(CLASSES) == first + ["confidence", "grade_name"]
     path = tmp_path / "buildings.csv"
     R.write_csv(_rows(), path, CLASSES)
     old = tmp_path / "old.csv"
     with open(path, newline="") as f, open(old, "w", newline="") as g:
         w = csv.writer(g, lineterminator="\n")
         for line in csv.reader(f):
-            w.writerow(line[:-1])
+            w.writerow(line[:-2])
     back = R.read_csv(old)
     assert [r.confidence for r in back] == [None] * 4 and [r.grade for r in back] == [None, 0, 4, 5]
     truth = tmp_path / "truth.csv"
@@ -207,13 +207,56 @@ def test_map_png(tmp_path):
     fig, ax = R._draw_map(rows, outlines, "test map", pts, "EPSG:32633")
     fig.canvas.draw()
     for geom, colour in ((a, R.NOT_ASSESSABLE_COLOUR), (b, R.GRADE_COLOURS[5])):
-        c = geom.centroid
-        px, py = ax.transData.transform((c.x, c.y))
+        x0, y0, x1, y1 = geom.bounds  # a quarter in from the corner: the ID label sits in the middle
+        px, py = ax.transData.transform((x0 + 0.25 * (x1 - x0), y0 + 0.25 * (y1 - y0)))
         pixel = img[int(round(h_px - py)), int(round(px)), :3]
         assert np.abs(pixel - _hex_rgb(colour)).max() < 2 / 255, (colour, pixel)
     labels = [t.get_text() for t in ax.get_legend().get_texts()]
-    assert "destruction (1)" in labels and "not assessable (1)" in labels and "no damage (0)" in labels
+    assert "5 destruction: 1" in labels and "not assessable: 1" in labels and "0 no damage: 0" in labels
+    assert "3 substantial to heavy (heavy): 0" in labels and "4 very heavy (extreme): 0" in labels
     _no_part(tmp_path)
+
+
+def _texts(ax, gid):
+    return [t.get_text() for t in ax.texts if t.get_gid() == gid]
+
+
+def test_map_png_is_framed_on_the_buildings_with_ids_scale_bar_and_crs():
+    """The frame is the outlines' extent plus the margin, not the scan area; every building
+    of a small city carries its ID; a scale bar of a round length and the CRS are drawn."""
+    boxes = {i: shapely.geometry.box(500000.0 + 30 * i, 5000000.0, 500020.0 + 30 * i, 5000015.0)
+             for i in range(1, 5)}
+    rows = [R.BuildingResult(i, 100, 100, True, grade=g, probabilities={g: 1.0}, share_changed=0.5,
+                             decided_by="model") for i, g in zip(boxes, (0, 3, 4, 5))]
+    outlines = {i: R.Outline(b, R.OUTLINE_FOOTPRINT) for i, b in boxes.items()}
+    scan_area = np.random.default_rng(0).uniform([499000, 4999000], [501000, 5001000], (5000, 2))
+    fig, ax = R._draw_map(rows, outlines, "framed", scan_area, "EPSG:32633")
+    # buildings span x 500030..500140 (110 m), y 5000000..5000015: margin max(10, 0.08 * 110) = 10 m
+    assert ax.get_xlim() == pytest.approx((500020.0, 500150.0))
+    assert ax.get_ylim() == pytest.approx((4999990.0, 5000025.0))
+    assert sorted(_texts(ax, "building-id")) == ["1", "2", "3", "4"]
+    assert _texts(ax, "crs") == ["CRS: EPSG:32633 (WGS 84 / UTM zone 33N)"]
+    bars = [a for a in ax.artists if a.get_gid() == "scale-bar"]
+    assert len(bars) == 1
+    bar_texts = [t.get_text() for t in bars[0].findobj(lambda o: hasattr(o, "get_text"))]
+    assert "20 m" in bar_texts  # a fifth of 130 m → 20 m
+    scatter = ax.collections[0].get_offsets()
+    assert len(scatter) < 50 and (scatter[:, 0] >= 500020.0).all()  # the scan area outside the frame is left out
+    _, ax = R._draw_map(rows, outlines, "no crs", None, None)
+    assert _texts(ax, "crs")[0].startswith("CRS: unknown")
+
+
+def test_map_labels_only_damaged_buildings_when_many():
+    n = R.LABEL_ALL_MAX + 10
+    grades = [0 if i % 3 else 4 for i in range(1, n + 1)]
+    rows = [R.BuildingResult(i, 100, 100, True, grade=g, probabilities={g: 1.0}, decided_by="model")
+            for i, g in zip(range(1, n + 1), grades)]
+    rows.append(R.BuildingResult(n + 1, 3, 0, False, "3 pre-event points < 50"))
+    outlines = {i: R.Outline(shapely.geometry.box(10 * i, 0, 10 * i + 8, 8), R.OUTLINE_HULL) for i in range(1, n + 2)}
+    _, ax = R._draw_map(rows, outlines, "many", None, None)
+    want = [str(i) for i, g in zip(range(1, n + 1), grades) if g > 0] + [str(n + 1)]
+    assert sorted(_texts(ax, "building-id"), key=int) == want
+    assert R.nice_length(130) == 20 and R.nice_length(1000) == 200 and R.nice_length(7) == 1
 
 
 def test_grade_las(tmp_path):

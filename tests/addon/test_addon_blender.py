@@ -138,7 +138,7 @@ def test_addon_registers_and_operators_run_in_blender(tmp_path):
     assert set(out["operators"]) >= {"add_building", "assign_ids", "add_interior", "reset_building",
                                      "apply_pattern", "apply_grade", "make_post_scene", "export_bundle"}
     assert all(v == ["FINISHED"] for v in out["results"].values()), out["results"]
-    assert "EMS-98 3: substantial to heavy" in out["panel_calls"] and "damage.export_bundle" in out["panel_calls"]
+    assert "3: substantial to heavy" in out["panel_calls"] and "damage.export_bundle" in out["panel_calls"]
     assert out["unregistered"]
     pre, post = read_scene(tmp_path / "pre"), read_scene(tmp_path / "post")
     assert [b.id for b in pre.buildings] == [b.id for b in post.buildings] == [1, 2]

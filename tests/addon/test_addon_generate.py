@@ -163,3 +163,36 @@ def test_bad_grade_mix_exits_2(gen, argv, tmp_path):
     with pytest.raises(SystemExit) as e:
         gen.main(["--set", "region", *argv, "--out", str(tmp_path / "x")])
     assert e.value.code == 2
+
+
+def test_origin_and_crs_arguments(gen, capsys):
+    a = gen.parse_args(["--set", "generic", "--dataset", "mixed", "--out", "o", "--origin", "367000,4690000",
+                        "--crs", "EPSG:32633"])
+    assert a.origin == (367000.0, 4690000.0, 0.0) and a.crs == "EPSG:32633"
+    info = gen.generator_info(a, "pre")
+    assert info["origin"] == [367000.0, 4690000.0, 0.0] and info["crs"] == "EPSG:32633"
+    plain = gen.parse_args(["--set", "generic", "--dataset", "mixed", "--out", "o"])
+    assert "origin" not in gen.generator_info(plain, "pre") and "crs" not in gen.generator_info(plain, "pre")
+    for argv in (["--origin", "1,2,3,4"], ["--origin", "east"], ["--origin", "nan,0"], ["--origin", "1e300,0"],
+                 ["--set", "bundle", "--source", "s", "--crs", "EPSG:32633"]):
+        base = ["--set", "generic", "--dataset", "mixed", "--out", "o"]
+        if argv[0] == "--set":
+            base = ["--dataset", "mixed", "--out", "o"]
+        with pytest.raises(SystemExit) as e:
+            gen.parse_args(base + argv)
+        assert e.value.code == 2, argv
+    err = capsys.readouterr().err
+    assert "expected X,Y or X,Y,Z" in err and "not used with --set bundle" in err
+
+
+@needs_bpy
+def test_origin_and_crs_reach_the_bundles(gen, bpy_registered, tmp_path):
+    from core.scene import read_scene
+    base = ["--set", "generic", "--dataset", "mixed", "--buildings", "2", "--seed", "4"]
+    assert gen.main([*base, "--out", str(tmp_path / "local")]) == 0
+    assert gen.main([*base, "--origin", "367000,4690000,12.5", "--crs", "EPSG:32633",
+                     "--out", str(tmp_path / "utm")]) == 0
+    local, utm = read_scene(tmp_path / "local" / "post"), read_scene(tmp_path / "utm" / "post")
+    assert local.crs is None and list(local.origin) == [0.0, 0.0, 0.0]
+    assert utm.crs == "EPSG:32633" and list(utm.origin) == [367000.0, 4690000.0, 12.5]
+    assert (utm.vertices == local.vertices).all()  # the mesh stays in local metres around the origin

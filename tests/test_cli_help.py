@@ -1,0 +1,117 @@
+"""The command line explains itself: help on every argument, the README's command list
+checked against the parser, one way to give a pair of epochs (--pre/--post)."""
+import argparse
+import re
+from pathlib import Path
+
+import pytest
+
+from core.cli import build_parser, main
+
+README = Path(__file__).resolve().parents[1] / "README.md"
+GLOBAL = "(global)"
+
+
+def _commands(parser) -> dict:
+    (sub,) = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+    return dict(sub.choices)
+
+
+def _arguments(parser) -> list:
+    return [a for a in parser._actions if not isinstance(a, (argparse._HelpAction, argparse._SubParsersAction))]
+
+
+def _parser_flags(parser, command: bool = True) -> list:
+    """Each optional argument as the tuple of its option strings (-h left out, and in a
+    command -q/--quiet, which the README lists once with the global options)."""
+    return [tuple(a.option_strings) for a in _arguments(parser)
+            if a.option_strings and not (command and a.dest == "quiet")]
+
+
+def _readme_entries() -> dict:
+    """{command: text of its entry} from the code block of the README's "Command line"
+    section; an entry is a `quakescan …` line and its indented continuation lines, comments cut."""
+    text = README.read_text()
+    section = text[text.index("## Command line\n"):]
+    block = section[section.index("```sh\n") + 6:]
+    block = block[:block.index("```")]
+    entries: dict = {}
+    current = None
+    for line in block.splitlines():
+        code = line.split("  # ")[0]
+        if line.startswith("quakescan "):
+            word = code.split()[1]
+            current = GLOBAL if word.startswith("[") else word
+            assert current not in entries, f"README lists {current} twice"
+            entries[current] = code
+        elif line.strip():
+            assert current is not None and line.startswith(" "), f"README line outside an entry: {line!r}"
+            entries[current] += " " + code
+    return entries
+
+
+def _readme_flags(text: str) -> set:
+    return set(re.findall(r"(?<![\w-])(--?[a-z][a-z0-9-]*)", text))
+
+
+def test_every_argument_of_every_command_has_help():
+    parser = build_parser()
+    missing = [f"{GLOBAL} {a.option_strings or a.dest}" for a in _arguments(parser) if not (a.help or "").strip()]
+    for name, command in _commands(parser).items():
+        assert (command.description or _help_of(parser, name)), f"{name}: no help"
+        missing += [f"{name} {a.option_strings or a.dest}" for a in _arguments(command)
+                    if not (a.help or "").strip()]
+    assert not missing, f"arguments without help: {missing}"
+
+
+def _help_of(parser, name: str) -> str:
+    (sub,) = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+    return next((c.help for c in sub._choices_actions if c.dest == name), "")
+
+
+@pytest.mark.parametrize("flag,command", [("--threads", "classify"), ("--trees", "train"), ("--depth", "train"),
+                                          ("--seed", "train"), ("--buffer", "import-cityjson")])
+def test_help_shows_the_defaults_that_matter(flag, command):
+    (action,) = [a for a in _arguments(_commands(build_parser())[command]) if flag in a.option_strings]
+    assert "default" in action.help, f"{command} {flag}: {action.help!r}"
+
+
+def test_readme_lists_every_command_and_flag_of_the_parser_and_no_other():
+    parser = build_parser()
+    entries = _readme_entries()
+    commands = _commands(parser)
+    assert set(entries) - {GLOBAL} == set(commands), "README's command list and the parser's commands differ"
+    problems = []
+    for name, command in [(GLOBAL, parser), *commands.items()]:
+        named = _readme_flags(entries[name])
+        flags = _parser_flags(command, command=name != GLOBAL)
+        problems += [f"{name}: {'/'.join(f)} not in the README" for f in flags if not set(f) & named]
+        known = {s for f in flags for s in f}
+        problems += [f"{name}: README names {f}, which the parser lacks" for f in sorted(named - known)]
+    assert not problems, "\n".join(problems)
+
+
+def test_readme_check_sees_a_flag_the_parser_lacks(monkeypatch):
+    """The check above can fail: a README flag the parser does not have is reported."""
+    entries = _readme_entries()
+    assert "--no-such-flag" not in _readme_flags(entries["classify"])
+    assert "--no-such-flag" in _readme_flags(entries["classify"] + " [--no-such-flag]")
+
+
+def test_train_takes_pre_post_pairs_and_refuses_unmatched_ones(tmp_path, capsys):
+    assert main(["train", "--pre", "a.las", "--pre", "b.las", "--post", "c.las", "-o", str(tmp_path / "m")]) == 2
+    assert "train: 2 --pre and 1 --post" in capsys.readouterr().err
+    assert main(["train", "--pre", "a.las", "--post", "b.las", "--pair", "c.las", "d.las",
+                 "-o", str(tmp_path / "m")]) == 2
+    assert "not both" in capsys.readouterr().err
+    assert main(["train", "-o", str(tmp_path / "m")]) == 2
+    assert "no training pair" in capsys.readouterr().err
+
+
+def test_robustness_takes_pre_post_and_the_old_positional_form(tmp_path, capsys):
+    assert main(["robustness", "only_one", "-o", str(tmp_path / "r")]) == 2
+    assert "robustness: only one scene (only_one)" in capsys.readouterr().err
+    assert main(["robustness", "a", "b", "--pre", "a", "--post", "b", "-o", str(tmp_path / "r")]) == 2
+    assert "not both" in capsys.readouterr().err
+    assert main(["robustness", "--pre", "a", "-o", str(tmp_path / "r")]) == 2
+    assert "--pre PRE_SCENE --post POST_SCENE" in capsys.readouterr().err
