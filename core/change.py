@@ -36,6 +36,14 @@ class ChangeError(QuakeScanError):
     """Epochs cannot be compared as given."""
 
 
+LOD_HEIGHT_RANGE_M = (0.0, 3.0)  # (exclusive, inclusive): above 3 m a collapsed storey is "unchanged"
+LOD_CURVATURE_RANGE = (0.0, 10.0)  # 1/m; 10 1/m is the curvature of a 0.1 m sphere
+
+
+def _is_number(v) -> bool:
+    return not isinstance(v, bool) and isinstance(v, (int, float, np.integer, np.floating)) and math.isfinite(v)
+
+
 def morton_order(xyz: np.ndarray, bits: int = 16) -> np.ndarray:
     """Permutation that sorts points along a 3-D Morton (Z-order) curve.
 
@@ -68,6 +76,13 @@ def nearest_neighbours(pre_xyz: np.ndarray, post_xyz: np.ndarray, workers: int =
         raise ChangeError("the post-event epoch has no points to map to")
     if len(pre_xyz) == 0:
         return np.zeros(0, np.int64), np.zeros(0)
+    from .features import duplicate_groups
+
+    groups = duplicate_groups(pre_xyz) if len(pre_xyz) > 1 else None
+    if groups is not None:  # coincident queries share their answer: duplicates must not cost n² scans
+        first, inverse = groups
+        i, d = nearest_neighbours(pre_xyz[first], post_xyz, workers)
+        return i[inverse], d[inverse]
     bx = K.bounds_xy(post_xyz)
     lo, span = bx[:2], np.maximum(bx[2:] - bx[:2], 1e-9)
     # ~4 points per column on a single surface: few candidates, short rings
@@ -133,6 +148,23 @@ class SplitSettings:
     curvature_feature: str = "curvature"
     min_changed_share: float = 0.003
     seed: int = 0
+
+    def __post_init__(self):
+        # A level of detection above a storey's height (or a curvature of a 10 cm sphere) calls a
+        # collapsed storey unchanged: every building would be "no damage". Beyond these ranges a
+        # value is a typo or an edited model file, never a measurement (`core.lod` measures them).
+        for name, value, (low, high), unit in (("lod_height_m", self.lod_height_m, LOD_HEIGHT_RANGE_M, "m"),
+                                               ("lod_curvature", self.lod_curvature, LOD_CURVATURE_RANGE, "1/m")):
+            if not (_is_number(value) and low < value <= high):
+                raise ChangeError(f"level of detection {name} must lie in ({low:g}, {high:g}] {unit}, got {value!r}")
+        if not (_is_number(self.min_changed_share) and 0 <= self.min_changed_share < 1):
+            raise ChangeError(f"min_changed_share must be a share in [0, 1), got {self.min_changed_share!r}")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, (int, np.integer)) or not 0 <= self.seed < 2 ** 32:
+            raise ChangeError(f"split seed must be an integer in [0, 2**32), got {self.seed!r}")
+        from .features import FEATURES
+
+        if self.curvature_feature not in FEATURES:
+            raise ChangeError(f"curvature_feature {self.curvature_feature!r} is not a point feature")
 
     def to_json(self) -> dict:
         return dict(self.__dict__)

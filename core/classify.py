@@ -28,7 +28,6 @@ from .errors import QuakeScanError
 from .model import DamageModel, ModelError, load_model
 from .pipeline import (
     BuildingRow,
-    PipelineError,
     PipelineSettings,
     describe_pair,
     settings_for_descriptors,
@@ -53,15 +52,16 @@ def default_model_path() -> Path:
 
 def model_settings(model: DamageModel, source: str = "model") -> PipelineSettings:
     """The pipeline settings the model was trained with; refuses a model for other features."""
-    stored = model.split or {}
+    stored = model.split if isinstance(model.split, dict) else {}
     try:
         settings = settings_for_descriptors(model.feature_names, model.radius_m, stored.get("split"), stored,
                                             min_points_pre=int(stored.get("min_points_pre", 50)),
                                             min_points_post=int(stored.get("min_points_post", 10)),
                                             tile_m=float(stored.get("tile_m", 150.0)),
                                             core_point_step=int(stored.get("core_point_step", 1)))
-    except PipelineError as e:
-        raise ModelError(f"{source}: {e}") from None
+    except (QuakeScanError, TypeError, ValueError, KeyError, AttributeError) as e:  # settings out of range or of the wrong type
+        raise ModelError(f"{source}: the model's settings are invalid ({e}): an edited or foreign file; "
+                         "retrain it with `quakescan train`") from None
     version = (model.provenance or {}).get("descriptor_version")
     if settings.surface is not None and version is not None:
         from .surface import DESCRIPTOR_VERSION
@@ -130,36 +130,57 @@ def _fingerprint(paths, model_path, align: bool | None) -> str:
 
 
 class _Checkpoint:
-    """Rows of finished tiles, one JSON line each, valid for one fingerprint."""
+    """Rows of finished tiles, one JSON line each, valid for one fingerprint.
+
+    The first line (the fingerprint) is written under a temporary name and renamed, so an
+    interruption never leaves a file without it; a file that is unreadable anyway (cut,
+    edited, another program's) is discarded with a warning and its tiles are recomputed."""
 
     def __init__(self, path: Path, fingerprint: str):
+        from .results import _atomic
+
         self.path, self.fp = path, fingerprint
         self.rows: dict[int, BuildingRow] = {}
         if path.is_file():
-            lines = path.read_text().splitlines()
-            if lines and json.loads(lines[0]).get("fingerprint") == fingerprint:
-                for line in lines[1:]:
-                    try:
-                        d = json.loads(line)
-                    except json.JSONDecodeError:
-                        break  # a line cut by the interruption: that tile is redone
-                    r = BuildingRow(d["building_id"], d["n_pre"], d["n_post"], True, "", d["descriptors"],
-                                    tuple(d["centre_xy"]), d.get("quality", {}))
-                    self.rows[r.building_id] = r
-            else:
-                path.unlink()
+            self._read(path, fingerprint)
         if not path.is_file():
-            path.parent.mkdir(parents=True, exist_ok=True)
-            path.write_text(json.dumps({"fingerprint": fingerprint}) + "\n")
+            with _atomic(path) as tmp:
+                tmp.write_text(json.dumps({"fingerprint": fingerprint}) + "\n")
+
+    def _read(self, path: Path, fingerprint: str) -> None:
+        try:
+            lines = path.read_text().splitlines()
+            head = json.loads(lines[0]) if lines else None
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+            log.warning("%s: unreadable checkpoint (%s), discarded: every tile is recomputed", path, e)
+            head = None
+        if isinstance(head, dict) and head.get("fingerprint") == fingerprint:
+            for line in lines[1:]:
+                try:
+                    d = json.loads(line)
+                    r = BuildingRow(int(d["building_id"]), int(d["n_pre"]), int(d["n_post"]), True, "",
+                                    dict(d["descriptors"]), tuple(d["centre_xy"]), d.get("quality", {}))
+                except (json.JSONDecodeError, KeyError, TypeError, ValueError):
+                    break  # a line cut by the interruption: that tile is redone
+                self.rows[r.building_id] = r
+        else:
+            path.unlink()
 
     def add(self, rows):
-        with open(self.path, "a") as f:
-            for r in rows:
-                f.write(json.dumps({"building_id": r.building_id, "n_pre": r.n_pre, "n_post": r.n_post,
-                                    "descriptors": r.descriptors, "centre_xy": list(r.centre_xy),
-                                    "quality": r.quality}) + "\n")
-            f.flush()
-            os.fsync(f.fileno())
+        from .results import ResultsError, is_write_failure, write_failure_message
+
+        try:
+            with open(self.path, "a") as f:
+                for r in rows:
+                    f.write(json.dumps({"building_id": r.building_id, "n_pre": r.n_pre, "n_post": r.n_post,
+                                        "descriptors": r.descriptors, "centre_xy": list(r.centre_xy),
+                                        "quality": r.quality}) + "\n")
+                f.flush()
+                os.fsync(f.fileno())
+        except OSError as e:  # a rerun reads the lines before the cut one and redoes the rest
+            if not is_write_failure(e):
+                raise
+            raise ResultsError(write_failure_message(self.path, e)) from e
 
 
 def predict_rows(rows, model: DamageModel, rule: bool | None = None) -> list:
@@ -225,6 +246,11 @@ def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=N
     t0 = time.perf_counter()
     out = Path(out_dir)
     model_path = Path(model_path) if model_path else default_model_path()
+    for p, what in ((pre_path, "pre-event point cloud"), (post_path, "post-event point cloud"),
+                    (footprints_path, "footprint file"), (model_path, "model file")):
+        if p is not None and not Path(p).is_file():  # before the fingerprint reads them
+            raise ClassifyError(f"{p}: {what} " + ("is a folder, not a file" if Path(p).is_dir() else "does not exist"))
+    _check_output_folder(out, [pre_path, post_path, footprints_path, model_path])
     fingerprint = _fingerprint([pre_path, post_path, footprints_path], model_path, align)
     options = {"id_field": id_field, "write_las": bool(write_las), "laz": laz}
     done = _finished(out, fingerprint, options)
@@ -248,6 +274,10 @@ def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=N
                          on_tile=ckpt.add)
     rows += [BuildingRow(int(b), 0, 0, False, "no point inside the footprint")
              for b in data.footprint_ids_without_points]
+    if data.footprints is not None:  # footprints that cannot be used: the building stays, with the reason
+        described = {r.building_id for r in rows}
+        rows += [BuildingRow(int(b), 0, 0, False, why) for b, why, _ in data.footprints.rejected
+                 if int(b) not in described]
     rows.sort(key=lambda r: r.building_id)
     t_describe = time.perf_counter()
     res = predict_rows(rows, model)
@@ -259,8 +289,7 @@ def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=N
     if data.footprints is None:
         xy_by = _xy_by_building(pre)
     outlines = results.building_outlines(res, data.footprints, xy_by, pre.origin)
-    attributes = ({int(b): p for b, p in zip(fp.ids.tolist(), fp.properties) if p}
-                  if fp is not None and fp.properties else None)
+    attributes = (fp.attributes() or None) if fp is not None else None
     results.write_geojson(res, outlines, out / "buildings.geojson", pre.crs, classes, attributes)
     write_qml(out / "buildings.qml")
     sub = pre.xyz[:: max(1, len(pre) // 200_000), :2] + pre.origin[:2]
@@ -283,9 +312,8 @@ def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=N
                                 "total": round(time.perf_counter() - t0, 2)}})
     summary["fingerprint"] = fingerprint
     summary["options"] = options
-    tmp = out / "summary.json.part"
-    tmp.write_text(json.dumps(summary, indent=1, default=_json_default))
-    os.replace(tmp, out / "summary.json")
+    with results._atomic(out / "summary.json") as tmp:
+        tmp.write_text(json.dumps(summary, indent=1, default=_json_default))
     ckpt.path.unlink(missing_ok=True)
     return summary
 
@@ -332,10 +360,11 @@ def _register(pre, post, settings: PipelineSettings, align: bool | None, summary
     try:
         a = align_epochs(pre.xyz, post.xyz, stable_mask(pre.classification, pre.building_id),
                          stable_mask(post.classification, post.building_id),
-                         max_points=CHECK_MAX_POINTS if mode == "auto" else 2_000_000)
+                         max_points=CHECK_MAX_POINTS if mode == "auto" else 2_000_000,
+                         pre_name=str(pre.source), post_name=str(post.source))
     except AlignmentError as e:
         if mode == "on":
-            raise
+            raise AlignmentError(f"--align: cannot align {post.source} to {pre.source}: {e}") from None
         log.warning("cannot check that the epochs are registered (%s); classifying them as they are: an offset "
                     "between them would read as damage", e)
         return {"mode": mode, "checked": False, "reason": str(e)}
@@ -366,6 +395,17 @@ def max_displacement_m(a, xyz: np.ndarray) -> float:
     lo, hi = xyz.min(axis=0), xyz.max(axis=0)
     corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
     return float(np.linalg.norm(a.apply(corners) - corners, axis=1).max())
+
+
+def _check_output_folder(out: Path, inputs) -> None:
+    """Refuse an output folder that is a file, above all one of the inputs: classify writes
+    several files into it and would otherwise fail half-way or overwrite its own input."""
+    for p in inputs:
+        if p is not None and Path(p).exists() and out.exists() and os.path.samefile(p, out):
+            raise ClassifyError(f"{out}: the output folder (-o) is the input file {p}; give a folder for the results")
+    if out.exists() and not out.is_dir():
+        raise ClassifyError(f"{out}: the output (-o) is an existing file; classify writes a folder of results "
+                            "(buildings.csv, buildings.geojson, damage_map.png, ...): give a folder")
 
 
 def _finished(out: Path, fingerprint: str, options: dict) -> dict | None:

@@ -219,10 +219,11 @@ def cmd_scan(args) -> int:
 
 
 def _write_json_atomic(path: Path, data) -> None:
+    from .results import _atomic
+
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(data, indent=1) + "\n")
-    os.replace(tmp, path)
+    with _atomic(path) as tmp:
+        tmp.write_text(json.dumps(data, indent=1) + "\n")
 
 
 def _write_trajectory(scene, survey, path: Path) -> None:
@@ -335,15 +336,22 @@ def cmd_features(args) -> int:
 
     from .features import FEATURES, compute_features
     from .pointcloud import read_epoch, read_las
+    from .results import _atomic
 
     names = _csv_list(args.features) or FEATURES
     src = Path(args.input)
     out = Path(args.output)
+    _check_cloud_output(out, src)
+    _check_number("--radius", args.radius, low=0.0, low_open=True)
+    _check_threads(args.threads)
     epoch = read_epoch(src)
     las = read_las(src)
     t0 = time.perf_counter()
-    feats = compute_features(epoch.xyz, args.radius, names, workers=args.threads,
-                             progress=_progress(args, f"features {src.name}"))
+    try:
+        feats = compute_features(epoch.xyz, args.radius, names, workers=args.threads,
+                                 progress=_progress(args, f"features {src.name}"))
+    except QuakeScanError as e:  # e.g. a cloud too wide for the grid: say which file
+        raise QuakeScanError(f"{src}: {e}") from None
     dt = time.perf_counter() - t0
     present = set(las.point_format.dimension_names)
     clash = [n for n in names if n in present]
@@ -353,12 +361,78 @@ def cmd_features(args) -> int:
                                                description=f"{n} r={args.radius:g} m"[:31]) for n in names])
     for n in names:
         las[n] = feats[n].astype(np.float32)
-    tmp = out.with_name(out.name + ".part")
-    las.write(tmp, do_compress=out.suffix.lower() == ".laz")
-    os.replace(tmp, out)
+    with _atomic(out) as tmp:
+        las.write(tmp, do_compress=out.suffix.lower() == ".laz")
     print(f"features: {len(names)} features of {len(epoch):,} points at r = {args.radius:g} m in {dt:.1f} s "
           f"({len(epoch) / max(dt, 1e-9) / 1e3:,.0f} k points/s) -> {out}")
     return 0
+
+
+def _check_cloud_output(out: Path, src: Path) -> None:
+    """A point cloud output that is neither an existing folder nor the input, named .las/.laz
+    (its suffix decides the format: anything else would get LAS bytes under a wrong name)."""
+    if out.suffix.lower() not in (".las", ".laz"):
+        raise QuakeScanError(f"{out}: -o must name a .las or .laz file (the suffix decides the format)")
+    if out.is_dir():
+        raise QuakeScanError(f"{out}: -o is an existing folder; give a .las or .laz file name")
+    if out.exists() and src.exists() and os.path.samefile(out, src):
+        raise QuakeScanError(f"{out}: -o is the input file; write the features to another file")
+
+
+def _check_folder_output(out: Path) -> None:
+    """A report folder that is not an existing file."""
+    if out.exists() and not out.is_dir():
+        raise QuakeScanError(f"{out}: -o is an existing file; give a folder for the report")
+
+
+def _check_file_output(out: Path, inputs) -> None:
+    """An output file that is not an existing folder and not one of the inputs."""
+    if out.is_dir():
+        raise QuakeScanError(f"{out}: -o is an existing folder; give a file name")
+    for p in inputs:
+        if p is not None and out.exists() and Path(p).exists() and os.path.samefile(out, p):
+            raise QuakeScanError(f"{out}: -o is the input file {p}; write to another file")
+
+
+def _check_number(flag: str, value, low=None, high=None, *, low_open=False, high_open=False,
+                  integer=False) -> None:
+    """Refuse a flag's value outside its range, naming the flag (argparse checks types only)."""
+    if value is None:
+        return
+    bad = isinstance(value, float) and not np.isfinite(value)
+    if low is not None:
+        bad |= value <= low if low_open else value < low
+    if high is not None:
+        bad |= value >= high if high_open else value > high
+    if bad:
+        lo = "" if low is None else f"{'>' if low_open else '>='} {low:g}"
+        hi = "" if high is None else f"{'<' if high_open else '<='} {high:g}"
+        what = "an integer" if integer else "a number"
+        raise QuakeScanError(f"{flag}: expected {what} {' and '.join(t for t in (lo, hi) if t)}, got {value}")
+
+
+SEED_MAX = 2 ** 32 - 1  # numpy and scikit-learn take seeds in [0, 2**32)
+
+
+def _check_seed(value) -> None:
+    _check_number("--seed", value, 0, SEED_MAX, integer=True)
+
+
+def _check_threads(value) -> None:
+    """Threads: a positive count, or -1 / None for every core (the libraries' convention)."""
+    if value is not None and value != -1 and value < 1:
+        raise QuakeScanError(f"--threads: expected a number of threads >= 1 (or -1: every core), got {value}")
+
+
+def _check_split_flags(args) -> None:
+    """The pipeline's flags in the ranges a model may hold (core.pipeline, core.change), named."""
+    from .change import LOD_CURVATURE_RANGE, LOD_HEIGHT_RANGE_M
+    from .pipeline import RADIUS_RANGE_M
+
+    _check_number("--radius", args.radius, *RADIUS_RANGE_M)
+    _check_number("--lod-height", args.lod_height, *LOD_HEIGHT_RANGE_M, low_open=True)
+    _check_number("--lod-curvature", args.lod_curvature, *LOD_CURVATURE_RANGE, low_open=True)
+    _check_number("--min-changed-share", args.min_changed_share, 0.0, 1.0, high_open=True)
 
 
 def _pipeline_settings(args):
@@ -384,28 +458,31 @@ def _pipeline_settings(args):
 
 def cmd_calibrate_lod(args) -> int:
     """Levels of detection of the split from two acquisitions of the same undamaged buildings."""
+    from .classify import load_pair
     from .lod import calibrate
-    from .pointcloud import read_epoch
 
+    _check_number("--radius", args.radius, low=0.0, low_open=True)
+    _check_number("--quantile", args.quantile, 0.5, 1.0, low_open=True, high_open=True)
+    _check_seed(args.seed)
+    _check_threads(args.threads)
     first_path, second_path = _first_and_second(args)
-    first = read_epoch(first_path)
-    second = read_epoch(second_path, origin=first.origin)
-    if args.footprints:  # real clouds: building points from footprints, as classify assigns them
-        from .footprints import assign_buildings, read_footprints
-
-        fp = read_footprints(args.footprints, args.id_field)
-        for e in (first, second):
-            e.building_id = assign_buildings(e.xyz[:, 0] + e.origin[0], e.xyz[:, 1] + e.origin[1], fp)
+    if args.output:
+        _check_file_output(Path(args.output), [first_path, second_path, args.footprints])
+    # classify's reading and checks (same CRS, overlapping extents, footprints in the clouds'
+    # CRS); building points from footprints for real clouds, as classify assigns them
+    pair = load_pair(first_path, second_path, args.footprints, args.id_field)
+    first, second = pair.pre, pair.post
     lod = calibrate(first, second, radius_m=args.radius, quantile=args.quantile, seed=args.seed,
                     workers=args.threads, progress=_progress(args, "calibrate-lod"))
     print(f"calibrate-lod: {lod.points:,} building points; at the {100 * args.quantile:g}th percentile "
           f"|Δheight| {lod.height_at_quantile_m:.3f} m, |Δcurvature| {lod.curvature_at_quantile:.3f} 1/m")
     print(f"levels of detection: --lod-height {lod.lod_height_m:.3f} --lod-curvature {lod.lod_curvature:.3f}")
     if args.output:
+        from .results import _atomic
+
         out = Path(args.output)
-        tmp = out.with_name(out.name + ".part")
-        tmp.write_text(json.dumps(lod.to_json(), indent=1))
-        os.replace(tmp, out)
+        with _atomic(out) as tmp:
+            tmp.write_text(json.dumps(lod.to_json(), indent=1))
         print(f"-> {out}")
     return 0
 
@@ -463,7 +540,15 @@ def cmd_train(args) -> int:
     from .model import save_model
     from .training import TrainingError, TrainingPair, train
 
+    _check_number("--trees", args.trees, 1, integer=True)
+    _check_number("--depth", args.depth, 1, integer=True)
+    _check_number("--test-size", args.test_size, 0.0, 1.0, high_open=True)
+    _check_seed(args.seed)
+    _check_threads(args.threads)
+    _check_split_flags(args)
     args.pair = _training_pairs(args)
+    out = Path(args.output)
+    _check_file_output(out, [p for pair in args.pair for p in pair] + list(args.truth or []) + [args.footprints])
     if args.truth and len(args.truth) != len(args.pair):
         n = len(args.pair)
         raise TrainingError(f"{len(args.truth)} --truth files for {n} pair{'s' * (n != 1)}: give one per pair "
@@ -483,8 +568,6 @@ def cmd_train(args) -> int:
                              progress=progress,
                              command="quakescan " + " ".join(sys.argv[1:]),
                              rule=settings.paper_descriptors)
-    out = Path(args.output)
-    out.parent.mkdir(parents=True, exist_ok=True)
     save_model(model, out)
     counts = dict(zip(*np.unique(table.y, return_counts=True)))
     print(f"train: {len(table.y)} building rows from {len(pairs)} pairs, grades {counts}; "
@@ -499,6 +582,7 @@ def cmd_train(args) -> int:
 def cmd_classify(args) -> int:
     from .classify import classify
 
+    _check_threads(args.threads)
     summary = classify(args.pre, args.post, args.output, model_path=args.model, footprints_path=args.footprints,
                        id_field=args.id_field, align=args.align, workers=args.threads,
                        progress=_progress(args, "classify"),
@@ -527,13 +611,15 @@ def cmd_classify(args) -> int:
 def cmd_evaluate(args) -> int:
     from .evaluate import evaluate_files, plot_confusion
 
+    out = Path(args.output) if args.output else Path(args.result).parent
+    if out.exists() and not out.is_dir():
+        raise QuakeScanError(f"{out}: -o is an existing file; evaluate writes a folder (confusion.png, "
+                             "evaluation.json)")
     ev = evaluate_files(args.result, args.truth)
     print(f"evaluate: {ev.n} assessable buildings, overall accuracy {100 * ev.overall_accuracy:.1f} %"
           + (f", {ev.not_assessable} not assessable" if ev.not_assessable else "")
           + (f", {len(ev.missing)} in the truth but not in the result" if ev.missing else ""))
     print(ev.table())
-    out = Path(args.output) if args.output else Path(args.result).parent
-    out.mkdir(parents=True, exist_ok=True)
     plot_confusion(ev, out / "confusion.png")
     _write_json_atomic(out / "evaluation.json", ev.to_json())
     print(f"confusion matrix -> {out / 'confusion.png'}, metrics -> {out / 'evaluation.json'}")
@@ -574,11 +660,17 @@ def cmd_robustness(args) -> int:
         radii = tuple(float(r) for r in args.radii.split(",")) if args.radii else None
     except ValueError:
         raise QuakeScanError(f"--radii: expected comma-separated numbers of metres, got {args.radii!r}") from None
+    if radii is not None and not all(np.isfinite(r) and r > 0 for r in radii):
+        raise QuakeScanError(f"--radii: every radius must be a positive number of metres, got {args.radii!r}")
+    _check_folder_output(Path(args.output))
     kw = {"radii": radii} if radii else {}
     try:
         spacing = check_spacing(args.spacing)
     except QuakeScanError as e:
         raise QuakeScanError(f"--spacing {args.spacing}: {e}") from None
+    _check_seed(args.seed)
+    _check_threads(args.threads)
+    _check_number("--threshold", args.threshold, 0.0)
     sample = DEFAULT_SAMPLE if args.sample is None else (None if args.sample == 0 else args.sample)
     if sample is not None and sample < 0:
         raise QuakeScanError(f"--sample: expected a number of points >= 0 (0 = all), got {args.sample}")
@@ -599,6 +691,9 @@ def cmd_training_set(args) -> int:
     from .default_model import TABLE_SETTINGS
     from .trainset import build, default_plan
 
+    _check_seed(args.seed)
+    _check_threads(args.threads)
+    _check_folder_output(Path(args.output))
     table = build(args.output, default_plan(args.seed, args.size, args.scenes), TABLE_SETTINGS, workers=args.threads,
                   say=_say(args), progress=_progress(args, "training set"))
     counts = dict(zip(*(v.tolist() for v in np.unique(table.y, return_counts=True))))
@@ -608,6 +703,7 @@ def cmd_training_set(args) -> int:
 
 def cmd_experiment(args) -> int:
     """The paper's four classifiers evaluated on a held-out region-specific DIM city."""
+    from .change import LOD_CURVATURE_RANGE, LOD_HEIGHT_RANGE_M
     from .evaluate import metric_text
     from .experiment import ExperimentSettings, run_paper_experiment
 
@@ -617,6 +713,17 @@ def cmd_experiment(args) -> int:
             mix = {int(g): int(n) for g, n in (p.split(":") for p in args.test_mix.split(","))}
         except ValueError:
             raise QuakeScanError(f"--test-mix: expected GRADE:COUNT,..., got {args.test_mix!r}") from None
+    if mix is not None and (any(g not in (0, 3, 4, 5) or n < 0 for g, n in mix.items()) or sum(mix.values()) < 1):
+        raise QuakeScanError(f"--test-mix: grades must be 0, 3, 4 or 5 with counts >= 0 (at least one building), "
+                             f"got {args.test_mix!r}")
+    if args.buildings < 4:
+        raise QuakeScanError(f"--buildings: buildings per training dataset must be >= 4, got {args.buildings}")
+    _check_folder_output(Path(args.output))
+    _check_number("--trees", args.trees, 1, integer=True)
+    _check_seed(args.seed)
+    _check_threads(args.threads)
+    _check_number("--lod-height", args.lod_height, *LOD_HEIGHT_RANGE_M, low_open=True)
+    _check_number("--lod-curvature", args.lod_curvature, *LOD_CURVATURE_RANGE, low_open=True)
     settings = ExperimentSettings(buildings=args.buildings, test_mix=mix, seed=args.seed, n_estimators=args.trees,
                                   lod_height_m=args.lod_height, lod_curvature=args.lod_curvature,
                                   training=args.training)

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import importlib.util
 import json
-import os
 import shutil
 import subprocess
 import sys
@@ -146,8 +145,9 @@ def run_demo(out_dir, seed: int = 0, buildings: int = 30, say=print, progress_fa
 
     ev = evaluate_files(result / "buildings.csv", city / "post")
     plot_confusion(ev, result / "confusion.png", title="Demo city: truth vs prediction")
-    tmp = result / "evaluation.json.part"
-    tmp.write_text(json.dumps(ev.to_json(), indent=1))
-    os.replace(tmp, result / "evaluation.json")
+    from .results import _atomic
+
+    with _atomic(result / "evaluation.json") as tmp:
+        tmp.write_text(json.dumps(ev.to_json(), indent=1))
     say(f"demo 5/5: maps -> {result / 'damage_map.png'}, {result / 'damage_map.html'} (opens offline)")
     return {"summary": summary, "evaluation": ev, "result": result}

@@ -114,6 +114,8 @@ def _read_csv(path: Path, needed: tuple) -> list[dict]:
             rows = list(csv.DictReader(f))
     except FileNotFoundError:
         raise EvaluationError(f"{path}: file does not exist") from None
+    except (OSError, UnicodeDecodeError, csv.Error) as e:
+        raise EvaluationError(f"{path}: cannot read as a CSV table ({e})") from None
     if not rows:
         raise EvaluationError(f"{path}: no rows")
     missing = [c for c in needed if c not in rows[0]]
@@ -132,16 +134,45 @@ def read_truth(path: str | os.PathLike) -> dict[int, int]:
         manifest = path / "scene.json"
         try:
             doc = json.loads(manifest.read_text())
-            return {int(b["id"]): int(b["grade"]) for b in doc["buildings"]}
+            grades = {int(b["id"]): int(b["grade"]) for b in doc["buildings"]}
         except FileNotFoundError:
             raise EvaluationError(f"{manifest}: a truth folder must be a scene bundle with scene.json") from None
-        except (ValueError, KeyError, TypeError) as e:
+        except (ValueError, KeyError, TypeError, UnicodeDecodeError) as e:
             raise EvaluationError(f"{manifest}: cannot read building grades ({e!r})") from None
-    tru = _read_csv(path, ("building_id", "grade"))
+        bad = {b: g for b, g in grades.items() if not 0 <= g <= 5}
+        if bad:
+            raise EvaluationError(f"{manifest}: grades {bad} are not EMS-98 grades 0–5")
+        return grades
+    return read_grade_csv(path, EvaluationError)
+
+
+def read_grade_csv(path, error=EvaluationError) -> dict[int, int]:
+    """{building_id: grade} from a truth CSV (columns building_id, grade 0–5); `error`: the
+    caller's error class. A building listed twice is refused (which row is the truth?)."""
+    path = Path(path)
     try:
-        return {int(r["building_id"]): int(r["grade"]) for r in tru}
-    except ValueError as e:
-        raise EvaluationError(f"{path}: building_id and grade must be integers ({e})") from None
+        with open(path, newline="") as f:
+            rows = list(csv.DictReader(f))
+    except FileNotFoundError:
+        raise error(f"{path}: truth file does not exist") from None
+    except (OSError, UnicodeDecodeError, csv.Error) as e:
+        raise error(f"{path}: cannot read the truth CSV ({e})") from None
+    if not rows or not {"building_id", "grade"} <= set(rows[0]):
+        raise error(f"{path}: needs columns building_id and grade")
+    out, line_of = {}, {}
+    for k, r in enumerate(rows, start=2):
+        try:
+            bid, g = int(r["building_id"]), int(r["grade"])
+        except (TypeError, ValueError):
+            raise error(f"{path}: line {k}: building_id and grade must be integers, got "
+                        f"{r['building_id']!r}, {r['grade']!r}") from None
+        if not 0 <= g <= 5:
+            raise error(f"{path}: line {k}: grade {g} is not an EMS-98 grade 0–5")
+        if bid in out:
+            raise error(f"{path}: line {k}: building {bid} is listed twice (also line {line_of[bid]}); "
+                        "keep one row per building")
+        out[bid], line_of[bid] = g, k
+    return out
 
 
 def evaluate_files(result_csv: str | os.PathLike, truth_csv: str | os.PathLike) -> Evaluation:
@@ -150,16 +181,27 @@ def evaluate_files(result_csv: str | os.PathLike, truth_csv: str | os.PathLike) 
     res = _read_csv(result_csv, ("building_id", "predicted_grade"))
     truth = read_truth(truth_csv)
     t, p, not_assessable, seen = [], [], 0, set()
-    for r in res:
-        bid = int(r["building_id"])
+    for line, r in enumerate(res, start=2):
+        try:
+            bid = int(r["building_id"])
+            assessable = str(r.get("assessable", "1")).strip() not in ("0", "false", "False")
+            grade = int(r["predicted_grade"]) if assessable else None
+        except (TypeError, ValueError):
+            raise EvaluationError(f"{result_csv}: line {line}: building_id and, for an assessable building, "
+                                  f"predicted_grade must be integers, got {r.get('building_id')!r}, "
+                                  f"{r.get('predicted_grade')!r}") from None
+        if bid in seen:
+            raise EvaluationError(f"{result_csv}: line {line}: building {bid} is listed twice")
         seen.add(bid)
         if bid not in truth:
             continue
-        if str(r.get("assessable", "1")).strip() in ("0", "false", "False"):
+        if not assessable:
             not_assessable += 1
             continue
+        if grade not in (0, 1, 2, 3, 4, 5):
+            raise EvaluationError(f"{result_csv}: line {line}: predicted grade {grade} is not an EMS-98 grade 0–5")
         t.append(truth[bid])
-        p.append(int(r["predicted_grade"]))
+        p.append(grade)
     if not t:
         raise EvaluationError(f"{result_csv}: no assessable building shares an ID with {truth_csv}")
     ev = evaluate_grades(np.array(t), np.array(p))
@@ -188,8 +230,10 @@ def plot_confusion(ev: Evaluation, path: str | os.PathLike, title: str = "Damage
     ax.set_ylabel("reference")
     ax.set_title(title)
     fig.tight_layout()
-    path = Path(path)
-    tmp = path.with_name(path.stem + ".tmp.png")
-    fig.savefig(tmp)
-    plt.close(fig)
-    os.replace(tmp, path)
+    from .results import _atomic
+
+    try:
+        with _atomic(path) as tmp, open(tmp, "wb") as f:
+            fig.savefig(f, format="png")
+    finally:
+        plt.close(fig)

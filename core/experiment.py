@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
+import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -48,6 +48,8 @@ from .evaluate import (
     read_truth,
 )
 from .model import train_damage_forest, train_forest
+
+log = logging.getLogger(__name__)
 
 # Table of Zahs et al.: per classifier, per column (damaged vs undamaged, grades 0/3/4/5),
 # (overall accuracy, precision, recall, F1) in %.
@@ -134,8 +136,11 @@ def _table(pre: Path, posts: list, cache: Path, settings, workers, say=None) -> 
     inputs = json.dumps([settings.to_json(), Path(pre).name, [Path(p).name for p, _ in posts]], sort_keys=True)
     cache = cache.with_name(f"{cache.name}_{hashlib.sha256(inputs.encode()).hexdigest()[:10]}.npz")
     if cache.is_file():
-        d = np.load(cache)
-        return {"x": d["x"], "y": d["y"], "ids": d["ids"]}
+        try:
+            with np.load(cache) as d:
+                return {"x": d["x"], "y": d["y"], "ids": d["ids"]}
+        except Exception as e:  # cut or foreign: recomputed, never a traceback on every rerun
+            _discard(cache, e)
     names = settings.descriptor_names()
     xs, ys, ids = [], [], []
     for post, grade in posts:
@@ -151,10 +156,17 @@ def _table(pre: Path, posts: list, cache: Path, settings, workers, say=None) -> 
         ys += [grade[r.building_id] if isinstance(grade, dict) else grade for r in rows]
         ids += [r.building_id for r in rows]
     out = {"x": np.vstack(xs), "y": np.array(ys), "ids": np.array(ids)}
-    tmp = cache.with_name(cache.name + ".part.npz")
-    np.savez(tmp, **out)
-    os.replace(tmp, cache)
+    from .results import _atomic
+
+    with _atomic(cache) as tmp, open(tmp, "wb") as f:
+        np.savez(f, **out)
     return out
+
+
+def _discard(cache: Path, e: Exception) -> None:
+    """Remove an unreadable cache file, saying so: its step is recomputed."""
+    log.warning("%s: unreadable cache (%s), discarded: recomputing it", cache, e)
+    cache.unlink(missing_ok=True)
 
 
 def _levels_of_detection(s: ExperimentSettings, pre: Path, rescan: Path, cache: Path, workers):
@@ -162,9 +174,13 @@ def _levels_of_detection(s: ExperimentSettings, pre: Path, rescan: Path, cache: 
     from .lod import LevelsOfDetection, calibrate
     from .pointcloud import read_epoch
 
+    lod = None
     if cache.is_file():
-        lod = LevelsOfDetection(**json.loads(cache.read_text()))
-    else:
+        try:
+            lod = LevelsOfDetection(**json.loads(cache.read_text()))
+        except Exception as e:  # cut or edited: measured again
+            _discard(cache, e)
+    if lod is None:
         a = read_epoch(pre)
         lod = calibrate(a, read_epoch(rescan, origin=a.origin), seed=s.seed, workers=workers)
         _atomic_text(cache, json.dumps(lod.to_json(), indent=1))
@@ -429,9 +445,10 @@ Confusion matrices: `confusion_*.png`; all numbers: `results.json`.
 
 
 def _atomic_text(path: Path, text: str) -> None:
-    tmp = path.with_name(path.name + ".part")
-    tmp.write_text(text)
-    os.replace(tmp, path)
+    from .results import _atomic
+
+    with _atomic(path) as tmp:
+        tmp.write_text(text)
 
 
 __all__ = ["CLASSIFIERS", "PAPER_TABLE", "Evaluation", "ExperimentSettings", "comparison_table",

@@ -284,6 +284,43 @@ def _fast(cloud, query, radius, names, workers, cells_per_radius=None, stats=Non
             curv if do_curv else nan1, ncyl if do_cyl else None)
 
 
+def position_keys(xyz) -> np.ndarray:
+    """(n,) uint64 hash of each point's exact float64 coordinates: equal points, equal keys
+    (different points collide with probability ~n²/2**64; `duplicate_groups` checks)."""
+    u = np.ascontiguousarray(xyz, dtype=np.float64).reshape(-1, 3).view(np.uint64)
+    h = u[:, 0] * np.uint64(0x9E3779B97F4A7C15)
+    h ^= u[:, 1]
+    h ^= h >> np.uint64(29)
+    h *= np.uint64(0xBF58476D1CE4E5B9)
+    h ^= u[:, 2]
+    h ^= h >> np.uint64(32)
+    h *= np.uint64(0x94D049BB133111EB)
+    return h ^ (h >> np.uint64(31))
+
+
+def duplicate_groups(xyz):
+    """(first, inverse) when some points of `xyz` coincide exactly: `first` indexes one point
+    of each distinct position, xyz[first][inverse] == xyz. None when all are distinct (the
+    common case: one hash and one sort of the keys)."""
+    xyz = np.asarray(xyz, dtype=np.float64)
+    keys = position_keys(xyz)
+    order = np.argsort(keys, kind="stable")
+    ks = keys[order]
+    same = ks[1:] == ks[:-1]
+    if not same.any():
+        return None
+    n = len(xyz)
+    starts = np.concatenate([[True], ~same])
+    run_first = order[np.maximum.accumulate(np.where(starts, np.arange(n), 0))]
+    exact = np.all(xyz[order] == xyz[run_first], axis=1)  # a hash collision stays its own point
+    rep = np.empty(n, np.int64)
+    rep[order] = np.where(exact, run_first, order)
+    first, inverse = np.unique(rep, return_inverse=True)
+    if len(first) == n:
+        return None
+    return first, inverse.reshape(-1)
+
+
 def compute_features(xyz, radius: float, features: Sequence[str] | None = None, core_points=None,
                      workers: int | None = None, fast: bool = True, query_index=None,
                      progress=None) -> dict[str, np.ndarray]:
@@ -334,6 +371,22 @@ def compute_features(xyz, radius: float, features: Sequence[str] | None = None, 
         nan = np.full(m, np.nan)
         return {f: (np.zeros(m) if f in ("num_neighbours", "surface_density", "volume_density",
                                          "point_density") else nan.copy()) for f in names}
+    if fast and m > 1:
+        # Coincident query points have one neighbourhood: computed once. Without this the
+        # kernel is quadratic in the duplicates (200 000 copies of one point: hours).
+        qpts = core_points if core_points is not None else (xyz if query_index is None else xyz[query_index])
+        groups = duplicate_groups(qpts)
+        if groups is not None:
+            first, inverse = groups
+            # progress in the caller's points: the distinct ones stand for all their copies
+            scaled = None if progress is None else (lambda d, t: progress(m if d >= t else d * m // max(t, 1), m))
+            if core_points is not None:
+                once = compute_features(xyz, radius, names, core_points=core_points[first], workers=workers,
+                                        progress=scaled)
+            else:
+                at = first if query_index is None else query_index[first]
+                once = compute_features(xyz, radius, names, workers=workers, query_index=at, progress=scaled)
+            return {k: v[inverse] for k, v in once.items()}
     origin = xyz.min(axis=0)
     cols = [np.ascontiguousarray(xyz[:, k] - origin[k]) for k in range(3)]
     r_test = radius * (1.0 + RADIUS_TOLERANCE)

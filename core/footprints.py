@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 import re
 from dataclasses import dataclass, field
@@ -33,17 +34,26 @@ class Footprints:
     source: str = "footprints"
     properties: list = field(default_factory=list)
     id_field: str | None = None  # the property the IDs came from (None: position or building_id)
+    # buildings whose footprint cannot be used (NaN vertex, self-intersecting, no area):
+    # (building ID, reason, properties); classify reports them as not assessable
+    rejected: list = field(default_factory=list)
 
     def own_ids(self) -> dict:
         """{building ID: the footprint's own ID} where they differ (text IDs numbered 1, 2, …)."""
         if not self.id_field or not self.properties:
             return {}
         out = {}
-        for b, p in zip(self.ids.tolist(), self.properties):
+        pairs = list(zip(self.ids.tolist(), self.properties)) + [(b, p) for b, _, p in self.rejected]
+        for b, p in pairs:
             own = (p or {}).get(self.id_field)
             if own != b:
                 out[int(b)] = own
         return out
+
+    def attributes(self) -> dict:
+        """{building ID: the footprint's properties} of every footprint that has any."""
+        pairs = list(zip(self.ids.tolist(), self.properties)) + [(b, p) for b, _, p in self.rejected]
+        return {int(b): p for b, p in pairs if p}
 
     def __len__(self):
         return len(self.ids)
@@ -73,7 +83,16 @@ def read_footprints(path: str | os.PathLike, id_field: str | None = None) -> Foo
     cannot be a point cloud's integer ID: the polygons are then numbered 1, 2, … in file
     order and each keeps its own ID, with all its other attributes, in `properties`
     (classify writes them into buildings.geojson and the ID into buildings.csv).
+
+    A footprint that cannot stand for its building's outline (a vertex that is not a finite
+    number, a ring that crosses itself like a bow-tie, no area) is not guessed at: the
+    building is kept in `rejected` with the reason, and classify reports it as not
+    assessable. Rings that only touch themselves (digitising artefacts) are repaired.
+    Features that are not polygons (points, lines, no geometry) are not footprints: skipped
+    with a warning. Coordinates that cannot be in the file's CRS (|x| > 180 or |y| > 90 in a
+    geographic CRS: projected metres labelled as degrees) are refused.
     """
+    import shapely
     import shapely.geometry
 
     path = Path(path)
@@ -81,23 +100,17 @@ def read_footprints(path: str | os.PathLike, id_field: str | None = None) -> Foo
     if not isinstance(doc, dict) or doc.get("type") != "FeatureCollection":
         raise FootprintError(f"{path}: not a GeoJSON FeatureCollection")
     features = doc.get("features") or []
-    polygons, ids, props = [], [], []
+    if not isinstance(features, list) or not all(isinstance(f, dict) for f in features):
+        raise FootprintError(f"{path}: 'features' must be a list of GeoJSON Feature objects")
+    entries = []  # (raw ID, polygon or None, reason it is unusable, properties)
     use_field = id_field or ("building_id" if features and all(
         "building_id" in (f.get("properties") or {}) for f in features) else None)
     for i, f in enumerate(features):
         geom = f.get("geometry")
-        if not geom or geom.get("type") not in ("Polygon", "MultiPolygon"):
-            log.warning("%s: feature %d is not a polygon (%s), skipped", path, i, geom and geom.get("type"))
+        if not isinstance(geom, dict) or geom.get("type") not in ("Polygon", "MultiPolygon"):
+            log.warning("%s: feature %d is not a polygon (%s), skipped", path, i,
+                        geom.get("type") if isinstance(geom, dict) else geom)
             continue
-        try:
-            poly = shapely.geometry.shape(geom)
-        except Exception as e:
-            raise FootprintError(f"{path}: feature {i} has an invalid geometry ({e})") from None
-        if poly.is_empty or poly.area <= 0:
-            log.warning("%s: feature %d has no area, skipped", path, i)
-            continue
-        if not poly.is_valid:
-            poly = poly.buffer(0)  # self-touching rings from digitising; buffer(0) repairs them
         p = f.get("properties") or {}
         if use_field:
             value = p.get(use_field)
@@ -107,17 +120,68 @@ def read_footprints(path: str | os.PathLike, id_field: str | None = None) -> Foo
             bid = value
         else:
             bid = i + 1
-        polygons.append(poly)
-        ids.append(bid)
-        props.append(p)
-    if not polygons:
-        raise FootprintError(f"{path}: no polygon footprints in the file")
+        poly, reason = _polygon(geom, path, i)
+        entries.append((bid, poly, reason, p))
+    if not any(poly is not None for _, poly, _, _ in entries):
+        raise FootprintError(f"{path}: no polygon footprints in the file that can be used"
+                             + (f" ({entries[0][2]})" if entries else ""))
+    ids = [b for b, _, _, _ in entries]
     if not all(isinstance(b, int) and b > 0 for b in ids):
         log.info("%s: %r holds text IDs; buildings are numbered 1..%d and keep their own ID as %r",
                  path, use_field, len(ids), use_field)
         ids = list(range(1, len(ids) + 1))
-    return Footprints(np.array(ids, dtype=np.int64), polygons, parse_geojson_crs(doc), str(path), props,
-                      use_field)
+    crs = parse_geojson_crs(doc)
+    kept = [(b, e[1], e[3]) for b, e in zip(ids, entries) if e[1] is not None]
+    fp = Footprints(np.array([b for b, _, _ in kept], dtype=np.int64), [q for _, q, _ in kept], crs, str(path),
+                    [p for _, _, p in kept], use_field)
+    usable = set(fp.ids.tolist())
+    for b, (_, poly, reason, p) in zip(ids, entries):
+        if poly is None:
+            log.warning("%s: building %s: %s%s", path, b, reason,
+                        "; its other parts are used" if b in usable else "; reported as not assessable")
+            if b not in usable:
+                fp.rejected.append((int(b), f"footprint unusable: {reason}", p))
+    if crs:
+        from .pointcloud import check_coordinates_fit_crs
+
+        check_coordinates_fit_crs(crs, fp.bounds()[:, :2].min(axis=0), fp.bounds()[:, 2:].max(axis=0), str(path),
+                                  FootprintError)
+    return fp
+
+
+def _numbers(c):
+    """Every leaf of a GeoJSON coordinate array."""
+    if isinstance(c, (list, tuple)):
+        for x in c:
+            yield from _numbers(x)
+    else:
+        yield c
+
+
+def _polygon(geom: dict, path, i: int):
+    """(shapely polygon, "") of a GeoJSON polygon geometry, or (None, why it is unusable)."""
+    import shapely
+    import shapely.geometry
+
+    if not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+               for v in _numbers(geom.get("coordinates"))):
+        return None, "a vertex is not a finite number (NaN, infinity or text)"
+    try:
+        poly = shapely.geometry.shape(geom)
+    except Exception as e:
+        raise FootprintError(f"{path}: feature {i} has an invalid geometry ({e})") from None
+    if poly.is_empty:
+        return None, "the polygon is empty"
+    if poly.envelope.area <= 0 or poly.convex_hull.area <= 0:  # every vertex on one line (or one point)
+        return None, "the polygon has no area"
+    if not poly.is_valid:
+        why = shapely.is_valid_reason(poly)
+        if not why.startswith("Ring Self-intersection"):  # a bow-tie: which lobe is the building?
+            return None, f"the polygon is invalid ({why}): redraw its outline"
+        poly = poly.buffer(0)  # self-touching rings from digitising; buffer(0) repairs them
+    if poly.area <= 0:
+        return None, "the polygon has no area"
+    return poly, ""
 
 
 def assign_buildings(x: np.ndarray, y: np.ndarray, footprints: Footprints) -> np.ndarray:

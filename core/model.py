@@ -368,10 +368,10 @@ def save_model(model: DamageModel, path: str | os.PathLike) -> None:
         "created": model.provenance.get("created") or datetime.date.today().isoformat(),
         "classifier": model.classifier, "no_change_rule": bool(model.no_change_rule),
     }
-    path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
-    sio.dump({"meta": meta, "estimator": model.estimator}, tmp)
-    os.replace(tmp, path)
+    from .results import _atomic  # the one atomic writer: a failed write leaves nothing, names the file
+
+    with _atomic(path) as tmp:
+        sio.dump({"meta": meta, "estimator": model.estimator}, tmp)
 
 
 def load_model(path: str | os.PathLike) -> DamageModel:
@@ -383,8 +383,11 @@ def load_model(path: str | os.PathLike) -> DamageModel:
     import skops.io as sio
 
     path = Path(path)
+    if path.is_dir():
+        raise ModelError(f"{path}: is a folder, not a model file")
     if not path.is_file():
         raise ModelError(f"{path}: model file does not exist")
+    _check_archive_size(path)
     try:
         untrusted = sio.get_untrusted_types(file=path)
     except Exception as e:
@@ -417,10 +420,70 @@ def load_model(path: str | os.PathLike) -> DamageModel:
     if not isinstance(rule, bool):
         raise ModelError(f"{path}: no_change_rule must be true or false, got {rule!r}")
     _check_classifier_record(path, meta.get("classifier"), est)
-    return DamageModel(est, names, float(meta.get("radius_m", 0.0)), meta.get("split", {}),
+    _check_settings(path, meta)
+    if not isinstance(meta.get("provenance", {}), dict) or not all(isinstance(n, str) for n in names):
+        raise ModelError(f"{path}: provenance must be a dict and feature names texts (edited or foreign file)")
+    classes = getattr(est, "classes_", None)
+    try:
+        grades = [int(c) for c in classes] if classes is not None else []
+    except (TypeError, ValueError):
+        grades = None
+    if not grades or not set(grades) <= set(GRADE_LABELS) or len(set(grades)) != len(grades):
+        raise ModelError(f"{path}: the classifier's classes {classes!r} are not EMS-98 grades 0–5 (edited or "
+                         "foreign file)")
+    return DamageModel(est, names, float(meta["radius_m"]), meta.get("split", {}),
                        dict(meta.get("provenance", {}), versions={"quakescan": meta.get("quakescan"),
                                                                    "sklearn": meta.get("sklearn")}),
                        no_change_rule=rule)
+
+
+# A model file is a zip archive; skops inflates every member it reads. The shipped model
+# holds 76 MB; a file that would inflate beyond this is refused before anything is read
+# (a 2 MB file can declare gigabytes: 7.5 GB of memory before any other check).
+MAX_MODEL_UNCOMPRESSED_BYTES = 1 << 30
+MAX_MODEL_MEMBERS = 200_000
+
+
+def _check_archive_size(path: Path) -> None:
+    """Refuse a model archive whose members would inflate beyond MAX_MODEL_UNCOMPRESSED_BYTES,
+    from the sizes its directory declares (zipfile never reads past a declared size)."""
+    import zipfile
+
+    try:
+        with zipfile.ZipFile(path) as z:
+            infos = z.infolist()
+    except (zipfile.BadZipFile, OSError, ValueError) as e:
+        raise ModelError(f"{path}: not a QuakeScan model file (not a skops archive: {e})") from None
+    total = sum(i.file_size for i in infos)
+    if total > MAX_MODEL_UNCOMPRESSED_BYTES or len(infos) > MAX_MODEL_MEMBERS:
+        raise ModelError(f"{path}: refused: the archive would inflate to {total / 2 ** 20:,.0f} MiB in "
+                         f"{len(infos):,} members (a damage model holds at most "
+                         f"{MAX_MODEL_UNCOMPRESSED_BYTES / 2 ** 20:,.0f} MiB); nothing was loaded")
+
+
+def _check_settings(path, meta: dict) -> None:
+    """Refuse settings no QuakeScan writes: a radius or levels of detection out of range (an
+    edited file would classify every building at settings it was never trained on)."""
+    from .change import SplitSettings
+    from .pipeline import RADIUS_RANGE_M
+
+    r = meta.get("radius_m")
+    if isinstance(r, bool) or not isinstance(r, (int, float)) or not (
+            np.isfinite(r) and RADIUS_RANGE_M[0] <= r <= RADIUS_RANGE_M[1]):
+        raise ModelError(f"{path}: radius_m must lie in [{RADIUS_RANGE_M[0]:g}, {RADIUS_RANGE_M[1]:g}] m, got "
+                         f"{r!r} (edited or foreign file)")
+    stored = meta.get("split", {})
+    if not isinstance(stored, dict):
+        raise ModelError(f"{path}: split settings must be a dict, got {stored!r}")
+    if "radius_m" in stored and stored["radius_m"] != r:
+        raise ModelError(f"{path}: radius_m {r!r} differs from the pipeline settings' {stored['radius_m']!r} "
+                         "(edited file)")
+    split = stored.get("split")
+    if split is not None:
+        try:
+            SplitSettings(**split)
+        except (TypeError, QuakeScanError) as e:
+            raise ModelError(f"{path}: invalid split settings ({e}; edited or foreign file)") from None
 
 
 def _check_classifier_record(path, record, estimator) -> None:
@@ -431,6 +494,9 @@ def _check_classifier_record(path, record, estimator) -> None:
     if not isinstance(record, dict):
         raise ModelError(f"{path}: classifier metadata must be a dict, got {record!r}")
     held = describe_classifier(estimator)
+    if held["kind"] not in CLASSIFIER_KINDS or held["calibration"] not in CALIBRATIONS:
+        raise ModelError(f"{path}: the file holds a {held['kind']} classifier (calibration {held['calibration']}), "
+                         f"not one QuakeScan trains ({', '.join(CLASSIFIER_KINDS)}): refused")
     said = (record.get("kind"), record.get("calibration"))
     if said != (held["kind"], held["calibration"]):
         raise ModelError(f"{path}: the metadata says kind {said[0]!r}, calibration {said[1]!r} but the file "

@@ -44,6 +44,14 @@ GROUND_CLASS = 2
 LOD_FEATURES = ("eigenvalue1", "eigenvalue2", "eigenvalue3", "num_neighbours")
 
 
+# The feature radius a model may use. Below 0.5 m a neighbourhood at UAV spacing (~0.1 m)
+# holds too few points for stable eigenvalues; above 10 m it spans whole buildings and
+# its cost grows with r². The paper uses 1.0-4.0 m.
+RADIUS_RANGE_M = (0.5, 10.0)
+MAX_MIN_POINTS = 1_000_000
+MAX_TILE_M = 10_000.0
+
+
 class PipelineError(QuakeScanError):
     """A pair of epochs cannot be processed as asked."""
 
@@ -78,8 +86,18 @@ class PipelineSettings:
     min_coverage: float = 0.0
 
     def __post_init__(self):
-        if not (math.isfinite(self.radius_m) and self.radius_m > 0):
-            raise PipelineError(f"radius must be a positive number of metres, got {self.radius_m!r}")
+        r = self.radius_m
+        if isinstance(r, bool) or not isinstance(r, (int, float, np.integer, np.floating)) or not (
+                math.isfinite(r) and RADIUS_RANGE_M[0] <= r <= RADIUS_RANGE_M[1]):
+            raise PipelineError(f"radius must lie in [{RADIUS_RANGE_M[0]:g}, {RADIUS_RANGE_M[1]:g}] m, got {r!r}")
+        if not isinstance(self.split, SplitSettings):
+            raise PipelineError(f"split settings must be SplitSettings, got {self.split!r}")
+        for name in ("min_points_pre", "min_points_post"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 1 <= v <= MAX_MIN_POINTS:
+                raise PipelineError(f"{name} must be an integer in [1, {MAX_MIN_POINTS}], got {v!r}")
+        if not (isinstance(self.tile_m, (int, float)) and math.isfinite(self.tile_m) and self.tile_m <= MAX_TILE_M):
+            raise PipelineError(f"tile size must be a number of metres <= {MAX_TILE_M:g}, got {self.tile_m!r}")
         unknown = [f for f in self.point_features if f not in FEATURES]
         if unknown:
             raise PipelineError(f"unknown point features {unknown}; known: {', '.join(FEATURES)}")
@@ -149,6 +167,8 @@ class PipelineSettings:
                        **_newer_keys(d))
         except (KeyError, TypeError, ValueError) as e:
             raise PipelineError(f"incomplete pipeline settings ({e!r}): {d}") from None
+        except QuakeScanError as e:
+            raise PipelineError(str(e)) from None
 
 
 def _newer_keys(d: dict) -> dict:
@@ -192,8 +212,13 @@ def settings_for_descriptors(names: Sequence[str], radius_m: float, split: dict 
     for key in list(newer):
         if key in kw:
             newer.pop(key)
-    return PipelineSettings(radius_m=radius_m, point_features=tuple(feats),
-                            split=SplitSettings(**(split or {})), **newer, **kw)
+    try:
+        split_settings = SplitSettings(**(split or {}))
+    except TypeError as e:  # a key this QuakeScan does not know
+        raise PipelineError(f"split settings {split!r}: {e}") from None
+    except QuakeScanError as e:
+        raise PipelineError(str(e)) from None
+    return PipelineSettings(radius_m=radius_m, point_features=tuple(feats), split=split_settings, **newer, **kw)
 
 
 @dataclass
@@ -333,11 +358,30 @@ def describe_pair(pre: Epoch, post: Epoch, settings: PipelineSettings, *, worker
                                     "(not covered by the post-event cloud?)")
         else:
             ok.append(bid)
-
     order = np.argsort(pre_ids, kind="stable")
     starts = np.searchsorted(pre_ids[order], uniq_pre)
     ends = starts + n_pre
     where = {int(b): (s, t) for b, s, t in zip(uniq_pre, starts, ends)}
+    # Points stacked on one spot (a broken export, a sensor stuck on a line) have no geometry:
+    # the features of such a building are undefined and "no change" would read as no damage.
+    post_order = np.argsort(post_ids, kind="stable")
+    post_start = dict(zip(uniq_post.tolist(), np.searchsorted(post_ids[post_order], uniq_post).tolist()))
+    for bid in list(ok):
+        s, t = where[bid]
+        a = _few_distinct(pre.xyz, order[s:t], settings.min_points_pre)
+        p0 = post_start[bid]
+        b = _few_distinct(post.xyz, post_order[p0:p0 + n_post_of[bid]], settings.min_points_post)
+        if a is not None:
+            rows[bid] = BuildingRow(bid, n_pre_of[bid], n_post_of[bid], False,
+                                    f"{a} distinct pre-event positions < {settings.min_points_pre} "
+                                    f"(of {n_pre_of[bid]} points, the others coincide)")
+        elif b is not None:
+            rows[bid] = BuildingRow(bid, n_pre_of[bid], n_post_of[bid], False,
+                                    f"{b} distinct post-event positions < {settings.min_points_post} "
+                                    f"(of {n_post_of[bid]} points, the others coincide)")
+        else:
+            continue
+        ok.remove(bid)
     centres = {}
     for bid in ok:
         s, t = where[bid]
@@ -380,6 +424,18 @@ def _report_buildings(progress, finished: int, n: int, total: int) -> int:
         if progress:
             progress(finished, total)
     return finished
+
+
+def _few_distinct(xyz: np.ndarray, members: np.ndarray, minimum: int) -> int | None:
+    """The number of distinct positions of the points `members` when it is below `minimum`,
+    else None. An even sample of 4 × minimum points decides almost every building at once;
+    only a building whose sample repeats itself is counted in full."""
+    if len(members) > 4 * minimum:
+        sample = members[np.linspace(0, len(members) - 1, 4 * minimum).astype(np.int64)]
+        if len(np.unique(xyz[sample], axis=0)) >= minimum:
+            return None
+    n = len(np.unique(xyz[members], axis=0))
+    return n if n < minimum else None
 
 
 def _surface_geometry(pre: Epoch, post: Epoch, settings: PipelineSettings):

@@ -99,11 +99,19 @@ class LasChunkWriter:
         return self._compress
 
     def __enter__(self):
-        self.path.parent.mkdir(parents=True, exist_ok=True)
+        from .results import is_write_failure, write_failure_message
+
         kwargs = {}
         if self._compress:
             kwargs["laz_backend"] = laspy.LazBackend.LazrsParallel
-        self._writer = laspy.open(self.tmp, mode="w", header=self.header, do_compress=self._compress, **kwargs)
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._writer = laspy.open(self.tmp, mode="w", header=self.header, do_compress=self._compress, **kwargs)
+        except Exception as e:
+            self.tmp.unlink(missing_ok=True)
+            if is_write_failure(e):
+                raise PointCloudError(write_failure_message(self.path, e)) from e
+            raise
         return self
 
     def write(self, chunk: PointChunk) -> None:
@@ -135,19 +143,28 @@ class LasChunkWriter:
         self.count += len(rec)
 
     def __exit__(self, exc_type, exc, tb):
+        from .results import is_write_failure, write_failure_message
+
         try:
             if self.count == 0 and exc_type is None:
                 # laspy leaves inf/-inf bounds in an empty file's header
                 self._writer.header.mins = self.offset
                 self._writer.header.maxs = self.offset
-            self._writer.close()
-        finally:
-            if exc_type is None:
-                os.replace(self.tmp, self.path)
-            elif self.keep_partial_as is not None and self.tmp.is_file():
-                os.replace(self.tmp, self.keep_partial_as)
-            else:
-                self.tmp.unlink(missing_ok=True)
+            self._writer.close()  # flushes the last chunk: a full disk may show only here
+        except BaseException as e:
+            exc = exc or e
+        if exc is None:
+            os.replace(self.tmp, self.path)
+            return False
+        # never a cut file under the final name; a resumable scan keeps it under its own
+        if self.keep_partial_as is not None and self.tmp.is_file():
+            os.replace(self.tmp, self.keep_partial_as)
+        else:
+            self.tmp.unlink(missing_ok=True)
+        if is_write_failure(exc) and not isinstance(exc, PointCloudError):
+            raise PointCloudError(write_failure_message(self.path, exc)) from exc
+        if exc_type is None:
+            raise exc
         return False
 
 
@@ -197,6 +214,8 @@ def pack_points(header, chunk: PointChunk, name="point cloud"):
 
 def read_las(path: str | os.PathLike) -> laspy.LasData:
     path = Path(path)
+    if path.is_dir():
+        raise PointCloudError(f"{path}: is a folder, not a LAS/LAZ point cloud file")
     if not path.is_file():
         raise PointCloudError(f"{path}: point cloud file does not exist")
     try:
@@ -240,6 +259,26 @@ def _crs_of(header, path) -> str | None:
     return f"EPSG:{epsg}" if epsg else crs.to_wkt()
 
 
+def check_coordinates_fit_crs(crs: str | None, mins, maxs, what: str, error=PointCloudError) -> None:
+    """Refuse coordinates that cannot be in `crs`: beyond ±180 / ±90 in a geographic CRS
+    (projected metres labelled as degrees: EPSG:4326 on Dutch RD coordinates)."""
+    if not crs:
+        return
+    try:
+        import pyproj
+
+        geographic = pyproj.CRS.from_user_input(crs).is_geographic
+    except Exception:
+        return  # a CRS pyproj does not know: the pair's CRS comparison still applies
+    if not geographic:
+        return
+    (x0, y0), (x1, y1) = np.asarray(mins, dtype=np.float64)[:2], np.asarray(maxs, dtype=np.float64)[:2]
+    if max(abs(x0), abs(x1)) > 180 or max(abs(y0), abs(y1)) > 90:
+        raise error(f"{what}: labelled {crs} (longitude/latitude in degrees) but its coordinates span x "
+                    f"{x0:.1f}..{x1:.1f}, y {y0:.1f}..{y1:.1f}: projected coordinates with a wrong CRS? "
+                    "Give the file its real CRS")
+
+
 def read_epoch(path: str | os.PathLike, origin=None) -> Epoch:
     """Read a LAS/LAZ epoch of any point format. Coordinates go from the file's integers to
     float64 relative to `origin` (default: the file's offset, or its minimum corner when
@@ -262,16 +301,29 @@ def read_epoch(path: str | os.PathLike, origin=None) -> Epoch:
     def extra(name, dtype):
         return np.asarray(las[name], dtype=dtype) if name in names else None
 
+    crs = _crs_of(h, path)
+    if len(xyz):
+        check_coordinates_fit_crs(crs, xyz.min(axis=0) + origin, xyz.max(axis=0) + origin, str(path))
     return Epoch(xyz, origin, np.asarray(las.classification, dtype=np.uint8),
                  building_id=extra("building_id", np.int64), grade=extra("grade", np.uint8),
-                 surface=extra("surface", np.uint8), crs=_crs_of(h, path), source=str(path))
+                 surface=extra("surface", np.uint8), crs=crs, source=str(path))
 
 
 def check_pair(pre: Epoch, post: Epoch) -> None:
-    """Refuse a pre/post pair that cannot be compared: CRS differ, or no overlap in x/y."""
+    """Refuse a pre/post pair that cannot be compared: CRS differ, or no overlap in x/y.
+
+    One epoch with a CRS and one without (common: a photogrammetry export without CRS
+    metadata) is taken as one CRS, with a warning naming both files: the overlap check
+    below still refuses clouds in frames kilometres apart, and a responder should not be
+    stopped by missing metadata. Both epochs then carry the known CRS (the outputs' CRS)."""
     if pre.crs and post.crs and pre.crs != post.crs:
         raise PointCloudError(f"{post.source}: CRS {post.crs} differs from the pre-event epoch's {pre.crs} "
                               f"({pre.source}); reproject one of them first")
+    if bool(pre.crs) != bool(post.crs):
+        known, unknown = (pre, post) if pre.crs else (post, pre)
+        log.warning("%s names no CRS but %s is in %s: taking both as %s (their x/y extents overlap); "
+                    "if they are not, reproject one of them", unknown.source, known.source, known.crs, known.crs)
+        unknown.crs = known.crs
     for e in (pre, post):
         if len(e) == 0:
             raise PointCloudError(f"{e.source}: the point cloud is empty")

@@ -13,6 +13,7 @@ from __future__ import annotations
 import contextlib
 import csv
 import datetime
+import errno
 import json
 import math
 import os
@@ -104,16 +105,43 @@ def _rgb8(hex_colour: str) -> tuple[int, int, int]:
 
 @contextlib.contextmanager
 def _atomic(path):
-    """Yield `<path>.part`; rename it to `path` on success, remove it on failure."""
+    """Yield `<path>.part`; rename it to `path` on success, remove it on any failure.
+
+    A write that fails for the system's reasons (a full disk, no permission; laspy's LAZ
+    backend reports them as its own LazrsError) becomes a ResultsError naming `path`: the
+    user learns which output failed and that nothing half-written is left under its name."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise ResultsError(f"{path}: cannot create its folder ({e.strerror or e})") from None
+    if path.is_dir():
+        raise ResultsError(f"{path}: is a folder; give a file name to write")
     tmp = path.with_name(path.name + ".part")
     try:
         yield tmp
         os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+    except BaseException as e:
+        with contextlib.suppress(OSError):
+            tmp.unlink(missing_ok=True)
+        if isinstance(e, QuakeScanError) or not is_write_failure(e):
+            raise
+        raise ResultsError(write_failure_message(path, e)) from e
+
+
+def is_write_failure(e: BaseException) -> bool:
+    """True for the errors a write raises when the system refuses it (disk full, permission,
+    I/O): OSError, and the LAZ backend's LazrsError, which wraps them in its own class."""
+    return isinstance(e, OSError) or type(e).__module__.split(".")[0] == "lazrs"
+
+
+def write_failure_message(path, e: BaseException) -> str:
+    """"<path>: cannot write (...)", saying plainly when the disk is full."""
+    text = getattr(e, "strerror", None) or str(e) or type(e).__name__
+    if getattr(e, "errno", None) == errno.ENOSPC or "no space left" in str(e).lower():
+        return (f"{path}: cannot write: no space left on the device; free some space or write to another "
+                "folder (nothing was left under this name)")
+    return f"{path}: cannot write ({text}; nothing was left under this name)"
 
 
 def _fmt(v: float | None) -> str:
@@ -188,6 +216,8 @@ def read_csv(path) -> list[BuildingResult]:
             data = list(reader)
     except FileNotFoundError:
         raise ResultsError(f"{path}: result file does not exist") from None
+    except (OSError, UnicodeDecodeError, csv.Error) as e:
+        raise ResultsError(f"{path}: cannot read as a CSV table ({e})") from None
     missing = [c for c in _FIXED + _TAIL if c not in cols]
     if missing:
         raise ResultsError(f"{path}: missing columns {missing} (has {cols})")

@@ -577,19 +577,22 @@ def compare_with_paper(result: RobustnessResult) -> dict:
 # Report -----------------------------------------------------------------------------------
 
 def _atomic_text(path: Path, text: str) -> None:
-    tmp = path.with_name(path.name + ".part")
-    with open(tmp, "w", encoding="utf-8", newline="") as fh:
+    from .results import _atomic
+
+    with _atomic(path) as tmp, open(tmp, "w", encoding="utf-8", newline="") as fh:
         fh.write(text)
-    os.replace(tmp, path)
 
 
 def _atomic_fig(fig, path: Path) -> None:
     import matplotlib.pyplot as plt
 
-    tmp = path.with_name(path.name + ".part")
-    fig.savefig(tmp, format="png")
-    plt.close(fig)
-    os.replace(tmp, path)
+    from .results import _atomic
+
+    try:
+        with _atomic(path) as tmp, open(tmp, "wb") as fh:
+            fig.savefig(fh, format="png")
+    finally:
+        plt.close(fig)
 
 
 def _fmt(x) -> str:

@@ -9,7 +9,6 @@ it occurs in several pairs (heavy, extreme, destruction of one city).
 """
 from __future__ import annotations
 
-import csv
 import datetime
 import logging
 import os
@@ -22,7 +21,7 @@ import numpy as np
 
 from .classify import load_pair
 from .errors import QuakeScanError
-from .evaluate import Evaluation, evaluate_grades, to_target_grade
+from .evaluate import Evaluation, evaluate_grades, read_grade_csv, to_target_grade
 from .model import DamageModel, grouped_split, predict_grades, train_damage_forest
 from .pipeline import PipelineSettings, describe_pair, descriptor_matrix
 from .pointcloud import GRADE_UNKNOWN, Epoch
@@ -43,26 +42,9 @@ class TrainingPair:
 
 
 def read_truth_csv(path: str | os.PathLike) -> dict[int, int]:
-    """{building_id: grade} from a CSV with columns building_id, grade (0–5)."""
-    path = Path(path)
-    try:
-        with open(path, newline="") as f:
-            rows = list(csv.DictReader(f))
-    except FileNotFoundError:
-        raise TrainingError(f"{path}: truth file does not exist") from None
-    if not rows or not {"building_id", "grade"} <= set(rows[0]):
-        raise TrainingError(f"{path}: needs columns building_id and grade")
-    out = {}
-    for k, r in enumerate(rows, start=2):
-        try:
-            bid, g = int(r["building_id"]), int(r["grade"])
-        except ValueError:
-            raise TrainingError(f"{path}: line {k}: building_id and grade must be integers, got "
-                                f"{r['building_id']!r}, {r['grade']!r}") from None
-        if not 0 <= g <= 5:
-            raise TrainingError(f"{path}: line {k}: grade {g} is not an EMS-98 grade 0–5")
-        out[bid] = g
-    return out
+    """{building_id: grade} from a CSV with columns building_id, grade (0–5), one row per
+    building (`core.evaluate.read_grade_csv`, the one truth reader)."""
+    return read_grade_csv(path, TrainingError)
 
 
 def grades_from_epoch(epoch: Epoch) -> dict[int, int]:

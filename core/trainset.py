@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import os
 import time
 from collections.abc import Callable
@@ -41,6 +42,8 @@ from pathlib import Path
 import numpy as np
 
 from .errors import QuakeScanError
+
+log = logging.getLogger(__name__)
 
 FORMAT = "quakescan-training-set"
 VERSION = 1
@@ -245,9 +248,10 @@ def _settings_key(settings, labels: str = "simulator") -> str:
 
 
 def _write_json_atomic(path: Path, data: dict) -> None:
-    tmp = path.with_name(path.name + ".part")
-    tmp.write_text(json.dumps(data, indent=1) + "\n")
-    os.replace(tmp, path)
+    from .results import _atomic
+
+    with _atomic(path) as tmp:
+        tmp.write_text(json.dumps(data, indent=1) + "\n")
 
 
 def generate_city(city: CitySpec, folder: Path) -> None:
@@ -345,20 +349,25 @@ def build(out_dir, plan: TrainingPlan, settings, *, workers: int = -1,
         table_path = out / "tables" / f"{pair.name}.{key}.npz"
         clouds = out / "clouds" / pair.city
         clouds.mkdir(exist_ok=True)
+        part = None
+        if table_path.is_file():
+            try:
+                with np.load(table_path) as d:
+                    part = {k2: d[k2] for k2 in d.files}
+            except Exception as e:  # cut or foreign: recomputed, never a traceback on every rerun
+                log.warning("%s: unreadable table (%s), discarded: recomputing it", table_path, e)
+                table_path.unlink(missing_ok=True)
         t = time.perf_counter()
         paths = []
         for role, scene, acq, seed in (("pre", "pre", pair.pre, pair.pre_seed),
                                        ("post", pair.post_scene, pair.post, pair.post_seed)):
             a = Acquisition.from_json(acq, f"{pair.name} {role}")
             path = clouds / f"{scene}.{a.kind}.{seed}.las"
-            if not table_path.is_file():
+            if part is None:
                 acquire(scenes / scene, a, path, seed=seed)
             paths.append(path)
         t_acq = time.perf_counter() - t
-        if table_path.is_file():
-            d = np.load(table_path)
-            part = {k2: d[k2] for k2 in d.files}
-        else:
+        if part is None:
             data = load_pair(*paths, footprints_path=scene_footprints(scenes) if plan.labels == "footprints"
                              else None)
             truth = _grades(scenes / pair.post_scene)
@@ -370,9 +379,10 @@ def build(out_dir, plan: TrainingPlan, settings, *, workers: int = -1,
                     "density": np.array([[r.quality.get("density_pre", np.nan), r.quality.get("density_post", np.nan)]
                                          for r in rows], dtype=np.float64).reshape(len(rows), 2),
                     "seconds": np.array([t_acq, time.perf_counter() - t - t_acq])}
-            tmp = table_path.with_name(table_path.name + ".part.npz")
-            np.savez(tmp, **part)
-            os.replace(tmp, table_path)
+            from .results import _atomic
+
+            with _atomic(table_path) as tmp, open(tmp, "wb") as f:
+                np.savez(f, **part)
         parts.append(part)
         manifest_pairs.append({"name": pair.name, "rows": int(len(part["y"])),
                                "acquire_s": round(float(part["seconds"][0]), 1),

@@ -74,6 +74,10 @@ def test_quick_training_set_builds_resumes_and_trains_a_model_that_classifies_cr
     np.testing.assert_array_equal(again.x, table.x)  # resumed: same rows, nothing acquired or described again
     assert {p: p.stat().st_mtime_ns for p in clouds} == stamps
     assert {p: p.stat().st_mtime_ns for p in (tmp_path / "ts" / "tables").glob("*.npz")} == tables
+    cut = sorted(tables)[0]  # a table cut by a crash or a full disk: discarded and described again
+    cut.write_bytes(cut.read_bytes()[:50])
+    again = build(tmp_path / "ts", plan, TABLE_SETTINGS, workers=2, say=lambda s: None)
+    np.testing.assert_array_equal(again.x, table.x)
 
     table = model_columns(table)
     assert table.names == TRANSFER_SETTINGS.descriptor_names()
