@@ -13,9 +13,11 @@ Elements (``building_elements``) are built from a ``ShellSpec``, the add-on's de
 a procedural building (or the box inferred for a user mesh), as solids that do not overlap:
 
 - outer walls per storey and facade, extruded inwards by the wall thickness, mitred at the
-  corners; gable triangles likewise, under the roof planes; parapets on top of the walls;
-- floor slabs (and a flat roof) under their level, inside the walls' inner faces (the
-  footprint inset by the wall thickness, cut into convex pieces);
+  corners, from the slab below to the underside of the slab (or flat roof) above: slabs bear
+  on the walls, so that the stack stands under gravity alone; gable triangles likewise,
+  under the roof planes; parapets on top of the flat roof over the walls;
+- floor slabs (and a flat roof) under their level over the whole footprint (cut into convex
+  pieces when it is not convex); their edges are the facade between two storeys' walls;
 - pitched roof planes extruded downwards, each trimmed where it meets its neighbours
   (ridge, hips), above the eaves and, for gables, inside the gable walls;
 - inner walls (the shell's cross and spine walls) between the slabs, inside the outer
@@ -280,7 +282,21 @@ def seed_points(solid: Polyhedron, rng, origin, near, far, max_cells=60, candida
     if n == 1:
         return pts[:1]
     idx = rng.choice(len(pts), size=n, replace=False, p=dens / dens.sum())
-    return pts[np.sort(idx)]
+    return _mid_surface(pts[np.sort(idx)], v)
+
+
+def _mid_surface(seeds, verts, thin=0.6):
+    """Seeds of a thin element (a wall, slab or roof plane: thinner than `thin` across) moved
+    onto its mid-surface, so that every crack runs through the thickness: shards are prisms
+    across the element, not wedges (which stack badly and which masonry and RC do not make)."""
+    c = verts.mean(axis=0)
+    w, vec = np.linalg.eigh(np.cov((verts - c).T))
+    n = vec[:, 0]
+    span = (verts - c) @ n
+    if float(span.max() - span.min()) >= thin:
+        return seeds
+    mid = c + n * (span.max() + span.min()) / 2.0
+    return seeds - np.outer((seeds - mid) @ n, n)
 
 
 # --- building elements ---------------------------------------------------------------------------
@@ -294,7 +310,11 @@ class Element:
     surface: int
     planes: list  # [(co, no)]: the solid is where dot(x - co, no) <= 0 for all
     solid: Polyhedron | None = None
-    extra: dict = field(default_factory=dict)
+    plane_surface: dict = field(default_factory=dict)  # plane index -> surface, where not `surface`
+
+    def face_surface(self, tag: int) -> int:
+        """Surface code of a shard face with this tag (fracture faces: the element's)."""
+        return self.plane_surface.get(-1 - tag, self.surface) if tag < 0 else self.surface
 
     @property
     def volume(self) -> float:
@@ -443,6 +463,19 @@ def _merge(a, b):
     return None
 
 
+def _facade_planes(poly, piece) -> dict:
+    """{edge index of `piece`: wall surface} for the piece's edges on the footprint outline
+    (a slab's edge between two storeys' walls is facade)."""
+    out = {}
+    n = len(piece)
+    for i in range(n):
+        a, b = piece[i], piece[(i + 1) % n]
+        probe = np.array([a, b, (a + b) / 2])
+        if float(poly2d.boundary_distance(poly, probe).max()) < 1e-7:
+            out[i] = SURFACE_WALL
+    return out
+
+
 def _prism_planes(piece, z0, z1):
     n = len(piece)
     planes = []
@@ -471,7 +504,8 @@ def building_elements(spec, material=None) -> list:
     for i in range(n):
         wp = _wall_planes(p, inner, i, tw)
         for k in range(ns):
-            els.append(Element(P_WALL, k, i, SURFACE_WALL, wp + z_between(spec.z_level(k), spec.z_level(k + 1))))
+            top = spec.z_level(k + 1) - (tr if (k + 1 == ns and roof_type == "flat") else ts)
+            els.append(Element(P_WALL, k, i, SURFACE_WALL, wp + z_between(spec.z_level(k), top)))
         if i in gables:
             els.append(Element(P_GABLE, ns, i, SURFACE_WALL, wp + [_pl((0, 0, H), (0, 0, -1))] + _roof_planes(spec)))
     ph = spec.effective_parapet_height if roof_type == "flat" else 0.0
@@ -479,15 +513,18 @@ def building_elements(spec, material=None) -> list:
         pin = inset_corners(p, tpp)
         for i in range(n):
             els.append(Element(P_PARAPET, ns, i, SURFACE_WALL, _wall_planes(p, pin, i, tpp) + z_between(H, H + ph)))
-    pieces = convex_pieces(inner)
+    pieces = convex_pieces(p)
     top_slab = ns if roof_type != "flat" else ns - 1
     for k in range(1, top_slab + 1):
         z = spec.z_level(k)
         for j, piece in enumerate(pieces):
-            els.append(Element(P_SLAB, k, j, SURFACE_INTERIOR, _prism_planes(piece, z - ts, z)))
+            els.append(Element(P_SLAB, k, j, SURFACE_INTERIOR, _prism_planes(piece, z - ts, z),
+                               plane_surface=_facade_planes(p, piece)))
     if roof_type == "flat":
         for j, piece in enumerate(pieces):
-            els.append(Element(P_ROOF, ns, j, SURFACE_ROOF, _prism_planes(piece, H - tr, H)))
+            ps = _facade_planes(p, piece)
+            ps[len(piece) + 1] = SURFACE_ROOF  # the top
+            els.append(Element(P_ROOF, ns, j, SURFACE_INTERIOR, _prism_planes(piece, H - tr, H), plane_surface=ps))
     else:
         rp = _roof_planes(spec)
         x0, y0, x1, y1 = spec.bbox
@@ -508,7 +545,8 @@ def building_elements(spec, material=None) -> list:
                 point = np.zeros(3)
                 point[k] = off / dn[k]
                 planes.append(_pl(point, dn))
-            els.append(Element(P_ROOF, ns, e, SURFACE_ROOF, planes + box_planes + ends))
+            els.append(Element(P_ROOF, ns, e, SURFACE_ROOF, planes + box_planes + ends,
+                               plane_surface={1: SURFACE_INTERIOR}))
     els += _inner_wall_elements(spec, inner, ti, ts, tr)
     for el in els:
         el.solid = from_planes(el.planes, lo, hi)

@@ -64,9 +64,9 @@ def _elements_volume_closed_form():
     # 12 x 9 m, 3 storeys of 3 m, flat roof with a 0.8 m parapet, masonry
     t, ts, tr, ti, tp = 0.4, 0.2, 0.2, 0.15, 0.25
     inner_area = (12 - 2 * t) * (9 - 2 * t)
-    walls = (12 * 9 - inner_area) * 9.0
-    slabs = 2 * inner_area * ts
-    roof = inner_area * tr
+    walls = (12 * 9 - inner_area) * 3 * (3.0 - ts)  # each storey's walls end under the slab above
+    slabs = 2 * 12 * 9 * ts  # slabs and roof span the footprint, bearing on the walls
+    roof = 12 * 9 * tr
     parapet = (12 * 9 - (12 - 2 * tp) * (9 - 2 * tp)) * 0.8
     # cross walls at x = -2, 2 across the inner depth; the spine along the inner length
     # minus the two crossings; every storey up to the slab (or roof) above
@@ -111,13 +111,15 @@ def test_pitched_roofs_and_an_l_footprint_do_not_overlap_and_shards_tile_them(ro
     assert shards > 3 * len(els)
 
 
-def test_l_shaped_footprint_slabs_are_convex_pieces_of_the_inset():
+def test_l_shaped_footprint_slabs_are_convex_pieces_of_the_footprint():
     spec = ShellSpec(footprint=[[0, 0], [20, 0], [20, 8], [8, 8], [8, 18], [0, 18]], storeys=2, roof="flat")
     els = fr.building_elements(spec)
-    inset = fr.inset_corners(spec.poly, fr.MATERIAL["masonry"]["wall"])
-    from addon.geometry import poly2d
     slab = [e for e in els if e.part == fr.P_SLAB]
     assert len(slab) == 2  # two convex pieces of the L
-    assert sum(e.volume for e in slab) == pytest.approx(abs(poly2d.area(inset)) * 0.2, rel=1e-9)
+    assert sum(e.volume for e in slab) == pytest.approx((20 * 8 + 8 * 10) * 0.2, rel=1e-9)
+    # a slab's edges on the outline are facade (wall), the edge between the pieces is not
+    walls = [sum(1 for t in range(len(e.solid.faces)) if e.face_surface(e.solid.tags[t]) == fr.SURFACE_WALL)
+             for e in slab]
+    assert all(w >= 2 for w in walls)
     q = np.random.default_rng(3).uniform((0, 0, 0), (20, 18, 6.5), (20000, 3))
     assert sum(e.solid.contains(q, tol=-1e-9).astype(int) for e in els).max() == 1
