@@ -35,23 +35,23 @@ def _mesh(obj):
         bm.free()
 
 
-def _top_heights(verts, tris, spec, cell=0.25, samples=6):
+def _top_heights(verts, tris, spec, cell=0.25):
     """Highest surface over each cell of the footprint (building frame), from points sampled
-    on every triangle (large faces cover many cells)."""
+    on every triangle at a quarter of the cell size (large faces cover many cells)."""
     x0, y0, x1, y1 = spec.bbox
     nx, ny = int(round((x1 - x0) / cell)), int(round((y1 - y0) / cell))
     top = np.zeros((nx, ny))
-    a, b, c = verts[tris[:, 0]], verts[tris[:, 1]], verts[tris[:, 2]]
-    g = np.linspace(0, 1, samples + 1)
-    for u in g:
-        for v in g:
-            if u + v > 1:
-                continue
-            p = a + u * (b - a) + v * (c - a)
-            ix = np.floor((p[:, 0] - x0) / cell).astype(int)
-            iy = np.floor((p[:, 1] - y0) / cell).astype(int)
-            ok = (ix >= 0) & (ix < nx) & (iy >= 0) & (iy < ny)
-            np.maximum.at(top, (ix[ok], iy[ok]), p[ok, 2])
+    for t in tris:
+        a, b, c = verts[t]
+        n = max(1, int(np.ceil(max(np.linalg.norm(b - a), np.linalg.norm(c - b), np.linalg.norm(a - c)) / (cell / 4))))
+        i, j = np.meshgrid(np.arange(n + 1), np.arange(n + 1))
+        keep = i + j <= n
+        u, v = i[keep] / n, j[keep] / n
+        p = a + u[:, None] * (b - a) + v[:, None] * (c - a)
+        ix = np.floor((p[:, 0] - x0) / cell).astype(int)
+        iy = np.floor((p[:, 1] - y0) / cell).astype(int)
+        ok = (ix >= 0) & (ix < nx) & (iy >= 0) & (iy < ny)
+        np.maximum.at(top, (ix[ok], iy[ok]), p[ok, 2])
     return top
 
 
@@ -89,7 +89,8 @@ def test_grade4_corner_leaves_the_rest_standing(blank):
     roof_z = verts[tris[surf == gm.ROOF]][:, :, 2]
     assert roof_z.size and np.isclose(roof_z.max(), spec.height)
     top = _top_heights(verts, tris, spec)
-    assert 0.05 < (top < 0.5 * spec.height).mean() < 0.8
+    lowered = (top < spec.height - 0.5).mean()  # the corner above the failed storey came down
+    assert 0.05 < lowered < 0.8
 
 
 def test_same_seed_same_bytes(blank):
