@@ -12,8 +12,8 @@ What happens to one building (``collapse_object``):
    volume × the material's density, friction 0.6, restitution 0), passive colliders for the
    ground, the part of the building outside the zone, neighbouring buildings and terrain
    objects (triangle meshes, as they are); the world is stepped frame by frame
-   (``scene.frame_set``) until no shard moves faster than 5 cm/s for 3 frames, or the step
-   limit;
+   (``scene.frame_set``) until no shard moved more than 5 cm within the last second, or the
+   step limit;
 4. the post-event mesh: the building's faces outside the zone as they were, plus the shards
    where they came to rest. A shard that moved less than 10 cm keeps its element's labels
    (fracture faces between two such shards are dropped: nothing can see them); one that moved
@@ -21,8 +21,10 @@ What happens to one building (``collapse_object``):
    lands (on a neighbour too). Chimneys and roof or facade details inside the zone are not
    simulated: they are removed with the zone (recorded as ``details_dropped``).
 
-A simulation in which shards still move at the step limit (or fell through the ground) is
-not written: ``collapse_object`` raises DamageError and the object is left as it was.
+At the step limit, shards that still creep are written where they lie, faster ones are
+dropped, and when those hold more than MAX_UNSETTLED_SHARE of the volume (or fell through the
+ground) the simulation is not written: ``collapse_object`` raises DamageError and the object
+is left as it was.
 Within one Blender version the same seed gives the same bytes (Bullet is deterministic for
 the same bodies created in the same order).
 """
@@ -215,12 +217,11 @@ def simulate(shards_world, masses, passive_meshes, ground_z, steps: int):
         world.add("qs_ground", gme, (float(c[0]), float(c[1]), ground_z - 1.0), active=False, shape='BOX')
         for k, me in enumerate(passive_meshes):
             world.add(f"qs_passive_{k:03d}", me, (0.0, 0.0, 0.0), active=False, shape='MESH')
-        bodies, centres, radii = [], [], []
+        bodies, radii = [], []
         for k, (faces, mass) in enumerate(zip(shards_world, masses)):
             cen = fr.polyhedron_centroid(faces)
             me = _mesh_from_polys(f"qs_shard_{k:05d}", [f - cen for f in _inset(faces)])
             bodies.append(world.add(f"qs_shard_{k:05d}", me, tuple(map(float, cen)), active=True, mass=mass))
-            centres.append(cen)
             radii.append(float(np.linalg.norm(np.concatenate(faces) - cen, axis=1).max()))
         radii = np.array(radii)
         frame = 1
