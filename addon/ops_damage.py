@@ -55,6 +55,12 @@ class DAMAGE_OT_apply_grade(bpy.types.Operator):
     bl_options = {'REGISTER', 'UNDO'}
 
     grade: IntProperty(name="Grade", min=-1, max=5, default=-1, description="-1: each building's own grade")
+    method: EnumProperty(name="Method", default="patterns", items=[
+        ("patterns", "Patterns", "Parametric damage patterns chosen by grade, material and vulnerability class"),
+        ("physics", "Physics", "Grades 4-5 collapse by rigid-body simulation (Collapse by Physics); lower grades "
+         "get the patterns")])
+    settle_steps: IntProperty(name="Settle steps", min=10, max=5000, default=250,
+                              description="Physics: frames (1/24 s) the simulation may run before it must rest")
 
     @classmethod
     def poll(cls, context):
@@ -72,7 +78,14 @@ class DAMAGE_OT_apply_grade(bpy.types.Operator):
             if not _is_building(obj):
                 continue
             try:
-                scene_tools.apply_grade_to_object(obj, None if self.grade < 0 else self.grade)
+                g = obj.qs_building.grade if self.grade < 0 else self.grade
+                if scene_tools.uses_physics(obj, g, self.method):
+                    from . import physics
+                    others = [o for o in context.scene.objects if o is not obj]
+                    physics.collapse_object(obj, g, settle_steps=self.settle_steps,
+                                            colliders=physics.neighbours(obj, others, 10.0))
+                else:
+                    scene_tools.apply_grade_to_object(obj, None if self.grade < 0 else self.grade)
                 n += 1
             except scene_tools.DamageError as e:
                 errors.append(str(e))
@@ -85,4 +98,44 @@ class DAMAGE_OT_apply_grade(bpy.types.Operator):
         return {'FINISHED'}
 
 
-CLASSES = (DAMAGE_OT_apply_pattern, DAMAGE_OT_apply_grade)
+class DAMAGE_OT_collapse_by_physics(bpy.types.Operator):
+    """Collapse the active building as EMS-98 grade 4 or 5 by rigid-body simulation: its elements fracture where the grade removes support and settle under gravity; neighbours and terrain are colliders"""
+    bl_idname = "damage.collapse_by_physics"
+    bl_label = "Collapse by Physics"
+    bl_options = {'REGISTER', 'UNDO'}
+
+    grade: IntProperty(name="Grade", min=-1, max=5, default=-1,
+                       description="4 or 5; -1: the building's own grade (raised to 4 when lower)")
+    seed: IntProperty(name="Seed", min=-1, default=-1, description="-1: the building's seed")
+    settle_steps: IntProperty(name="Settle steps", min=10, max=5000, default=250,
+                              description="Frames (1/24 s) the simulation may run before it must rest")
+
+    @classmethod
+    def poll(cls, context):
+        if context.mode != 'OBJECT':
+            cls.poll_message_set("Switch to Object Mode")
+            return False
+        if not _is_building(context.active_object):
+            cls.poll_message_set("Active object must be a building with an ID (use Assign IDs)")
+            return False
+        return True
+
+    def execute(self, context):
+        from . import physics
+        obj = context.active_object
+        g = self.grade if self.grade >= 0 else max(4, obj.qs_building.grade)
+        others = [o for o in context.scene.objects if o is not obj]
+        try:
+            rec = physics.collapse_object(obj, g, seed=None if self.seed < 0 else self.seed,
+                                          settle_steps=self.settle_steps,
+                                          colliders=physics.neighbours(obj, others, 10.0))
+        except scene_tools.DamageError as e:
+            self.report({'ERROR'}, str(e))
+            return {'CANCELLED'}
+        p = rec["params"]
+        self.report({'INFO'}, f"{p['mode']}: {p['shards']} shards, {p['debris_shards']} debris, "
+                              f"{p['frames']} frames{'' if p['settled'] else ' (some still creeping)'}")
+        return {'FINISHED'}
+
+
+CLASSES = (DAMAGE_OT_apply_pattern, DAMAGE_OT_apply_grade, DAMAGE_OT_collapse_by_physics)

@@ -333,10 +333,34 @@ def remove_collection_objects(coll):
             bpy.data.meshes.remove(me)
 
 
-def make_post_scene(source_objects, target, grades=None, seed_salt=0, on_progress=None):
+DAMAGE_METHODS = ("patterns", "physics", "both")
+
+
+def uses_physics(obj, grade: int, damage: str) -> bool:
+    """Whether `damage` ('patterns', 'physics' or 'both') makes this building's grade by
+    physics: only grades 4-5 collapse; 'both' tosses a coin seeded by the building's seed."""
+    if damage == "patterns" or grade < 4:
+        return False
+    if damage == "physics":
+        return True
+    return bool(np.random.default_rng([int(obj.qs_building.seed) & 0xFFFFFFFF, 14]).random() < 0.5)
+
+
+def make_post_scene(source_objects, target, grades=None, seed_salt=0, on_progress=None, damage="patterns",
+                    settle_steps=None, on_fallback=None):
     """Copy the buildings (and terrain) into collection `target` keeping their IDs, and
     damage each copy by its grade (`grades`: optional {building_id: grade} or one int for
-    all). Returns [(object, records)]; raises DamageError naming the building on failure."""
+    all). Returns [(object, records)]; raises DamageError naming the building on failure.
+
+    `damage` 'physics' collapses grade-4/5 buildings by rigid-body simulation (physics.py)
+    once every copy is in place, with its neighbours and the terrain as colliders; 'both'
+    does so for a seeded half of them. A simulation that does not settle is reported through
+    `on_fallback(object, message)` and the building gets the patterns instead."""
+    if damage not in DAMAGE_METHODS:
+        raise DamageError(f"unknown damage method {damage!r}; known: {', '.join(DAMAGE_METHODS)}")
+    if damage != "patterns":
+        return _make_post_scene_physics(source_objects, target, grades, seed_salt, on_progress, damage,
+                                        settle_steps, on_fallback)
     out = []
     objs = [o for o in source_objects if o.type == 'MESH' and o.qs_building.role in ("BUILDING", "TERRAIN")]
     for k, src in enumerate(objs):
@@ -358,4 +382,49 @@ def make_post_scene(source_objects, target, grades=None, seed_salt=0, on_progres
             out.append((new, records))
         if on_progress:
             on_progress(k + 1, len(objs))
+    return out
+
+
+def _grade_for(pg, grades):
+    if isinstance(grades, int):
+        return grades
+    if isinstance(grades, dict):
+        return int(grades.get(pg.building_id, pg.grade))
+    return int(pg.grade)
+
+
+def _make_post_scene_physics(source_objects, target, grades, seed_salt, on_progress, damage, settle_steps,
+                             on_fallback):
+    from . import physics
+    objs = [o for o in source_objects if o.type == 'MESH' and o.qs_building.role in ("BUILDING", "TERRAIN")]
+    copies = []
+    for src in objs:
+        new = src.copy()
+        new.data = src.data.copy()
+        new.name = src.name + ".post"
+        target.objects.link(new)
+        copies.append(new)
+    out = []
+    for k, new in enumerate(copies):
+        if new.qs_building.role == "BUILDING":
+            pg = new.qs_building
+            g = _grade_for(pg, grades)
+            pg.grade = g
+            pg.patterns_json = "[]"
+            records = None
+            if uses_physics(new, g, damage):
+                reach = 10.0
+                try:
+                    rec = physics.collapse_object(new, g, seed=(pg.seed + seed_salt) if seed_salt else None,
+                                                  settle_steps=settle_steps or physics.DEFAULT_SETTLE_STEPS,
+                                                  colliders=physics.neighbours(new, copies, reach))
+                    records = [rec]
+                except DamageError as e:
+                    if on_fallback:
+                        on_fallback(new, str(e))
+            if records is None:
+                records = apply_grade_to_object(new, g, seed_salt)
+            out.append((new, records))
+        if on_progress:
+            on_progress(k + 1, len(copies))
     return out

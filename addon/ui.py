@@ -114,6 +114,7 @@ class DAMAGE_PT_damage(bpy.types.Panel):
         layout.operator("damage.apply_pattern", icon='MOD_EXPLODE')
         layout.separator()
         layout.operator("damage.apply_grade", icon='ERROR')
+        layout.operator("damage.collapse_by_physics", icon='PHYSICS')
         if len(pg.patterns_json) > 2:
             box = layout.box()
             box.label(text="Applied:")

@@ -25,6 +25,12 @@ damaged as box-like buildings (see addon/io_import.py and the README for the lim
 origin and CRS (the mesh stays in local metres around it), e.g. --origin 367000,4690000
 --crs EPSG:32633 puts it at L'Aquila in UTM zone 33N, as `quakescan demo` does.
 
+--damage physics|both makes grades 4-5 by rigid-body simulation (addon/physics.py: the
+building fractures where the grade removes support and settles under gravity, neighbours and
+terrain as colliders), for all or a seeded half of those buildings; recorded in scene.json
+as the pattern "physics_collapse" with its parameters and seed. Default patterns: the output
+is what it was before the option existed.
+
 --streetscape typical adds trees (porous crowns, some overhanging roofs), hedges, parked
 cars and street furniture (addon/streetscape.py); every post-event scene keeps the trees,
 hedges and furniture and gets its own mix of parked cars. Default none: no streetscape, the
@@ -113,6 +119,12 @@ def parse_args(argv):
     p.add_argument("--streetscape", choices=("none", "typical"), default="none",
                    help="typical: trees, hedges, parked cars and street furniture at the set's density; "
                    "post-event scenes keep the trees and get their own cars (default none)")
+    p.add_argument("--damage", choices=("patterns", "physics", "both"), default="patterns",
+                   help="how grades 4-5 are made: parametric patterns (default), collapse by rigid-body physics "
+                   "(addon/physics.py), or both (a seeded half of those buildings each); lower grades always get "
+                   "the patterns")
+    p.add_argument("--settle-steps", type=_positive_int, default=250,
+                   help="--damage physics|both: frames (1/24 s) a collapse may take to come to rest (default 250)")
     args = p.parse_args(argv)
     if args.set_name == "bundle" and not args.source:
         p.error("--set bundle needs --source SCENE_DIR")
@@ -180,6 +192,9 @@ def generator_info(args, scene_name):
         info["origin"] = list(args.origin)
     if getattr(args, "crs", None):
         info["crs"] = args.crs
+    if getattr(args, "damage", "patterns") != "patterns":  # absent with patterns: older bundles stay valid
+        info["damage"] = args.damage
+        info["settle_steps"] = args.settle_steps
     return info
 
 
@@ -376,12 +391,15 @@ def run(args) -> int:
                 def progress(i, total, name=name):
                     if i % max(1, total // 10) == 0 or i == total:
                         log(f"{name}: damaged {i}/{total} objects")
+                def fallback(obj, message, name=name):
+                    log(f"{name}: {message}; {obj.name} gets the patterns instead")
+                damage = dict(damage=args.damage, settle_steps=args.settle_steps, on_fallback=fallback)
                 if street is None:
-                    scene_tools.make_post_scene(pre_objs, coll, grades=grades, on_progress=progress)
+                    scene_tools.make_post_scene(pre_objs, coll, grades=grades, on_progress=progress, **damage)
                 else:  # trees, hedges, furniture copied; the pre-event cars replaced by this scene's
                     from addon import street_objects, streetscape
                     scene_tools.make_post_scene([o for o in pre_objs if not street_objects.is_car_object(o)], coll,
-                                                grades=grades, on_progress=progress)
+                                                grades=grades, on_progress=progress, **damage)
                     scape, footprints, bounds, ground_z, set_name = street
                     cars = streetscape.post_event_cars(scape, footprints, bounds, set_name, args.seed, name, ground_z)
                     street_objects.add_objects(coll, streetscape.Streetscape(cars=cars), kinds=("cars",),

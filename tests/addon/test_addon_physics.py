@@ -1,0 +1,160 @@
+"""Collapse by physics (addon/physics.py) through the bpy module: triggers, the rigid-body
+settling, labels, determinism, the operator and the generator's --damage option."""
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from tests.addon.conftest import REPO
+
+pytestmark = pytest.mark.slow  # rigid-body simulations: seconds each
+
+
+def _city(bpy, storeys=2, neighbour=True):
+    from addon import scene_tools
+    from addon.geometry.shell import ShellSpec, rect_footprint
+    coll = bpy.data.collections.new("city")
+    bpy.context.scene.collection.children.link(coll)
+    spec = ShellSpec(footprint=rect_footprint(8, 6), storeys=storeys, storey_height=3.0, roof="flat")
+    a = scene_tools.create_building_object(coll, spec, 1, location=(20.0, 10.0, 0.0), rotation_z=0.4, seed=3)
+    b = None
+    if neighbour:
+        b = scene_tools.create_building_object(coll, spec, 2, location=(20.0, 18.0, 0.0), seed=4)
+    return coll, spec, a, b
+
+
+def _mesh(obj):
+    from addon import scene_tools
+    from addon.geometry import mesh as gm
+    bm = scene_tools.read_bmesh(obj)
+    try:
+        return gm.arrays(bm)
+    finally:
+        bm.free()
+
+
+def _top_heights(verts, tris, spec, cell=0.25):
+    """Highest surface over each cell of the footprint (building frame), from points sampled
+    on every triangle at a quarter of the cell size (large faces cover many cells)."""
+    x0, y0, x1, y1 = spec.bbox
+    nx, ny = int(round((x1 - x0) / cell)), int(round((y1 - y0) / cell))
+    top = np.zeros((nx, ny))
+    for t in tris:
+        a, b, c = verts[t]
+        n = max(1, int(np.ceil(max(np.linalg.norm(b - a), np.linalg.norm(c - b), np.linalg.norm(a - c)) / (cell / 4))))
+        i, j = np.meshgrid(np.arange(n + 1), np.arange(n + 1))
+        keep = i + j <= n
+        u, v = i[keep] / n, j[keep] / n
+        p = a + u[:, None] * (b - a) + v[:, None] * (c - a)
+        ix = np.floor((p[:, 0] - x0) / cell).astype(int)
+        iy = np.floor((p[:, 1] - y0) / cell).astype(int)
+        ok = (ix >= 0) & (ix < nx) & (iy >= 0) & (iy < ny)
+        np.maximum.at(top, (ix[ok], iy[ok]), p[ok, 2])
+    return top
+
+
+def test_grade5_total_collapse_lies_low_and_the_grade0_neighbour_keeps_its_mesh(blank):
+    from addon import physics
+    from addon.geometry import mesh as gm
+    bpy = blank
+    coll, spec, a, b = _city(bpy)
+    before = _mesh(b)
+    rec = physics.collapse_object(a, 5, mode="everything", colliders=[b])
+    assert rec["name"] == physics.PATTERN_NAME and rec["params"]["mode"] == "everything"
+    assert rec["params"]["seed"] == 3
+    verts, tris, surf, bid, part = _mesh(a)
+    top = _top_heights(verts, tris, spec)
+    assert (top < 0.4 * spec.height).mean() >= 0.8
+    assert (bid == 1).all() and (surf == gm.DEBRIS).mean() > 0.9
+    after = _mesh(b)
+    assert all(np.array_equal(x, y) for x, y in zip(before, after))
+    assert json.loads(a.qs_building.patterns_json)[-1]["name"] == physics.PATTERN_NAME
+    assert a.qs_building.grade == 5
+    # the temporary simulation scene and its objects are gone
+    assert [s.name for s in bpy.data.scenes] == [bpy.context.scene.name]
+    assert not [o for o in bpy.data.objects if o.name.startswith("qs_")]
+
+
+def test_grade4_corner_leaves_the_rest_standing(blank):
+    from addon import physics
+    from addon.geometry import mesh as gm
+    coll, spec, a, _ = _city(blank, neighbour=False)
+    rec = physics.collapse_object(a, 4, mode="corner")
+    p = rec["params"]
+    assert p["shards"] > 0 and p["debris_shards"] > 0
+    verts, tris, surf, bid, part = _mesh(a)
+    # the part outside the zone stands: roof faces at full height remain
+    roof_z = verts[tris[surf == gm.ROOF]][:, :, 2]
+    assert roof_z.size and np.isclose(roof_z.max(), spec.height)
+    top = _top_heights(verts, tris, spec)
+    lowered = (top < spec.height - 0.5).mean()  # the corner above the failed storey came down
+    assert 0.05 < lowered < 0.8
+
+
+def test_same_seed_same_bytes(blank):
+    from addon import physics
+    bpy = blank
+    out = []
+    for _ in range(2):
+        bpy.ops.wm.read_homefile(use_empty=True, use_factory_startup=True)
+        _, _, a, _ = _city(bpy, neighbour=False)
+        rec = physics.collapse_object(a, 5, mode="ground_storey")
+        v, t, s, b, p = _mesh(a)
+        out.append((v.tobytes(), t.tobytes(), s.tobytes(), rec))
+    assert out[0] == out[1]
+
+
+def test_lower_grades_are_refused_and_the_object_is_unchanged(blank):
+    from addon import physics, scene_tools
+    _, _, a, _ = _city(blank, neighbour=False)
+    before = _mesh(a)
+    with pytest.raises(scene_tools.DamageError, match="grades 4 and 5"):
+        physics.collapse_object(a, 3)
+    assert all(np.array_equal(x, y) for x, y in zip(before, _mesh(a)))
+
+
+def test_unsettled_simulation_is_not_written(blank, monkeypatch):
+    from addon import physics, scene_tools
+    _, _, a, _ = _city(blank, neighbour=False)
+    before = _mesh(a)
+    with pytest.raises(scene_tools.DamageError, match="did not settle"):
+        physics.collapse_object(a, 5, mode="everything", settle_steps=10)  # 0.4 s: still falling
+    assert all(np.array_equal(x, y) for x, y in zip(before, _mesh(a)))
+    assert a.qs_building.patterns_json == "[]"
+
+
+def test_operator_button_and_apply_grade_option(blank):
+    from addon import physics
+    bpy = blank
+    _, _, a, b = _city(bpy)
+    bpy.context.view_layer.objects.active = a
+    assert bpy.ops.damage.collapse_by_physics(grade=5) == {'FINISHED'}
+    assert json.loads(a.qs_building.patterns_json)[-1]["name"] == physics.PATTERN_NAME
+    with pytest.raises(RuntimeError, match="already damaged"):
+        bpy.ops.damage.collapse_by_physics(grade=5)
+    b.qs_building.grade = 4
+    for o in bpy.context.view_layer.objects:
+        o.select_set(o is b)
+    bpy.context.view_layer.objects.active = b
+    assert bpy.ops.damage.apply_grade(method="physics") == {'FINISHED'}
+    assert json.loads(b.qs_building.patterns_json)[-1]["name"] == physics.PATTERN_NAME
+
+
+def test_generator_damage_physics_records_the_collapse(tmp_path):
+    out = tmp_path / "city"
+    r = subprocess.run([sys.executable, str(REPO / "blender_scripts" / "generate_scenes.py"), "--set", "generic",
+                        "--dataset", "mixed", "--grade-mix", "0:1,5:1", "--seed", "2", "--damage", "physics",
+                        "--out", str(out)], capture_output=True, text=True, cwd=REPO)
+    assert r.returncode == 0, r.stderr
+    post = json.loads((out / "post" / "scene.json").read_text())
+    assert post["generator"]["damage"] == "physics"
+    by_grade = {b["grade"]: b for b in post["buildings"]}
+    names = [p["name"] for p in by_grade[5]["patterns"]]
+    assert names == ["physics_collapse"] or "gets the patterns instead" in r.stderr
+    if names == ["physics_collapse"]:
+        assert by_grade[5]["patterns"][0]["params"]["seed"] == by_grade[5]["seed"]
+    assert by_grade[0]["patterns"] == []
+    pre = json.loads((out / "pre" / "scene.json").read_text())
+    assert "damage" in pre["generator"]  # a patterns-only run would not reuse these bundles
