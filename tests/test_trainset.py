@@ -82,6 +82,9 @@ def test_quick_training_set_builds_resumes_and_trains_a_model_that_classifies_cr
     dens, cov = data_limits(table)
     assert model.split["min_density_pts_m2"] == dens and 0 < dens
     assert 0 <= cov <= 1 and model.no_change_rule is False
+    # the smallest footprints it was made for, in raster cells: 1st percentile of its rows
+    assert table.cells is not None and len(table.cells) == len(table.y)
+    assert model.split["min_cells"] == int(np.quantile(table.cells, 0.01)) > 0
     path = tmp_path / "model.skops"
     save_model(model, path)
     loaded = load_model(path)
