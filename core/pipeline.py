@@ -84,6 +84,9 @@ class PipelineSettings:
     # footprint the post-event epoch covers less than `min_coverage` is not assessable.
     min_density_pts_m2: float = 0.0
     min_coverage: float = 0.0
+    # ... or whose footprint spans fewer raster cells (of the pair's cell size) than this: a shed
+    # seen by a sparse epoch gives a handful of cells, where one chance patch is 10 % "change"
+    min_cells: int = 0
 
     def __post_init__(self):
         r = self.radius_m
@@ -120,6 +123,8 @@ class PipelineSettings:
             raise PipelineError(f"minimum density must be >= 0 pts/m², got {self.min_density_pts_m2!r}")
         if not 0 <= self.min_coverage <= 1:
             raise PipelineError(f"minimum coverage must be a share in [0, 1], got {self.min_coverage!r}")
+        if isinstance(self.min_cells, bool) or not isinstance(self.min_cells, (int, np.integer)) or self.min_cells < 0:
+            raise PipelineError(f"minimum raster cells must be an integer >= 0, got {self.min_cells!r}")
 
     @property
     def computed_features(self) -> tuple:
@@ -155,6 +160,8 @@ class PipelineSettings:
                      surface_descriptors=list(self.surface_descriptors))
         if self.min_density_pts_m2 or self.min_coverage:
             d.update(min_density_pts_m2=self.min_density_pts_m2, min_coverage=self.min_coverage)
+        if self.min_cells:
+            d["min_cells"] = int(self.min_cells)
         return d
 
     @classmethod
@@ -179,7 +186,8 @@ def _newer_keys(d: dict) -> dict:
             "surface": None if surface is None else SurfaceSettings.from_json(surface),
             "surface_descriptors": tuple(d.get("surface_descriptors", SURFACE_DESCRIPTORS)),
             "min_density_pts_m2": float(d.get("min_density_pts_m2", 0.0)),
-            "min_coverage": float(d.get("min_coverage", 0.0))}
+            "min_coverage": float(d.get("min_coverage", 0.0)),
+            "min_cells": int(d.get("min_cells", 0))}
 
 
 def settings_for_descriptors(names: Sequence[str], radius_m: float, split: dict | None = None,
@@ -463,6 +471,10 @@ def _quality_gate(row: BuildingRow, settings: PipelineSettings) -> BuildingRow:
     elif coverage < settings.min_coverage:
         row.assessable = False
         row.reason = f"post-event coverage {100 * coverage:.0f} % < {100 * settings.min_coverage:.0f} %"
+    elif row.quality.get("cells", math.inf) < settings.min_cells:
+        row.assessable = False
+        row.reason = (f"footprint of {row.quality['cells']} raster cells < {settings.min_cells}: "
+                      "too small for the sparser epoch's density")
     return row
 
 

@@ -210,6 +210,7 @@ class TransferTable:
     cities: list
     pairs: list  # PairSpec.name per index
     sensors: list  # "pre-post" kinds per pair index
+    cells: np.ndarray | None = None  # (n,) raster cells of the building's footprint (older tables: None)
 
     @property
     def groups(self) -> np.ndarray:
@@ -234,7 +235,9 @@ def combine_tables(clean: TransferTable, realistic: TransferTable) -> TransferTa
         city=np.concatenate([clean.city, city]), pair=np.concatenate([clean.pair, realistic.pair + len(clean.pairs)]),
         building_id=np.concatenate([clean.building_id, realistic.building_id]),
         density=np.vstack([clean.density, realistic.density]), cities=list(clean.cities),
-        pairs=list(clean.pairs) + list(realistic.pairs), sensors=list(clean.sensors) + list(realistic.sensors))
+        pairs=list(clean.pairs) + list(realistic.pairs), sensors=list(clean.sensors) + list(realistic.sensors),
+        cells=None if clean.cells is None or realistic.cells is None
+        else np.concatenate([clean.cells, realistic.cells]))
 
 
 def _settings_key(settings, labels: str = "simulator") -> str:
@@ -378,6 +381,7 @@ def build(out_dir, plan: TrainingPlan, settings, *, workers: int = -1,
                     "building_id": np.array([r.building_id for r in rows], np.int64),
                     "density": np.array([[r.quality.get("density_pre", np.nan), r.quality.get("density_post", np.nan)]
                                          for r in rows], dtype=np.float64).reshape(len(rows), 2),
+                    "cells": np.array([r.quality.get("cells", 0) for r in rows], np.int64),
                     "seconds": np.array([t_acq, time.perf_counter() - t - t_acq])}
             from .results import _atomic
 
@@ -401,7 +405,8 @@ def build(out_dir, plan: TrainingPlan, settings, *, workers: int = -1,
         building_id=np.concatenate([p["building_id"] for p in parts]),
         density=np.vstack([p["density"] for p in parts]),
         cities=[c.name for c in plan.cities], pairs=[p.name for p in plan.pairs],
-        sensors=[f"{p.pre['kind']}-{p.post['kind']}" for p in plan.pairs])
+        sensors=[f"{p.pre['kind']}-{p.post['kind']}" for p in plan.pairs],
+        cells=np.concatenate([p["cells"] for p in parts]) if parts and all("cells" in p for p in parts) else None)
     _write_json_atomic(out / "manifest.json", {
         "format": FORMAT, "version": VERSION, "plan": plan.to_json(), "settings": settings.to_json(),
         "rows": int(len(table.y)), "grades": {str(g): int(n) for g, n in zip(*np.unique(table.y, return_counts=True))},

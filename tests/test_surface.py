@@ -152,6 +152,14 @@ def test_pipeline_quality_gate_names_the_density_and_surface_rows_match_at_utm()
     local = describe_pair(epoch(pre), epoch(post), s_ok, workers=1)[0]
     assert local.assessable and set(local.descriptors) == set(s_ok.descriptor_names())
     assert local.quality["density_pre"] == pytest.approx(30, rel=0.25)
+    # a 10 x 10 m footprint on 0.5 m cells (the smallest: 30 pts/m² asks for 0.37 m) spans
+    # 20 x 20 cells, 21 or 22 a side where the walls' noise reaches the next cell
+    assert 20 * 20 <= local.quality["cells"] <= 22 * 22
+    small = PipelineSettings(surface=SurfaceSettings(), per_point_lod=True, min_cells=500)
+    row = describe_pair(epoch(pre), epoch(post), small, workers=1)[0]
+    assert not row.assessable and row.reason.startswith(f"footprint of {local.quality['cells']} raster cells < 500")
+    with pytest.raises(Exception, match="minimum raster cells"):
+        PipelineSettings(surface=SurfaceSettings(), min_cells=-1)
     # the same scene with UTM coordinates in the points themselves (no local origin)
     shift = np.array([500_000.0, 5_000_000.0, 200.0])
     utm = describe_pair(epoch((pre[0] + shift, pre[1], pre[2])), epoch((post[0] + shift, post[1], post[2])),
@@ -178,3 +186,33 @@ def test_changes_count_only_as_areas_not_as_single_cells_or_points():
     small, _ = describe(pre, with_hole(0.15), 100, 100)
     assert big["s_lowered_1m"] == pytest.approx(4.0 / 100, abs=0.02) and big["m_holes"] > 0
     assert small["s_lowered_1m"] == 0.0 and small["m_changed"] == 0.0
+
+
+def test_a_roof_step_sampled_only_on_its_lower_side_is_no_lowering():
+    """A dense pre-event scan sees both roofs of a 3 m roof step inside the cells that straddle
+    it; a sparse post-event scan that happens to catch only the lower roof there (here: the
+    upper roof's strip along the step has no point) leaves the building as it was. A real
+    lowering of the upper roof is still seen."""
+    rng = np.random.default_rng(11)
+    step_x = 0.3
+
+    def stepped(density, keep_upper_strip=True, upper=9.0):
+        xyz = np.vstack([sample_box(rng, density, -5, -5, step_x, 5, upper),
+                         sample_box(rng, density, step_x, -5, 5, 5, 6.0)])
+        inner_step = (np.abs(xyz[:, 0] - step_x) < 0.02) & (xyz[:, 2] <= 6.05)  # the other box's wall
+        xyz = xyz[~inner_step]
+        if not keep_upper_strip:  # no point of the upper roof within 1.3 m (more than a cell) of
+            # the step, nor of the step's wall: what a sparse airborne pass can miss
+            xyz = xyz[~((xyz[:, 0] > step_x - 1.3) & (xyz[:, 0] < step_x + 0.1) & (xyz[:, 2] > 6.5))]
+        ground = sample_ground(rng, density)
+        ground = ground[~((np.abs(ground[:, 0]) < 5) & (np.abs(ground[:, 1]) < 5))]
+        pts = np.vstack([ground, xyz])
+        return (pts, np.concatenate([np.zeros(len(ground), np.int64), np.ones(len(xyz), np.int64)]),
+                np.concatenate([np.full(len(ground), 2, np.uint8), np.full(len(xyz), 6, np.uint8)]))
+
+    d, geom = describe(stepped(100), stepped(3, keep_upper_strip=False), 100, 3)
+    assert geom.cell_m < 1.3
+    for k in ("s_lowered_1m", "s_lowered_storey", "s_volume_loss"):
+        assert d[k] == 0.0, k
+    lowered, _ = describe(stepped(100), stepped(3, upper=6.0), 100, 3)  # the upper storey is gone
+    assert lowered["s_lowered_1m"] == pytest.approx(5.3 / 10, abs=0.08)  # the upper roof's share

@@ -5,7 +5,7 @@ from dataclasses import asdict
 import numpy as np
 import pytest
 
-from core.default_model import TABLE_SETTINGS, TRANSFER_SETTINGS, data_limits, fit_default_model, model_columns, select_classifier
+from core.default_model import TABLE_SETTINGS, TRANSFER_SETTINGS, data_limits, fit_default_model, model_columns, select_classifier, size_limit
 from core.trainset import SENSOR_PAIRS, TrainingPlan, TrainingSetError, build, default_plan
 
 
@@ -86,6 +86,10 @@ def test_quick_training_set_builds_resumes_and_trains_a_model_that_classifies_cr
     dens, cov = data_limits(table)
     assert model.split["min_density_pts_m2"] == dens and 0 < dens
     assert 0 <= cov <= 1 and model.no_change_rule is False
+    # every row records its footprint's raster cells; a size limit is available, not shipped
+    assert table.cells is not None and len(table.cells) == len(table.y) and table.cells.min() > 0
+    assert size_limit(table, 0.01) == int(np.quantile(table.cells, 0.01)) > 0
+    assert model.split.get("min_cells", 0) == size_limit(table) == 0
     path = tmp_path / "model.skops"
     save_model(model, path)
     loaded = load_model(path)
