@@ -122,9 +122,7 @@ def _out(*args, **kwargs) -> None:
         if kwargs.get("file") is None:
             sys.stdout.flush()
     except BrokenPipeError:
-        devnull = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(devnull, sys.stdout.fileno())  # so that the flush at exit does not fail again
-        os.close(devnull)
+        _drop_stdout()
 
 
 def _file_digest(path: Path) -> str:
@@ -1019,13 +1017,30 @@ def main(argv=None) -> int:
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
     try:
-        return args.func(args)
+        code = args.func(args)
     except QuakeScanError as e:
         print(f"quakescan: error: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print("quakescan: interrupted; nothing partial was left under the output names", file=sys.stderr)
+        print("quakescan: interrupted; nothing partial was left under the output names (a rerun of scan or "
+              "classify continues from its finished flight lines or tiles)", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # `quakescan … | head -1`: the reader left while the command still printed
+        _drop_stdout()
+        print("quakescan: the output pipe closed before the command finished", file=sys.stderr)
+        return 141  # as a shell reports a command ended by SIGPIPE
+    try:
+        sys.stdout.flush()  # a closed pipe shows here, at the last buffered line, not at exit
+    except BrokenPipeError:
+        _drop_stdout()  # the command finished; only its messages went unread
+    return code
+
+
+def _drop_stdout() -> None:
+    """Point stdout at /dev/null so that the interpreter's flush at exit does not fail again."""
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, sys.stdout.fileno())
+    os.close(devnull)
 
 
 if __name__ == "__main__":

@@ -3,6 +3,7 @@ error (exit 2, the file or flag named, what is wrong) or a correct result (issue
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -359,3 +360,19 @@ def test_the_generators_own_refusals_do_not_name_its_script(monkeypatch, tmp_pat
         core.demo.generate("generic", "mixed", 3, 5, tmp_path)
     assert "usage" not in str(e.value)
 
+
+
+def test_any_command_into_a_closed_pipe_ends_without_a_traceback(tmp_path, scene_dir):
+    """A reader that left before the first line (the pipe's read end closed): no BrokenPipeError
+    traceback; the command says so and exits 141, as a shell reports a command ended by SIGPIPE
+    (what it wrote before its message stays: footprints prints after writing its file)."""
+    read, write = os.pipe()
+    os.close(read)
+    out = tmp_path / "fp.geojson"
+    try:
+        res = subprocess.run([sys.executable, "-m", "core.cli", "footprints", str(scene_dir), "-o", str(out)],
+                             cwd=REPO, stdout=write, stderr=subprocess.PIPE, text=True, timeout=120)
+    finally:
+        os.close(write)
+    assert "Traceback" not in res.stderr and "BrokenPipe" not in res.stderr, res.stderr
+    assert res.returncode == 141 and "output pipe closed" in res.stderr and out.is_file()
