@@ -1,4 +1,4 @@
-"""Operators: apply one damage pattern, apply the damage of a grade."""
+"""Operators: apply one damage pattern, apply the damage of a grade, collapse by physics."""
 from __future__ import annotations
 
 import bpy
@@ -7,6 +7,30 @@ from bpy.props import BoolProperty, EnumProperty, IntProperty
 from . import ems98, scene_tools
 from .ops_building import _is_building
 from .props import PATTERN_ITEMS
+
+
+# neighbours within this distance of a collapsing building are its passive colliders
+COLLIDER_REACH_M = 10.0
+
+
+def _active_building_poll(cls, context) -> bool:
+    """Object mode and an active add-on building: what the single-building operators need."""
+    if context.mode != 'OBJECT':
+        cls.poll_message_set("Switch to Object Mode")
+        return False
+    if not _is_building(context.active_object):
+        cls.poll_message_set("Active object must be a building with an ID (use Assign IDs)")
+        return False
+    return True
+
+
+def _collapse(context, obj, grade: int, settle_steps: int, seed: int | None = None) -> dict:
+    """Collapse `obj` by physics with the scene's other objects near it as colliders."""
+    from . import physics
+
+    others = [o for o in context.scene.objects if o is not obj]
+    return physics.collapse_object(obj, grade, seed=seed, settle_steps=settle_steps,
+                                   colliders=physics.neighbours(obj, others, COLLIDER_REACH_M))
 
 
 class DAMAGE_OT_apply_pattern(bpy.types.Operator):
@@ -22,13 +46,7 @@ class DAMAGE_OT_apply_pattern(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        if context.mode != 'OBJECT':
-            cls.poll_message_set("Switch to Object Mode")
-            return False
-        if not _is_building(context.active_object):
-            cls.poll_message_set("Active object must be a building with an ID (use Assign IDs)")
-            return False
-        return True
+        return _active_building_poll(cls, context)
 
     def execute(self, context):
         obj = context.active_object
@@ -80,10 +98,7 @@ class DAMAGE_OT_apply_grade(bpy.types.Operator):
             try:
                 g = obj.qs_building.grade if self.grade < 0 else self.grade
                 if scene_tools.uses_physics(obj, g, self.method):
-                    from . import physics
-                    others = [o for o in context.scene.objects if o is not obj]
-                    physics.collapse_object(obj, g, settle_steps=self.settle_steps,
-                                            colliders=physics.neighbours(obj, others, 10.0))
+                    _collapse(context, obj, g, self.settle_steps)
                 else:
                     scene_tools.apply_grade_to_object(obj, None if self.grade < 0 else self.grade)
                 n += 1
@@ -112,23 +127,13 @@ class DAMAGE_OT_collapse_by_physics(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        if context.mode != 'OBJECT':
-            cls.poll_message_set("Switch to Object Mode")
-            return False
-        if not _is_building(context.active_object):
-            cls.poll_message_set("Active object must be a building with an ID (use Assign IDs)")
-            return False
-        return True
+        return _active_building_poll(cls, context)
 
     def execute(self, context):
-        from . import physics
         obj = context.active_object
         g = self.grade if self.grade >= 0 else max(4, obj.qs_building.grade)
-        others = [o for o in context.scene.objects if o is not obj]
         try:
-            rec = physics.collapse_object(obj, g, seed=None if self.seed < 0 else self.seed,
-                                          settle_steps=self.settle_steps,
-                                          colliders=physics.neighbours(obj, others, 10.0))
+            rec = _collapse(context, obj, g, self.settle_steps, seed=None if self.seed < 0 else self.seed)
         except scene_tools.DamageError as e:
             self.report({'ERROR'}, str(e))
             return {'CANCELLED'}
