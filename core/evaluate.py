@@ -8,7 +8,6 @@ geometrically "no damage" at UAV resolution (DESIGN.md) and count as undamaged.
 """
 from __future__ import annotations
 
-import csv
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -109,13 +108,9 @@ def evaluate_grades(truth: np.ndarray, pred: np.ndarray) -> Evaluation:
 
 
 def _read_csv(path: Path, needed: tuple) -> list[dict]:
-    try:
-        with open(path, newline="") as f:
-            rows = list(csv.DictReader(f))
-    except FileNotFoundError:
-        raise EvaluationError(f"{path}: file does not exist") from None
-    except (OSError, UnicodeDecodeError, csv.Error) as e:
-        raise EvaluationError(f"{path}: cannot read as a CSV table ({e})") from None
+    from .results import read_csv_rows
+
+    _, rows = read_csv_rows(path, EvaluationError)
     if not rows:
         raise EvaluationError(f"{path}: no rows")
     missing = [c for c in needed if c not in rows[0]]
@@ -149,14 +144,10 @@ def read_truth(path: str | os.PathLike) -> dict[int, int]:
 def read_grade_csv(path, error=EvaluationError) -> dict[int, int]:
     """{building_id: grade} from a truth CSV (columns building_id, grade 0–5); `error`: the
     caller's error class. A building listed twice is refused (which row is the truth?)."""
+    from .results import read_csv_rows
+
     path = Path(path)
-    try:
-        with open(path, newline="") as f:
-            rows = list(csv.DictReader(f))
-    except FileNotFoundError:
-        raise error(f"{path}: truth file does not exist") from None
-    except (OSError, UnicodeDecodeError, csv.Error) as e:
-        raise error(f"{path}: cannot read the truth CSV ({e})") from None
+    _, rows = read_csv_rows(path, error, "truth file")
     if not rows or not {"building_id", "grade"} <= set(rows[0]):
         raise error(f"{path}: needs columns building_id and grade")
     out, line_of = {}, {}

@@ -205,19 +205,27 @@ def write_csv(rows, path, classes, own_ids: dict | None = None) -> None:
             w.writerow(line)
 
 
-def read_csv(path) -> list[BuildingResult]:
-    """BuildingResults from a CSV that `write_csv` wrote (files without the later columns,
-    `_ADDED`, too: those fields stay empty)."""
+def read_csv_rows(path, error=None, what: str = "file") -> tuple[list, list[dict]]:
+    """(column names, rows as dicts) of a CSV table; a missing or unreadable file raises
+    `error` (default ResultsError) naming the file as `what` ("result file", "truth file")."""
+    error = error or ResultsError
     path = Path(path)
     try:
         with open(path, newline="") as f:
             reader = csv.DictReader(f)
-            cols = reader.fieldnames or []
-            data = list(reader)
+            rows = list(reader)
+            return list(reader.fieldnames or []), rows
     except FileNotFoundError:
-        raise ResultsError(f"{path}: result file does not exist") from None
+        raise error(f"{path}: {what} does not exist") from None
     except (OSError, UnicodeDecodeError, csv.Error) as e:
-        raise ResultsError(f"{path}: cannot read as a CSV table ({e})") from None
+        raise error(f"{path}: cannot read as a CSV table ({e})") from None
+
+
+def read_csv(path) -> list[BuildingResult]:
+    """BuildingResults from a CSV that `write_csv` wrote (files without the later columns,
+    `_ADDED`, too: those fields stay empty)."""
+    path = Path(path)
+    cols, data = read_csv_rows(path, what="result file")
     missing = [c for c in _FIXED + _TAIL if c not in cols]
     if missing:
         raise ResultsError(f"{path}: missing columns {missing} (has {cols})")
