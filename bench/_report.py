@@ -28,6 +28,22 @@ def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
+def run_child(cmd: list) -> dict:
+    """Run `cmd` in a fresh child and return its exit code, stderr, wall seconds and peak RSS
+    (MiB). A small wrapper process runs it, so that its RUSAGE_CHILDREN is this run's alone."""
+    import json
+    import subprocess
+    import sys
+
+    wrapper = ("import json, resource, subprocess, sys, time; t0 = time.perf_counter(); "
+               "r = subprocess.run(sys.argv[1:], capture_output=True, text=True); "
+               "print(json.dumps({'rc': r.returncode, 'err': r.stderr, 'wall': time.perf_counter() - t0, "
+               "'peak_kb': resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss}))")
+    res = subprocess.run([sys.executable, "-c", wrapper, *cmd], capture_output=True, text=True)
+    info = json.loads(res.stdout.strip().splitlines()[-1])
+    return {"rc": info["rc"], "stderr": info["err"], "wall_s": info["wall"], "peak_mb": info["peak_kb"] / 1024}
+
+
 def table(headers, rows) -> str:
     out = ["| " + " | ".join(headers) + " |", "|" + "|".join("---" for _ in headers) + "|"]
     out += ["| " + " | ".join(str(c) for c in r) + " |" for r in rows]

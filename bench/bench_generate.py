@@ -7,7 +7,6 @@ Runs blender_scripts/generate_scenes.py in a fresh process with the bpy module a
 """
 from __future__ import annotations
 
-import json
 import shutil
 import subprocess
 import sys
@@ -16,7 +15,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench._report import machine, table, write_section  # noqa: E402
+from bench._report import machine, run_child, table, write_section  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "blender_scripts" / "generate_scenes.py"
@@ -25,22 +24,16 @@ ARGS = ["--set", "generic", "--dataset", "paper", "--buildings", "112", "--seed"
 
 def run(cmd: list, out: Path) -> dict:
     """Wall time and peak RSS of one generator process (a fresh child each time)."""
-    # A small wrapper process runs the generator, so that its RUSAGE_CHILDREN is this run's alone.
-    wrapper = ("import json, resource, subprocess, sys, time; t0 = time.perf_counter(); "
-               "r = subprocess.run(sys.argv[1:], capture_output=True, text=True); "
-               "print(json.dumps({'rc': r.returncode, 'err': r.stderr[-2000:], 'wall': time.perf_counter() - t0, "
-               "'peak_kb': resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss}))")
-    res = subprocess.run([sys.executable, "-c", wrapper, *cmd, "--out", str(out)], capture_output=True, text=True)
-    info = json.loads(res.stdout.strip().splitlines()[-1])
-    if info["rc"] != 0:
-        raise SystemExit(f"{' '.join(cmd)} failed:\n{info['err']}")
-    wall, peak = info["wall"], info["peak_kb"]
+    r = run_child([*cmd, "--out", str(out)])
+    if r["rc"] != 0:
+        raise SystemExit(f"{' '.join(cmd)} failed:\n{r['stderr'][-2000:]}")
+    wall, peak_mb = r["wall_s"], r["peak_mb"]
     faces = {}
     for scene in ("pre", "post_heavy", "post_extreme", "post_destruction"):
         head = (out / scene / "mesh.ply").read_bytes()[:400].decode("ascii", "replace")
         faces[scene] = int(head.split("element face ")[1].split()[0])
     size = sum(p.stat().st_size for p in out.rglob("*") if p.is_file())
-    return {"wall_s": wall, "peak_mb": peak / 1024, "faces": faces, "mb": size / 2 ** 20}
+    return {"wall_s": wall, "peak_mb": peak_mb, "faces": faces, "mb": size / 2 ** 20}
 
 
 def main():

@@ -19,8 +19,6 @@ rigid-body simulation; grade 3 keeps the patterns in both). Reports:
 from __future__ import annotations
 
 import argparse
-import json
-import subprocess
 import sys
 import tempfile
 from pathlib import Path
@@ -29,7 +27,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench._report import machine, table, write_section  # noqa: E402
+from bench._report import machine, run_child, table, write_section  # noqa: E402
 from core.scene import read_scene  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -41,16 +39,11 @@ SCENES = (("post_extreme", 4), ("post_destruction", 5))
 
 
 def run(cmd, out: Path) -> dict:
-    wrapper = ("import json, resource, subprocess, sys, time; t0 = time.perf_counter(); "
-               "r = subprocess.run(sys.argv[1:], capture_output=True, text=True); "
-               "print(json.dumps({'rc': r.returncode, 'err': r.stderr, 'wall': time.perf_counter() - t0, "
-               "'peak_kb': resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss}))")
-    res = subprocess.run([sys.executable, "-c", wrapper, *cmd, "--out", str(out)], capture_output=True, text=True)
-    info = json.loads(res.stdout.strip().splitlines()[-1])
-    if info["rc"] != 0:
-        raise SystemExit(f"{' '.join(cmd)} failed:\n{info['err'][-3000:]}")
-    return {"wall_s": info["wall"], "peak_mb": info["peak_kb"] / 1024,
-            "fallbacks": info["err"].count("gets the patterns instead")}
+    r = run_child([*cmd, "--out", str(out)])
+    if r["rc"] != 0:
+        raise SystemExit(f"{' '.join(cmd)} failed:\n{r['stderr'][-3000:]}")
+    return {"wall_s": r["wall_s"], "peak_mb": r["peak_mb"],
+            "fallbacks": r["stderr"].count("gets the patterns instead")}
 
 
 def top_raster(verts, tris, origin, shape):
