@@ -56,6 +56,13 @@ ROTTERDAM = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / 
 CLUSTER_RADIUS_M = 150.0
 LABELS = ("simulator", "footprints")
 SCENES = ("clean", "realistic")
+DAMAGES = ("patterns", "both")
+# Mixed cities that get a twin whose grade-4/5 buildings collapse by rigid-body simulation
+# (same seed, buildings, grades and acquisitions: the twins differ only in how the damage was
+# made). Four, not all: a collapse costs ~8 s of Blender per building (bench_physics).
+PHYSICS_TWINS = {"full": ("generic_m0", "generic_m1", "region_m0", "region_m1"),
+                 "large": ("generic_m0", "generic_m1", "region_m0", "region_m1"),
+                 "quick": ("generic_m0",)}
 
 
 class TrainingSetError(QuakeScanError):
@@ -74,6 +81,7 @@ class CitySpec:
     grade_mix: dict | None = None  # mixed: exact counts per grade
     details: str = "none"  # roof and facade detail of the generator: none | typical
     streetscape: str = "none"  # trees, hedges, cars, street furniture: none | typical
+    damage: str = "patterns"  # how grades 4-5 are made: the add-on's patterns | physics (rigid-body collapse)
 
     @property
     def post_scenes(self) -> tuple:
@@ -114,7 +122,16 @@ class TrainingPlan:
 
     def to_json(self) -> dict:
         return {"name": self.name, "seed": self.seed, "labels": self.labels,
-                "cities": [asdict(c) for c in self.cities], "pairs": [asdict(p) for p in self.pairs]}
+                "cities": [_city_json(c) for c in self.cities], "pairs": [asdict(p) for p in self.pairs]}
+
+
+def _city_json(city: CitySpec) -> dict:
+    """A city's record; `damage` only where it is not the patterns, so that the records (and
+    the manifests holding them) of plans made before physics twins read as they did."""
+    d = asdict(city)
+    if d["damage"] == "patterns":
+        del d["damage"]
+    return d
 
 
 def _mix(n: int) -> dict:
@@ -127,7 +144,7 @@ def _mix(n: int) -> dict:
     return {0: counts[0], 1: slight, 2: slight, 3: counts[1], 4: counts[2], 5: counts[3]}
 
 
-def default_plan(seed: int = 0, size: str = "full", scenes: str = "clean") -> TrainingPlan:
+def default_plan(seed: int = 0, size: str = "full", scenes: str = "clean", damage: str = "patterns") -> TrainingPlan:
     """The training set of the shipped model (`full`, ~2,900 building rows), a larger one
     (`large`) or a small one for tests and smoke runs (`quick`, 2 small cities).
 
@@ -141,13 +158,20 @@ def default_plan(seed: int = 0, size: str = "full", scenes: str = "clean") -> Tr
 
     scenes: `clean` (the generator's bare buildings, the simulator's building IDs) or
     `realistic` (the same cities and acquisitions with roof and facade detail, trees, hedges,
-    cars and street furniture, building IDs from the pre-event footprints as on real data)."""
+    cars and street furniture, building IDs from the pre-event footprints as on real data).
+
+    damage: `patterns` (the add-on's parametric damage only) or `both`: the clean plan also
+    holds a physics twin (`NAME-physics`) of each PHYSICS_TWINS city, its grade-4/5 buildings
+    collapsed by rigid-body simulation, acquired exactly as its twin (same acquisitions and
+    seeds). A realistic plan has no twins (collapses of detailed roofs are not simulated)."""
     from .acquisition import random_acquisition
 
     if size not in ("full", "quick", "large"):
         raise TrainingSetError(f"plan size must be 'full', 'large' or 'quick', got {size!r}")
     if scenes not in SCENES:
         raise TrainingSetError(f"scenes must be one of {SCENES}, got {scenes!r}")
+    if damage not in DAMAGES:
+        raise TrainingSetError(f"damage must be one of {DAMAGES}, got {damage!r}")
     rng = np.random.default_rng([seed, 7001])
     cities = []
     if size in ("full", "large"):
@@ -188,7 +212,12 @@ def default_plan(seed: int = 0, size: str = "full", scenes: str = "clean") -> Tr
                 add(city, scene)
             add(city, "pre")  # the same city acquired twice: every building grade 0
     if scenes == "clean":
-        return TrainingPlan(cities, pairs, seed, f"default-{size}")
+        if damage == "both":
+            twins = {c.name: replace(c, name=f"{c.name}-physics", damage="physics")
+                     for c in cities if c.name in PHYSICS_TWINS[size]}
+            pairs += [replace(p, city=twins[p.city].name) for p in pairs if p.city in twins]
+            cities += list(twins.values())
+        return TrainingPlan(cities, pairs, seed, f"default-{size}" + ("+physics" if damage == "both" else ""))
     # the same cities, grades and acquisitions, made to look like a real city: the two
     # variants differ only in what the scenes hold, so their models compare like for like
     real = {c.name: replace(c, name=f"{c.name}-real", details="typical", streetscape="typical") for c in cities}
@@ -282,7 +311,10 @@ def generate_city(city: CitySpec, folder: Path) -> None:
 
 def _scene_look(city: CitySpec) -> dict:
     """The generator's detail and streetscape options a city asks for (none: the bare call)."""
-    return {k: v for k, v in (("details", city.details), ("streetscape", city.streetscape)) if v != "none"}
+    look = {k: v for k, v in (("details", city.details), ("streetscape", city.streetscape)) if v != "none"}
+    if city.damage != "patterns":
+        look["damage"] = city.damage
+    return look
 
 
 def densest_cluster(scene, radius_m: float = CLUSTER_RADIUS_M, margin_m: float = 20.0):
@@ -396,6 +428,9 @@ def build(out_dir, plan: TrainingPlan, settings, *, workers: int = -1,
         if progress:
             progress(len(plan.cities) + k, steps)
     city_index = {c.name: i for i, c in enumerate(plan.cities)}
+    for c in plan.cities:  # a physics twin holds its twin's buildings and acquisitions: one city when held out
+        if c.damage != "patterns" and c.name.removesuffix(f"-{c.damage}") in city_index:
+            city_index[c.name] = city_index[c.name.removesuffix(f"-{c.damage}")]
     table = TransferTable(
         x=np.vstack([p["x"] for p in parts]) if parts else np.zeros((0, len(names))),
         y=np.concatenate([p["y"] for p in parts]) if parts else np.zeros(0, np.int64),

@@ -42,6 +42,51 @@ def test_plan_sizes_nest_and_name_each_city_once():
     assert [asdict(p) for p in large.pairs[:50]] == [asdict(p) for p in full.pairs]
 
 
+def test_physics_twins_copy_their_cities_and_acquisitions_and_change_nothing_else():
+    from core.trainset import PHYSICS_TWINS, _scene_look
+
+    full, both = default_plan(0, "full"), default_plan(0, "full", damage="both")
+    # the patterns plan is what it was (no damage key in its records: old manifests read the same)
+    assert "damage" not in json.dumps(full.to_json())
+    assert both.to_json()["cities"][:len(full.cities)] == full.to_json()["cities"]
+    assert [asdict(p) for p in both.pairs[:len(full.pairs)]] == [asdict(p) for p in full.pairs]
+    twins = both.cities[len(full.cities):]
+    assert sorted(c.name for c in twins) == sorted(f"{n}-physics" for n in PHYSICS_TWINS["full"])
+    base = {c.name: c for c in full.cities}
+    for t in twins:
+        b = base[t.name.removesuffix("-physics")]
+        assert asdict(t) == {**asdict(b), "name": t.name, "damage": "physics"}
+        assert _scene_look(t) == {"damage": "physics"} and _scene_look(b) == {}
+        # acquired exactly as the twin: same acquisitions and seeds, pair for pair
+        strip = [(p.post_scene, p.pre, p.post, p.pre_seed, p.post_seed) for p in both.pairs]
+        assert ([s for p, s in zip(both.pairs, strip) if p.city == t.name]
+                == [s for p, s in zip(both.pairs, strip) if p.city == b.name])
+    assert both.name == "default-full+physics"
+    assert default_plan(0, "full", "realistic", "both").to_json() == default_plan(0, "full", "realistic").to_json()
+    with pytest.raises(TrainingSetError, match="damage must be one of"):
+        default_plan(0, "full", damage="physics")
+
+
+def test_a_physics_twin_is_held_out_with_its_city(tmp_path, monkeypatch):
+    """Rows of a twin take its city's index, so city-held-out cross-validation keeps both
+    versions of a building on one side (as a realistic twin's do)."""
+    import core.trainset as ts
+
+    plan = default_plan(0, "quick", damage="both")
+    fake = {"x": np.zeros((2, len(TABLE_SETTINGS.descriptor_names()))), "y": np.array([0, 5]),
+            "building_id": np.array([1, 2]), "density": np.ones((2, 2)), "cells": np.array([50, 60]),
+            "seconds": np.zeros(2)}
+    monkeypatch.setattr(ts, "generate_city", lambda city, folder: None)
+    key = ts._settings_key(TABLE_SETTINGS, plan.labels)
+    (tmp_path / "tables").mkdir()
+    for p in plan.pairs:
+        np.savez(tmp_path / "tables" / f"{p.name}.{key}.npz", **fake)
+    table = build(tmp_path, plan, TABLE_SETTINGS, say=lambda s: None)
+    names = [plan.cities[i].name for i in table.city]
+    physics = np.array([table.pairs[i].startswith("generic_m0-physics.") for i in table.pair])
+    assert physics.sum() == 4 and set(np.array(names)[physics]) == {"generic_m0"}
+
+
 def test_a_plan_naming_a_city_it_lacks_is_refused(tmp_path):
     plan = default_plan(0, "quick")
     bad = TrainingPlan(plan.cities[:1], plan.pairs, 0, "broken")
