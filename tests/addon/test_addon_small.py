@@ -223,3 +223,32 @@ def test_small_paper_dataset_in_process(bpy_registered, tmp_path):
         _, sc = _check_city(out / name, 8)
         assert {b.grade for b in sc.buildings} == {g}
         assert all(b.patterns for b in sc.buildings)
+
+
+TINY = {  # the smallest outbuildings the set makes, and a precast concrete garage
+    "shed_flat": dict(footprint=citygen._rect(2.5, 2.5), roof="flat"),
+    "shed_gable": dict(footprint=citygen._rect(2.5, 2.5), roof="gable", roof_pitch=20.0),
+    "garage_rc": dict(footprint=citygen._rect(3.0, 5.0), roof="flat", material="reinforced_concrete",
+                      bay_width=2.5, parapet_height=0.15),
+}
+
+
+@needs_bpy
+@pytest.mark.parametrize("kind", sorted(TINY))
+def test_every_grade_applies_to_a_tiny_outbuilding(blank, kind):
+    from addon import ems98, scene_tools
+    from addon.geometry.shell import ShellSpec
+    shell = dict(storeys=1, storey_height=2.3, inner_wall_spacing=0.0, spine_wall=False, typology="garden_shed",
+                 **TINY[kind])
+    coll = blank.context.scene.collection
+    src = scene_tools.create_building_object(coll, ShellSpec(**shell), 1, vulnerability_class="B", seed=17)
+    for g in range(6):
+        for salt in range(3):
+            obj = src.copy()
+            obj.data = src.data.copy()
+            coll.objects.link(obj)
+            recs = scene_tools.apply_grade_to_object(obj, g, salt)
+            assert bool(recs) == (g >= 3), (g, recs)  # 1-2: no visible damage without a chimney
+            if recs:  # the worst pattern serves the grade
+                assert max(max(ems98.PATTERNS[r["name"]].grades) for r in recs) >= g
+            assert len(obj.data.polygons) > 0
