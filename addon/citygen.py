@@ -1,12 +1,18 @@
 """Procedural city layouts for the batch generator (pure Python + numpy, no bpy).
 
-Two sets, after the seed paper's two virtual scenes:
+Three sets, the first two after the seed paper's two virtual scenes:
 
 - ``generic``: small to medium European town: detached houses, terraced rows, small and
   large apartment blocks, L-shaped blocks; masonry and RC; pitched and flat roofs; loose
   and dense rows along streets.
 - ``region``: L'Aquila-like historic centre: 2-4 storey stone masonry (some RC) in
   courtyard blocks of attached buildings, narrow streets, low-pitch tiled roofs.
+- ``small``: a town of small buildings, as half of those in airborne LiDAR of Dutch towns
+  (AHN3): garden sheds (2.5-5 x 2.5-6 m, one 2.3-2.8 m storey, flat or gable roof, masonry:
+  the catalogue has no timber), single and double garages (3-6.5 x 5-7 m, flat, some in
+  attached courts), Dutch row houses (4.5-6.5 m wide, 8-11 m deep, 2-3 storeys, gable roof,
+  terraces of 3-8 with party walls) and small detached houses (6-8 x 6-8 m, 1-2 storeys);
+  sheds and garages stand 1-4 m behind or beside the houses. Most footprints 8-60 m^2.
 
 A plan is a list of BuildingPlan (shell parameters as plain dicts, placement, labels);
 the same seed gives the same plan.
@@ -27,6 +33,10 @@ apartment block    -      -       -      -       0.30   0.80    0.60  0.20     0
 L-shaped block     -      -       -      -       0.30   0.80    0.50  0.15     0.40     0.50     -      0.70
 region masonry     0.70   0.50    0.10   0.15    0.05   -       -     0.12     0.35     0.25     0.05   -
 region RC          0.60   -       -      -       0.10   0.50    0.30  0.30     0.40     0.50     -      0.70
+small: garden shed 0.60   -       -      0.10    0.05   -       -     -        -        -        -      -
+small: garage      -      -       -      0.15    0.10   -       -     -        -        -        -      -
+small: row house   0.50   0.30    0.45   0.40    0.25   -       -     -        0.10     0.05     -      -
+small: small house 0.70   0.40    0.30   0.30    0.30   -       -     -        0.15     -        0.10   0.50
 =================  =====  ======  =====  ======  =====  ======  ====  =======  =======  =======  =====  =======
 
 Fits: overhang and dormer need a pitched roof; chimney a shell without its own chimney
@@ -34,7 +44,8 @@ Fits: overhang and dormer need a pitched roof; chimney a shell without its own c
 boxes a flat roof; terrace a pitched roof (an altana, as in L'Aquila's centre) or a flat
 roof of 3+ storeys (a recessed top storey); balcony 2+ storeys and a free facade of 6+ m
 (a stack on every upper storey, 1-2 facades); parapet a flat roof without one (the plans
-give every flat roof a parapet, so only single buildings get it). Dormers come 1-2,
+give every flat roof a parapet, so only single buildings get it; the small set's sheds and
+bare garages stay without: they have no parapet entry). Dormers come 1-2,
 skylights 1-3, HVAC boxes 1-3 a building. A detail is dropped when there is no room for
 it (roof space taken, an annex would come within 0.5 m of another building).
 """
@@ -48,7 +59,7 @@ import numpy as np
 from . import ems98
 from .geometry import poly2d
 
-SETS = ("generic", "region")
+SETS = ("generic", "region", "small")
 
 
 @dataclass
@@ -299,6 +310,177 @@ def region_plan(n: int, seed: int, details: str = "none") -> CityPlan:
     return add_details(CityPlan(plans, _bounds(plans), "region", seed), details)
 
 
+# --- small (sheds, garages, row houses) -------------------------------------------------------
+
+# Footprint ranges (m, along the street x across it) and storeys per small-set typology; the
+# tests check the plans against them.
+SMALL_SIZES = {
+    "garden_shed": ((2.5, 5.0), (2.5, 6.0), (1, 1)),
+    "garage": ((3.0, 6.5), (5.0, 7.0), (1, 1)),
+    "row_house": ((4.5, 6.5), (8.0, 11.0), (2, 3)),
+    "small_house": ((6.0, 8.0), (6.0, 8.0), (1, 2)),
+}
+OUTBUILDING_STOREY_HEIGHT = (2.3, 2.8)  # sheds and garages: one low storey
+
+
+def _small_shell(rng, typ, Lx, Ly):
+    """Shell of a small-set building whose world extent is Lx (along the street) x Ly; returns
+    (shell, rotation). Sheds and garages are one low storey without inner walls; sheds are
+    masonry (the catalogue has no timber), garages masonry or precast concrete (RC)."""
+    rot = 0.0 if rng.uniform() < 0.5 else math.pi
+    if typ == "garden_shed":
+        mat = ems98.MASONRY
+        roof = _pick(rng, [("flat", 0.55), ("gable", 0.45)])
+        if roof == "gable" and rng.uniform() < 0.4:  # ridge across the street
+            rot += math.pi / 2
+        shell = dict(storeys=1, roof=roof, roof_pitch=round(_u(rng, 20, 35), 1),
+                     parapet_height=0.0, storey_height=round(_u(rng, *OUTBUILDING_STOREY_HEIGHT), 2),
+                     inner_wall_spacing=0.0, spine_wall=False)
+    elif typ == "garage":
+        mat = ems98.MASONRY if rng.uniform() < 0.75 else ems98.RC
+        shell = dict(storeys=1, roof="flat", roof_pitch=30.0,
+                     parapet_height=round(_u(rng, 0.15, 0.3), 2) if rng.uniform() < 0.5 else 0.0,
+                     storey_height=round(_u(rng, *OUTBUILDING_STOREY_HEIGHT), 2),
+                     inner_wall_spacing=0.0, spine_wall=False)
+    elif typ == "row_house":
+        mat = ems98.MASONRY
+        shell = dict(storeys=int(rng.integers(2, 4)), roof="gable", roof_pitch=round(_u(rng, 35, 50), 1),
+                     chimney=_chimney(rng, Lx, Ly, 0.3), storey_height=_storey_h(rng, mat),
+                     inner_wall_spacing=round(_u(rng, 4.0, 6.0), 2))
+    else:  # small_house
+        mat = ems98.MASONRY if rng.uniform() < 0.8 else ems98.RC
+        roof = _pick(rng, [("gable", 0.5), ("hip", 0.3), ("flat", 0.2)])
+        shell = dict(storeys=int(rng.integers(1, 3)), roof=roof, roof_pitch=round(_u(rng, 25, 45), 1),
+                     parapet_height=round(_u(rng, 0.3, 0.6), 2) if roof == "flat" else 0.0,
+                     chimney=_chimney(rng, Lx, Ly, 0.4) if (roof != "flat" and mat == ems98.MASONRY) else None,
+                     storey_height=_storey_h(rng, mat), inner_wall_spacing=round(_u(rng, 4.0, 6.0), 2))
+    L, W = (Ly, Lx) if abs(math.sin(rot)) > 0.5 else (Lx, Ly)  # local x is the ridge
+    shell["footprint"] = [[round(x, 3), round(y, 3)] for x, y in _rect(L, W)]
+    shell.update(material=mat, typology=typ,
+                 bay_width=round(_u(rng, 2.5, 3.5), 2) if mat == ems98.RC else 0.0)
+    return shell, rot
+
+
+def small_plan(n: int, seed: int, row_length: float | None = None, details: str = "none") -> CityPlan:
+    """A town of small buildings (most footprints 8-60 m^2, as half of the buildings in Dutch
+    airborne LiDAR): streets of Dutch row houses (terraces of 3-8 units with party walls) with
+    garden sheds behind them and garages beside, small detached houses with their garage and
+    shed, and courts of attached garages, mixed along each street. Outbuildings stand 1-4 m
+    from the house they belong to; streets run along x between the strips."""
+    rng = np.random.default_rng([seed, 606])
+    row_length = row_length or max(60.0, 15.0 * math.sqrt(n))
+    sizes = SMALL_SIZES
+    plans = []
+    state = {"bid": 1}
+
+    def place(typ, x0, y0, Lx=None, Ly=None, jitter=0.0):
+        """Add a building of `typ` with its world bbox starting at (x0, y0); None when n is reached."""
+        if state["bid"] > n:
+            return None
+        (a, b), (c, d), _ = sizes[typ]
+        Lx = _u(rng, a, b) if Lx is None else Lx
+        Ly = _u(rng, c, d) if Ly is None else Ly
+        shell, rot = _small_shell(rng, typ, Lx, Ly)
+        if jitter:
+            rot += _u(rng, -jitter, jitter)
+        lo, hi = _extent(shell, rot)
+        cx, cy = x0 - lo[0], y0 - lo[1]
+        bp = BuildingPlan(state["bid"], shell, (round(cx, 3), round(cy, 3)), rot,
+                          _vclass(rng, shell["material"]), int(rng.integers(0, 2 ** 31 - 1)), typ,
+                          (cx + lo[0], cy + lo[1], cx + hi[0], cy + hi[1]))
+        plans.append(bp)
+        state["bid"] += 1
+        return bp
+
+    def shed_behind(px0, px1, front):
+        """A garden shed (or now and then a single garage) within px0..px1 (0.3 m in), 1-4 m
+        behind the buildings of `front` it stands behind."""
+        room = px1 - px0 - 0.6
+        if room < 2.5:
+            return None
+        typ = "garden_shed" if rng.uniform() < 0.85 else "garage"
+        (a, b), _, _ = sizes[typ]
+        if room < a:
+            typ, (a, b) = "garden_shed", sizes["garden_shed"][0]
+        Lx = min(_u(rng, a, b), room)
+        x0 = px0 + 0.3 + _u(rng, 0.0, max(room - Lx, 0.0))
+        back = max([f.extent[3] for f in front if f.extent[0] < x0 + Lx and f.extent[2] > x0]
+                   or [max(f.extent[3] for f in front)])
+        return place(typ, x0, back + _u(rng, 1.0, 4.0), Lx=Lx)
+
+    def attach(prev, bp):
+        # party walls as in generic_plan: edge 1 is the local +x end, edge 3 the -x end
+        if prev is not None and bp is not None:
+            prev.shell.setdefault("party_walls", []).append(1 if prev.rotation == 0.0 else 3)
+            bp.shell.setdefault("party_walls", []).append(3 if bp.rotation == 0.0 else 1)
+
+    y = 0.0
+    while state["bid"] <= n:
+        street = _u(rng, 7, 12)
+        x, top = 0.0, y
+        while state["bid"] <= n and x < row_length:
+            kind = _pick(rng, [("terrace", 0.5), ("detached", 0.3), ("garages", 0.2)])
+            if kind == "terrace":
+                count, prev, x_start = int(rng.integers(3, 9)), None, x
+                for _ in range(count):
+                    w = _u(rng, *sizes["row_house"][0])
+                    if x > x_start and x + w > row_length:
+                        break
+                    bp = place("row_house", x, y, Lx=w)
+                    if bp is None:
+                        break
+                    attach(prev, bp)
+                    prev = bp
+                    top = max(top, bp.extent[3])
+                    if rng.uniform() < 0.85:
+                        s = shed_behind(bp.extent[0], bp.extent[2], [bp])
+                        if s is not None:
+                            top = max(top, s.extent[3])
+                    x = bp.extent[2] + 0.05
+                x += _u(rng, 1.0, 4.0)
+                if rng.uniform() < 0.5:  # a garage beside the end unit
+                    g = place("garage", x, y)
+                    if g is not None:
+                        top = max(top, g.extent[3])
+                        x = g.extent[2] + _u(rng, 1.0, 4.0)
+                x += _u(rng, 2.0, 5.0)  # path between terraces
+            elif kind == "detached":
+                h = place("small_house", x + _u(rng, 0.0, 2.0), y + _u(rng, 0.0, 3.0), jitter=0.15)
+                if h is None:
+                    break
+                plot = [h]
+                if rng.uniform() < 0.6:
+                    g = place("garage", h.extent[2] + _u(rng, 1.0, 4.0), y + _u(rng, 0.0, 3.0))
+                    if g is not None:
+                        plot.append(g)
+                x0, x1 = h.extent[0], plot[-1].extent[2]
+                top = max([top] + [b.extent[3] for b in plot])
+                k = int(rng.integers(1, 3))  # one or two sheds side by side in the back garden
+                for j in range(k):
+                    s = shed_behind(x0 + j * (x1 - x0) / k, x0 + (j + 1) * (x1 - x0) / k, plot)
+                    if s is not None:
+                        top = max(top, s.extent[3])
+                x = x1 + _u(rng, 3.0, 8.0)
+            else:  # a court of attached garages, single or double
+                count, prev = int(rng.integers(3, 9)), None
+                double = rng.uniform() < 0.3
+                depth = _u(rng, *sizes["garage"][1])
+                for _ in range(count):
+                    w = _u(rng, 5.5, 6.5) if double else _u(rng, 3.0, 3.8)
+                    if prev is not None and x + w > row_length:
+                        break
+                    bp = place("garage", x, y, Lx=w, Ly=depth)
+                    if bp is None:
+                        break
+                    attach(prev, bp)
+                    prev = bp
+                    top = max(top, bp.extent[3])
+                    x = bp.extent[2] + 0.05
+                x += _u(rng, 4.0, 8.0)
+        y = top + street
+    return add_details(CityPlan(plans, _bounds(plans), "small", seed), details)
+
+
 def _bounds(plans, margin=15.0):
     ext = np.array([p.extent for p in plans], dtype=float)
     return (float(ext[:, 0].min() - margin), float(ext[:, 1].min() - margin),
@@ -313,7 +495,8 @@ def city_plan(set_name: str, n: int, seed: int, details: str = "none") -> CityPl
         raise ValueError(f"number of buildings must be >= 1, got {n}")
     if details not in DETAIL_LEVELS:
         raise ValueError(f"details must be one of {DETAIL_LEVELS}, got {details!r}")
-    return generic_plan(n, seed, details=details) if set_name == "generic" else region_plan(n, seed, details=details)
+    plans = {"generic": generic_plan, "region": region_plan, "small": small_plan}
+    return plans[set_name](n, seed, details=details)
 
 
 # --- grades ---------------------------------------------------------------------------------
@@ -393,6 +576,14 @@ DETAIL_FREQUENCIES = {
                                 "annex": 0.05},
     "courtyard_block_rc": {"overhang": 0.60, "solar_panels": 0.10, "rooftop_structure": 0.50, "hvac": 0.30,
                            "terrace": 0.30, "antenna": 0.40, "balcony": 0.50, "parapet": 0.70},
+    # small set: outbuildings get eaves and now and then a rooflight or panels, no parapet
+    # (those without one are meant bare); row houses are Dutch terraces (dormers, rooflights)
+    "garden_shed": {"overhang": 0.60, "skylight": 0.10, "solar_panels": 0.05},
+    "garage": {"skylight": 0.15, "solar_panels": 0.10},
+    "row_house": {"overhang": 0.50, "chimney": 0.30, "dormer": 0.45, "skylight": 0.40, "solar_panels": 0.25,
+                  "antenna": 0.10, "balcony": 0.05},
+    "small_house": {"overhang": 0.70, "chimney": 0.40, "dormer": 0.30, "skylight": 0.30, "solar_panels": 0.30,
+                    "antenna": 0.15, "annex": 0.10, "parapet": 0.50},
 }
 DETAIL_ENTRIES = ("overhang", "chimney", "dormer", "skylight", "solar_panels", "rooftop_structure", "hvac",
                   "terrace", "antenna", "balcony", "annex", "parapet")

@@ -17,6 +17,7 @@ Densities per set (`DENSITY`; numbers per building, each a mean of seeded draws)
 |---|---|---|---|---|---|
 | generic (town with gardens) | 0.8 | 0.6 | 0.4 | 0.8 | 0.6 |
 | region (L'Aquila-like centre: narrow streets, few trees) | 0.08 | 0.05 | 0.02 | 1.2 | 0.5 |
+| small (sheds, garages, row houses: Dutch terrace streets) | 0.3 | 0.3 | 0.4 | 0.5 | 0.3 |
 | bundle (imported buildings) | as generic | | | | |
 
 Tree sizes: small street trees (4-7 m tall, crown radius 1.5-2.5 m), medium (7-12 m,
@@ -48,6 +49,8 @@ class Density:
 DENSITY = {
     "generic": Density(0.8, 0.6, 0.4, 0.8, 0.6, (2.0, 5.0), (("small", 0.35), ("medium", 0.4), ("large", 0.25))),
     "region": Density(0.08, 0.05, 0.02, 1.2, 0.5, (0.4, 1.2), (("small", 0.6), ("medium", 0.3), ("large", 0.1))),
+    # per building, and half the buildings are sheds and garages: gardens of a Dutch terrace street
+    "small": Density(0.3, 0.3, 0.4, 0.5, 0.3, (1.5, 4.0), (("small", 0.5), ("medium", 0.4), ("large", 0.1))),
 }
 DENSITY["bundle"] = DENSITY["generic"]
 

@@ -6,6 +6,13 @@ Run inside Blender or with the bpy module:
     blender -b --factory-startup --python-exit-code 1 -P blender_scripts/generate_scenes.py -- \\
         --set generic --dataset paper --buildings 112 --seed 1 --out out/generic
     python blender_scripts/generate_scenes.py --set region --dataset mixed --buildings 40 --seed 2 --out out/region
+    python blender_scripts/generate_scenes.py --set small --dataset mixed --grade-mix 0:20,3:14,4:15,5:15 \
+        --seed 3 --out out/small
+
+--set generic is a European town (detached houses to apartment blocks), region an L'Aquila-like
+historic centre, small a town of small buildings (garden sheds, garages, Dutch row houses,
+small detached houses; most footprints 8-60 m^2, as half the buildings in airborne LiDAR of
+Dutch towns); see addon/citygen.py.
 
 --dataset paper writes DIR/pre and DIR/post_heavy, DIR/post_extreme, DIR/post_destruction
 (every building at EMS-98 grade 3, 4 and 5: the seed paper's design); --dataset mixed
@@ -21,7 +28,7 @@ seeded sample of that many of its buildings (default: all), the others are left 
 output keeps the source's origin, CRS and float64 coordinates. Imported LoD2 shells are
 damaged as box-like buildings (see addon/io_import.py and the README for the limits).
 
---origin X,Y[,Z] and --crs EPSG:n place a generic or region city in the world: the bundles'
+--origin X,Y[,Z] and --crs EPSG:n place a procedural (generic, region or small) city in the world: the bundles'
 origin and CRS (the mesh stays in local metres around it), e.g. --origin 367000,4690000
 --crs EPSG:32633 puts it at L'Aquila in UTM zone 33N, as `quakescan demo` does.
 
@@ -55,6 +62,8 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parent.parent
 GENERATOR_VERSION = 1
 PROG = "generate_scenes.py"
+# addon/citygen.py's SETS and "bundle" (spelt out: the arguments are parsed before the add-on is importable)
+SETS = ("generic", "region", "small", "bundle")
 
 
 def log(msg: str) -> None:
@@ -91,9 +100,9 @@ def _seed(text):
 def parse_args(argv):
     p = argparse.ArgumentParser(prog=PROG, description="Generate labelled pre-/post-event scene bundles "
                                 "(scene.json + mesh.ply) of a procedural city with EMS-98 damage.")
-    p.add_argument("--set", dest="set_name", required=True, choices=("generic", "region", "bundle"),
-                   help="generic European town, L'Aquila-like historic centre, or the buildings of an "
-                   "existing scene bundle (--source)")
+    p.add_argument("--set", dest="set_name", required=True, choices=SETS,
+                   help="generic European town, L'Aquila-like historic centre, small buildings (garden sheds, "
+                   "garages, row houses, small houses), or the buildings of an existing scene bundle (--source)")
     p.add_argument("--source", help="--set bundle: scene bundle folder whose buildings and terrain are used "
                    "(e.g. one imported from CityJSON); the output keeps its origin and CRS")
     p.add_argument("--dataset", required=True, choices=("paper", "mixed"),
@@ -110,10 +119,10 @@ def parse_args(argv):
                    "solar panels, rooftop structures, annexes, terraces): none (clean shells, default) or typical "
                    "(frequencies by typology, addon/citygen.py); --set bundle: roof-top details on the roof faces")
     p.add_argument("--origin", type=_origin, default=None,
-                   help="generic/region: world coordinates 'X,Y[,Z]' of the city's local origin, written as the "
+                   help="procedural sets: world coordinates 'X,Y[,Z]' of the city's local origin, written as the "
                    "bundles' origin (e.g. 367000,4690000 with --crs EPSG:32633: L'Aquila); default 0,0,0")
     p.add_argument("--crs", default=None,
-                   help="generic/region: the CRS the bundles name, e.g. EPSG:32633 (default: none)")
+                   help="procedural sets: the CRS the bundles name, e.g. EPSG:32633 (default: none)")
     p.add_argument("--out", required=True, help="output folder (created)")
     p.add_argument("--force", action="store_true", help="regenerate bundles made with other settings")
     p.add_argument("--streetscape", choices=("none", "typical"), default="none",

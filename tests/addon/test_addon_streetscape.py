@@ -29,7 +29,7 @@ def _object_points(scape):
     return np.array(pts)
 
 
-@pytest.mark.parametrize("set_name", ["generic", "region"])
+@pytest.mark.parametrize("set_name", ["generic", "region", "small"])
 def test_placement_is_seeded_and_nothing_stands_in_a_footprint(set_name):
     plan, fps = _plan(set_name, 40)
     a = ss.plan_streetscape(fps, plan.bounds, set_name, 3)
