@@ -692,7 +692,8 @@ def cmd_training_set(args) -> int:
     _check_seed(args.seed)
     _check_threads(args.threads)
     _check_folder_output(Path(args.output))
-    table = build(args.output, default_plan(args.seed, args.size, args.scenes, args.damage), TABLE_SETTINGS, workers=args.threads,
+    table = build(args.output, default_plan(args.seed, args.size, args.scenes, args.damage, not args.no_small),
+                  TABLE_SETTINGS, workers=args.threads,
                   say=_say(args), progress=_progress(args, "training set"))
     counts = dict(zip(*(v.tolist() for v in np.unique(table.y, return_counts=True))))
     print(f"{args.output}: {len(table.y)} building rows, grades {counts}; manifest.json and tables/")
@@ -866,6 +867,8 @@ def build_parser() -> argparse.ArgumentParser:
     ts.add_argument("--damage", choices=("patterns", "both"), default="patterns",
                     help="both: with --scenes clean, also a twin of four mixed cities whose grade-4/5 buildings "
                     "collapse by rigid-body simulation (Blender; ~8 s a building), acquired as their twins")
+    ts.add_argument("--no-small", action="store_true",
+                    help="full/large: without the two cities of small buildings (sheds, garages, row houses)")
     ts.add_argument("--threads", type=int, default=-1, help=THREADS_HELP)
     ts.add_argument("--progress", action="store_true", help=PROGRESS_HELP)
     ts.set_defaults(func=cmd_training_set)

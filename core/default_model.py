@@ -199,11 +199,13 @@ def fit_default_model(table, plan, config: dict, scores, *, seed: int = 0, comma
 
 
 def transfer_training_table(work: Path, *, seed: int = 0, size: str = "full", scenes: str = "both",
-                            damage: str = "patterns", workers: int = -1, say: Callable[[str], None] = print):
+                            damage: str = "patterns", small: bool = True, workers: int = -1,
+                            say: Callable[[str], None] = print):
     """The plan and the descriptor table of the training set under `work`: `scenes` clean (the
     generator's bare scenes, under work/trainset), realistic (the same cities with roof detail,
     trees and cars, labelled through footprints, under work/trainset_realistic) or both;
-    `damage` "both" adds the clean plan's physics twins (`core.trainset.default_plan`)."""
+    `damage` "both" adds the clean plan's physics twins, `small` the small-building cities
+    (`core.trainset.default_plan`)."""
     from .trainset import TrainingPlan, build, combine_tables, default_plan
 
     if scenes not in ("clean", "realistic", "both"):
@@ -211,7 +213,7 @@ def transfer_training_table(work: Path, *, seed: int = 0, size: str = "full", sc
     work = Path(work)
     parts = {}
     for kind in (("clean", "realistic") if scenes == "both" else (scenes,)):
-        plan = default_plan(seed, size, kind, damage)
+        plan = default_plan(seed, size, kind, damage, small)
         folder = work / ("trainset" if kind == "clean" else "trainset_realistic")
         parts[kind] = (plan, build(folder, plan, TABLE_SETTINGS, workers=workers, say=say))
     if scenes != "both":
@@ -223,13 +225,13 @@ def transfer_training_table(work: Path, *, seed: int = 0, size: str = "full", sc
 
 
 def make_default_model(work: Path, output: Path, *, seed: int = 0, size: str = "full", scenes: str = "both",
-                       damage: str = "patterns", workers: int = -1, say: Callable[[str], None] = print,
-                       command: str = ""):
+                       damage: str = "patterns", small: bool = True, workers: int = -1,
+                       say: Callable[[str], None] = print, command: str = ""):
     """Build the training set under `work`, choose and fit the classifier, write `output`."""
     from .model import save_model
 
     t0 = time.perf_counter()
-    plan, table = transfer_training_table(work, seed=seed, size=size, scenes=scenes, damage=damage, workers=workers,
+    plan, table = transfer_training_table(work, seed=seed, size=size, scenes=scenes, damage=damage, small=small, workers=workers,
                                           say=say)
     full = model_columns(table)
     table = training_rows(full)
@@ -244,6 +246,7 @@ def make_default_model(work: Path, output: Path, *, seed: int = 0, size: str = "
     model = fit_default_model(table, plan, config, scores, seed=seed, command=command, seconds_building=t_build)
     model.provenance["scenes"] = scenes
     model.provenance["damage"] = damage
+    model.provenance["small_buildings"] = small
     model.provenance["rows_left_out"] = {"count": int(len(full.y) - len(table.y)), "of": int(len(full.y)),
                                          "why": "labelled damaged, but no change seen in any of " + ", ".join(EVIDENCE)}
     output = Path(output)

@@ -47,7 +47,7 @@ log = logging.getLogger(__name__)
 
 FORMAT = "quakescan-training-set"
 VERSION = 1
-SOURCES = ("generic", "region", "rotterdam")
+SOURCES = ("generic", "region", "rotterdam", "small")
 # Same-source and cross-source sensor combinations, cycled through the pairs of a plan
 # (pre-event sensor, post-event sensor).
 SENSOR_PAIRS = (("uls", "uls"), ("dim", "dim"), ("als", "uls"), ("als", "dim"), ("uls", "dim"), ("als", "als"),
@@ -56,6 +56,7 @@ ROTTERDAM = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / 
 CLUSTER_RADIUS_M = 150.0
 LABELS = ("simulator", "footprints")
 SCENES = ("clean", "realistic")
+SMALL_SENSOR_PAIRS = (("als", "als"), ("als", "uls"), ("als", "dim"))
 DAMAGES = ("patterns", "both")
 # Mixed cities that get a twin whose grade-4/5 buildings collapse by rigid-body simulation
 # (same seed, buildings, grades and acquisitions: the twins differ only in how the damage was
@@ -144,7 +145,8 @@ def _mix(n: int) -> dict:
     return {0: counts[0], 1: slight, 2: slight, 3: counts[1], 4: counts[2], 5: counts[3]}
 
 
-def default_plan(seed: int = 0, size: str = "full", scenes: str = "clean", damage: str = "patterns") -> TrainingPlan:
+def default_plan(seed: int = 0, size: str = "full", scenes: str = "clean", damage: str = "patterns",
+                 small: bool = True) -> TrainingPlan:
     """The training set of the shipped model (`full`, ~2,900 building rows), a larger one
     (`large`) or a small one for tests and smoke runs (`quick`, 2 small cities).
 
@@ -152,7 +154,11 @@ def default_plan(seed: int = 0, size: str = "full", scenes: str = "clean", damag
     Rotterdam buildings (the 15 of its dense cluster), one generic and one region-specific city in the paper's design
     (64 buildings, heavy / extreme / destruction) with a no-change pair each; three pairs per
     mixed city, one per post-event scene of a paper-design city, sensors cycling through
-    SENSOR_PAIRS, every acquisition drawn at random. large: the full plan's cities and pairs
+    SENSOR_PAIRS, every acquisition drawn at random. With `small` (the default), also 2 mixed
+    cities of the generator's small set (sheds, garages, row houses: most footprints under
+    40 m²) with an ALS-like pre-event epoch and ALS, ULS and DIM post-event ones
+    (SMALL_SENSOR_PAIRS): without them the smallest training footprint spans 32 raster cells
+    and a real shed at airborne density is outside everything the model saw. large: the full plan's cities and pairs
     (the same draws: a built full set is reused) and as many again (6 + 6 mixed cities, one
     more paper-design city of each kind): ~5,700 rows.
 
@@ -182,6 +188,9 @@ def default_plan(seed: int = 0, size: str = "full", scenes: str = "clean", damag
             cities.append(CitySpec(f"rotterdam_m{k}", "rotterdam", "mixed", seed * 1000 + 300 + k, None, _mix(15)))
         cities.append(CitySpec("generic_p0", "generic", "paper", seed * 1000 + 400, 64))
         cities.append(CitySpec("region_p0", "region", "paper", seed * 1000 + 401, 64))
+        if small:
+            for k in range(2):
+                cities.append(CitySpec(f"small_m{k}", "small", "mixed", seed * 1000 + 500 + k, 64, _mix(64)))
         per_mixed = 3
         if size == "large":  # the full plan's cities first (the same draws), then as many again
             for k in range(6, 12):
@@ -195,16 +204,22 @@ def default_plan(seed: int = 0, size: str = "full", scenes: str = "clean", damag
         per_mixed = 2
     pairs, turn = [], 0
 
-    def add(city, post_scene):
+    def add(city, post_scene, combo=None):
         nonlocal turn
-        a, b = SENSOR_PAIRS[turn % len(SENSOR_PAIRS)]
-        turn += 1
+        if combo is None:
+            a, b = SENSOR_PAIRS[turn % len(SENSOR_PAIRS)]
+            turn += 1
+        else:
+            a, b = combo
         pre, post = random_acquisition(a, rng), random_acquisition(b, rng)
         s1, s2 = (int(v) for v in rng.integers(1, 2 ** 31 - 1, 2))
         pairs.append(PairSpec(city.name, post_scene, pre.to_json(), post.to_json(), s1, s2))
 
     for city in cities:
-        if city.dataset == "mixed":
+        if city.source == "small":  # what real small buildings have: an airborne archive before
+            for combo in SMALL_SENSOR_PAIRS:
+                add(city, "post", combo)
+        elif city.dataset == "mixed":
             for _ in range(per_mixed):
                 add(city, "post")
         else:

@@ -18,7 +18,7 @@ def test_the_full_plan_varies_buildings_sensors_and_damage_context():
     assert planned >= 2500  # "thousands of buildings"
     combos = {(p.pre["kind"], p.post["kind"]) for p in plan.pairs}
     assert combos == set(SENSOR_PAIRS)  # every same-source and cross-source combination
-    assert {c.source for c in plan.cities} == {"generic", "region", "rotterdam"}
+    assert {c.source for c in plan.cities} == {"generic", "region", "rotterdam", "small"}
     assert any(p.post_scene == "pre" for p in plan.pairs)  # no-change pairs of the paper design
     mixed = [c for c in plan.cities if c.dataset == "mixed"]
     assert all(c.grade_mix[0] > 0 and c.grade_mix[5] > 0 for c in mixed)  # undamaged beside collapses
@@ -36,10 +36,22 @@ def test_plan_sizes_nest_and_name_each_city_once():
     for plan in (quick, full, large):
         names = [c.name for c in plan.cities]
         assert len(names) == len(set(names))
-    assert len(quick.cities) == 2 and len(full.cities) == 16 and len(large.cities) == 30
+    assert len(quick.cities) == 2 and len(full.cities) == 18 and len(large.cities) == 32
     # large = full's cities and pairs (same draws, so a built full set is reused) and more
-    assert [asdict(c) for c in large.cities[:16]] == [asdict(c) for c in full.cities]
-    assert [asdict(p) for p in large.pairs[:50]] == [asdict(p) for p in full.pairs]
+    assert [asdict(c) for c in large.cities[:18]] == [asdict(c) for c in full.cities]
+    assert [asdict(p) for p in large.pairs[:56]] == [asdict(p) for p in full.pairs]
+
+
+def test_small_building_cities_are_added_after_the_others_and_acquired_from_the_air_first():
+    without, full = default_plan(0, "full", small=False), default_plan(0, "full")
+    # the plan without them is the one the earlier models were trained on (same draws)
+    assert [asdict(p) for p in full.pairs[:len(without.pairs)]] == [asdict(p) for p in without.pairs]
+    extra = [c for c in full.cities if c.source == "small"]
+    assert [c.name for c in extra] == ["small_m0", "small_m1"] and all(c.buildings == 64 for c in extra)
+    pairs = [p for p in full.pairs if p.city.startswith("small_")]
+    assert len(pairs) == 6 and all(p.pre["kind"] == "als" for p in pairs)
+    assert {p.post["kind"] for p in pairs} == {"als", "uls", "dim"}
+    assert not any(c.source == "small" for c in default_plan(0, "quick").cities)
 
 
 def test_physics_twins_copy_their_cities_and_acquisitions_and_change_nothing_else():
