@@ -159,11 +159,12 @@ def cross_generator(training_work: Path, model_path: str, tests: dict) -> dict:
     seed = model.provenance.get("seed", 0) or 0
     print("cross-generator: training tables (the physics twins are generated, acquired and described when missing)",
           flush=True)
-    _, full = transfer_training_table(training_work, seed=seed, size="full", scenes="both", damage="both")
+    _, full = transfer_training_table(training_work, seed=seed, size="full", scenes="both", damage="both", small=True)
     full = training_rows(model_columns(full, model.feature_names))
     pair_city = np.array([n.split(".")[0] for n in full.pairs])[full.pair]
     twins = np.isin(pair_city, [f"{n}-physics" for n in PHYSICS_TWINS["full"]])
     bases = np.isin(pair_city, list(PHYSICS_TWINS["full"]))
+    small = np.char.startswith(pair_city.astype(str), "small_")
     t_tables = time.perf_counter() - t0
 
     def rows(keep):
@@ -172,8 +173,10 @@ def cross_generator(training_work: Path, model_path: str, tests: dict) -> dict:
                                    cells=None if full.cells is None else full.cells[keep])
 
     variants = {"patterns: 4 cities": rows(bases), "physics: their 4 twins": rows(twins),
-                "both: 4 + 4 twins": rows(bases | twins), "shipped training set (patterns)": rows(~twins),
-                "shipped set + 4 physics twins": rows(np.ones(len(full.y), bool))}
+                "both: 4 + 4 twins": rows(bases | twins),
+                "full plan, patterns (model v12's set)": rows(~twins & ~small),
+                "full plan + 4 physics twins": rows(~small),
+                "full plan + twins + small-building cities": rows(np.ones(len(full.y), bool))}
     limits = model_settings(model)
     described = {}
     for damage, (folder, pairs) in tests.items():

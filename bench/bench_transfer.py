@@ -329,7 +329,10 @@ def ablation(work: Path, model, training_work: Path, city: Path, pairs: dict, re
     t0 = time.perf_counter()
     # the rows the shipped model was fitted on: damage its acquisition did not see left out
     tab = training_rows(transfer_training_table(training_work, seed=model.provenance.get("seed", 0) or 0, size="full",
-                                       scenes=model.provenance.get("scenes", "clean"), say=lambda s: None)[1])
+                                                scenes=model.provenance.get("scenes", "clean"),
+                                                damage=model.provenance.get("damage", "patterns"),
+                                                small=model.provenance.get("small_buildings", False),
+                                                say=lambda s: None)[1])
     names = tab.names
     truth = read_truth(city / "post")
     limits = model_settings(model)

@@ -269,7 +269,7 @@ def footprints_from_scene(scene, simplify_m: float = 0.02, min_hole_m2: float = 
             continue
         rings = np.concatenate([tri[sel], tri[sel][:, :1]], axis=1)  # closed triangles
         outline = shapely.union_all(shapely.polygons(rings)).buffer(0)
-        outline = _fill_small_holes(outline.simplify(simplify_m), min_hole_m2)
+        outline = _clean_outline(outline, simplify_m, min_hole_m2)
         if outline.is_empty or outline.area <= 0:
             continue
         ids.append(b.id)
@@ -278,6 +278,16 @@ def footprints_from_scene(scene, simplify_m: float = 0.02, min_hole_m2: float = 
     if not polygons:
         raise FootprintError("the scene has no building with roof or wall faces: no footprints")
     return Footprints(np.array(ids, dtype=np.int64), polygons, scene.crs, "scene", props)
+
+
+def _clean_outline(geom, simplify_m: float, min_hole_m2: float):
+    """The outline simplified, its small holes filled, and valid: simplifying keeps each part
+    valid but not the parts apart (two that met only to within float noise can overlap
+    after it), so an invalid result is unioned again."""
+    out = _fill_small_holes(geom.simplify(simplify_m), min_hole_m2)
+    if not out.is_valid:
+        out = _fill_small_holes(out.buffer(0), min_hole_m2)
+    return out
 
 
 def _fill_small_holes(geom, min_hole_m2: float):

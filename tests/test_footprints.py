@@ -99,6 +99,30 @@ def test_footprints_of_a_box_scene_are_its_rectangles_in_world_coordinates(tmp_p
     assert [p.area for p in back.polygons] == pytest.approx([p.area for p in fp.polygons])
 
 
+def test_parts_that_simplifying_makes_overlap_give_one_valid_outline():
+    """Two roof parts of one building that meet along an edge only to within float noise (as
+    the generator's small-set row house and its roof overhang did, coordinates copied from
+    that scene): simplifying the two-part outline made the parts overlap, and classify refused
+    the invalid polygon. The outline must stay valid and keep the parts' area."""
+    import shapely
+
+    from core.footprints import _clean_outline
+
+    a = [(11.311999365340567, 37.841000776148036), (17.20599941874633, 37.84100129141788),
+         (17.825999304305412, 37.84100134561999), (17.82599952054565, 35.36750133226855),
+         (17.82599973678589, 32.89400131891711), (17.825999953026127, 30.420501305565672),
+         (17.826000169266365, 27.94700129221423), (17.826000223468476, 27.32700140665515),
+         (14.259000311206515, 27.327001094818115), (11.312000284503634, 27.327000837183192),
+         (11.312000230301523, 27.947000722742274), (11.311999797821045, 32.894000749445155)]
+    b = [(11.311999311138456, 38.46100066170712), (14.258999337841336, 38.46100091934204),
+         (17.8259992501033, 38.461001231179075), (17.825999304305412, 37.84100134561999),
+         (14.258999392043448, 37.84100103378296), (11.311999365340567, 37.841000776148036)]
+    raw = shapely.union_all([shapely.Polygon(a), shapely.Polygon(b)])
+    assert raw.is_valid and not raw.simplify(0.02).is_valid  # the case, as it was
+    outline = _clean_outline(raw, 0.02, 1.0)
+    assert outline.is_valid and outline.area == pytest.approx(raw.area, rel=1e-6)
+
+
 @pytest.fixture(scope="module")
 def scanned_region_city(tmp_path_factory):
     """A generated L'Aquila-like block city (attached buildings, courtyards, pitched roofs)
