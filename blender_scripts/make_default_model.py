@@ -36,18 +36,19 @@ def main(argv=None) -> int:
     p.add_argument("--scenes", choices=("clean", "realistic", "both"), default="both",
                    help="training scenes: the generator's bare ones, realistic ones (roof detail, trees, cars; "
                    "labels through footprints) or both (default: the shipped model's)")
-    p.add_argument("--damage", choices=("patterns", "both"), default="patterns",
-                   help="both: the bare training set also holds physics twins of four mixed cities (grade-4/5 "
-                   "buildings collapsed by rigid-body simulation; core.trainset.PHYSICS_TWINS)")
-    p.add_argument("--no-small", action="store_true",
-                   help="without the two cities of small buildings (sheds, garages, row houses) of the plan")
+    p.add_argument("--damage", choices=("patterns", "both"), default="both",
+                   help="both (default, the shipped model's): the bare training set also holds physics twins of "
+                   "four mixed cities (grade-4/5 buildings collapsed by rigid-body simulation; "
+                   "core.trainset.PHYSICS_TWINS); patterns: the add-on's patterns only")
+    p.add_argument("--small", action="store_true",
+                   help="also the plan's two cities of small buildings (sheds, garages, row houses)")
     p.add_argument("--threads", type=int, default=-1)
     p.add_argument("-o", "--output", default=str(DEFAULT_MODEL))
     a = p.parse_args(argv)
     t0 = time.perf_counter()
     command = "python blender_scripts/make_default_model.py " + shlex.join(argv if argv is not None else sys.argv[1:])
     model, scores, table = make_default_model(Path(a.work), Path(a.output), seed=a.seed, size=a.size,
-                                              scenes=a.scenes, damage=a.damage, small=not a.no_small, workers=a.threads, command=command.strip())
+                                              scenes=a.scenes, damage=a.damage, small=a.small, workers=a.threads, command=command.strip())
     print(f"{len(table.y)} building rows; {model.provenance['classifier_selection']['chosen']}: cross-validated "
           f"overall accuracy {100 * model.provenance['test_overall_accuracy']:.1f} %; {time.perf_counter() - t0:.0f} s")
     return 0

@@ -692,7 +692,7 @@ def cmd_training_set(args) -> int:
     _check_seed(args.seed)
     _check_threads(args.threads)
     _check_folder_output(Path(args.output))
-    table = build(args.output, default_plan(args.seed, args.size, args.scenes, args.damage, not args.no_small),
+    table = build(args.output, default_plan(args.seed, args.size, args.scenes, args.damage, args.small),
                   TABLE_SETTINGS, workers=args.threads,
                   say=_say(args), progress=_progress(args, "training set"))
     counts = dict(zip(*(v.tolist() for v in np.unique(table.y, return_counts=True))))
@@ -867,8 +867,9 @@ def build_parser() -> argparse.ArgumentParser:
     ts.add_argument("--damage", choices=("patterns", "both"), default="patterns",
                     help="both: with --scenes clean, also a twin of four mixed cities whose grade-4/5 buildings "
                     "collapse by rigid-body simulation (Blender; ~8 s a building), acquired as their twins")
-    ts.add_argument("--no-small", action="store_true",
-                    help="full/large: without the two cities of small buildings (sheds, garages, row houses)")
+    ts.add_argument("--small", action="store_true",
+                    help="full/large: also two cities of small buildings (sheds, garages, row houses), acquired "
+                    "ALS-like before")
     ts.add_argument("--threads", type=int, default=-1, help=THREADS_HELP)
     ts.add_argument("--progress", action="store_true", help=PROGRESS_HELP)
     ts.set_defaults(func=cmd_training_set)

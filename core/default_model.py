@@ -199,7 +199,7 @@ def fit_default_model(table, plan, config: dict, scores, *, seed: int = 0, comma
 
 
 def transfer_training_table(work: Path, *, seed: int = 0, size: str = "full", scenes: str = "both",
-                            damage: str = "patterns", small: bool = True, workers: int = -1,
+                            damage: str = "patterns", small: bool = False, workers: int = -1,
                             say: Callable[[str], None] = print):
     """The plan and the descriptor table of the training set under `work`: `scenes` clean (the
     generator's bare scenes, under work/trainset), realistic (the same cities with roof detail,
@@ -225,7 +225,7 @@ def transfer_training_table(work: Path, *, seed: int = 0, size: str = "full", sc
 
 
 def make_default_model(work: Path, output: Path, *, seed: int = 0, size: str = "full", scenes: str = "both",
-                       damage: str = "patterns", small: bool = True, workers: int = -1,
+                       damage: str = "both", small: bool = False, workers: int = -1,
                        say: Callable[[str], None] = print, command: str = ""):
     """Build the training set under `work`, choose and fit the classifier, write `output`."""
     from .model import save_model

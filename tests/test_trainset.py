@@ -10,7 +10,7 @@ from core.trainset import SENSOR_PAIRS, TrainingPlan, TrainingSetError, build, d
 
 
 def test_the_full_plan_varies_buildings_sensors_and_damage_context():
-    plan = default_plan(0, "full")
+    plan = default_plan(0, "full", small=True)
     planned = 0
     sizes = {c.name: (c.buildings or 15) for c in plan.cities}
     for p in plan.pairs:
@@ -27,12 +27,12 @@ def test_the_full_plan_varies_buildings_sensors_and_damage_context():
     assert len(set(uls)) == len(uls)
     text = json.dumps(plan.to_json()).lower()
     assert "zurich" not in text  # reserved for evaluation
-    assert json.dumps(default_plan(0, "full").to_json()) == json.dumps(plan.to_json())
-    assert json.dumps(default_plan(1, "full").to_json()) != json.dumps(plan.to_json())
+    assert json.dumps(default_plan(0, "full", small=True).to_json()) == json.dumps(plan.to_json())
+    assert json.dumps(default_plan(1, "full", small=True).to_json()) != json.dumps(plan.to_json())
 
 
 def test_plan_sizes_nest_and_name_each_city_once():
-    quick, full, large = (default_plan(0, z) for z in ("quick", "full", "large"))
+    quick, full, large = (default_plan(0, z, small=True) for z in ("quick", "full", "large"))
     for plan in (quick, full, large):
         names = [c.name for c in plan.cities]
         assert len(names) == len(set(names))
@@ -43,7 +43,7 @@ def test_plan_sizes_nest_and_name_each_city_once():
 
 
 def test_small_building_cities_are_added_after_the_others_and_acquired_from_the_air_first():
-    without, full = default_plan(0, "full", small=False), default_plan(0, "full")
+    without, full = default_plan(0, "full"), default_plan(0, "full", small=True)
     # the plan without them is the one the earlier models were trained on (same draws)
     assert [asdict(p) for p in full.pairs[:len(without.pairs)]] == [asdict(p) for p in without.pairs]
     extra = [c for c in full.cities if c.source == "small"]
@@ -51,7 +51,7 @@ def test_small_building_cities_are_added_after_the_others_and_acquired_from_the_
     pairs = [p for p in full.pairs if p.city.startswith("small_")]
     assert len(pairs) == 6 and all(p.pre["kind"] == "als" for p in pairs)
     assert {p.post["kind"] for p in pairs} == {"als", "uls", "dim"}
-    assert not any(c.source == "small" for c in default_plan(0, "quick").cities)
+    assert not any(c.source == "small" for c in default_plan(0, "quick", small=True).cities)
 
 
 def test_physics_twins_copy_their_cities_and_acquisitions_and_change_nothing_else():
