@@ -2,7 +2,7 @@
 
 Pure Python (no bpy, no numpy needed): the tables the add-on's UI, operators and the
 batch generator share, and the sampling of pattern parameters. Ranges follow
-DAMAGE_CATALOGUE.md (engineering defaults, not measurements) and stay editable here.
+docs/DAMAGE_CATALOGUE.md (engineering defaults, not measurements) and stay editable here.
 
 Angles are in degrees, lengths in metres, fractions in 0..1.
 """

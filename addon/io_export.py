@@ -1,6 +1,6 @@
 """Export Blender objects as a QuakeScan scene bundle (scene.json + mesh.ply).
 
-The bundle format is the project's contract (DESIGN.md, "Scene bundle"): binary
+The bundle format is the project's contract (docs/DESIGN.md, "Scene bundle"): binary
 little-endian PLY with double vertices relative to the scene origin, triangles with an int
 ``building_id`` and a uchar ``surface``; scene.json lists the buildings with grade,
 material, storeys, typology, applied patterns and seed. This module has its own numpy PLY

@@ -1,7 +1,7 @@
 """Import a QuakeScan scene bundle (scene.json + mesh.ply) as Blender objects, prepare the
 imported buildings for damage, and export them again without losing float64 precision.
 
-The bundle format is the project's contract (DESIGN.md, "Scene bundle"). This module has
+The bundle format is the project's contract (docs/DESIGN.md, "Scene bundle"). This module has
 its own numpy PLY reader: the add-on never imports the core package.
 
 - ``import_bundle`` creates one object per building (the faces whose ``building_id`` is

@@ -43,7 +43,7 @@ cars and street furniture (addon/streetscape.py); every post-event scene keeps t
 hedges and furniture and gets its own mix of parked cars. Default none: no streetscape, the
 output is what it was before the option existed.
 
-Each scene is a bundle (scene.json + mesh.ply, DESIGN.md "Scene bundle"). Bundles are
+Each scene is a bundle (scene.json + mesh.ply, docs/DESIGN.md "Scene bundle"). Bundles are
 written to a temporary folder and renamed into place, so DIR/<scene> is either complete or
 absent. A complete bundle made with the same settings is skipped (resume after an
 interruption); one made with other settings stops the run unless --force. The same

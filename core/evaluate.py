@@ -4,7 +4,7 @@ vs undamaged, confusion matrix.
 Result CSV (written by `classify`): one row per building with at least `building_id`,
 `predicted_grade` and `assessable` (1/0). Truth CSV: `building_id`, `grade`. Buildings
 that are not assessable are left out of the metrics and counted; EMS-98 grades 1–2 are
-geometrically "no damage" at UAV resolution (DESIGN.md) and count as undamaged.
+geometrically "no damage" at UAV resolution (docs/DESIGN.md) and count as undamaged.
 """
 from __future__ import annotations
 

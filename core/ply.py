@@ -1,7 +1,7 @@
 """Binary PLY for scene meshes: double vertices, faces with building_id and surface
 (and, optionally, `porous`: uchar 1 on tree-crown faces a laser ray may pass).
 
-Writes exactly the layout of the scene contract (DESIGN.md). Reads that layout and the
+Writes exactly the layout of the scene contract (docs/DESIGN.md). Reads that layout and the
 variations other tools produce (float vertices, other list/index integer types, big
 endian, extra properties, polygons); polygons are fan-triangulated on read.
 """

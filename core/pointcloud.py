@@ -1,4 +1,4 @@
-"""Epoch point clouds as LAS 1.4 / LAZ (laspy + lazrs), per the contract in DESIGN.md.
+"""Epoch point clouds as LAS 1.4 / LAZ (laspy + lazrs), per the contract in docs/DESIGN.md.
 
 Point format 6 (gps_time, scan angle, up to 15 returns) with extra dimensions
 `building_id` (uint32), `grade` (uint8, 255 = unknown) and `surface` (uint8).

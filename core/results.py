@@ -1,6 +1,6 @@
 """The per-building result for responders: CSV, GeoJSON, a PNG map and a graded LAS.
 
-DESIGN.md: "Result — one row per building: building_id, predicted grade, class
+docs/DESIGN.md: "Result — one row per building: building_id, predicted grade, class
 probabilities, share of changed points, point counts per epoch, an assessable flag; written
 as CSV and as GeoJSON when footprints are known."
 

@@ -3,7 +3,7 @@
 A training pair is a pre- and a post-event point cloud whose buildings carry grades: the
 post epoch's `grade` dimension (simulated data; the most frequent grade among a building's
 post-event points) or a truth CSV (`building_id,grade`). EMS-98 grades 1–2 are trained as
-"no damage" (DESIGN.md: not visible at UAV resolution). Rows are split 70/30 grouped by
+"no damage" (docs/DESIGN.md: not visible at UAV resolution). Rows are split 70/30 grouped by
 building: the same building of one pre-event city never appears on both sides, even when
 it occurs in several pairs (heavy, extreme, destruction of one city).
 """

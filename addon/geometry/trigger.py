@@ -8,7 +8,7 @@ height, so the load above them drops), everything else in the zone is free to fa
 the zone the building stands as it was (documented assumption: connections to the intact
 part are strong enough to hold it; the zone's shards are not glued to each other).
 
-Modes (catalogue: DAMAGE_CATALOGUE.md, EMS-98 grades):
+Modes (catalogue: docs/DAMAGE_CATALOGUE.md, EMS-98 grades):
 
 - grade 4 ``corner``: a corner of the footprint (30–60 % of each side) from storey k up —
   a corner column or pier fails, the bays above it come down;
