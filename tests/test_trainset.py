@@ -99,6 +99,28 @@ def test_a_physics_twin_is_held_out_with_its_city(tmp_path, monkeypatch):
     assert physics.sum() == 4 and set(np.array(names)[physics]) == {"generic_m0"}
 
 
+def test_data_limits_count_a_physics_twin_s_acquisitions_once():
+    """A twin repeats its city's acquisitions: the density limit is that of the table without
+    them (here the twins' dense rows would move the 1st percentile)."""
+    from core.default_model import without_twins
+    from core.trainset import TransferTable
+
+    n = 200
+    density = np.column_stack([np.linspace(1.0, 50.0, n), np.full(n, 60.0)])
+    names = list(TABLE_SETTINGS.descriptor_names())
+    x = np.zeros((n + 100, len(names)))
+    table = TransferTable(x=x, y=np.zeros(n + 100, np.int64), names=names, city=np.zeros(n + 100, np.int64),
+                          pair=np.r_[np.zeros(n, np.int64), np.ones(100, np.int64)],
+                          building_id=np.arange(n + 100), density=np.vstack([density, np.full((100, 2), 80.0)]),
+                          cities=["generic_m0", "generic_m0-physics"],
+                          pairs=["generic_m0.post.uls-uls.1-2", "generic_m0-physics.post.uls-uls.1-2"],
+                          sensors=["uls-uls", "uls-uls"])
+    own = without_twins(table)
+    assert len(own.y) == n and own.density.max() == 60.0
+    assert data_limits(own)[0] == np.floor(np.quantile(density[:, 0], 0.01) * 10) / 10 == 1.4
+    assert data_limits(table)[0] > data_limits(own)[0]  # what counting the twins would have done
+
+
 def test_a_plan_naming_a_city_it_lacks_is_refused(tmp_path):
     plan = default_plan(0, "quick")
     bad = TrainingPlan(plan.cities[:1], plan.pairs, 0, "broken")
