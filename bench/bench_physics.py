@@ -1,12 +1,14 @@
 """Damage made by physics against the pattern generator, in the same run (issue 14).
 
-    .venv/bin/python bench/bench_physics.py [--buildings 16] [--seed 1]   # table + BENCHMARKS.md "physics"
+    .venv/bin/python bench/bench_physics.py [--buildings 16] [--seed 1] [--jobs 2]   # BENCHMARKS.md "physics"
 
 Generates the paper's generic dataset (pre + grade 3/4/5 scenes) twice in fresh processes
 with the bpy module: `--damage patterns` and `--damage physics` (grades 4 and 5 collapse by
 rigid-body simulation; grade 3 keeps the patterns in both). Reports:
 
-- wall time and peak memory of each, and the time per building extrapolated to 112;
+- wall time and peak memory (of the largest process) of each, made by `--jobs` generator
+  processes at once (the post-event scenes are independent), and the time per building
+  (extrapolated to 112 unless --buildings is 112: then measured);
 - how many collapses did not settle and fell back to the patterns;
 - per grade, the share of the footprint still standing (0.5 m cells whose highest
   non-debris surface keeps at least 80 % of its pre-event height);
@@ -99,24 +101,27 @@ def main(argv=None):
     ap = argparse.ArgumentParser()
     ap.add_argument("--buildings", type=int, default=16)
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--jobs", type=int, default=2, help="generator processes at once (generate_scenes.py --jobs)")
     args = ap.parse_args(argv)
     base = ["--set", "generic", "--dataset", "paper", "--buildings", str(args.buildings), "--seed", str(args.seed)]
     rows, stats = [], {}
     with tempfile.TemporaryDirectory() as tmp:
         for method in ("patterns", "physics"):
             out = Path(tmp) / method
-            r = run([sys.executable, str(SCRIPT), *base, "--damage", method], out)
+            r = run([sys.executable, str(SCRIPT), *base, "--damage", method, "--jobs", str(args.jobs)], out)
             pre = read_scene(out / "pre")
             per = {g: measure(pre, read_scene(out / name), g) for name, g in SCENES}
             stats[method] = (r, per)
             print(f"{method}: {r['wall_s']:.1f} s, peak {r['peak_mb']:.0f} MiB, fallbacks {r['fallbacks']}", flush=True)
     n = args.buildings
-    head = ["damage", "wall time (s)", "per building and scene (s)", "112 buildings × 2 scenes (min, extrapolated)",
-            "peak MiB", "collapses that did not settle (→ patterns)"]
+    head = ["damage", "processes", "wall time (s)", "per building and scene (s)",
+            "112 buildings (min, " + ("measured" if n == 112 else "extrapolated") + ")",
+            "peak MiB (largest process)", "collapses that did not settle (→ patterns)"]
     trows = []
     for method, (r, per) in stats.items():
         each = r["wall_s"] / (2 * n)
-        trows.append((method, f"{r['wall_s']:.0f}", f"{each:.1f}", f"{each * 224 / 60:.1f}", f"{r['peak_mb']:.0f}",
+        trows.append((method, args.jobs, f"{r['wall_s']:.0f}", f"{each:.1f}", f"{each * 224 / 60:.1f}",
+                      f"{r['peak_mb']:.0f}",
                       r["fallbacks"] if method == "physics" else "–"))
     for method, (r, per) in stats.items():
         for g, ms in per.items():
@@ -131,12 +136,12 @@ def main(argv=None):
                 "(median)", "debris / catalogue (median)", "(10th–90th percentile)"], rows)
     print(t1)
     print(t2)
-    cmd = f".venv/bin/python bench/bench_physics.py --buildings {n} --seed {args.seed}"
+    cmd = f".venv/bin/python bench/bench_physics.py --buildings {n} --seed {args.seed} --jobs {args.jobs}"
     write_section("physics", f"""## Damage made by physics (`bench/bench_physics.py`)
 
 `{cmd}` — generic paper dataset of {n} buildings (pre + grades 3, 4, 5), generated with the
-patterns and with `--damage physics` (grades 4-5 by rigid-body collapse) in one run; {machine()}
-(2 cores shared with other jobs while measured).
+patterns and with `--damage physics` (grades 4-5 by rigid-body collapse) in one run, each by
+{args.jobs} generator processes at once (`generate_scenes.py --jobs`); {machine()}.
 
 {t1}
 

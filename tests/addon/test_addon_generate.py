@@ -131,6 +131,33 @@ def test_script_runs_with_python_and_bpy_module(gen, bpy_registered, tmp_path):
     assert r.returncode == 2 and "invalid choice" in r.stderr
 
 
+@needs_bpy
+def test_jobs_make_the_same_bytes_in_several_processes(gen, bpy_registered, tmp_path, capsys):
+    args = ["--set", "generic", "--dataset", "paper", "--buildings", "4", "--seed", "2"]
+    assert gen.main([*args, "--out", str(tmp_path / "one")]) == 0
+    r = subprocess.run([sys.executable, str(SCRIPT), *args, "--jobs", "3", "--out", str(tmp_path / "three")],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "4 scenes in 3 processes" in r.stderr
+    assert _digest(tmp_path / "one") == _digest(tmp_path / "three")
+    # a finished run resumes to nothing in the parent: no child is started
+    r = subprocess.run([sys.executable, str(SCRIPT), *args, "--jobs", "3", "--out", str(tmp_path / "three")],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0 and "nothing to do" in r.stderr and "processes" not in r.stderr
+
+
+def test_job_shares_balance_collapses_by_physics(gen):
+    todo = [("pre", None, {}), ("post_heavy", {1: 3, 2: 3}, {}), ("post_extreme", {1: 4, 2: 4}, {}),
+            ("post_destruction", {1: 5, 2: 5}, {})]
+    # with physics the two collapse scenes go to different processes, one cheap scene beside each
+    shares = gen.job_shares(todo, 2, "physics")
+    assert len(shares) == 2 and all(len(s) == 2 for s in shares)
+    assert {"post_extreme", "post_destruction"} == {n for s in shares for n in s if n.endswith(("extreme", "destruction"))}
+    assert not any({"post_extreme", "post_destruction"} <= set(s) for s in shares)
+    assert sorted(sum(gen.job_shares(todo, 8, "patterns"), [])) == sorted(t[0] for t in todo)
+    assert len(gen.job_shares(todo, 8, "patterns")) == 4 and len(gen.job_shares(todo, 1, "physics")) == 1
+
+
 @pytest.mark.skipif(BLENDER is None, reason="no blender binary on PATH")
 @pytest.mark.slow
 def test_script_runs_inside_blender(tmp_path):
