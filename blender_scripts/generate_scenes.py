@@ -367,7 +367,7 @@ def run(args) -> int:
         return 0
     out.mkdir(parents=True, exist_ok=True)
     if args.jobs > 1 and len(todo) > 1:
-        return run_jobs(args, todo)
+        return run_jobs(args, todo, len(ids))
 
     scene = bpy.data.scenes.new("quakescan_generate")
     pre = bpy.data.collections.new("pre")
@@ -448,12 +448,17 @@ def run(args) -> int:
     return 0
 
 
-def job_shares(todo, jobs: int, damage: str) -> list:
+def job_shares(todo, jobs: int, damage: str, buildings: int = 1) -> list:
     """Scene names split into at most `jobs` shares of about equal cost: a scene costs one
-    unit, and with physics one more per grade-4/5 building (a collapse takes seconds, a
-    pattern milliseconds). Largest first onto the cheapest share; deterministic."""
+    unit, and with physics 50 more per grade-4/5 building (a collapse takes seconds, a
+    pattern milliseconds). A scene's grades are a dict (building -> grade, mixed datasets) or
+    one grade for all `buildings` (paper scenes). Largest first onto the cheapest share;
+    deterministic."""
     def cost(grades):
-        heavy = sum(1 for g in (grades or {}).values() if g >= 4) if damage != "patterns" else 0
+        if damage == "patterns" or grades is None:
+            return 1
+        heavy = (sum(1 for g in grades.values() if g >= 4) if isinstance(grades, dict)
+                 else buildings * (int(grades) >= 4))
         return 1 + heavy * 50
     shares = [[0, []] for _ in range(min(jobs, len(todo)))]
     for name, grades, _ in sorted(todo, key=lambda t: -cost(t[1])):
@@ -474,7 +479,7 @@ def _child_command(argv: list) -> list:
     return [sys.executable, str(Path(__file__).resolve()), *argv]
 
 
-def run_jobs(args, todo) -> int:
+def run_jobs(args, todo, buildings: int) -> int:
     """Make `todo`'s scenes in args.jobs child processes at once, each its share; every child
     writes its bundles atomically, so an interrupted run resumes as a single process does."""
     import subprocess
@@ -489,7 +494,7 @@ def run_jobs(args, todo) -> int:
         if a.startswith("--jobs="):
             continue
         base.append(a)
-    shares = job_shares(todo, args.jobs, args.damage)
+    shares = job_shares(todo, args.jobs, args.damage, buildings)
     log(f"{len(todo)} scenes in {len(shares)} processes: " + "; ".join(",".join(s) for s in shares))
     procs = [subprocess.Popen(_child_command([*base, "--only-scenes", ",".join(s)])) for s in shares]
     codes = [p.wait() for p in procs]

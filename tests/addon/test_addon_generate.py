@@ -154,6 +154,10 @@ def test_job_shares_balance_collapses_by_physics(gen):
     assert len(shares) == 2 and all(len(s) == 2 for s in shares)
     assert {"post_extreme", "post_destruction"} == {n for s in shares for n in s if n.endswith(("extreme", "destruction"))}
     assert not any({"post_extreme", "post_destruction"} <= set(s) for s in shares)
+    # paper scenes: one grade for every building
+    paper = [("pre", None, {}), ("post_heavy", 3, {}), ("post_extreme", 4, {}), ("post_destruction", 5, {})]
+    shares = gen.job_shares(paper, 2, "physics", buildings=112)
+    assert not any({"post_extreme", "post_destruction"} <= set(s) for s in shares) and len(shares) == 2
     assert sorted(sum(gen.job_shares(todo, 8, "patterns"), [])) == sorted(t[0] for t in todo)
     assert len(gen.job_shares(todo, 8, "patterns")) == 4 and len(gen.job_shares(todo, 1, "physics")) == 1
 
