@@ -3,7 +3,8 @@
 
     .venv/bin/python bench/bench_damage_transfer.py [--work out/bench_damage_transfer] [--model MODEL]
 
-The shipped model learned damage from the add-on's parametric patterns only. The held-out
+The shipped model learned damage from the add-on's parametric patterns and from four
+physics twins (a model trained on patterns only is asked with --model). The held-out
 city of `bench_transfer.py` (region-specific buildings, the paper's mix 35/19/32/35, generator
 seed 90001, never in training) is generated twice: once with the patterns, once with its
 grade-4 and grade-5 buildings collapsed by rigid-body simulation (`--damage physics`:
@@ -118,6 +119,11 @@ def main(argv=None) -> int:
     results["seconds"] = round(time.perf_counter() - t_start, 1)
     results["peak_mib"] = round(peak_rss_mb())
     (work / "results.json").write_text(json.dumps(results, indent=1, default=str))
+    from core.model import load_model
+
+    trained_on = ("trained on the add-on's patterns and four physics twins"
+                  if load_model(a.model).provenance.get("damage") == "both"
+                  else "trained on the add-on's parametric patterns only")
     fell = {r["damage"]: r["fallback"] for r in results["rows"]}
     gen = {r["damage"]: r["generate_s"] for r in results["rows"]}
     text = "\n".join([
@@ -125,8 +131,8 @@ def main(argv=None) -> int:
         f"Machine: {machine()}. Command: `.venv/bin/python bench/bench_damage_transfer.py`; "
         f"{results['seconds'] / 60:.1f} min, of which generating the cities (skipped when their bundles are up to "
         f"date) {gen['patterns']:.0f} s with the patterns and {gen['physics']:.0f} s by physics; peak "
-        f"{results['peak_mib']:,} MiB. Model: {Path(a.model).name} "
-        "(trained on the add-on's parametric patterns only). The held-out city of bench_transfer (seed "
+        f"{results['peak_mib']:,} MiB. Model: {Path(a.model).name} ({trained_on}). "
+        "The held-out city of bench_transfer (seed "
         f"{TEST_SEED}, 121 buildings, the paper's mix), once with the patterns and once with its grade-4/5 "
         f"buildings collapsed by rigid-body simulation ({fell.get('physics', 0)} collapses did not come to rest "
         "and kept the patterns); paper ULS and DIM presets, same seeds. Overall accuracy %, F1 % per grade, "
