@@ -148,8 +148,6 @@ def main(argv=None) -> int:
 def cross_generator(training_work: Path, model_path: str, tests: dict) -> dict:
     """The shipped classifier configuration refitted on training rows made by each damage
     generator (and both), scored on the same described rows of every held-out pair."""
-    import dataclasses
-
     import numpy as np
 
     from core.classify import model_settings
@@ -167,16 +165,13 @@ def cross_generator(training_work: Path, model_path: str, tests: dict) -> dict:
           flush=True)
     _, full = transfer_training_table(training_work, seed=seed, size="full", scenes="both", damage="both", small=True)
     full = training_rows(model_columns(full, model.feature_names))
-    pair_city = np.array([n.split(".")[0] for n in full.pairs])[full.pair]
+    pair_city = full.pair_city.astype(str)
     twins = np.isin(pair_city, [f"{n}-physics" for n in PHYSICS_TWINS["full"]])
     bases = np.isin(pair_city, list(PHYSICS_TWINS["full"]))
     small = np.char.startswith(pair_city.astype(str), "small_")
     t_tables = time.perf_counter() - t0
 
-    def rows(keep):
-        return dataclasses.replace(full, x=full.x[keep], y=full.y[keep], city=full.city[keep], pair=full.pair[keep],
-                                   building_id=full.building_id[keep], density=full.density[keep],
-                                   cells=None if full.cells is None else full.cells[keep])
+    rows = full.subset
 
     variants = {"patterns: 4 cities": rows(bases), "physics: their 4 twins": rows(twins),
                 "both: 4 + 4 twins": rows(bases | twins),

@@ -48,7 +48,8 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     command = "python blender_scripts/make_default_model.py " + shlex.join(argv if argv is not None else sys.argv[1:])
     model, scores, table = make_default_model(Path(a.work), Path(a.output), seed=a.seed, size=a.size,
-                                              scenes=a.scenes, damage=a.damage, small=a.small, workers=a.threads, command=command.strip())
+                                              scenes=a.scenes, damage=a.damage, small=a.small, workers=a.threads,
+                                              command=command.strip())
     print(f"{len(table.y)} building rows; {model.provenance['classifier_selection']['chosen']}: cross-validated "
           f"overall accuracy {100 * model.provenance['test_overall_accuracy']:.1f} %; {time.perf_counter() - t0:.0f} s")
     return 0

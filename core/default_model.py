@@ -87,13 +87,7 @@ def visible_damage(table) -> np.ndarray:
 
 def training_rows(table):
     """The table without damaged rows whose damage the acquisition did not see (`visible_damage`)."""
-    import dataclasses
-
-    keep = visible_damage(table)
-    return dataclasses.replace(table, x=table.x[keep], y=table.y[keep], city=table.city[keep],
-                               pair=table.pair[keep], building_id=table.building_id[keep],
-                               density=table.density[keep],
-                               cells=None if table.cells is None else table.cells[keep])
+    return table.subset(visible_damage(table))
 
 
 def data_limits(table) -> tuple[float, float]:
@@ -113,15 +107,8 @@ def without_twins(table):
     and acquisitions (core.trainset.PHYSICS_TWINS), so counting its rows in the data limits
     would weigh four cities' sensors twice (it moved the density limit from 1.8 to 1.9 pts/m²,
     and a quarter of a real district thinned to 1.8 pts/m² out of what the model answers)."""
-    import dataclasses
-
-    twin = np.array([table.pairs[p].split(".")[0].endswith("-physics") for p in table.pair], dtype=bool)
-    if not twin.any():
-        return table
-    keep = ~twin
-    return dataclasses.replace(table, x=table.x[keep], y=table.y[keep], city=table.city[keep],
-                               pair=table.pair[keep], building_id=table.building_id[keep],
-                               density=table.density[keep], cells=None if table.cells is None else table.cells[keep])
+    twin = np.array([c.endswith("-physics") for c in table.pair_city], dtype=bool)
+    return table.subset(~twin) if twin.any() else table
 
 
 def size_limit(table, quantile: float | None = CELLS_QUANTILE) -> int:
@@ -248,8 +235,8 @@ def make_default_model(work: Path, output: Path, *, seed: int = 0, size: str = "
     from .model import save_model
 
     t0 = time.perf_counter()
-    plan, table = transfer_training_table(work, seed=seed, size=size, scenes=scenes, damage=damage, small=small, workers=workers,
-                                          say=say)
+    plan, table = transfer_training_table(work, seed=seed, size=size, scenes=scenes, damage=damage, small=small,
+                                          workers=workers, say=say)
     full = model_columns(table)
     table = training_rows(full)
     say(f"{len(full.y) - len(table.y)} of {len(full.y)} rows left out: damage their acquisition did not see")

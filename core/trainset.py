@@ -257,6 +257,19 @@ class TransferTable:
     sensors: list  # "pre-post" kinds per pair index
     cells: np.ndarray | None = None  # (n,) raster cells of the building's footprint (older tables: None)
 
+    def subset(self, keep: np.ndarray) -> "TransferTable":
+        """The rows where `keep` (a boolean mask) holds; the city, pair and sensor lists stay."""
+        from dataclasses import replace as _replace
+
+        return _replace(self, x=self.x[keep], y=self.y[keep], city=self.city[keep], pair=self.pair[keep],
+                        building_id=self.building_id[keep], density=self.density[keep],
+                        cells=None if self.cells is None else self.cells[keep])
+
+    @property
+    def pair_city(self) -> np.ndarray:
+        """(n,) the city each row's pair was acquired in (a physics twin's own name, unlike `city`)."""
+        return np.array([name.split(".")[0] for name in self.pairs], dtype=object)[self.pair]
+
     @property
     def groups(self) -> np.ndarray:
         """One group per building of a city: its rows of several pairs stay on one side of a split."""
