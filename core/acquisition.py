@@ -57,6 +57,7 @@ from pathlib import Path
 import numpy as np
 
 from . import __version__, settings_file
+from .atomic import replacing, write_json
 from .dim import PhotoSurvey, preset_dim, simulate_dim
 from .errors import PointCloudError, QuakeScanError, SceneError, SurveyError, read_json_file
 from .pointcloud import BUILDING_CLASS, Epoch, read_epoch, read_las
@@ -263,12 +264,6 @@ def _read_record(path: Path) -> dict | None:
     return data if isinstance(data, dict) else None
 
 
-def _write_json_atomic(path: Path, data: dict) -> None:
-    tmp = path.with_name(path.name + ".part")
-    tmp.write_text(json.dumps(data, indent=1, ensure_ascii=False) + "\n")
-    os.replace(tmp, path)
-
-
 def acquire(scene: str | os.PathLike | Scene, acquisition: Acquisition, out_path: str | os.PathLike,
             seed: int = 0, threads: int | None = None, progress=None) -> Acquired:
     """Acquire `scene` (a bundle folder or a Scene) with `acquisition` into `out_path`
@@ -303,7 +298,7 @@ def acquire(scene: str | os.PathLike | Scene, acquisition: Acquisition, out_path
         summary = scan(loaded, acquisition.settings, out, seed=int(seed), threads=threads, progress=progress,
                        source=source)
     record["summary"] = summary.to_json()
-    _write_json_atomic(sidecar, record)
+    write_json(sidecar, record, ensure_ascii=False)
     log.info("%s: %s, seed %d, %d points in %.1f s", out, acquisition.label, seed, summary.points,
              summary.wall_time_s)
     return Acquired(out, record, False)
@@ -410,13 +405,8 @@ def thin_to_density(in_las: str | os.PathLike, out_las: str | os.PathLike, pts_p
     keep = u < p
     thinned = laspy.LasData(las.header)
     thinned.points = las.points[keep]
-    tmp = out.with_name(out.name + ".part")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    try:
+    with replacing(out, PointCloudError) as tmp:
         thinned.write(tmp, do_compress=out.suffix.lower() == ".laz")
-        os.replace(tmp, out)
-    finally:
-        tmp.unlink(missing_ok=True)
     return Thinning(before, after, p, len(las.points), int(keep.sum()))
 
 

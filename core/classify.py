@@ -24,7 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import QuakeScanError
+from .atomic import is_write_failure, write_failure_message, write_json, write_text
+from .errors import QuakeScanError, ResultsError
 from .model import DamageModel, ModelError, load_model
 from .pipeline import (
     BuildingRow,
@@ -137,15 +138,12 @@ class _Checkpoint:
     edited, another program's) is discarded with a warning and its tiles are recomputed."""
 
     def __init__(self, path: Path, fingerprint: str):
-        from .results import _atomic
-
         self.path, self.fp = path, fingerprint
         self.rows: dict[int, BuildingRow] = {}
         if path.is_file():
             self._read(path, fingerprint)
         if not path.is_file():
-            with _atomic(path) as tmp:
-                tmp.write_text(json.dumps({"fingerprint": fingerprint}) + "\n")
+            write_json(path, {"fingerprint": fingerprint}, indent=None)
 
     def _read(self, path: Path, fingerprint: str) -> None:
         try:
@@ -167,8 +165,6 @@ class _Checkpoint:
             path.unlink()
 
     def add(self, rows):
-        from .results import ResultsError, is_write_failure, write_failure_message
-
         try:
             with open(self.path, "a") as f:
                 for r in rows:
@@ -312,8 +308,7 @@ def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=N
                                 "total": round(time.perf_counter() - t0, 2)}})
     summary["fingerprint"] = fingerprint
     summary["options"] = options
-    with results._atomic(out / "summary.json") as tmp:
-        tmp.write_text(json.dumps(summary, indent=1, default=_json_default))
+    write_text(out / "summary.json", json.dumps(summary, indent=1, default=_json_default))
     ckpt.path.unlink(missing_ok=True)
     return summary
 

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from . import __version__
+from .atomic import open_replacing, write_json
 from .errors import QuakeScanError
 
 log = logging.getLogger("quakescan")
@@ -206,7 +207,7 @@ def cmd_scan(args) -> int:
     report["fingerprint"] = fp
     report["output_file"] = {"bytes": out.stat().st_size, "sha256": _file_digest(out)}
     report["survey"] = survey.to_json()
-    _write_json_atomic(summary_path, report)
+    write_json(summary_path, report)
     if args.trajectory:
         _write_trajectory(scene, survey, Path(args.trajectory))
     if summary.lines_resumed:
@@ -216,14 +217,6 @@ def cmd_scan(args) -> int:
     return 0
 
 
-def _write_json_atomic(path: Path, data) -> None:
-    from .results import _atomic
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with _atomic(path) as tmp:
-        tmp.write_text(json.dumps(data, indent=1) + "\n")
-
-
 def _write_trajectory(scene, survey, path: Path) -> None:
     from .scan import ground_level
     from .survey import plan_flight
@@ -231,11 +224,9 @@ def _write_trajectory(scene, survey, path: Path) -> None:
     plan = plan_flight(survey, scene.bounds(), ground_level(scene))
     traj = plan.trajectory()
     traj[:, 1:4] += scene.origin
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    np.savetxt(tmp, traj, delimiter=",", fmt=["%.6f", "%.3f", "%.3f", "%.3f", "%.3f", "%d"],
-               header="gps_time_s,x_m,y_m,z_m,heading_deg,line", comments="")
-    os.replace(tmp, path)
+    with open_replacing(path, "wb") as f:
+        np.savetxt(f, traj, delimiter=",", fmt=["%.6f", "%.3f", "%.3f", "%.3f", "%.3f", "%d"],
+                   header="gps_time_s,x_m,y_m,z_m,heading_deg,line", comments="")
 
 
 def _print_summary(summary, scene) -> None:
@@ -333,8 +324,8 @@ def cmd_features(args) -> int:
     import laspy
 
     from .features import FEATURES, compute_features
+    from .atomic import replacing
     from .pointcloud import read_epoch, read_las
-    from .results import _atomic
 
     names = _csv_list(args.features) or FEATURES
     src = Path(args.input)
@@ -359,7 +350,7 @@ def cmd_features(args) -> int:
                                                description=f"{n} r={args.radius:g} m"[:31]) for n in names])
     for n in names:
         las[n] = feats[n].astype(np.float32)
-    with _atomic(out) as tmp:
+    with replacing(out) as tmp:
         las.write(tmp, do_compress=out.suffix.lower() == ".laz")
     print(f"features: {len(names)} features of {len(epoch):,} points at r = {args.radius:g} m in {dt:.1f} s "
           f"({len(epoch) / max(dt, 1e-9) / 1e3:,.0f} k points/s) -> {out}")
@@ -476,11 +467,10 @@ def cmd_calibrate_lod(args) -> int:
           f"|Δheight| {lod.height_at_quantile_m:.3f} m, |Δcurvature| {lod.curvature_at_quantile:.3f} 1/m")
     print(f"levels of detection: --lod-height {lod.lod_height_m:.3f} --lod-curvature {lod.lod_curvature:.3f}")
     if args.output:
-        from .results import _atomic
+        from .atomic import write_text
 
         out = Path(args.output)
-        with _atomic(out) as tmp:
-            tmp.write_text(json.dumps(lod.to_json(), indent=1))
+        write_text(out, json.dumps(lod.to_json(), indent=1))
         print(f"-> {out}")
     return 0
 
@@ -619,7 +609,7 @@ def cmd_evaluate(args) -> int:
           + (f", {len(ev.missing)} in the truth but not in the result" if ev.missing else ""))
     print(ev.table())
     plot_confusion(ev, out / "confusion.png")
-    _write_json_atomic(out / "evaluation.json", ev.to_json())
+    write_json(out / "evaluation.json", ev.to_json())
     print(f"confusion matrix -> {out / 'confusion.png'}, metrics -> {out / 'evaluation.json'}")
     return 0
 
@@ -636,7 +626,7 @@ def cmd_dim(args) -> int:
                            progress=_progress(args, "dim"), source=str(scene_dir))
     report = summary.to_json()
     report["photo_survey"] = survey.to_json()
-    _write_json_atomic(out.with_name(out.name + ".summary.json"), report)
+    write_json(out.with_name(out.name + ".summary.json"), report)
     print(f"dim: {summary.points:,} points from {summary.cameras:,} images (nadir GSD {100 * summary.gsd_nadir_m:.1f} cm) "
           f"in {summary.wall_time_s:.1f} s -> {out}")
     return 0

@@ -150,9 +150,8 @@ def run_demo(out_dir, seed: int = 0, buildings: int = 30, say=print, progress_fa
 
     ev = evaluate_files(result / "buildings.csv", city / "post")
     plot_confusion(ev, result / "confusion.png", title="Demo city: truth vs prediction")
-    from .results import _atomic
+    from .atomic import write_text
 
-    with _atomic(result / "evaluation.json") as tmp:
-        tmp.write_text(json.dumps(ev.to_json(), indent=1))
+    write_text(result / "evaluation.json", json.dumps(ev.to_json(), indent=1))
     say(f"demo 5/5: maps -> {result / 'damage_map.png'}, {result / 'damage_map.html'} (opens offline)")
     return {"summary": summary, "evaluation": ev, "result": result}

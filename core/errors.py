@@ -17,6 +17,10 @@ class PointCloudError(QuakeScanError):
     """A point cloud file cannot be read or written as asked."""
 
 
+class ResultsError(QuakeScanError):
+    """A result file cannot be read or written."""
+
+
 def read_json_file(path, what: str, error: type[QuakeScanError]):
     """The parsed JSON of `path`, or `error` saying "<path>: <what> does not exist" or
     "<path>: not valid JSON (...)"; every file-format reader of the library shares it."""

@@ -221,10 +221,10 @@ def plot_confusion(ev: Evaluation, path: str | os.PathLike, title: str = "Damage
     ax.set_ylabel("reference")
     ax.set_title(title)
     fig.tight_layout()
-    from .results import _atomic
+    from .atomic import open_replacing
 
     try:
-        with _atomic(path) as tmp, open(tmp, "wb") as f:
+        with open_replacing(path, "wb") as f:
             fig.savefig(f, format="png")
     finally:
         plt.close(fig)

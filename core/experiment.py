@@ -38,6 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .atomic import open_replacing, write_text
 from .evaluate import (
     GRADE_NAMES,
     TARGET_GRADES,
@@ -156,9 +157,7 @@ def _table(pre: Path, posts: list, cache: Path, settings, workers, say=None) -> 
         ys += [grade[r.building_id] if isinstance(grade, dict) else grade for r in rows]
         ids += [r.building_id for r in rows]
     out = {"x": np.vstack(xs), "y": np.array(ys), "ids": np.array(ids)}
-    from .results import _atomic
-
-    with _atomic(cache) as tmp, open(tmp, "wb") as f:
+    with open_replacing(cache, "wb") as f:
         np.savez(f, **out)
     return out
 
@@ -183,7 +182,7 @@ def _levels_of_detection(s: ExperimentSettings, pre: Path, rescan: Path, cache: 
     if lod is None:
         a = read_epoch(pre)
         lod = calibrate(a, read_epoch(rescan, origin=a.origin), seed=s.seed, workers=workers)
-        _atomic_text(cache, json.dumps(lod.to_json(), indent=1))
+        write_text(cache, json.dumps(lod.to_json(), indent=1))
     if s.lod_height_m is not None:
         lod.lod_height_m = s.lod_height_m
     if s.lod_curvature is not None:
@@ -401,7 +400,7 @@ def write_report(out: Path, results: dict, s: ExperimentSettings, lod, timings: 
                         for (lay, rows), res in (ablation or {}).items()],
            "paper": {name: {str(k): v for k, v in t.items()} for name, t in PAPER_TABLE.items()},
            "shipped_default": None if shipped is None else shipped.to_json()}
-    _atomic_text(out / "results.json", json.dumps(doc, indent=1))
+    write_text(out / "results.json", json.dumps(doc, indent=1))
     n = next(iter(results.values())).n if results else 0
     measured = s.lod_height_m is None or s.lod_curvature is None
     how = (f", measured on the region-specific pre-event scene acquired twice as DIM ({lod.points} points; "
@@ -441,14 +440,7 @@ changed points (the others are "no damage" by rule) with class weights inverse t
 
 Confusion matrices: `confusion_*.png`; all numbers: `results.json`.
 """
-    _atomic_text(out / "README.md", text)
-
-
-def _atomic_text(path: Path, text: str) -> None:
-    from .results import _atomic
-
-    with _atomic(path) as tmp:
-        tmp.write_text(text)
+    write_text(out / "README.md", text)
 
 
 __all__ = ["CLASSIFIERS", "PAPER_TABLE", "Evaluation", "ExperimentSettings", "comparison_table",

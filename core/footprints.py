@@ -314,8 +314,7 @@ def write_footprints(footprints: Footprints, path: str | os.PathLike) -> Path:
     doc = {"type": "FeatureCollection", "features": features}
     if footprints.crs:
         doc["crs"] = {"type": "name", "properties": {"name": footprints.crs}}
-    from .results import _atomic  # the results' atomic writer: a failed write leaves no .part
+    from .atomic import write_text
 
-    with _atomic(path) as tmp:
-        tmp.write_text(json.dumps(doc))
+    write_text(path, json.dumps(doc))
     return path

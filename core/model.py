@@ -368,9 +368,9 @@ def save_model(model: DamageModel, path: str | os.PathLike) -> None:
         "created": model.provenance.get("created") or datetime.date.today().isoformat(),
         "classifier": model.classifier, "no_change_rule": bool(model.no_change_rule),
     }
-    from .results import _atomic  # the one atomic writer: a failed write leaves nothing, names the file
+    from .atomic import replacing  # a failed write leaves nothing, names the file
 
-    with _atomic(path) as tmp:
+    with replacing(path) as tmp:
         sio.dump({"meta": meta, "estimator": model.estimator}, tmp)
 
 

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .atomic import open_replacing
 from .errors import SceneError
 
 _PLY_TYPES = {
@@ -62,12 +63,10 @@ def write_ply(path: str | os.PathLike, mesh: MeshArrays, comment: str = "quakesc
     records["surface"] = mesh.surface
     if mesh.porous is not None:
         records["porous"] = mesh.porous
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
+    with open_replacing(path, "wb", SceneError) as f:
         f.write(header)
         f.write(vertices.tobytes())
         f.write(records.tobytes())
-    os.replace(tmp, path)
 
 
 def _parse_header(path: Path, raw: bytes):

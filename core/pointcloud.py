@@ -15,6 +15,7 @@ from pathlib import Path
 import laspy
 import numpy as np
 
+from .atomic import commit, is_write_failure, temp_path, write_failure_message
 from .errors import PointCloudError
 
 log = logging.getLogger(__name__)
@@ -86,7 +87,7 @@ class LasChunkWriter:
             raise PointCloudError(f"{self.path}: output must end in .las or .laz")
         self.header = make_header(offset, crs, date, software)
         self.offset = np.asarray(offset, dtype=np.float64)
-        self.tmp = self.path.with_name(self.path.name + ".part")
+        self.tmp = temp_path(self.path)
         self._writer = None
         self._compress = suffix == ".laz"
         self.count = 0
@@ -99,8 +100,6 @@ class LasChunkWriter:
         return self._compress
 
     def __enter__(self):
-        from .results import is_write_failure, write_failure_message
-
         kwargs = {}
         if self._compress:
             kwargs["laz_backend"] = laspy.LazBackend.LazrsParallel
@@ -143,8 +142,6 @@ class LasChunkWriter:
         self.count += len(rec)
 
     def __exit__(self, exc_type, exc, tb):
-        from .results import is_write_failure, write_failure_message
-
         try:
             if self.count == 0 and exc_type is None:
                 # laspy leaves inf/-inf bounds in an empty file's header
@@ -154,8 +151,11 @@ class LasChunkWriter:
         except BaseException as e:
             exc = exc or e
         if exc is None:
-            os.replace(self.tmp, self.path)
-            return False
+            try:
+                commit(self.tmp, self.path)
+                return False
+            except OSError as e:
+                exc = e
         # never a cut file under the final name; a resumable scan keeps it under its own
         if self.keep_partial_as is not None and self.tmp.is_file():
             os.replace(self.tmp, self.keep_partial_as)

@@ -11,7 +11,8 @@ from __future__ import annotations
 import xml.etree.ElementTree as ET
 
 from .grades import GRADE_NAMES, long_label
-from .results import NOT_ASSESSABLE, NOT_ASSESSABLE_COLOUR, _atomic, _rgb8, colour_of
+from .atomic import write_text
+from .results import NOT_ASSESSABLE, NOT_ASSESSABLE_COLOUR, _rgb8, colour_of
 
 GRADE_FIELD = "predicted_grade"
 LABEL_FIELD = "building_id"
@@ -69,8 +70,7 @@ def write_qml(path, grades=tuple(GRADE_NAMES)) -> None:
     ET.indent(root, space=" ")
     text = ("<!DOCTYPE qgis PUBLIC 'http://mrcc.com/qgis.dtd' 'SYSTEM'>\n"
             + ET.tostring(root, encoding="unicode") + "\n")
-    with _atomic(path) as tmp:
-        tmp.write_text(text, encoding="utf-8")
+    write_text(path, text)
 
 
 __all__ = ["GRADE_FIELD", "style_document", "write_qml"]

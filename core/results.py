@@ -5,15 +5,13 @@ probabilities, share of changed points, point counts per epoch, an assessable fl
 as CSV and as GeoJSON when footprints are known."
 
 A building that cannot be assessed (too few points in an epoch, no point in its footprint)
-has no grade: the files leave it empty, never a guess. Every writer puts its output under
-`<name>.part` first and renames it, so a file under its final name is always complete.
+has no grade: the files leave it empty, never a guess. Every writer goes through
+`core.atomic`, so a file under its final name is always complete.
 """
 from __future__ import annotations
 
-import contextlib
 import csv
 import datetime
-import errno
 import json
 import math
 import os
@@ -23,7 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import QuakeScanError
+from .atomic import open_replacing, replacing, write_text
+from .errors import ResultsError
 from .grades import grade_name, long_label
 from .model import GRADE_LABELS
 from .pointcloud import SCALE
@@ -44,10 +43,6 @@ _TAIL = ["share_changed", "n_pre", "n_post", "decided_by", "reason"]
 # Columns added after the first files: written after all others, optional on reading, so
 # readers that look columns up by name (core.evaluate, read_csv) take old and new files.
 _ADDED = ["confidence", "grade_name"]
-
-
-class ResultsError(QuakeScanError):
-    """A result file cannot be read or written."""
 
 
 @dataclass
@@ -103,47 +98,6 @@ def _rgb8(hex_colour: str) -> tuple[int, int, int]:
     return int(h[0:2], 16), int(h[2:4], 16), int(h[4:6], 16)
 
 
-@contextlib.contextmanager
-def _atomic(path):
-    """Yield `<path>.part`; rename it to `path` on success, remove it on any failure.
-
-    A write that fails for the system's reasons (a full disk, no permission; laspy's LAZ
-    backend reports them as its own LazrsError) becomes a ResultsError naming `path`: the
-    user learns which output failed and that nothing half-written is left under its name."""
-    path = Path(path)
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise ResultsError(f"{path}: cannot create its folder ({e.strerror or e})") from None
-    if path.is_dir():
-        raise ResultsError(f"{path}: is a folder; give a file name to write")
-    tmp = path.with_name(path.name + ".part")
-    try:
-        yield tmp
-        os.replace(tmp, path)
-    except BaseException as e:
-        with contextlib.suppress(OSError):
-            tmp.unlink(missing_ok=True)
-        if isinstance(e, QuakeScanError) or not is_write_failure(e):
-            raise
-        raise ResultsError(write_failure_message(path, e)) from e
-
-
-def is_write_failure(e: BaseException) -> bool:
-    """True for the errors a write raises when the system refuses it (disk full, permission,
-    I/O): OSError, and the LAZ backend's LazrsError, which wraps them in its own class."""
-    return isinstance(e, OSError) or type(e).__module__.split(".")[0] == "lazrs"
-
-
-def write_failure_message(path, e: BaseException) -> str:
-    """"<path>: cannot write (...)", saying plainly when the disk is full."""
-    text = getattr(e, "strerror", None) or str(e) or type(e).__name__
-    if getattr(e, "errno", None) == errno.ENOSPC or "no space left" in str(e).lower():
-        return (f"{path}: cannot write: no space left on the device; free some space or write to another "
-                "folder (nothing was left under this name)")
-    return f"{path}: cannot write ({text}; nothing was left under this name)"
-
-
 def _fmt(v: float | None) -> str:
     if v is None or (isinstance(v, float) and math.isnan(v)):
         return ""
@@ -185,7 +139,7 @@ def write_csv(rows, path, classes, own_ids: dict | None = None) -> None:
     ({building_id: footprint ID}, for footprints whose IDs are text) adds a last column
     `footprint_id`."""
     classes = [int(c) for c in classes]
-    with _atomic(path) as tmp, open(tmp, "w", newline="") as f:
+    with open_replacing(path, "w", newline="") as f:
         w = csv.writer(f, lineterminator="\n")
         w.writerow(csv_columns(classes) + (["footprint_id"] if own_ids else []))
         for r in _sorted(rows):
@@ -343,8 +297,7 @@ def write_geojson(rows, outlines: dict, path, crs: str | None, classes, attribut
     if member:
         doc["crs"] = member
     doc["features"] = feats
-    with _atomic(path) as tmp:
-        tmp.write_text(json.dumps(doc, separators=(",", ":"), allow_nan=False) + "\n")
+    write_text(path, json.dumps(doc, separators=(",", ":"), allow_nan=False) + "\n")
 
 
 # ---------------------------------------------------------------------------------------- map
@@ -502,7 +455,7 @@ def write_map_png(rows, outlines: dict, path, title: str, points_xy=None, crs: s
     axes in metres of the CRS, `points_xy` (world x/y, subsample them) as a light-grey
     scatter underneath. Drawn with the Agg canvas directly: no display, no pyplot state."""
     fig, _ = _draw_map(rows, outlines, title, points_xy, crs)
-    with _atomic(path) as tmp, open(tmp, "wb") as f:
+    with open_replacing(path, "wb") as f:
         fig.savefig(f, format="png", dpi=MAP_DPI)
 
 
@@ -587,7 +540,7 @@ def write_grade_las(path, epoch_xyz, origin, crs: str | None, building_id,
     a["building_id"] = np.maximum(ids, 0).astype(id_type)
     a["predicted_grade"] = g_u[inv]
     compress = path.suffix.lower() == ".laz"
-    with _atomic(path) as tmp:
+    with replacing(path) as tmp:
         with laspy.open(tmp, mode="w", header=header, do_compress=compress) as w:
             if n:
                 w.write_points(las.points)

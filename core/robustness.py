@@ -81,6 +81,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .atomic import open_replacing, write_text
 from .errors import QuakeScanError
 from .features import FEATURES, compute_features
 from .pipeline import PAPER_FEATURES
@@ -576,20 +577,11 @@ def compare_with_paper(result: RobustnessResult) -> dict:
 
 # Report -----------------------------------------------------------------------------------
 
-def _atomic_text(path: Path, text: str) -> None:
-    from .results import _atomic
-
-    with _atomic(path) as tmp, open(tmp, "w", encoding="utf-8", newline="") as fh:
-        fh.write(text)
-
-
-def _atomic_fig(fig, path: Path) -> None:
+def _write_figure(fig, path: Path) -> None:
     import matplotlib.pyplot as plt
 
-    from .results import _atomic
-
     try:
-        with _atomic(path) as tmp, open(tmp, "wb") as fh:
+        with open_replacing(path, "wb") as fh:
             fig.savefig(fh, format="png")
     finally:
         plt.close(fig)
@@ -625,7 +617,7 @@ def _plot_counts(result: RobustnessResult, path: Path) -> None:
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8, loc="lower right")
     fig.tight_layout()
-    _atomic_fig(fig, path)
+    _write_figure(fig, path)
 
 
 def _plot_heatmap(result: RobustnessResult, path: Path) -> None:
@@ -652,7 +644,7 @@ def _plot_heatmap(result: RobustnessResult, path: Path) -> None:
     ax.set_title(f"|relative change ULS - DIM| [percentage points]{worst}", fontsize=9)
     fig.colorbar(im, ax=ax, label="clipped at 50")
     fig.tight_layout()
-    _atomic_fig(fig, path)
+    _write_figure(fig, path)
 
 
 def _readme(result: RobustnessResult, context: str) -> str:
@@ -757,7 +749,7 @@ def write_report(result: RobustnessResult, out_dir: str | os.PathLike, context: 
         out.mkdir(parents=True, exist_ok=True)
     except OSError as e:
         raise RobustnessError(f"{out}: cannot create the report folder ({e})") from None
-    _atomic_text(out / "robustness.json", json.dumps(result.to_json(), indent=2) + "\n")
+    write_text(out / "robustness.json", json.dumps(result.to_json(), indent=2) + "\n")
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(["radius_m", "feature", "uls_pct", "dim_pct", "difference_pct_points", "robust"])
@@ -766,7 +758,7 @@ def write_report(result: RobustnessResult, out_dir: str | os.PathLike, context: 
             d = result.difference[r][f]
             w.writerow([f"{r:g}", f, _fmt(result.uls[r][f]), _fmt(result.dim[r][f]), _fmt(d),
                         int(_le(d, result.threshold_pct))])
-    _atomic_text(out / "robustness.csv", buf.getvalue())
+    write_text(out / "robustness.csv", buf.getvalue())
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(["stage", "radius_m", "feature", "uls_pct", "dim_pct", "difference_pct_points", "robust_at_stage"])
@@ -778,10 +770,10 @@ def write_report(result: RobustnessResult, out_dir: str | os.PathLike, context: 
                 d = result.stage_difference[st][r][f]
                 w.writerow([st, f"{r:g}", f, _fmt(result.stage_uls[st][r][f]), _fmt(result.stage_dim[st][r][f]),
                             _fmt(d), int(_le(d, result.threshold_pct))])
-    _atomic_text(out / "robustness_stages.csv", buf.getvalue())
+    write_text(out / "robustness_stages.csv", buf.getvalue())
     _plot_counts(result, out / "features_vs_threshold.png")
     _plot_heatmap(result, out / "difference_heatmap.png")
-    _atomic_text(out / "README.md", _readme(result, context))
+    write_text(out / "README.md", _readme(result, context))
 
 
 # The whole experiment -------------------------------------------------------------------------

@@ -28,6 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .atomic import commit, temp_path, write_json
+
 log = logging.getLogger(__name__)
 
 _KEY = "key.json"
@@ -127,10 +129,7 @@ class LineCheckpoint:
 
     @staticmethod
     def _write_json(path: Path, data) -> None:
-        from .results import _atomic
-
-        with _atomic(path) as tmp:
-            tmp.write_text(json.dumps(data) + "\n")
+        write_json(path, data, indent=None)
 
     def _paths(self, line_index: int):
         stem = self.folder / f"line_{line_index:06d}"
@@ -172,7 +171,7 @@ class LineCheckpoint:
         if self.las_part is None:
             data, _ = self._paths(line_index)
             if self._data is None:
-                self._data = open(data.with_name(data.name + ".part"), "wb")
+                self._data = open(temp_path(data), "wb")
             raw = b"" if record is None or len(record) == 0 else record.array.tobytes()
             self._data.write(raw)
             raw_size = len(raw)
@@ -189,7 +188,7 @@ class LineCheckpoint:
         if self._data is not None:
             self._data.close()
             self._data = None
-            os.replace(data.with_name(data.name + ".part"), data)
+            commit(temp_path(data), data)
         faces = np.flatnonzero(by_face)
         self._write_json(meta, {"line": line_index, "bytes": self._offset, "first_point": self._first_point,
                                 "batches": self._batches, "by_return": by_return.tolist(),

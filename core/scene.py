@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .atomic import write_json
 from .errors import SceneError, read_json_file
 from .ply import MeshArrays, read_ply, write_ply
 
@@ -355,7 +356,5 @@ def write_scene(scene: Scene, folder: str | os.PathLike, validate: bool = True) 
     }
     if scene.has_porous or scene.transmission != DEFAULT_TRANSMISSION:
         manifest["vegetation"] = {"transmission": scene.transmission}
-    tmp = folder / "scene.json.tmp"
-    tmp.write_text(json.dumps(manifest, indent=1) + "\n")
-    os.replace(tmp, folder / "scene.json")
+    write_json(folder / "scene.json", manifest, error=SceneError)
     return folder

@@ -61,10 +61,9 @@ def from_values(values: dict, *, cls: type, kind: str, preset: Callable[[str], o
 
 def write_template(path: str | os.PathLike, content: dict) -> None:
     """The file with every field and its documentation, written whole or not at all."""
-    from .results import _atomic
+    from .atomic import write_json
 
     path = Path(path)
     if path.is_dir():
         raise SurveyError(f"{path}: is a folder; give the name of the JSON file to write")
-    with _atomic(path) as tmp:
-        tmp.write_text(json.dumps(content, indent=1, ensure_ascii=False) + "\n")
+    write_json(path, content, ensure_ascii=False)

@@ -33,7 +33,6 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
-import os
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
@@ -41,6 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .atomic import open_replacing, replacing, write_json
 from .errors import QuakeScanError
 
 log = logging.getLogger(__name__)
@@ -308,13 +308,6 @@ def _settings_key(settings, labels: str = "simulator") -> str:
     return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()[:12]
 
 
-def _write_json_atomic(path: Path, data: dict) -> None:
-    from .results import _atomic
-
-    with _atomic(path) as tmp:
-        tmp.write_text(json.dumps(data, indent=1) + "\n")
-
-
 def generate_city(city: CitySpec, folder: Path) -> None:
     """The city's scene bundles under `folder` (skipped by the generator when up to date)."""
     from .demo import generate
@@ -328,9 +321,8 @@ def generate_city(city: CitySpec, folder: Path) -> None:
             if not ROTTERDAM.is_file():
                 raise TrainingSetError(f"{ROTTERDAM}: the Rotterdam CityJSON model is missing (the shared "
                                        "data folder sits beside the repository)")
-            tmp = folder.parent / f".{city.name}_source.part"
-            write_scene(densest_cluster(import_cityjson(ROTTERDAM)), tmp)
-            os.replace(tmp, source)
+            with replacing(source, TrainingSetError) as tmp:
+                write_scene(densest_cluster(import_cityjson(ROTTERDAM)), tmp)
         generate("bundle", city.dataset, city.buildings, city.seed, folder, grade_mix=city.grade_mix, source=source,
                  **_scene_look(city))
     else:
@@ -444,9 +436,7 @@ def build(out_dir, plan: TrainingPlan, settings, *, workers: int = -1,
                                          for r in rows], dtype=np.float64).reshape(len(rows), 2),
                     "cells": np.array([r.quality.get("cells", 0) for r in rows], np.int64),
                     "seconds": np.array([t_acq, time.perf_counter() - t - t_acq])}
-            from .results import _atomic
-
-            with _atomic(table_path) as tmp, open(tmp, "wb") as f:
+            with open_replacing(table_path, "wb") as f:
                 np.savez(f, **part)
         parts.append(part)
         manifest_pairs.append({"name": pair.name, "rows": int(len(part["y"])),
@@ -471,7 +461,7 @@ def build(out_dir, plan: TrainingPlan, settings, *, workers: int = -1,
         cities=[c.name for c in plan.cities], pairs=[p.name for p in plan.pairs],
         sensors=[f"{p.pre['kind']}-{p.post['kind']}" for p in plan.pairs],
         cells=np.concatenate([p["cells"] for p in parts]) if parts and all("cells" in p for p in parts) else None)
-    _write_json_atomic(out / "manifest.json", {
+    write_json(out / "manifest.json", {
         "format": FORMAT, "version": VERSION, "plan": plan.to_json(), "settings": settings.to_json(),
         "rows": int(len(table.y)), "grades": {str(g): int(n) for g, n in zip(*np.unique(table.y, return_counts=True))},
         "pairs": manifest_pairs, "seconds": round(time.perf_counter() - t0, 1)})

@@ -18,7 +18,6 @@ from .grades import grade_name, long_label, short_name
 from .results import (
     NOT_ASSESSABLE,
     NOT_ASSESSABLE_COLOUR,
-    _atomic,
     _sorted,
     colour_of,
     crs_text,
@@ -225,8 +224,7 @@ def write_map_html(rows, outlines: dict, path, title: str, crs: str | None, clas
                         data=_script_safe(json.dumps(data, separators=(",", ":"), allow_nan=False)),
                         n_features=len(feats),
                         leaflet_license=_vendored("LEAFLET_LICENSE").replace("--", "- -"))
-    with _atomic(path) as tmp:
-        tmp.write_text(page, encoding="utf-8")
+    write_text(path, page)
 
 
 __all__ = ["LEAFLET_VERSION", "legend_entries", "map_features", "write_map_html"]
