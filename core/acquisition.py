@@ -46,7 +46,6 @@ and leftover walls, and not stuck to whole numbers as a median of counts would b
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import json
 import logging
 import math
@@ -59,7 +58,8 @@ import numpy as np
 from . import __version__, settings_file
 from .atomic import replacing, write_json
 from .dim import PhotoSurvey, preset_dim, simulate_dim
-from .errors import PointCloudError, QuakeScanError, SceneError, SurveyError, read_json_file
+from .errors import PointCloudError, QuakeScanError, SurveyError
+from .fingerprint import Fingerprint, make, scene_fingerprint
 from .pointcloud import BUILDING_CLASS, Epoch, read_epoch, read_las
 from .scan import scan
 from .scene import Scene, read_scene
@@ -211,48 +211,24 @@ def sidecar_path(out_path: str | os.PathLike) -> Path:
     return out.with_name(out.name + SIDECAR_SUFFIX)
 
 
-def scene_fingerprint(scene: str | os.PathLike | Scene) -> str:
-    """A hash of the scene: the bytes of scene.json and its mesh for a bundle folder, the
-    arrays and manifest for a Scene object (the same scene in the two forms hashes
-    differently: an output acquired from one is acquired again from the other)."""
-    h = hashlib.sha256()
-    if isinstance(scene, Scene):
-        h.update(b"scene-object")
-        for a in (scene.vertices, scene.faces, scene.face_building, scene.face_surface, scene.origin):
-            a = np.ascontiguousarray(a)
-            h.update(f"{a.dtype.str}{a.shape}".encode())
-            h.update(a.tobytes())
-        h.update(json.dumps([b.to_json() for b in scene.buildings], sort_keys=True).encode())
-        h.update(json.dumps([scene.crs, scene.epoch, scene.units]).encode())
-        if scene.has_porous:  # only then: fingerprints of scenes without vegetation stay what they were
-            h.update(np.ascontiguousarray(scene.face_porous, dtype=bool).tobytes())
-            h.update(json.dumps(scene.transmission).encode())
-        return h.hexdigest()
-    folder = Path(scene)
-    manifest = folder / "scene.json"
-    data = read_json_file(manifest, "scene manifest", SceneError)
-    mesh = data.get("mesh", "mesh.ply") if isinstance(data, dict) else "mesh.ply"
-    h.update(b"scene-bundle")
-    for path in (manifest, folder / str(mesh)):
-        h.update(path.read_bytes() if path.is_file() else b"<missing>")
-    return h.hexdigest()
-
-
 def _record(acquisition: Acquisition, seed: int, scene_source: str, fingerprint: str) -> dict:
     return {"format": RECORD_FORMAT, "version": 1, "acquisition": acquisition.to_json(), "seed": seed,
             "scene": {"source": scene_source, "fingerprint": fingerprint}, "quakescan_version": __version__}
 
 
+def _fingerprint(record: dict) -> Fingerprint:
+    """What an acquisition record says the cloud depends on: its kind, settings and seed, the
+    scene and the QuakeScan that made it (not the label, summary or the scene's path)."""
+    return make("acquisition", inputs={"scene": record["scene"]["fingerprint"]},
+                settings={"kind": record["acquisition"]["kind"], "settings": record["acquisition"]["settings"],
+                          "seed": record["seed"]},
+                code={"record": record["format"], "quakescan": record.get("quakescan_version")})
+
+
 def _same_acquisition(old: dict, new: dict) -> bool:
-    """Same settings, kind, seed, scene and QuakeScan version (the label, summary and the
-    scene's path may differ)."""
     try:
-        return (old["format"] == RECORD_FORMAT and old["seed"] == new["seed"]
-                and old["acquisition"]["kind"] == new["acquisition"]["kind"]
-                and old["acquisition"]["settings"] == new["acquisition"]["settings"]
-                and old["scene"]["fingerprint"] == new["scene"]["fingerprint"]
-                and old.get("quakescan_version") == new["quakescan_version"])
-    except (KeyError, TypeError):
+        return _fingerprint(old).digest == _fingerprint(new).digest
+    except (KeyError, TypeError):  # a record of another format or edited
         return False
 
 
@@ -269,8 +245,9 @@ def acquire(scene: str | os.PathLike | Scene, acquisition: Acquisition, out_path
     """Acquire `scene` (a bundle folder or a Scene) with `acquisition` into `out_path`
     (.las/.laz) through `core.scan.scan` (uls, als) or `core.dim.simulate_dim` (dim).
 
-    Resumable: when `out_path` exists and its sidecar OUT.acquisition.json records the same
-    acquisition, seed, scene (fingerprint) and QuakeScan version, nothing is simulated.
+    Resumable (`core.fingerprint`'s rule): when `out_path` exists with the size and its
+    sidecar OUT.acquisition.json records the same acquisition, seed, scene (fingerprint) and
+    QuakeScan version, nothing is simulated.
     Atomic: the cloud appears under its name only when complete, and its sidecar only
     after it (a stale sidecar is removed first), so an interrupted run is redone, never
     half-used."""
@@ -286,7 +263,8 @@ def acquire(scene: str | os.PathLike | Scene, acquisition: Acquisition, out_path
     record = _record(acquisition, int(seed), source, scene_fingerprint(scene))
     sidecar = sidecar_path(out)
     old = _read_record(sidecar) if out.is_file() and sidecar.is_file() else None
-    if old is not None and _same_acquisition(old, record):
+    if old is not None and _same_acquisition(old, record) and old.get("output_bytes", out.stat().st_size) \
+            == out.stat().st_size:  # records of before output_bytes: their settings decide
         log.info("%s: up to date (%s, seed %d)", out, acquisition.label, seed)
         return Acquired(out, old, True)
     sidecar.unlink(missing_ok=True)
@@ -298,6 +276,7 @@ def acquire(scene: str | os.PathLike | Scene, acquisition: Acquisition, out_path
         summary = scan(loaded, acquisition.settings, out, seed=int(seed), threads=threads, progress=progress,
                        source=source)
     record["summary"] = summary.to_json()
+    record["output_bytes"] = out.stat().st_size  # a cut or replaced cloud is acquired again
     write_json(sidecar, record, ensure_ascii=False)
     log.info("%s: %s, seed %d, %d points in %.1f s", out, acquisition.label, seed, summary.points,
              summary.wall_time_s)

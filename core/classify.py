@@ -9,12 +9,11 @@ points is "no damage" by the paper's rule, without asking the model, unless the 
 trained on every row (`DamageModel.no_change_rule` False) and is asked about all of them.
 
 Long runs checkpoint every finished tile to OUT/.checkpoint.jsonl; a rerun with the same
-inputs and model continues from there. Every output is written under a temporary name and
+inputs, model and options (`core.fingerprint`'s rule) continues from there. Every output is written under a temporary name and
 renamed.
 """
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
 import os
@@ -25,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from .atomic import is_write_failure, write_failure_message, write_json, write_text
+from . import fingerprint
 from .errors import QuakeScanError, ResultsError
 from .model import DamageModel, ModelError, load_model
 from .pipeline import (
@@ -117,17 +117,13 @@ def load_pair(pre_path, post_path, footprints_path=None, id_field: str | None = 
     return PairData(pre, post, fp, empty)
 
 
-def _fingerprint(paths, model_path, align: bool | None) -> str:
-    h = hashlib.sha256()
-    for p in paths:
-        if p is None:
-            h.update(b"-")
-            continue
-        st = os.stat(p)
-        h.update(f"{os.path.realpath(p)}|{st.st_size}|{st.st_mtime_ns}".encode())
-    h.update(hashlib.sha256(Path(model_path).read_bytes()).digest())
-    h.update({True: b"align", False: b"", None: b"auto"}[align])
-    return h.hexdigest()[:16]
+def _fingerprint(pre_path, post_path, footprints_path, model_path, align: bool | None, options: dict):
+    """What a classification depends on (`core.fingerprint`): the clouds by path, size and time
+    (gigabytes: hashing them would cost more than many reruns), the footprints and the model
+    by content, the alignment mode and the output options."""
+    inputs = {"pre": fingerprint.stat(pre_path), "post": fingerprint.stat(post_path),
+              "footprints": fingerprint.content(footprints_path), "model": fingerprint.content(model_path)}
+    return fingerprint.make("classify", inputs=inputs, settings={"align": align, **options})
 
 
 class _Checkpoint:
@@ -137,22 +133,22 @@ class _Checkpoint:
     interruption never leaves a file without it; a file that is unreadable anyway (cut,
     edited, another program's) is discarded with a warning and its tiles are recomputed."""
 
-    def __init__(self, path: Path, fingerprint: str):
-        self.path, self.fp = path, fingerprint
+    def __init__(self, path: Path, digest: str):
+        self.path, self.fp = path, digest
         self.rows: dict[int, BuildingRow] = {}
         if path.is_file():
-            self._read(path, fingerprint)
+            self._read(path, digest)
         if not path.is_file():
-            write_json(path, {"fingerprint": fingerprint}, indent=None)
+            write_json(path, {"fingerprint": digest}, indent=None)
 
-    def _read(self, path: Path, fingerprint: str) -> None:
+    def _read(self, path: Path, digest: str) -> None:
         try:
             lines = path.read_text().splitlines()
             head = json.loads(lines[0]) if lines else None
         except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
             log.warning("%s: unreadable checkpoint (%s), discarded: every tile is recomputed", path, e)
             head = None
-        if isinstance(head, dict) and head.get("fingerprint") == fingerprint:
+        if isinstance(head, dict) and head.get("fingerprint") == digest:
             for line in lines[1:]:
                 try:
                     d = json.loads(line)
@@ -247,9 +243,9 @@ def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=N
         if p is not None and not Path(p).is_file():  # before the fingerprint reads them
             raise ClassifyError(f"{p}: {what} " + ("is a folder, not a file" if Path(p).is_dir() else "does not exist"))
     _check_output_folder(out, [pre_path, post_path, footprints_path, model_path])
-    fingerprint = _fingerprint([pre_path, post_path, footprints_path], model_path, align)
     options = {"id_field": id_field, "write_las": bool(write_las), "laz": laz}
-    done = _finished(out, fingerprint, options)
+    run_fp = _fingerprint(pre_path, post_path, footprints_path, model_path, align, options)
+    done = _finished(out, run_fp)
     if done is not None and not force:
         log.info("%s: up to date (same inputs, model and options); force=True recomputes", out)
         return {**done, "up_to_date": True}
@@ -262,7 +258,7 @@ def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=N
                      "points": {"pre": len(pre), "post": len(post)}, "crs": pre.crs}
     summary["registration"] = _register(pre, post, settings, align, summary)
     t_read = time.perf_counter()
-    ckpt = _Checkpoint(out / ".checkpoint.jsonl", fingerprint)
+    ckpt = _Checkpoint(out / ".checkpoint.jsonl", run_fp.digest)
     resumed = len(ckpt.rows)
     if resumed:
         log.warning("%s: resuming, %d buildings already described", out, resumed)
@@ -306,7 +302,7 @@ def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=N
                     "resumed_buildings": resumed,
                     "seconds": {"read": round(t_read - t0, 2), "describe": round(t_describe - t_read, 2),
                                 "total": round(time.perf_counter() - t0, 2)}})
-    summary["fingerprint"] = fingerprint
+    summary["fingerprint"] = run_fp.digest
     summary["options"] = options
     write_text(out / "summary.json", json.dumps(summary, indent=1, default=_json_default))
     ckpt.path.unlink(missing_ok=True)
@@ -403,16 +399,16 @@ def _check_output_folder(out: Path, inputs) -> None:
                             "(buildings.csv, buildings.geojson, damage_map.png, ...): give a folder")
 
 
-def _finished(out: Path, fingerprint: str, options: dict) -> dict | None:
+def _finished(out: Path, fp) -> dict | None:
     """The summary of a finished classification of the same inputs in `out`, else None."""
     try:
         summary = json.loads((out / "summary.json").read_text())
-    except (OSError, json.JSONDecodeError):
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
         return None
-    if summary.get("fingerprint") != fingerprint or summary.get("options") != options:
+    if not fingerprint.matches(summary, fp):
         return None
     wanted = ["buildings.csv", "buildings.geojson", "buildings.qml", "damage_map.png", "damage_map.html"]
-    if options["write_las"]:
+    if summary["options"]["write_las"]:
         wanted.append(Path(summary.get("post_grades", "post_grades.las")).name)
     return summary if all((out / name).is_file() for name in wanted) else None
 

@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import logging
 import os
@@ -103,16 +102,13 @@ def _note(args, message: str) -> None:
         print(f"quakescan: note: {message}", file=sys.stderr)
 
 
-def _fingerprint(scene_dir: Path, survey, seed: int) -> str:
-    h = hashlib.sha256()
-    for name in ("scene.json", "mesh.ply"):
-        p = scene_dir / name
-        if p.is_file():
-            h.update(p.read_bytes())
-    h.update(json.dumps(survey.to_json(), sort_keys=True).encode())
-    h.update(str(seed).encode())
-    h.update(__version__.encode())
-    return h.hexdigest()[:16]
+def _cloud_fingerprint(kind: str, scene_dir: Path, survey, seed: int):
+    """What a simulated cloud depends on (`core.fingerprint`): the scene bundle's bytes, the
+    survey and the seed (threads do not change the bytes)."""
+    from .fingerprint import make, scene_fingerprint
+
+    return make(kind, inputs={"scene": scene_fingerprint(scene_dir)}, settings={"survey": survey.to_json(),
+                                                                              "seed": seed})
 
 
 def _out(*args, **kwargs) -> None:
@@ -126,29 +122,32 @@ def _out(*args, **kwargs) -> None:
         _drop_stdout()
 
 
-def _file_digest(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
+def _cloud_is_up_to_date(out: Path, summary_path: Path, fp) -> bool:
+    """The summary holds the same fingerprint and the output is the file the run wrote (size
+    and SHA-256 as recorded): a truncated or replaced output is made again."""
+    from .fingerprint import file_sha256, matches
 
-
-def _scan_is_up_to_date(out: Path, summary_path: Path, fp: str) -> bool:
-    """The summary has the same fingerprint and the output is the file the scan wrote (size and
-    SHA-256 as recorded): a truncated or replaced output is scanned again."""
     if not (out.is_file() and summary_path.is_file()):
         return False
     try:
         summary = json.loads(summary_path.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError, OSError):
         return False
-    if not isinstance(summary, dict) or summary.get("fingerprint") != fp:
+    if not matches(summary, fp):
         return False
     recorded = summary.get("output_file")
     if not isinstance(recorded, dict) or recorded.get("bytes") != out.stat().st_size:
         return False
-    return recorded.get("sha256") == _file_digest(out)
+    return recorded.get("sha256") == file_sha256(out)
+
+
+def _write_cloud_summary(summary_path: Path, report: dict, out: Path, fp) -> None:
+    """The run's summary with what `_cloud_is_up_to_date` compares a rerun against."""
+    from .fingerprint import file_sha256
+
+    report["fingerprint"] = fp.digest
+    report["output_file"] = {"bytes": out.stat().st_size, "sha256": file_sha256(out)}
+    write_json(summary_path, report)
 
 
 def _check_scan_flags(args) -> None:
@@ -176,8 +175,8 @@ def cmd_scan(args) -> int:
     if args.beam:
         survey = survey.replace(beam=args.beam)
     summary_path = Path(args.summary) if args.summary else out.with_name(out.name + ".summary.json")
-    fp = _fingerprint(scene_dir, survey, args.seed)
-    if not args.force and _scan_is_up_to_date(out, summary_path, fp):
+    fp = _cloud_fingerprint("scan", scene_dir, survey, args.seed)
+    if not args.force and _cloud_is_up_to_date(out, summary_path, fp):
         if args.trajectory:
             _write_trajectory(read_scene(scene_dir), survey, Path(args.trajectory))
         _out(f"{out}: up to date (same scene, survey and seed); use --force to rescan"
@@ -202,12 +201,10 @@ def cmd_scan(args) -> int:
     # Finished flight lines are kept here; a rerun after an interruption continues from them.
     checkpoint = out.with_name(out.name + ".lines")
     summary = scan(scene, survey, out, seed=args.seed, threads=threads, progress=progress,
-                   source=str(scene_dir), checkpoint=checkpoint, fingerprint=fp)
+                   source=str(scene_dir), checkpoint=checkpoint, fingerprint=fp.digest)
     report = summary.to_json()
-    report["fingerprint"] = fp
-    report["output_file"] = {"bytes": out.stat().st_size, "sha256": _file_digest(out)}
     report["survey"] = survey.to_json()
-    write_json(summary_path, report)
+    _write_cloud_summary(summary_path, report, out, fp)
     if args.trajectory:
         _write_trajectory(scene, survey, Path(args.trajectory))
     if summary.lines_resumed:
@@ -622,11 +619,16 @@ def cmd_dim(args) -> int:
     scene_dir = Path(args.scene)
     out = Path(args.output)
     survey = load_photo_survey(args.survey)
+    summary_path = out.with_name(out.name + ".summary.json")
+    fp = _cloud_fingerprint("dim", scene_dir, survey, args.seed)
+    if not args.force and _cloud_is_up_to_date(out, summary_path, fp):
+        _out(f"{out}: up to date (same scene, photo survey and seed); use --force to simulate it again")
+        return 0
     summary = simulate_dim(read_scene(scene_dir), survey, out, seed=args.seed, threads=args.threads,
                            progress=_progress(args, "dim"), source=str(scene_dir))
     report = summary.to_json()
     report["photo_survey"] = survey.to_json()
-    write_json(out.with_name(out.name + ".summary.json"), report)
+    _write_cloud_summary(summary_path, report, out, fp)
     print(f"dim: {summary.points:,} points from {summary.cameras:,} images (nadir GSD {100 * summary.gsd_nadir_m:.1f} cm) "
           f"in {summary.wall_time_s:.1f} s -> {out}")
     return 0
@@ -817,6 +819,8 @@ def build_parser() -> argparse.ArgumentParser:
     dm.add_argument("--seed", type=int, default=0, help="seed of sampling and noise (same seed, same bytes)")
     dm.add_argument("--threads", type=int, default=None, help=THREADS_HELP)
     dm.add_argument("--progress", action="store_true", help=PROGRESS_HELP)
+    dm.add_argument("--force", action="store_true", help="simulate again even if the output is up to date "
+                    "(same scene, photo survey and seed)")
     dm.set_defaults(func=cmd_dim)
 
     dt = sub.add_parser("dim-survey-template", help="write a documented photo survey JSON file to edit")

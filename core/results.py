@@ -14,7 +14,6 @@ import csv
 import datetime
 import json
 import math
-import os
 import re
 from dataclasses import dataclass, field
 from pathlib import Path

@@ -20,7 +20,6 @@ when the output is complete.
 """
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
 import os
@@ -29,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from .atomic import commit, temp_path, write_json
+from .fingerprint import make, scene_fingerprint
 
 log = logging.getLogger(__name__)
 
@@ -36,20 +36,16 @@ _KEY = "key.json"
 
 
 def plan_key(fingerprint: str, scene, survey, seed: int, batch_rays: int, lines) -> str:
-    """The checkpoint key: the caller's fingerprint (the CLI's of the scene bundle's files),
-    and what the scan's bytes depend on — the scene's arrays, origin, CRS and labels, the
-    survey, the seed, the batch size and the flight lines — so that a library caller without
-    a fingerprint cannot resume from another scan's lines either."""
-    h = hashlib.sha256(f"{fingerprint}|{seed}|{batch_rays}|{scene.crs}|".encode())
-    h.update(json.dumps(survey.to_json(), sort_keys=True).encode())
-    for a in (scene.vertices, scene.faces, scene.face_building, scene.face_surface, scene.origin,
-              scene.face_porous if scene.face_porous is not None else np.zeros(0)):
-        h.update(np.ascontiguousarray(a).tobytes())
-    h.update(json.dumps([b.to_json() for b in scene.buildings], sort_keys=True, default=str).encode())
-    h.update(str(scene.transmission).encode())
-    for ln in lines:
-        h.update(np.concatenate([ln.start, ln.heading, [ln.length_m, ln.t_start, ln.speed_m_s]]).tobytes())
-    return h.hexdigest()[:24]
+    """The checkpoint key (`core.fingerprint`): the caller's fingerprint (the CLI's of the
+    scene bundle's files), and what the scan's bytes depend on — the scene's arrays, origin,
+    CRS and labels, the survey, the seed, the batch size and the flight lines — so that a
+    library caller without a fingerprint cannot resume from another scan's lines either."""
+    lines_doc = [np.concatenate([ln.start, ln.heading, [ln.length_m, ln.t_start, ln.speed_m_s]]).tolist()
+                 for ln in lines]
+    fp = make("scan-lines", inputs={"caller": fingerprint, "scene": scene_fingerprint(scene)},
+              settings={"survey": survey.to_json(), "seed": int(seed), "batch_rays": int(batch_rays),
+                        "lines": lines_doc})
+    return fp.digest[:24]
 
 
 class LineCheckpoint:

@@ -6,7 +6,6 @@ and the README section "Scene bundle". Coordinates in the mesh are float64 relat
 """
 from __future__ import annotations
 
-import json
 import math
 import os
 from dataclasses import dataclass, field

@@ -6,7 +6,6 @@ its meaning and unit, written by `to_json`, ignored on reading)."""
 from __future__ import annotations
 
 import dataclasses
-import json
 import os
 from collections.abc import Callable
 from pathlib import Path

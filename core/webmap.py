@@ -15,6 +15,7 @@ import math
 from pathlib import Path
 
 from .grades import grade_name, long_label, short_name
+from .atomic import write_text
 from .results import (
     NOT_ASSESSABLE,
     NOT_ASSESSABLE_COLOUR,

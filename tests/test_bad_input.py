@@ -257,7 +257,8 @@ def _enospc(*_a, **_k):
 
 
 def test_atomic_writer_names_the_output_of_a_full_disk_and_leaves_nothing(tmp_path):
-    from core.results import ResultsError, _atomic
+    from core.atomic import replacing as _atomic  # the one atomic writer (results._atomic before)
+    from core.results import ResultsError
 
     target = tmp_path / "sub" / "x.json"
     with pytest.raises(ResultsError, match=r"x\.json: cannot write: no space left"):
