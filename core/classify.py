@@ -9,8 +9,8 @@ points is "no damage" by the paper's rule, without asking the model, unless the 
 trained on every row (`DamageModel.no_change_rule` False) and is asked about all of them.
 
 Long runs checkpoint every finished tile to OUT/.checkpoint.jsonl; a rerun with the same
-inputs, model and options (`core.fingerprint`'s rule) continues from there. Every output is written under a temporary name and
-renamed.
+inputs, model and options (`core.fingerprint`'s rule) continues from there. Every output is
+written under a temporary name and renamed.
 """
 from __future__ import annotations
 

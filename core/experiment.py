@@ -23,8 +23,9 @@ Levels of detection of the changed/unchanged split (`core.lod`): by default meas
 the region-specific pre-event scene acquired twice as DIM (the source the classifiers are
 applied to) and used for every training table and the test alike; explicit values
 override. Descriptor tables are computed once per dataset and split settings and shared
-between classifiers; every step skips outputs that exist (resumable) and everything is
-seeded (reproducible).
+between classifiers; every step reuses an output only when the fingerprint stored with it is
+the one the step would store now (`core.fingerprint`: resumable, never stale) and
+everything is seeded (reproducible).
 """
 from __future__ import annotations
 
@@ -38,6 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
+from . import fingerprint
 from .atomic import open_replacing, write_text
 from .evaluate import (
     GRADE_NAMES,
@@ -105,23 +107,17 @@ class ExperimentSettings:
 
 
 def _acquire(kind: str, scene_dir: Path, stem: Path, seed: int, say=None) -> Path:
-    """stem.seedN.las acquired from scene_dir; the seed in the name keeps a cache exact."""
-    from .scene import read_scene
+    """stem.seedN.las acquired from scene_dir with the paper's survey of `kind`; reused only
+    when its acquisition record says the same scene, survey and seed (`core.acquisition`)."""
+    from .acquisition import Acquisition, acquire
+    from .dim import preset_dim
+    from .survey import preset
 
     out = stem.with_name(f"{stem.name}.seed{seed}.las")
-    if out.is_file():
-        return out
     t0 = time.perf_counter()
-    if kind == "uls":
-        from .scan import scan
-        from .survey import preset
-
-        scan(read_scene(scene_dir), preset("paper"), out, seed=seed, source=str(scene_dir))
-    else:
-        from .dim import preset_dim, simulate_dim
-
-        simulate_dim(read_scene(scene_dir), preset_dim("paper"), out, seed=seed, source=str(scene_dir))
-    if say:
+    got = acquire(scene_dir, Acquisition(kind, preset("paper") if kind == "uls" else preset_dim("paper")), out,
+                  seed=seed)
+    if say and not got.resumed:
         say(f"  {out.name}: {kind.upper()} in {time.perf_counter() - t0:.0f} s")
     return out
 
@@ -134,14 +130,20 @@ def _table(pre: Path, posts: list, cache: Path, settings, workers, say=None) -> 
     from .classify import load_pair
     from .pipeline import describe_pair, descriptor_matrix
 
+    from .surface import DESCRIPTOR_VERSION
+
     inputs = json.dumps([settings.to_json(), Path(pre).name, [Path(p).name for p, _ in posts]], sort_keys=True)
     cache = cache.with_name(f"{cache.name}_{hashlib.sha256(inputs.encode()).hexdigest()[:10]}.npz")
-    if cache.is_file():
+    clouds = {"pre": fingerprint.stat(pre), "posts": [[fingerprint.stat(p), _grade_json(g)] for p, g in posts]}
+    fp = fingerprint.make("descriptor-table", inputs=clouds, settings=settings.to_json(),
+                          code={"descriptors": DESCRIPTOR_VERSION})
+    if fingerprint.is_current(cache, fp):
         try:
             with np.load(cache) as d:
                 return {"x": d["x"], "y": d["y"], "ids": d["ids"]}
         except Exception as e:  # cut or foreign: recomputed, never a traceback on every rerun
             _discard(cache, e)
+    fingerprint.forget(cache)
     names = settings.descriptor_names()
     xs, ys, ids = [], [], []
     for post, grade in posts:
@@ -159,7 +161,13 @@ def _table(pre: Path, posts: list, cache: Path, settings, workers, say=None) -> 
     out = {"x": np.vstack(xs), "y": np.array(ys), "ids": np.array(ids)}
     with open_replacing(cache, "wb") as f:
         np.savez(f, **out)
+    fingerprint.record(cache, fp)
     return out
+
+
+def _grade_json(grade):
+    """A pair's grade for a fingerprint: one grade, or the {building ID: grade} truth."""
+    return {str(k): int(v) for k, v in grade.items()} if isinstance(grade, dict) else int(grade)
 
 
 def _discard(cache: Path, e: Exception) -> None:
@@ -174,15 +182,20 @@ def _levels_of_detection(s: ExperimentSettings, pre: Path, rescan: Path, cache: 
     from .pointcloud import read_epoch
 
     lod = None
-    if cache.is_file():
+    fp = fingerprint.make("levels-of-detection", inputs={"pre": fingerprint.stat(pre),
+                                                         "rescan": fingerprint.stat(rescan)},
+                          settings={"seed": s.seed})
+    if fingerprint.is_current(cache, fp):
         try:
             lod = LevelsOfDetection(**json.loads(cache.read_text()))
         except Exception as e:  # cut or edited: measured again
             _discard(cache, e)
     if lod is None:
+        fingerprint.forget(cache)
         a = read_epoch(pre)
         lod = calibrate(a, read_epoch(rescan, origin=a.origin), seed=s.seed, workers=workers)
         write_text(cache, json.dumps(lod.to_json(), indent=1))
+        fingerprint.record(cache, fp)
     if s.lod_height_m is not None:
         lod.lod_height_m = s.lod_height_m
     if s.lod_curvature is not None:

@@ -784,17 +784,16 @@ def run_experiment(pre_scene_dir: str | os.PathLike, post_scene_dir, out_dir: st
                    threshold_pct: float = THRESHOLD_PCT, sample: int | None = DEFAULT_SAMPLE,
                    spacing: float | None = None) -> RobustnessResult:
     """Scan the scenes with ULS (`survey`, default the paper preset) and DIM (`photo_survey`,
-    default the paper preset) into out_dir/clouds/ (existing clouds are kept: resumable; each
-    is written as .part and renamed), read them all in the pre ULS cloud's frame, run
-    `robustness` and write the report to out_dir. `post_scene_dir` is one post-event scene
+    default the paper preset) into out_dir/clouds/ (`core.acquisition.acquire`: a cloud made
+    from the same scene, survey and seed is kept, one of another run is made again), read
+    them all in the pre ULS cloud's frame, run `robustness` and write the report to out_dir. `post_scene_dir` is one post-event scene
     folder (clouds {uls,dim}_post.las) or a sequence of them, the demolition stages in order
     (clouds {uls,dim}_post1.las, _post2.las, ...; stage k is scanned with seed + k).
     `spacing` thins every cloud before the features (module doc). `progress(done, total)`
     over the clouds and then the radii."""
-    from .dim import preset_dim, simulate_dim
+    from .acquisition import Acquisition, acquire
+    from .dim import preset_dim
     from .pointcloud import read_epoch
-    from .scan import scan
-    from .scene import read_scene
     from .survey import preset
 
     started = time.perf_counter()
@@ -813,7 +812,6 @@ def run_experiment(pre_scene_dir: str | os.PathLike, post_scene_dir, out_dir: st
     clouds.mkdir(parents=True, exist_ok=True)
     scenes = {"pre": Path(pre_scene_dir), **dict(zip(stages, post_dirs))}
     seeds = {"pre": seed, **{st: seed + 1 + i for i, st in enumerate(stages)}}  # different noise per epoch
-    loaded = {}
     paths = {}
     n_clouds = 2 * len(scenes)
     total_steps = n_clouds + 2 * len(set(radii))
@@ -822,19 +820,15 @@ def run_experiment(pre_scene_dir: str | os.PathLike, post_scene_dir, out_dir: st
         for ep, folder in scenes.items():
             path = clouds / f"{src}_{ep}.las"
             paths[(src, ep)] = path
-            if not path.exists():
-                if ep not in loaded:
-                    loaded[ep] = read_scene(folder)
-                tmp = path.with_name(f"{src}_{ep}.part.las")
-                t0 = time.perf_counter()
-                if src == "uls":
-                    scan(loaded[ep], survey, tmp, seed=seeds[ep], threads=workers, source=str(folder))
-                else:
-                    simulate_dim(loaded[ep], photo_survey, tmp, seed=seeds[ep], threads=workers, source=str(folder))
-                os.replace(tmp, path)
-                log.info("robustness: %s %s cloud in %.1f s", src, ep, time.perf_counter() - t0)
-            else:
+            t0 = time.perf_counter()
+            # reused only when made from the same scene, survey and seed: a folder of another
+            # run's clouds is acquired again, never mixed into this one
+            got = acquire(folder, Acquisition(src, survey if src == "uls" else photo_survey), path,
+                          seed=seeds[ep], threads=workers)
+            if got.resumed:
                 log.info("robustness: keeping %s", path)
+            else:
+                log.info("robustness: %s %s cloud in %.1f s", src, ep, time.perf_counter() - t0)
             step += 1
             if progress:
                 progress(step, total_steps)

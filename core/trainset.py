@@ -23,7 +23,8 @@ every building looks changed. This training set varies what real pairs vary:
 clouds (`core.acquisition.acquire`), describes every pair (`core.pipeline.describe_pair`)
 and keeps one descriptor table per pair. Every step is resumable: a scene with the same
 generator settings, a cloud whose sidecar records the same acquisition, seed and scene,
-and a table for the same settings and clouds are not made again. The same plan and seed
+and a table whose fingerprint (`core.fingerprint`: the pair, its scenes, the settings) is
+the one it would get now are not made again; anything else is made again. The same plan and seed
 give the same table.
 
 The Zurich city model in `../shared/data` is reserved for evaluation and never used here.
@@ -40,6 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
+from . import fingerprint
 from .atomic import open_replacing, replacing, write_json
 from .errors import QuakeScanError
 
@@ -308,6 +310,20 @@ def _settings_key(settings, labels: str = "simulator") -> str:
     return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()[:12]
 
 
+def _table_fingerprint(pair: PairSpec, scenes: Path, settings, labels: str):
+    """What a pair's table depends on (`core.fingerprint`): the pair (its two acquisitions and
+    seeds), the scenes' scene.json by content (it records the generator's settings and every
+    building's grade, and its mesh follows from them: hashing meshes on every rerun would cost
+    more than it guards), the descriptor settings, the labels and the descriptor code."""
+    from .surface import DESCRIPTOR_VERSION
+
+    return fingerprint.make("transfer-table",
+                            inputs={"pre": fingerprint.content(scenes / "pre" / "scene.json"),
+                                    "post": fingerprint.content(scenes / pair.post_scene / "scene.json")},
+                            settings={"pair": asdict(pair), "settings": settings.to_json(), "labels": labels},
+                            code={"descriptors": DESCRIPTOR_VERSION})
+
+
 def generate_city(city: CitySpec, folder: Path) -> None:
     """The city's scene bundles under `folder` (skipped by the generator when up to date)."""
     from .demo import generate
@@ -355,13 +371,14 @@ def densest_cluster(scene, radius_m: float = CLUSTER_RADIUS_M, margin_m: float =
 
 def scene_footprints(city_dir: Path) -> Path:
     """The city's footprints (from its pre-event scene: a cadastre predates the event),
-    written once beside the scenes."""
+    written beside the scenes, again only when that scene changed."""
     from .footprints import footprints_from_scene, write_footprints
     from .scene import read_scene
 
     path = city_dir / "footprints.geojson"
-    if not path.is_file():
-        write_footprints(footprints_from_scene(read_scene(city_dir / "pre")), path)
+    fingerprint.reuse_or_make(path, fingerprint.make("footprints", inputs={
+        "pre": fingerprint.content(city_dir / "pre" / "scene.json")}),
+        lambda: write_footprints(footprints_from_scene(read_scene(city_dir / "pre")), path))
     return path
 
 
@@ -406,13 +423,16 @@ def build(out_dir, plan: TrainingPlan, settings, *, workers: int = -1,
         clouds = out / "clouds" / pair.city
         clouds.mkdir(exist_ok=True)
         part = None
-        if table_path.is_file():
+        table_fp = _table_fingerprint(pair, scenes, settings, plan.labels)
+        if fingerprint.is_current(table_path, table_fp):
             try:
                 with np.load(table_path) as d:
                     part = {k2: d[k2] for k2 in d.files}
             except Exception as e:  # cut or foreign: recomputed, never a traceback on every rerun
                 log.warning("%s: unreadable table (%s), discarded: recomputing it", table_path, e)
                 table_path.unlink(missing_ok=True)
+        if part is None:
+            fingerprint.forget(table_path)
         t = time.perf_counter()
         paths = []
         for role, scene, acq, seed in (("pre", "pre", pair.pre, pair.pre_seed),
@@ -438,6 +458,7 @@ def build(out_dir, plan: TrainingPlan, settings, *, workers: int = -1,
                     "seconds": np.array([t_acq, time.perf_counter() - t - t_acq])}
             with open_replacing(table_path, "wb") as f:
                 np.savez(f, **part)
+            fingerprint.record(table_path, table_fp)
         parts.append(part)
         manifest_pairs.append({"name": pair.name, "rows": int(len(part["y"])),
                                "acquire_s": round(float(part["seconds"][0]), 1),

@@ -190,8 +190,11 @@ def test_simulated_experiment(experiment):
     assert len(rows) == len(res.radii) * len(res.features)
     assert "Comparison with the paper" in (out / "README.md").read_text()
     assert not list(out.rglob("*.part*"))
-    assert sorted(p.name for p in (out / "clouds").iterdir()) == ["dim_post.las", "dim_pre.las",
-                                                                   "uls_post.las", "uls_pre.las"]
+    assert sorted(p.name for p in (out / "clouds").glob("*.las")) == ["dim_post.las", "dim_pre.las",
+                                                                       "uls_post.las", "uls_pre.las"]
+    # each beside the record of what made it (core.acquisition): what a rerun compares against
+    assert sorted(p.name for p in (out / "clouds").iterdir() if not p.name.endswith(".las")) == sorted(
+        f"{c}.las.acquisition.json" for c in ("dim_post", "dim_pre", "uls_post", "uls_pre"))
 
 
 def test_experiment_resumes_from_existing_clouds(experiment, monkeypatch):
@@ -199,16 +202,48 @@ def test_experiment_resumes_from_existing_clouds(experiment, monkeypatch):
     import core.dim
     import core.scan
 
+    import core.acquisition
+
     def boom(*a, **k):
         raise AssertionError("rescanned although the cloud exists")
-    monkeypatch.setattr(core.scan, "scan", boom)
-    monkeypatch.setattr(core.dim, "simulate_dim", boom)
+    for module in (core.scan, core.acquisition):  # acquisition holds its own reference to each simulator
+        monkeypatch.setattr(module, "scan", boom)
+    for module in (core.dim, core.acquisition):
+        monkeypatch.setattr(module, "simulate_dim", boom)
     # same out_dir: every cloud is kept, the numbers are reproduced
     again = run_experiment(root / "pre", root / "post", root / "out", radii=(1.0, 2.0), seed=1, workers=2,
                            survey=uls, photo_survey=dim, sample=3000)
     assert again.difference == res.difference or all(
         (math.isnan(a) and math.isnan(b)) or a == b
         for r in res.radii for a, b in zip(again.difference[r].values(), res.difference[r].values()))
+
+
+def test_clouds_of_another_survey_are_made_again_never_reused(experiment, tmp_path, monkeypatch):
+    """The bug this guards against: a clouds/ folder of a run with another survey was reused
+    because its files existed, mixing two experiments into one table."""
+    import core.acquisition
+
+    root, _, _, (uls, dim) = experiment
+    shutil.copytree(root / "out" / "clouds", tmp_path / "out" / "clouds")
+    made = []
+    real_scan, real_dim = core.acquisition.scan, core.acquisition.simulate_dim
+
+    def scan(scene, survey, out, **kw):
+        made.append(("uls", out.name))
+        return real_scan(scene, survey, out, **kw)
+
+    def simulate_dim(*a, **kw):
+        made.append(("dim", a[2].name))
+        return real_dim(*a, **kw)
+
+    monkeypatch.setattr(core.acquisition, "scan", scan)
+    monkeypatch.setattr(core.acquisition, "simulate_dim", simulate_dim)
+    other = uls.replace(pulse_rate_hz=40_000.0)
+    run_experiment(root / "pre", root / "post", tmp_path / "out", radii=(1.0,), seed=1, workers=2,
+                   survey=other, photo_survey=dim, sample=1000)
+    assert sorted(made) == [("uls", "uls_post.las"), ("uls", "uls_pre.las")]  # the DIM clouds are the same
+    record = json.loads((tmp_path / "out" / "clouds" / "uls_pre.las.acquisition.json").read_text())
+    assert record["acquisition"]["settings"]["pulse_rate_hz"] == 40_000.0
 
 
 # (4) comparison with the paper ---------------------------------------------------------------------
@@ -348,14 +383,7 @@ def test_thin_keeps_attributes(box_pair):
 
 def test_cli_two_stages_and_bad_spacing(experiment, tmp_path, capsys):
     root, _, _, _ = experiment
-    out = tmp_path / "cli"
-    clouds = out / "clouds"
-    clouds.mkdir(parents=True)
-    src = root / "out" / "clouds"
-    for s in ("uls", "dim"):  # the clouds exist, so nothing is scanned: stage 2 = an unchanged rescan
-        shutil.copy(src / f"{s}_pre.las", clouds / f"{s}_pre.las")
-        shutil.copy(src / f"{s}_post.las", clouds / f"{s}_post1.las")
-        shutil.copy(src / f"{s}_pre.las", clouds / f"{s}_post2.las")
+    out = tmp_path / "cli"  # stage 2 = an unchanged rescan of the pre-event scene
     args = ["robustness", str(root / "pre"), str(root / "post"), str(root / "pre"), "-o", str(out),
             "--radii", "1,2", "--threads", "2", "--sample", "2000"]
     assert main(args + ["--spacing", "0.2"]) == 0

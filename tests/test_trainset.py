@@ -83,6 +83,7 @@ def test_a_physics_twin_is_held_out_with_its_city(tmp_path, monkeypatch):
     """Rows of a twin take its city's index, so city-held-out cross-validation keeps both
     versions of a building on one side (as a realistic twin's do)."""
     import core.trainset as ts
+    from core import fingerprint
 
     plan = default_plan(0, "quick", damage="both")
     fake = {"x": np.zeros((2, len(TABLE_SETTINGS.descriptor_names()))), "y": np.array([0, 5]),
@@ -91,8 +92,14 @@ def test_a_physics_twin_is_held_out_with_its_city(tmp_path, monkeypatch):
     monkeypatch.setattr(ts, "generate_city", lambda city, folder: None)
     key = ts._settings_key(TABLE_SETTINGS, plan.labels)
     (tmp_path / "tables").mkdir()
-    for p in plan.pairs:
+    for p in plan.pairs:  # finished tables, each with the fingerprint build would give it
+        scenes = tmp_path / "scenes" / p.city
+        for scene in ("pre", p.post_scene):
+            (scenes / scene).mkdir(parents=True, exist_ok=True)
+            (scenes / scene / "scene.json").write_text("{}")
         np.savez(tmp_path / "tables" / f"{p.name}.{key}.npz", **fake)
+        fingerprint.record(tmp_path / "tables" / f"{p.name}.{key}.npz",
+                           ts._table_fingerprint(p, scenes, TABLE_SETTINGS, plan.labels))
     table = build(tmp_path, plan, TABLE_SETTINGS, say=lambda s: None)
     names = [plan.cities[i].name for i in table.city]
     physics = np.array([table.pairs[i].startswith("generic_m0-physics.") for i in table.pair])
