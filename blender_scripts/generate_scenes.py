@@ -213,15 +213,28 @@ def generator_info(args, scene_name):
 
 
 def bundle_state(folder: Path, info: dict) -> str:
-    """'missing', 'done' (same settings) or 'different'."""
+    """'missing', 'done' (same settings) or 'different'.
+
+    The resume rule of core.fingerprint, with the bundle's own record as the fingerprint: the
+    generator record in scene.json (settings, GENERATOR_VERSION, the source bundle's digest)
+    must be the one this run would write. The add-on's code is versioned by
+    GENERATOR_VERSION, not by QuakeScan's version, so that bundles made by an earlier
+    QuakeScan with the same generator stay reusable."""
+    if str(REPO) not in sys.path:  # core is standard library only here: Blender's Python imports it
+        sys.path.insert(0, str(REPO))
+    from core import fingerprint
+
     manifest = folder / "scene.json"
     if not manifest.is_file():
         return "missing"
     try:
         gen = json.loads(manifest.read_text()).get("generator")
-    except (json.JSONDecodeError, OSError):
+    except (json.JSONDecodeError, OSError, AttributeError):
         return "different"
-    return "done" if gen == info else "different"
+    if not isinstance(gen, dict):
+        return "different"
+    stored, wanted = (fingerprint.make("generate", settings=g, code={"quakescan": None}) for g in (gen, info))
+    return "done" if stored.digest == wanted.digest else "different"
 
 
 def _swap_into_place(tmp: Path, final: Path):

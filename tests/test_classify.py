@@ -249,3 +249,31 @@ def test_a_rerun_into_a_finished_folder_is_up_to_date(city, tmp_path, capsys):
     assert "up to date" not in capsys.readouterr().out
     (tmp_path / "res" / "buildings.csv").unlink()  # an incomplete folder is not up to date
     assert main(args + ["--no-las"]) == 0 and (tmp_path / "res" / "buildings.csv").is_file()
+
+
+def test_a_finished_folder_of_another_model_or_cloud_is_classified_again(city, tmp_path, capsys):
+    """core.fingerprint's rule: the model by content, the clouds by path, size and time."""
+    import os
+    import shutil
+
+    from core.cli import main
+    from core.model import load_model
+
+    d, _ = city
+    for name in ("pre.las", "post.las", "model.skops"):
+        shutil.copy2(d / name, tmp_path / name)
+    args = ["classify", "--pre", str(tmp_path / "pre.las"), "--post", str(tmp_path / "post.las"), "--model",
+            str(tmp_path / "model.skops"), "-o", str(tmp_path / "res"), "--no-las"]
+    assert main(args) == 0
+    capsys.readouterr()
+    model = load_model(tmp_path / "model.skops")
+    model.provenance = {**(model.provenance or {}), "note": "retrained"}
+    save_model(model, tmp_path / "model.skops")  # the same path, another model file
+    assert main(args) == 0
+    assert "up to date" not in capsys.readouterr().out
+    assert main(args) == 0
+    assert "up to date" in capsys.readouterr().out
+    stat = (tmp_path / "post.las").stat()
+    os.utime(tmp_path / "post.las", ns=(stat.st_atime_ns, stat.st_mtime_ns + 10**9))  # acquired again
+    assert main(args) == 0
+    assert "up to date" not in capsys.readouterr().out
