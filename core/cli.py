@@ -320,8 +320,8 @@ def cmd_features(args) -> int:
     scalar fields). NaN marks the degenerate neighbourhoods of core.features."""
     import laspy
 
-    from .features import FEATURES, compute_features
     from .atomic import replacing
+    from .features import FEATURES, compute_features
     from .pointcloud import read_epoch, read_las
 
     names = _csv_list(args.features) or FEATURES

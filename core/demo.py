@@ -4,7 +4,8 @@ generate (the add-on's headless generator: a mixed city, a grade drawn per build
 in L'Aquila, EPSG:32633)
 → scan both epochs with the paper's survey → classify with the shipped model → evaluate
 against the generator's grades → map. Every step writes atomically and is skipped when its
-output is already there, so an interrupted demo continues where it stopped.
+output is there and current (`core.fingerprint`), so an interrupted demo continues where it
+stopped.
 
 The generator needs Blender's Python: the `bpy` module in this environment (set-up
 installs it) or a `blender` binary on PATH. `core` itself never imports bpy; it runs the
@@ -88,14 +89,21 @@ def generate(set_name: str, dataset: str, buildings: int | None, seed: int, out:
 
 
 def scan_scene(scene_dir: Path, out: Path, seed: int, progress=None) -> None:
+    """Scan with the paper's survey unless `out` is current (`core.fingerprint`): the scene's
+    files by path, size and time, so that a city regenerated in place is scanned again even
+    where its bytes came out the same (the demo always did), the survey and the seed."""
+    from . import fingerprint
     from .scan import scan
     from .scene import read_scene
     from .survey import preset
 
-    manifest = Path(scene_dir) / "scene.json"
-    if out.is_file() and out.stat().st_mtime_ns >= manifest.stat().st_mtime_ns and las_is_complete(out):
-        return  # scanned after the scene was (re)generated, and whole
-    scan(read_scene(scene_dir), preset("paper"), out, seed=seed, progress=progress, source=str(scene_dir))
+    survey = preset("paper")
+    scene_dir = Path(scene_dir)
+    fp = fingerprint.make("demo-scan", inputs={name: fingerprint.stat(scene_dir / name)
+                                               for name in ("scene.json", "mesh.ply")},
+                          settings={"survey": survey.to_json(), "seed": seed})
+    fingerprint.reuse_or_make(out, fp, lambda: scan(read_scene(scene_dir), survey, out, seed=seed, progress=progress,
+                                                     source=str(scene_dir)))
 
 
 def las_is_complete(path: Path) -> bool:
