@@ -232,6 +232,13 @@ def _same_acquisition(old: dict, new: dict) -> bool:
         return False
 
 
+def _same_size(record: dict, out: Path) -> bool:
+    """The cloud is the size its record says: a cut or replaced one is acquired again (a record
+    written before sizes were recorded: its settings decide)."""
+    size = out.stat().st_size
+    return record.get("output_bytes", size) == size
+
+
 def _read_record(path: Path) -> dict | None:
     try:
         data = json.loads(path.read_bytes())
@@ -263,8 +270,7 @@ def acquire(scene: str | os.PathLike | Scene, acquisition: Acquisition, out_path
     record = _record(acquisition, int(seed), source, scene_fingerprint(scene))
     sidecar = sidecar_path(out)
     old = _read_record(sidecar) if out.is_file() and sidecar.is_file() else None
-    if old is not None and _same_acquisition(old, record) and old.get("output_bytes", out.stat().st_size) \
-            == out.stat().st_size:  # records of before output_bytes: their settings decide
+    if old is not None and _same_acquisition(old, record) and _same_size(old, out):
         log.info("%s: up to date (%s, seed %d)", out, acquisition.label, seed)
         return Acquired(out, old, True)
     sidecar.unlink(missing_ok=True)

@@ -129,7 +129,6 @@ def _table(pre: Path, posts: list, cache: Path, settings, workers, say=None) -> 
     {building ID: grade} truth (a mixed city)."""
     from .classify import load_pair
     from .pipeline import describe_pair, descriptor_matrix
-
     from .surface import DESCRIPTOR_VERSION
 
     inputs = json.dumps([settings.to_json(), Path(pre).name, [Path(p).name for p, _ in posts]], sort_keys=True)
@@ -137,11 +136,14 @@ def _table(pre: Path, posts: list, cache: Path, settings, workers, say=None) -> 
     clouds = {"pre": fingerprint.stat(pre), "posts": [[fingerprint.stat(p), _grade_json(g)] for p, g in posts]}
     fp = fingerprint.make("descriptor-table", inputs=clouds, settings=settings.to_json(),
                           code={"descriptors": DESCRIPTOR_VERSION})
-    if fingerprint.is_current(cache, fp):
+    found = fingerprint.state(cache, fp)
+    if found == "changed":
+        _discard(cache, "cut or replaced since it was written")
+    elif found == "current":
         try:
             with np.load(cache) as d:
                 return {"x": d["x"], "y": d["y"], "ids": d["ids"]}
-        except Exception as e:  # cut or foreign: recomputed, never a traceback on every rerun
+        except Exception as e:  # foreign: recomputed, never a traceback on every rerun
             _discard(cache, e)
     fingerprint.forget(cache)
     names = settings.descriptor_names()
@@ -170,9 +172,10 @@ def _grade_json(grade):
     return {str(k): int(v) for k, v in grade.items()} if isinstance(grade, dict) else int(grade)
 
 
-def _discard(cache: Path, e: Exception) -> None:
-    """Remove an unreadable cache file, saying so: its step is recomputed."""
-    log.warning("%s: unreadable cache (%s), discarded: recomputing it", cache, e)
+def _discard(cache: Path, why) -> None:
+    """Remove an unreadable cache file, saying so (`why`: the error or a reason): its step is
+    recomputed."""
+    log.warning("%s: unreadable cache (%s), discarded: recomputing it", cache, why)
     cache.unlink(missing_ok=True)
 
 
@@ -185,10 +188,13 @@ def _levels_of_detection(s: ExperimentSettings, pre: Path, rescan: Path, cache: 
     fp = fingerprint.make("levels-of-detection", inputs={"pre": fingerprint.stat(pre),
                                                          "rescan": fingerprint.stat(rescan)},
                           settings={"seed": s.seed})
-    if fingerprint.is_current(cache, fp):
+    found = fingerprint.state(cache, fp)
+    if found == "changed":
+        _discard(cache, "cut or edited since it was written")
+    elif found == "current":
         try:
             lod = LevelsOfDetection(**json.loads(cache.read_text()))
-        except Exception as e:  # cut or edited: measured again
+        except Exception as e:  # edited to the same size: measured again
             _discard(cache, e)
     if lod is None:
         fingerprint.forget(cache)

@@ -151,18 +151,26 @@ def _size(output: Path) -> int | None:
     return output.stat().st_size if output.is_file() else None
 
 
-def is_current(output: str | os.PathLike, fp: Fingerprint) -> bool:
-    """`output` exists, its fingerprint file holds `fp` and the output's size is the one
-    recorded with it."""
+def state(output: str | os.PathLike, fp: Fingerprint) -> str:
+    """"current" (`output` exists, its fingerprint file holds `fp` and the size recorded with
+    it), "missing" (no output), "unrecorded" (no readable fingerprint file), "other" (made
+    from other inputs or settings) or "changed" (made so, but cut or replaced since)."""
     output = Path(output)
     if not output.exists():
-        return False
+        return "missing"
     try:
         doc = json.loads(sidecar_path(output).read_bytes())
     except (OSError, ValueError):
-        return False
-    return (isinstance(doc, dict) and doc.get("format") == FORMAT and doc.get("digest") == fp.digest
-            and doc.get("output_bytes") == _size(output))
+        return "unrecorded"
+    if not isinstance(doc, dict) or doc.get("format") != FORMAT:
+        return "unrecorded"
+    if doc.get("digest") != fp.digest:
+        return "other"
+    return "current" if doc.get("output_bytes") == _size(output) else "changed"
+
+
+def is_current(output: str | os.PathLike, fp: Fingerprint) -> bool:
+    return state(output, fp) == "current"
 
 
 def forget(output: str | os.PathLike) -> None:
@@ -189,4 +197,4 @@ def reuse_or_make(output: str | os.PathLike, fp: Fingerprint, make_output) -> bo
 
 
 __all__ = ["FORMAT", "Fingerprint", "SUFFIX", "content", "file_sha256", "forget", "is_current", "make",
-           "matches", "record", "reuse_or_make", "scene_fingerprint", "sidecar_path", "stat"]
+           "matches", "record", "reuse_or_make", "scene_fingerprint", "sidecar_path", "stat", "state"]

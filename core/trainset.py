@@ -424,11 +424,15 @@ def build(out_dir, plan: TrainingPlan, settings, *, workers: int = -1,
         clouds.mkdir(exist_ok=True)
         part = None
         table_fp = _table_fingerprint(pair, scenes, settings, plan.labels)
-        if fingerprint.is_current(table_path, table_fp):
+        found = fingerprint.state(table_path, table_fp)
+        if found == "changed":
+            log.warning("%s: unreadable table (cut or replaced since it was written), discarded: recomputing it",
+                        table_path)
+        elif found == "current":
             try:
                 with np.load(table_path) as d:
                     part = {k2: d[k2] for k2 in d.files}
-            except Exception as e:  # cut or foreign: recomputed, never a traceback on every rerun
+            except Exception as e:  # foreign: recomputed, never a traceback on every rerun
                 log.warning("%s: unreadable table (%s), discarded: recomputing it", table_path, e)
                 table_path.unlink(missing_ok=True)
         if part is None:

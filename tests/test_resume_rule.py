@@ -50,14 +50,16 @@ def test_only_an_output_with_the_same_fingerprint_and_size_is_current(tmp_path):
         made.append(1)
         out.write_bytes(b"rows")
 
+    assert fingerprint.state(out, fp) == "missing"
     assert fingerprint.reuse_or_make(out, fp, make) is False
     assert fingerprint.reuse_or_make(out, fp, make) is True and len(made) == 1
-    assert not fingerprint.is_current(out, fingerprint.make("table", settings={"radius": 2.0}))
+    assert fingerprint.state(out, fp) == "current"
+    assert fingerprint.state(out, fingerprint.make("table", settings={"radius": 2.0})) == "other"
     out.write_bytes(b"rows, cut")  # replaced or cut: redone
-    assert not fingerprint.is_current(out, fp)
+    assert fingerprint.state(out, fp) == "changed" and not fingerprint.is_current(out, fp)
     assert fingerprint.reuse_or_make(out, fp, make) is False and len(made) == 2
     fingerprint.forget(out)  # about to be made again: no longer current
-    assert not fingerprint.is_current(out, fp) and out.is_file()
+    assert fingerprint.state(out, fp) == "unrecorded" and out.is_file()
     fingerprint.sidecar_path(out).write_text("{cut")
     assert not fingerprint.is_current(out, fp)
 
