@@ -14,7 +14,6 @@ import pytest
 from core import fingerprint
 from core.acquisition import Acquisition, acquire
 from core.cli import main
-from core.dim import preset_dim, write_photo_survey_template
 from core.scene import write_scene
 from core.survey import als_for_density
 from core.synthetic import box_city
@@ -101,7 +100,10 @@ def test_scan_reuses_a_cloud_of_the_same_settings_only(tmp_path, scene_dir, caps
 
 def test_dim_reuses_a_cloud_of_the_same_settings_only(tmp_path, scene_dir, capsys):
     survey = tmp_path / "photo.json"
-    write_photo_survey_template(survey, preset_dim("paper").replace(margin_m=40.0, point_step_px=16.0))
+    assert main(["dim-survey-template", "-o", str(survey)]) == 0
+    small = json.loads(survey.read_text())
+    small.update(margin_m=40.0, point_step_px=16.0)  # a quick flight
+    survey.write_text(json.dumps(small))
     out = tmp_path / "d.las"
     args = ["dim", str(scene_dir), "-o", str(out), "--survey", str(survey), "--seed", "1"]
     assert main(args) == 0

@@ -202,48 +202,35 @@ def test_experiment_resumes_from_existing_clouds(experiment, monkeypatch):
     import core.dim
     import core.scan
 
-    import core.acquisition
-
     def boom(*a, **k):
         raise AssertionError("rescanned although the cloud exists")
-    for module in (core.scan, core.acquisition):  # acquisition holds its own reference to each simulator
-        monkeypatch.setattr(module, "scan", boom)
-    for module in (core.dim, core.acquisition):
-        monkeypatch.setattr(module, "simulate_dim", boom)
+    monkeypatch.setattr(core.scan, "scan", boom)
+    monkeypatch.setattr(core.dim, "simulate_dim", boom)
+    stamps = {p: p.stat().st_mtime_ns for p in (root / "out" / "clouds").glob("*.las")}
     # same out_dir: every cloud is kept, the numbers are reproduced
     again = run_experiment(root / "pre", root / "post", root / "out", radii=(1.0, 2.0), seed=1, workers=2,
                            survey=uls, photo_survey=dim, sample=3000)
+    assert {p: p.stat().st_mtime_ns for p in stamps} == stamps  # however the simulators are reached
     assert again.difference == res.difference or all(
         (math.isnan(a) and math.isnan(b)) or a == b
         for r in res.radii for a, b in zip(again.difference[r].values(), res.difference[r].values()))
 
 
-def test_clouds_of_another_survey_are_made_again_never_reused(experiment, tmp_path, monkeypatch):
+def test_clouds_of_another_survey_are_made_again_never_reused(experiment, tmp_path):
     """The bug this guards against: a clouds/ folder of a run with another survey was reused
     because its files existed, mixing two experiments into one table."""
-    import core.acquisition
-
     root, _, _, (uls, dim) = experiment
-    shutil.copytree(root / "out" / "clouds", tmp_path / "out" / "clouds")
-    made = []
-    real_scan, real_dim = core.acquisition.scan, core.acquisition.simulate_dim
-
-    def scan(scene, survey, out, **kw):
-        made.append(("uls", out.name))
-        return real_scan(scene, survey, out, **kw)
-
-    def simulate_dim(*a, **kw):
-        made.append(("dim", a[2].name))
-        return real_dim(*a, **kw)
-
-    monkeypatch.setattr(core.acquisition, "scan", scan)
-    monkeypatch.setattr(core.acquisition, "simulate_dim", simulate_dim)
+    clouds = tmp_path / "out" / "clouds"
+    shutil.copytree(root / "out" / "clouds", clouds)
+    before = {p.name: p.read_bytes() for p in clouds.glob("*.las")}
     other = uls.replace(pulse_rate_hz=40_000.0)
     run_experiment(root / "pre", root / "post", tmp_path / "out", radii=(1.0,), seed=1, workers=2,
                    survey=other, photo_survey=dim, sample=1000)
-    assert sorted(made) == [("uls", "uls_post.las"), ("uls", "uls_pre.las")]  # the DIM clouds are the same
-    record = json.loads((tmp_path / "out" / "clouds" / "uls_pre.las.acquisition.json").read_text())
-    assert record["acquisition"]["settings"]["pulse_rate_hz"] == 40_000.0
+    after = {p.name: p.read_bytes() for p in clouds.glob("*.las")}
+    assert sorted(n for n in before if after[n] != before[n]) == ["uls_post.las", "uls_pre.las"]  # DIM: the same
+    for name in ("uls_pre", "uls_post"):
+        record = json.loads((clouds / f"{name}.las.acquisition.json").read_text())
+        assert record["acquisition"]["settings"]["pulse_rate_hz"] == 40_000.0
 
 
 # (4) comparison with the paper ---------------------------------------------------------------------
