@@ -131,8 +131,20 @@ class Measures:
         return self.count.astype(np.float64)
 
     @property
+    def l1(self) -> np.ndarray:
+        return self.lam[:, 0]
+
+    @property
+    def l2(self) -> np.ndarray:
+        return self.lam[:, 1]
+
+    @property
+    def l3(self) -> np.ndarray:
+        return self.lam[:, 2]
+
+    @property
     def eigensum(self) -> np.ndarray:
-        return self.lam[:, 0] + self.lam[:, 1] + self.lam[:, 2]
+        return self.l1 + self.l2 + self.l3
 
 
 @dataclass(frozen=True)
@@ -143,7 +155,7 @@ class Feature:
     cost more than the neighbourhood kernel)."""
 
     name: str
-    category: str  # eigen, normal, density, height, surface
+    category: str  # one of CATEGORIES
     needs: frozenset
     derive: Callable[[Measures, float], np.ndarray]
     compiled: int | None = None
@@ -154,22 +166,15 @@ class Feature:
             return np.asarray(self.derive(measures, radius), dtype=np.float64)
 
 
-def _l(k):
-    return lambda q: q.lam[:, k]
-
-
-_l1, _l2, _l3 = _l(0), _l(1), _l(2)
-
-
 def _omnivariance(q, r):
     s = q.eigensum
-    return np.cbrt((_l1(q) / s) * (_l2(q) / s) * (_l3(q) / s))
+    return np.cbrt((q.l1 / s) * (q.l2 / s) * (q.l3 / s))
 
 
 def _eigenentropy(q, r):
     s = q.eigensum
     v = np.zeros(len(s))
-    for lam in (_l1(q), _l2(q), _l3(q)):
+    for lam in (q.l1, q.l2, q.l3):
         e = lam / s
         pos = e > 0.0  # 0 ln 0 := 0
         v -= np.where(pos, e * np.log(np.where(pos, e, 1.0)), 0.0)
@@ -180,30 +185,35 @@ def _echo_ratio(q, r):
     return np.where(q.ncyl > 0, 100.0 * q.n / np.maximum(q.ncyl, 1), np.nan)
 
 
+CATEGORIES = ("eigen", "normal", "density", "height", "surface")
+
+
 def _entry(name, category, needs, derive, compiled=None):
     unknown = set(needs.split()) - set(MEASURES)
-    if unknown:
-        raise ValueError(f"feature {name} needs unknown measures {sorted(unknown)}")
+    if unknown or category not in CATEGORIES:
+        raise ValueError(f"feature {name}: category {category!r}, measures {needs!r}; "
+                         f"known: {CATEGORIES}, {tuple(MEASURES)}")
     return Feature(name, category, frozenset(needs.split()), derive, compiled)
 
 
+# q: the Measures, r: the radius asked for. In FEATURES order: a new feature goes at the end.
 _ENTRIES = (
-    _entry("linearity", "eigen", "eigen", lambda q, r: (_l1(q) - _l2(q)) / _l1(q), compiled=0),
-    _entry("planarity", "eigen", "eigen", lambda q, r: (_l2(q) - _l3(q)) / _l1(q), compiled=1),
+    _entry("linearity", "eigen", "eigen", lambda q, r: (q.l1 - q.l2) / q.l1, compiled=0),
+    _entry("planarity", "eigen", "eigen", lambda q, r: (q.l2 - q.l3) / q.l1, compiled=1),
     _entry("omnivariance", "eigen", "eigen", _omnivariance, compiled=5),
-    _entry("surface_variation", "eigen", "eigen", lambda q, r: _l3(q) / q.eigensum, compiled=4),
+    _entry("surface_variation", "eigen", "eigen", lambda q, r: q.l3 / q.eigensum, compiled=4),
     _entry("curvature", "surface", "curvature", lambda q, r: q.curv),
     _entry("point_density", "density", "cylinder", lambda q, r: q.ncyl / (math.pi * r ** 2)),
     _entry("num_neighbours", "density", "count", lambda q, r: q.n),
     _entry("surface_density", "density", "count", lambda q, r: q.n / (math.pi * r ** 2)),
     _entry("volume_density", "density", "count", lambda q, r: q.n / (4.0 / 3.0 * math.pi * r ** 3)),
-    _entry("sphericity", "eigen", "eigen", lambda q, r: _l3(q) / _l1(q), compiled=2),
+    _entry("sphericity", "eigen", "eigen", lambda q, r: q.l3 / q.l1, compiled=2),
     _entry("verticality", "normal", "normal", lambda q, r: 1.0 - np.abs(q.normal[:, 2])),
     _entry("eigenentropy", "eigen", "eigen", _eigenentropy, compiled=6),
-    _entry("anisotropy", "eigen", "eigen", lambda q, r: (_l1(q) - _l3(q)) / _l1(q), compiled=3),
-    _entry("eigenvalue1", "eigen", "eigen", lambda q, r: _l1(q).copy()),
-    _entry("eigenvalue2", "eigen", "eigen", lambda q, r: _l2(q).copy()),
-    _entry("eigenvalue3", "eigen", "eigen", lambda q, r: _l3(q).copy()),
+    _entry("anisotropy", "eigen", "eigen", lambda q, r: (q.l1 - q.l3) / q.l1, compiled=3),
+    _entry("eigenvalue1", "eigen", "eigen", lambda q, r: q.l1.copy()),
+    _entry("eigenvalue2", "eigen", "eigen", lambda q, r: q.l2.copy()),
+    _entry("eigenvalue3", "eigen", "eigen", lambda q, r: q.l3.copy()),
     _entry("eigenvalue_sum", "eigen", "eigen", lambda q, r: q.eigensum, compiled=7),
     _entry("roughness", "surface", "roughness", lambda q, r: q.rough),
     _entry("z_rank", "height", "z", lambda q, r: q.zrank),
