@@ -57,7 +57,8 @@ from pathlib import Path
 import numpy as np
 
 from . import __version__, settings_file
-from .dim import PhotoSurvey, preset_dim, simulate_dim
+from .dim import simulate_dim
+from .dim_settings import PhotoSurvey, preset_dim
 from .errors import PointCloudError, QuakeScanError, SceneError, SurveyError, read_json_file
 from .pointcloud import BUILDING_CLASS, Epoch, read_epoch, read_las
 from .scan import scan

@@ -225,7 +225,7 @@ def _write_json_atomic(path: Path, data) -> None:
 
 
 def _write_trajectory(scene, survey, path: Path) -> None:
-    from .scan import ground_level
+    from .raycast import ground_level
     from .survey import plan_flight
 
     plan = plan_flight(survey, scene.bounds(), ground_level(scene))
@@ -626,7 +626,8 @@ def cmd_evaluate(args) -> int:
 
 def cmd_dim(args) -> int:
     """A photogrammetric (dense image matching) point cloud of a scene bundle."""
-    from .dim import load_photo_survey, simulate_dim
+    from .dim import simulate_dim
+    from .dim_settings import load_photo_survey
     from .scene import read_scene
 
     scene_dir = Path(args.scene)
@@ -643,7 +644,7 @@ def cmd_dim(args) -> int:
 
 
 def cmd_dim_survey_template(args) -> int:
-    from .dim import preset_dim, write_photo_survey_template
+    from .dim_settings import preset_dim, write_photo_survey_template
 
     write_photo_survey_template(args.output, preset_dim(args.preset))
     print(f"photo survey template ({args.preset}) -> {args.output}")

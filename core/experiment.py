@@ -117,7 +117,8 @@ def _acquire(kind: str, scene_dir: Path, stem: Path, seed: int, say=None) -> Pat
 
         scan(read_scene(scene_dir), preset("paper"), out, seed=seed, source=str(scene_dir))
     else:
-        from .dim import preset_dim, simulate_dim
+        from .dim import simulate_dim
+        from .dim_settings import preset_dim
 
         simulate_dim(read_scene(scene_dir), preset_dim("paper"), out, seed=seed, source=str(scene_dir))
     if say:

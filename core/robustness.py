@@ -799,7 +799,8 @@ def run_experiment(pre_scene_dir: str | os.PathLike, post_scene_dir, out_dir: st
     (clouds {uls,dim}_post1.las, _post2.las, ...; stage k is scanned with seed + k).
     `spacing` thins every cloud before the features (module doc). `progress(done, total)`
     over the clouds and then the radii."""
-    from .dim import preset_dim, simulate_dim
+    from .dim import simulate_dim
+    from .dim_settings import preset_dim
     from .pointcloud import read_epoch
     from .scan import scan
     from .scene import read_scene

@@ -29,7 +29,7 @@ from core.acquisition import (
     sidecar_path,
     thin_to_density,
 )
-from core.dim import preset_dim
+from core.dim_settings import preset_dim
 from core.errors import PointCloudError, QuakeScanError, SurveyError
 from core.pointcloud import Epoch
 from core.scan import scan
