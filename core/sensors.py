@@ -2,9 +2,11 @@
 and `simulate`, the one call that runs any of them.
 
 Built in: `uls` and `als` (laser scanning, `core.sensor_lidar`) and `dim` (dense image
-matching of a photo flight, `core.sensor_dim`). The command line, `core.acquisition`
-(acquisitions, their sidecars and random draws, hence the training set), `core.experiment`,
-`core.robustness` and `core.demo` reach a sensor only through this registry.
+matching of a photo flight, `core.sensor_dim`). `core.acquisition` (acquisitions, their
+sidecars and random draws, hence the training set), `core.experiment`, `core.robustness`,
+`core.demo` and `quakescan dim` reach a sensor only through this registry; `quakescan scan`
+calls `core.scan.scan` itself for what only it has (flight-line checkpoints, the plan's
+cost before it flies).
 
 A new sensor is one module that calls `register(Sensor(...))` when it is imported, and
 its module name added to `BUILTIN` (the one place that imports the built-in sensors; a
