@@ -88,14 +88,14 @@ def generate(set_name: str, dataset: str, buildings: int | None, seed: int, out:
 
 
 def scan_scene(scene_dir: Path, out: Path, seed: int, progress=None) -> None:
-    from .scan import scan
+    from . import sensors
     from .scene import read_scene
-    from .survey import preset
 
     manifest = Path(scene_dir) / "scene.json"
     if out.is_file() and out.stat().st_mtime_ns >= manifest.stat().st_mtime_ns and las_is_complete(out):
         return  # scanned after the scene was (re)generated, and whole
-    scan(read_scene(scene_dir), preset("paper"), out, seed=seed, progress=progress, source=str(scene_dir))
+    sensors.simulate("uls", read_scene(scene_dir), sensors.get("uls").default(), out, seed=seed, progress=progress,
+                     source=str(scene_dir))
 
 
 def las_is_complete(path: Path) -> bool:

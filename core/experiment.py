@@ -105,21 +105,14 @@ class ExperimentSettings:
 
 def _acquire(kind: str, scene_dir: Path, stem: Path, seed: int, say=None) -> Path:
     """stem.seedN.las acquired from scene_dir; the seed in the name keeps a cache exact."""
+    from . import sensors
     from .scene import read_scene
 
     out = stem.with_name(f"{stem.name}.seed{seed}.las")
     if out.is_file():
         return out
     t0 = time.perf_counter()
-    if kind == "uls":
-        from .scan import scan
-        from .survey import preset
-
-        scan(read_scene(scene_dir), preset("paper"), out, seed=seed, source=str(scene_dir))
-    else:
-        from .dim import preset_dim, simulate_dim
-
-        simulate_dim(read_scene(scene_dir), preset_dim("paper"), out, seed=seed, source=str(scene_dir))
+    sensors.simulate(kind, read_scene(scene_dir), sensors.get(kind).default(), out, seed=seed, source=str(scene_dir))
     if say:
         say(f"  {out.name}: {kind.upper()} in {time.perf_counter() - t0:.0f} s")
     return out

@@ -799,16 +799,15 @@ def run_experiment(pre_scene_dir: str | os.PathLike, post_scene_dir, out_dir: st
     (clouds {uls,dim}_post1.las, _post2.las, ...; stage k is scanned with seed + k).
     `spacing` thins every cloud before the features (module doc). `progress(done, total)`
     over the clouds and then the radii."""
-    from .dim import preset_dim, simulate_dim
+    from . import sensors
     from .pointcloud import read_epoch
-    from .scan import scan
     from .scene import read_scene
-    from .survey import preset
 
     started = time.perf_counter()
     spacing = check_spacing(spacing)
-    survey = survey or preset("paper")
-    photo_survey = photo_survey or preset_dim("paper")
+    survey = survey or sensors.get("uls").default()
+    photo_survey = photo_survey or sensors.get("dim").default()
+    settings = {"uls": survey, "dim": photo_survey}
     if isinstance(post_scene_dir, (str, os.PathLike)):
         post_dirs = [Path(post_scene_dir)]
     else:
@@ -835,10 +834,8 @@ def run_experiment(pre_scene_dir: str | os.PathLike, post_scene_dir, out_dir: st
                     loaded[ep] = read_scene(folder)
                 tmp = path.with_name(f"{src}_{ep}.part.las")
                 t0 = time.perf_counter()
-                if src == "uls":
-                    scan(loaded[ep], survey, tmp, seed=seeds[ep], threads=workers, source=str(folder))
-                else:
-                    simulate_dim(loaded[ep], photo_survey, tmp, seed=seeds[ep], threads=workers, source=str(folder))
+                sensors.simulate(src, loaded[ep], settings[src], tmp, seed=seeds[ep], threads=workers,
+                                 source=str(folder))
                 os.replace(tmp, path)
                 log.info("robustness: %s %s cloud in %.1f s", src, ep, time.perf_counter() - t0)
             else:
