@@ -58,6 +58,14 @@ def test_every_relative_link_reaches_a_file_and_heading(page):
     assert not dead, "\n".join(dead)
 
 
+@pytest.mark.parametrize("page", PAGES, ids=lambda p: p.relative_to(REPO).as_posix())
+def test_every_code_block_is_closed(page):
+    """An unclosed fence turns the rest of the page into code (and hides its links from the
+    check above)."""
+    fences = re.findall(r"^```", page.read_text(), flags=re.M)
+    assert len(fences) % 2 == 0, f"{page.name}: {len(fences)} fence lines"
+
+
 def test_the_readme_links_every_docs_page():
     readme = (REPO / "README.md").read_text()
     unlinked = [p.name for p in PAGES[1:] if f"](docs/{p.name}" not in readme]
