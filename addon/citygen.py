@@ -212,7 +212,7 @@ def generic_plan(n: int, seed: int, row_length: float | None = None, details: st
                 x += (hi[0] - lo[0]) + gap
                 depth = max(depth, hi[1] - lo[1])
         y += depth + street
-    return add_details(CityPlan(plans, _bounds(plans), "generic", seed), details)
+    return add_details(mark_covered_walls(CityPlan(plans, _bounds(plans), "generic", seed)), details)
 
 
 # --- region (L'Aquila-like) -----------------------------------------------------------------
@@ -307,7 +307,7 @@ def region_plan(n: int, seed: int, details: str = "none") -> CityPlan:
             row_depth = 0.0
         else:
             bx0 += Bx + street
-    return add_details(CityPlan(plans, _bounds(plans), "region", seed), details)
+    return add_details(mark_covered_walls(CityPlan(plans, _bounds(plans), "region", seed)), details)
 
 
 # --- small (sheds, garages, row houses) -------------------------------------------------------
@@ -478,7 +478,49 @@ def small_plan(n: int, seed: int, row_length: float | None = None, details: str 
                     x = bp.extent[2] + 0.05
                 x += _u(rng, 4.0, 8.0)
         y = top + street
-    return add_details(CityPlan(plans, _bounds(plans), "small", seed), details)
+    return add_details(mark_covered_walls(CityPlan(plans, _bounds(plans), "small", seed)), details)
+
+
+# A wall with another building within this distance in front of it is a party wall: nothing
+# falls from it or shows through it (attached rows leave 5 cm between their shells).
+COVERED_WALL_GAP_M = 0.5
+# ... when at least this share of its length is so covered
+COVERED_WALL_SHARE = 0.5
+
+
+def mark_covered_walls(plan: CityPlan) -> CityPlan:
+    """Add to each building's party walls the footprint edges that another building covers
+    (COVERED_WALL_SHARE of the edge with a footprint within COVERED_WALL_GAP_M in front), in
+    place. The layouts mark the walls between the units of a row themselves; this finds the
+    rest: in a courtyard block the corner building's inner facade faces the end wall of the
+    next side's building, and a facade pattern drawn there toppled a wall into the neighbour
+    (debris under its roof, the damage invisible from the air: in the held-out test city 36 of
+    121 buildings had such a wall, and two grade-4 'facade topples' there could not be seen)."""
+    worlds = [_world_polygon(b, ccw=True) for b in plan.buildings]
+    boxes = np.array([np.concatenate([w.min(axis=0), w.max(axis=0)]) for w in worlds])
+    t = (np.arange(20) + 0.5) / 20  # samples along an edge
+    for k, (b, w) in enumerate(zip(plan.buildings, worlds)):
+        near = np.flatnonzero(np.all(boxes[:, :2] <= boxes[k, 2:] + COVERED_WALL_GAP_M, axis=1)
+                              & np.all(boxes[:, 2:] >= boxes[k, :2] - COVERED_WALL_GAP_M, axis=1))
+        near = near[near != k]
+        if not len(near):
+            continue
+        party = set(b.shell.get("party_walls", []))
+        for i in range(len(w)):
+            a, d = w[i], w[(i + 1) % len(w)] - w[i]
+            length = float(np.hypot(*d))
+            if i in party or length < 1e-6:
+                continue
+            outward = np.array([d[1], -d[0]]) / length  # outside on the right of a CCW edge
+            pts = a + t[:, None] * d + outward * COVERED_WALL_GAP_M
+            covered = np.zeros(len(t), bool)
+            for j in near:
+                covered |= poly2d.contains(worlds[j], pts)
+            if covered.mean() >= COVERED_WALL_SHARE:
+                party.add(i)
+        if party != set(b.shell.get("party_walls", [])):
+            b.shell["party_walls"] = sorted(party)
+    return plan
 
 
 def _bounds(plans, margin=15.0):
@@ -953,8 +995,12 @@ def add_details(plan: CityPlan, level: str = "typical") -> CityPlan:
     return plan
 
 
-def _world_polygon(b):
+def _world_polygon(b, ccw: bool = False):
+    """The footprint in the world (counter-clockwise with `ccw`: the order the shell's edge
+    indices refer to, geometry.shell.ShellSpec)."""
     p = np.asarray(b.shell["footprint"], dtype=float)
+    if ccw:
+        p = poly2d.ccw(p)
     c, s = math.cos(b.rotation), math.sin(b.rotation)
     return p @ np.array([[c, s], [-s, c]]) + np.asarray(b.location)
 

@@ -8,6 +8,7 @@ Angles are in degrees, lengths in metres, fractions in 0..1.
 """
 from __future__ import annotations
 
+import zlib
 from dataclasses import dataclass, field
 
 MASONRY = "masonry"
@@ -319,10 +320,20 @@ def _choice(rng, items):
     return items[-1][0]
 
 
+def pattern_salt(name: str) -> int:
+    """The salt of a pattern's own random stream: from its name (CRC-32, the same in every
+    Python process), so that adding a pattern to the catalogue changes no other pattern's draws
+    (an index into the catalogue would shift every later pattern's)."""
+    return zlib.crc32(name.encode("utf-8"))
+
+
 def choose_patterns(grade: int, material: str, features, rng, vulnerability_class: str | None = None,
-                    secondary_probability: float = 0.4) -> list[tuple[str, dict]]:
+                    secondary_probability: float = 0.4, streams=None) -> list[tuple[str, dict]]:
     """Pick and parameterise the patterns that give a building the EMS-98 `grade`.
 
+    `rng` draws the choices; `streams(name)`, when given, is the random stream of a pattern's
+    own draws (its parameters here, its geometry when applied), so that which other patterns
+    were chosen, or exist, does not change them; without it `rng` draws everything.
     Returns [(pattern, params)] in application order (stage, then as chosen). Grade 0-1
     (and 2 without a chimney) return [] : geometrically no damage at UAV resolution.
     Raises ValueError when no pattern of the catalogue fits (e.g. grade 4 masonry on a
@@ -339,11 +350,12 @@ def choose_patterns(grade: int, material: str, features, rng, vulnerability_clas
         if grade == 2:
             return []
         raise ValueError(f"no damage pattern for grade {grade} {material} with features {sorted(features)}")
+    stream = streams or (lambda name: rng)
     entry = _choice(rng, cands)
     chosen = []
     for name in entry.split("+"):
         g = grade if grade in PATTERNS[name].grades else max(g for g in PATTERNS[name].grades if g <= grade)
-        chosen.append((name, sample_params(name, rng, grade=g, material=material)))
+        chosen.append((name, sample_params(name, stream(name), grade=g, material=material)))
     primary_stage = max(PATTERNS[n].stage for n, _ in chosen)
     # Secondary, lower-grade damage elsewhere on the building (not before rigid motions that
     # would carry ground debris along, nor before a total collapse that erases it).
@@ -354,7 +366,7 @@ def choose_patterns(grade: int, material: str, features, rng, vulnerability_clas
         if sec:
             name = _choice(rng, sec)
             g = 3 if 3 in PATTERNS[name].grades else PATTERNS[name].grades[0]
-            chosen.insert(0, (name, sample_params(name, rng, grade=g, material=material)))
+            chosen.insert(0, (name, sample_params(name, stream(name), grade=g, material=material)))
     chosen.sort(key=lambda np_: PATTERNS[np_[0]].stage)
     return chosen
 

@@ -20,7 +20,7 @@ its own numpy PLY reader: the add-on never imports the core package.
 - ``prepare_for_damage`` turns an imported LoD2 shell into something the add-on's damage
   patterns can work on: element labels from the file's surfaces, walls split at storey
   levels, and coarse floor slabs and inner walls from a flat-roofed box shell (the
-  building's oriented bounding rectangle, up to the eaves). See the README for the limits.
+  building's oriented bounding rectangle, up to the eaves). See docs/addon.md for the limits.
 """
 from __future__ import annotations
 

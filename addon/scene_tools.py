@@ -244,7 +244,7 @@ def apply_pattern_to_object(obj, pattern: str, params: dict | None = None, rando
     if pattern not in ems98.PATTERNS:
         raise DamageError(f"unknown pattern {pattern!r}")
     spec = shell_of(obj)
-    rng = gp.pattern_rng(pg.seed, ems98.PATTERN_NAMES.index(pattern), len(done))
+    rng = gp.pattern_rng(pg.seed, ems98.pattern_salt(pattern), len(done))
     if randomize or params is None:
         g = grade if grade is not None else max(ems98.PATTERNS[pattern].grades)
         params = ems98.sample_params(pattern, rng, grade=g, material=spec.material) if randomize else \

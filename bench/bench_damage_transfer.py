@@ -46,7 +46,7 @@ def city(work: Path, damage: str) -> tuple[Path, dict, float, list]:
     and the buildings whose collapse fell back to the patterns."""
     from core.acquisition import Acquisition, acquire
     from core.demo import generate
-    from core.dim import preset_dim
+    from core.dim_settings import preset_dim
     from core.scene import read_scene
     from core.survey import preset
 

@@ -45,7 +45,8 @@ def spacing(path: Path) -> tuple[float, float]:
 
 def main():
     from core.demo import generate
-    from core.dim import preset_dim, simulate_dim
+    from core.dim import simulate_dim
+    from core.dim_settings import preset_dim
     from core.scene import read_scene
 
     if not (SCENE / "scene.json").is_file():

@@ -59,7 +59,7 @@ def worker(args) -> None:
         survey = survey.replace(range_noise_sigma_m=0.0)
     lines = None
     if args.one_line:
-        from core.scan import ground_level
+        from core.raycast import ground_level
         from core.survey import plan_flight
 
         plan = plan_flight(survey, scene.bounds(), ground_level(scene))
@@ -90,7 +90,8 @@ def run_worker(scene_dir, mode, out, exact=False, one_line=False, extra=()) -> d
 
 def raw_embree(scene, max_rays=4_000_000) -> list:
     """Rays/s of embreex alone on the single-ray scan's rays, 1 and 2 threads."""
-    from core.scan import RayCaster, _batches, _Pulses, _Simulator, ground_level
+    from core.raycast import RayCaster, ground_level
+    from core.scan import _batches, _Pulses, _Simulator
     from core.survey import plan_flight
 
     survey = preset("paper")

@@ -130,7 +130,8 @@ class Study:
         key = (tag, part)
         if key in self._acq:
             return self._acq[key]
-        from core.dim import preset_dim, simulate_dim
+        from core.dim import simulate_dim
+        from core.dim_settings import preset_dim
         from core.scan import scan
 
         folder, clouds = (self.train_dir, TRAIN_CLOUDS) if part == "train" else (self.test_dir, TEST_CLOUDS)
@@ -247,7 +248,8 @@ def _slug(tag: str) -> str:
 def warm_up(folder: Path, workers: int = -1) -> None:
     """Every compiled kernel the study times (three beams, DIM, features at every radius and
     step, the forest) run once on a 2 × 2 box city, so no row pays for loading or compiling."""
-    from core.dim import preset_dim, simulate_dim
+    from core.dim import simulate_dim
+    from core.dim_settings import preset_dim
     from core.model import train_forest
     from core.pipeline import PipelineSettings, describe_pair
     from core.pointcloud import read_epoch

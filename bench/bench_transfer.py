@@ -86,7 +86,7 @@ def test_city(work: Path, realistic: bool = False) -> tuple:
     furniture (the generator's `typical`), to be labelled through its footprints."""
     from core.acquisition import Acquisition, acquire
     from core.demo import generate
-    from core.dim import preset_dim
+    from core.dim_settings import preset_dim
     from core.survey import preset
 
     city = work / ("test_city_realistic" if realistic else "test_city")

@@ -26,7 +26,7 @@ frequencies by typology in addon/citygen.py); default none.
 (e.g. one imported from CityJSON) instead of a procedural city; --buildings then picks a
 seeded sample of that many of its buildings (default: all), the others are left out. The
 output keeps the source's origin, CRS and float64 coordinates. Imported LoD2 shells are
-damaged as box-like buildings (see addon/io_import.py and the README for the limits).
+damaged as box-like buildings (see addon/io_import.py and docs/addon.md for the limits).
 
 --origin X,Y[,Z] and --crs EPSG:n place a procedural (generic, region or small) city in the world: the bundles'
 origin and CRS (the mesh stays in local metres around it), e.g. --origin 367000,4690000

@@ -32,7 +32,7 @@ def main(argv=None) -> int:
     p.add_argument("--work", default=str(REPO / "out" / "default_model"), help="working folder (training set)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--size", choices=("full", "large", "quick"), default="full",
-                   help="training set plan (default full; large: twice the cities, measured in the README)")
+                   help="training set plan (default full; large: twice the cities, measured in docs/transfer.md)")
     p.add_argument("--scenes", choices=("clean", "realistic", "both"), default="both",
                    help="training scenes: the generator's bare ones, realistic ones (roof detail, trees, cars; "
                    "labels through footprints) or both (default: the shipped model's)")

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""The README's picture of collapse by physics: one building intact, after a grade-4 corner
+"""docs/addon.md's picture of collapse by physics: one building intact, after a grade-4 corner
 failure and after a grade-5 total collapse (bpy module; matplotlib renders the meshes).
 
     .venv/bin/python blender_scripts/physics_figure.py [-o docs/physics_collapse.png]

@@ -1,4 +1,4 @@
-"""Screenshot of the add-on's "Damage" sidebar for the README (needs a GUI Blender).
+"""Screenshot of the add-on's "Damage" sidebar for docs/addon.md (needs a GUI Blender).
 
     Xvfb :99 -screen 0 1600x1350x24 &
     DISPLAY=:99 QS_SHOT_DELAY=24 blender --factory-startup -P blender_scripts/screenshot_panel.py -- docs/damage_panel.png &
@@ -7,7 +7,7 @@
                        xdotool mousemove 1309 250; sleep 0.4; xdotool click 1; sleep 1; done   # the "Damage" tab
 
 Registers the add-on from this repository, adds a building, opens the sidebar, saves a
-screenshot of the 3D viewport area after QS_SHOT_DELAY seconds and quits. (The README's
+screenshot of the 3D viewport area after QS_SHOT_DELAY seconds and quits. (docs/addon.md's
 picture is that screenshot cropped to its right 540 px and top 1110 px.) Blender takes the
 click only after the pointer has moved over the viewport, and not always at the first try:
 hence the moves and the repeats.

@@ -33,7 +33,8 @@ neighbours are the same sums with n - 1. Curvature (quadric in the PCA frame) ne
 second masked pass over the candidates, run only when curvature is asked for. The
 cylinder count (point_density, echo_ratio) runs over whole columns with a 2-D test, in
 the same kernel, only when asked for.
-Same definitions as `core.features._reference_features` (tests compare the two).
+Same definitions as `core._feature_reference`, the numpy reference of every function here
+(tests compare the two).
 """
 from __future__ import annotations
 
@@ -859,7 +860,8 @@ def gather(x, y, z, order, ox, oy, oz):
 def eigen_features(lam, codes, out):
     """out[k] = eigen feature codes[k] of every row of lam (l1 >= l2 >= l3, NaN rows stay NaN):
     0 linearity, 1 planarity, 2 sphericity, 3 anisotropy, 4 surface_variation, 5 omnivariance,
-    6 eigenentropy, 7 eigenvalue_sum (definitions in `core.features`)."""
+    6 eigenentropy, 7 eigenvalue_sum: the `compiled` codes of `core.features.REGISTRY`, whose
+    `derive` is the definition each branch must reproduce."""
     for i in prange(lam.shape[0]):
         l1 = lam[i, 0]
         l2 = lam[i, 1]

@@ -8,6 +8,7 @@ longer than the distance to the edge of the searched block, so the answer is exa
 (ties: the lower index wins, as in a brute-force argmin). Airborne
 clouds are 2.5-D, so columns hold few points and rings rarely grow past one; queries
 whose neighbour is farther than a few rings are left to a kd-tree.
+`core._nn_reference` holds the numpy version of each function (tests compare the two).
 """
 from __future__ import annotations
 

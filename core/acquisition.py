@@ -1,37 +1,12 @@
 """Acquisitions: which sensor flew, with which settings — the one seam where simulated
 training data varies the sensor the way real pre/post pairs do.
 
-An `Acquisition` is a kind and the full settings that kind uses: `uls` (UAV laser
-scanning) and `als` (airborne laser scanning from an aircraft) are a `core.survey.Survey`,
-`dim` (dense image matching of a UAV photo flight) is a `core.dim.PhotoSurvey`.
-`acquire` runs it on a scene; `thin_to_density` makes a sparser copy of an epoch.
-
-Ranges of `random_acquisition` (each value drawn independently; rates and densities
-log-uniformly, since their effects are multiplicative, everything else uniformly):
-
-- every kind: flight-line direction 0–180°. Lines are planned along a block's long axis,
-  not along a building's, so which facades a strip sees differs from flight to flight.
-- `uls` (the paper's preset otherwise: VUX-1UAV-like rotating polygon, 120° FOV, 8 m/s):
-  altitude 50–150 m above ground (the span of published post-earthquake UAV-LiDAR
-  flights; below 50 m obstacles, above 150 m the legal ceiling in most countries); pulse
-  rate 100–600 kHz (UAV scanners' range, the paper's 300 kHz inside it); range noise
-  0.01–0.03 m (UAV scanners' specified precision 5–10 mm plus trajectory noise); strip
-  misalignment 0–0.05 m per axis (0 = perfectly adjusted strips, 5 cm = an unadjusted
-  UAV trajectory); strip overlap 30–70 % (flight plans from economical to the paper's 60 %
-  and beyond).
-- `als` (the `als` preset otherwise, see `core.survey.als_for_density`): nominal density
-  2–30 pts/m² (national archives: older blocks 1–4, AHN2/3 6–15, others up to 30; the
-  sparse end matters: a building the model never saw that sparse is 'not assessable'); range noise
-  0.02–0.04 m (aircraft scanners' ranging precision plus GNSS/INS noise at 500 m);
-  strip misalignment 0.02–0.08 m (residuals of archive strip adjustment are a few
-  centimetres; older blocks reach decimetres).
-- `dim` (the paper's photo survey otherwise: 45 MP camera, 24 mm nadir, four 35 mm
-  obliques at 45°): altitude 80–150 m above ground, i.e. a nadir ground sampling distance
-  of 1.47–2.75 cm; matching noise 0.5–1.5 px (well-textured to poorly textured façades);
-  one point per 6–12 px (Metashape between "medium" and "lowest"); a quarter of the
-  flights are nadir-only (rapid mapping often has no oblique camera). The flown area grows
-  by altitude · tan(oblique tilt) when there are obliques (so they see the scene's edge
-  facades, as in the paper preset), not at all without them.
+An `Acquisition` is a sensor kind and the full settings that kind uses; the kinds and
+what each needs are those of the sensor registry `core.sensors` (built in: `uls` and
+`als`, a `core.survey.Survey`; `dim`, a `core.dim_settings.PhotoSurvey`). `acquire` runs
+one on a scene, resumably; `random_acquisition` draws one for the training set from the
+ranges its sensor documents (`core.sensor_lidar`, `core.sensor_dim`); `thin_to_density`
+makes a sparser copy of an epoch.
 
 Density of an epoch (`measured_density`, the quantity `thin_to_density` aims at): the
 planimetric density of building roofs. Building points (ASPRS class 6, or building_id > 0
@@ -55,38 +30,27 @@ from pathlib import Path
 
 import numpy as np
 
-from . import __version__, settings_file
+from . import __version__, sensors
 from .atomic import replacing, write_json
-from .dim import PhotoSurvey, preset_dim, simulate_dim
 from .errors import PointCloudError, QuakeScanError, SurveyError
 from .fingerprint import Fingerprint, make, scene_fingerprint
 from .pointcloud import BUILDING_CLASS, Epoch, read_epoch, read_las
-from .scan import scan
 from .scene import Scene, read_scene
-from .survey import Survey, als_for_density, preset
 
 log = logging.getLogger(__name__)
 
-KINDS = ("uls", "als", "dim")
 FORMAT = "quakescan-acquisition"
 VERSION = 1
 RECORD_FORMAT = "quakescan-acquisition-record"
 SIDECAR_SUFFIX = ".acquisition.json"
 
-# Ranges of random_acquisition (see the module docstring for why).
-LINE_DIRECTION_DEG = (0.0, 180.0)
-ULS_ALTITUDE_M = (50.0, 150.0)
-ULS_PULSE_RATE_HZ = (100_000.0, 600_000.0)
-ULS_RANGE_NOISE_M = (0.01, 0.03)
-ULS_MISALIGNMENT_M = (0.0, 0.05)
-ULS_OVERLAP_PCT = (30.0, 70.0)
-ALS_DENSITY_PTS_M2 = (2.0, 30.0)
-ALS_RANGE_NOISE_M = (0.02, 0.04)
-ALS_MISALIGNMENT_M = (0.02, 0.08)
-DIM_ALTITUDE_M = (80.0, 150.0)
-DIM_NOISE_PX = (0.5, 1.5)
-DIM_POINT_STEP_PX = (6.0, 12.0)
-DIM_NADIR_ONLY_SHARE = 0.25
+
+def __getattr__(name):
+    # KINDS follows the registry: a sensor registered after this module was imported is in it.
+    if name == "KINDS":
+        return sensors.kinds()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 # Density measurement (see the module docstring): the one measure of core.surface.
 from .surface import DENSITY_CELL_M  # noqa: E402
@@ -94,30 +58,18 @@ from .surface import DENSITY_CELL_M  # noqa: E402
 
 @dataclass(frozen=True)
 class Acquisition:
-    """A sensor kind ('uls', 'als', 'dim') and the full settings it flies with."""
+    """A sensor kind (one of `core.sensors.kinds()`) and the full settings it flies with."""
 
     kind: str
-    settings: Survey | PhotoSurvey
+    settings: object
 
     def __post_init__(self):
-        if self.kind not in KINDS:
-            raise SurveyError(f"acquisition kind must be one of {KINDS}, got {self.kind!r}")
-        want = PhotoSurvey if self.kind == "dim" else Survey
-        if not isinstance(self.settings, want):
-            raise SurveyError(f"a {self.kind!r} acquisition needs a {want.__name__}, "
-                              f"got {type(self.settings).__name__}")
+        sensors.check_settings(self.kind, self.settings)
 
     @property
     def label(self) -> str:
         """Short human-readable description, e.g. 'uls 80m 300kHz noise 0.020 mis 0.030'."""
-        s = self.settings
-        if self.kind == "dim":
-            cams = "oblique" if s.oblique_cameras else "nadir"
-            return (f"dim {s.altitude_agl_m:.0f}m gsd {100 * s.gsd_m:.1f}cm noise {s.noise_px:.2f}px "
-                    f"step {s.point_step_px:g}px {cams}")
-        size = (f"{s.altitude_agl_m:.0f}m {s.pulse_rate_hz / 1e3:.0f}kHz" if self.kind == "uls"
-                else f"{s.nominal_density_pts_m2:.1f}pts/m2")
-        return f"{self.kind} {size} noise {s.range_noise_sigma_m:.3f} mis {s.strip_misalignment_m:.3f}"
+        return sensors.get(self.kind).label(self.settings)
 
     def to_json(self) -> dict:
         return {"format": FORMAT, "version": VERSION, "kind": self.kind, "label": self.label,
@@ -131,66 +83,24 @@ class Acquisition:
         if data.get("version") != VERSION:
             raise SurveyError(f"{source}: acquisition version {data.get('version')!r} not supported "
                               f"(expected {VERSION})")
-        kind = data.get("kind")
-        if kind not in KINDS:
-            raise SurveyError(f"{source}: acquisition kind must be one of {KINDS}, got {kind!r}")
+        try:
+            sensor = sensors.get(data.get("kind"))
+        except SurveyError as e:
+            raise SurveyError(f"{source}: {e}") from None
         values = data.get("settings")
         if not isinstance(values, dict):
             raise SurveyError(f"{source}: 'settings' must be an object of survey fields")
-        if kind == "dim":
-            settings = settings_file.from_values(values, cls=PhotoSurvey, kind="photo survey",
-                                                 preset=preset_dim, source=source)
-        else:
-            settings = settings_file.from_values(values, cls=Survey, kind="survey", preset=preset, source=source)
-        return cls(kind, settings)
-
-
-# Random acquisitions ------------------------------------------------------------------
-
-def _uniform(rng, lo_hi, digits):
-    return round(float(rng.uniform(*lo_hi)), digits)
-
-
-def _log_uniform(rng, lo_hi, digits):
-    lo, hi = lo_hi
-    return round(float(math.exp(rng.uniform(math.log(lo), math.log(hi)))), digits)
+        return cls(sensor.kind, sensor.from_values(values, source))
 
 
 def random_acquisition(kind: str, rng) -> Acquisition:
-    """An acquisition of `kind` with settings drawn from the ranges in the module docstring.
+    """An acquisition of `kind` with settings drawn from the ranges its sensor documents.
 
     `rng` is a numpy Generator or a seed; the same seed gives the same acquisition. Values
     are rounded to a resolution that matters (0.1 m, 0.1 mm, 1 kHz, …) so labels and
     sidecars stay readable."""
-    if kind not in KINDS:
-        raise SurveyError(f"acquisition kind must be one of {KINDS}, got {kind!r}")
-    rng = np.random.default_rng(rng)
-    direction = _uniform(rng, LINE_DIRECTION_DEG, 1)
-    if kind == "uls":
-        s = preset("paper").replace(
-            name="uls-random", line_direction_deg=direction,
-            altitude_agl_m=_uniform(rng, ULS_ALTITUDE_M, 1),
-            pulse_rate_hz=round(_log_uniform(rng, ULS_PULSE_RATE_HZ, 0), -3),
-            range_noise_sigma_m=_uniform(rng, ULS_RANGE_NOISE_M, 4),
-            strip_misalignment_m=_uniform(rng, ULS_MISALIGNMENT_M, 4),
-            strip_overlap_pct=_uniform(rng, ULS_OVERLAP_PCT, 1))
-        return Acquisition("uls", s)
-    if kind == "als":
-        density = _log_uniform(rng, ALS_DENSITY_PTS_M2, 2)
-        s = als_for_density(density).replace(
-            name="als-random", line_direction_deg=direction,
-            range_noise_sigma_m=_uniform(rng, ALS_RANGE_NOISE_M, 4),
-            strip_misalignment_m=_uniform(rng, ALS_MISALIGNMENT_M, 4))
-        return Acquisition("als", s)
-    base = preset_dim("paper")
-    altitude = _uniform(rng, DIM_ALTITUDE_M, 1)
-    noise_px = _uniform(rng, DIM_NOISE_PX, 2)
-    step = _uniform(rng, DIM_POINT_STEP_PX, 1)
-    obliques = 0 if rng.random() < DIM_NADIR_ONLY_SHARE else 4
-    margin = round(altitude * math.tan(math.radians(base.oblique_tilt_deg)), 1) if obliques else 0.0
-    s = base.replace(name="dim-random", line_direction_deg=direction, altitude_agl_m=altitude,
-                     noise_px=noise_px, point_step_px=step, oblique_cameras=obliques, margin_m=margin)
-    return Acquisition("dim", s)
+    sensor = sensors.get(kind)
+    return Acquisition(kind, sensor.draw(np.random.default_rng(rng)))
 
 
 # Acquiring ----------------------------------------------------------------------------
@@ -250,7 +160,7 @@ def _read_record(path: Path) -> dict | None:
 def acquire(scene: str | os.PathLike | Scene, acquisition: Acquisition, out_path: str | os.PathLike,
             seed: int = 0, threads: int | None = None, progress=None) -> Acquired:
     """Acquire `scene` (a bundle folder or a Scene) with `acquisition` into `out_path`
-    (.las/.laz) through `core.scan.scan` (uls, als) or `core.dim.simulate_dim` (dim).
+    (.las/.laz) with its sensor (`core.sensors.simulate`).
 
     Resumable (`core.fingerprint`'s rule): when `out_path` exists with the size and its
     sidecar OUT.acquisition.json records the same acquisition, seed, scene (fingerprint) and
@@ -259,7 +169,7 @@ def acquire(scene: str | os.PathLike | Scene, acquisition: Acquisition, out_path
     after it (a stale sidecar is removed first), so an interrupted run is redone, never
     half-used."""
     if not isinstance(acquisition, Acquisition):
-        raise QuakeScanError(f"acquire: acquisition must be an Acquisition (kind one of {KINDS}), "
+        raise QuakeScanError(f"acquire: acquisition must be an Acquisition (kind one of {sensors.kinds()}), "
                              f"got {type(acquisition).__name__}")
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise QuakeScanError(f"acquire: seed must be an integer >= 0, got {seed!r}")
@@ -275,12 +185,8 @@ def acquire(scene: str | os.PathLike | Scene, acquisition: Acquisition, out_path
         return Acquired(out, old, True)
     sidecar.unlink(missing_ok=True)
     loaded = scene if isinstance(scene, Scene) else read_scene(scene)
-    if acquisition.kind == "dim":
-        summary = simulate_dim(loaded, acquisition.settings, out, seed=int(seed), progress=progress,
-                               threads=threads, source=source)
-    else:
-        summary = scan(loaded, acquisition.settings, out, seed=int(seed), threads=threads, progress=progress,
-                       source=source)
+    summary = sensors.simulate(acquisition.kind, loaded, acquisition.settings, out, seed=int(seed),
+                               threads=threads, progress=progress, source=source)
     record["summary"] = summary.to_json()
     record["output_bytes"] = out.stat().st_size  # a cut or replaced cloud is acquired again
     write_json(sidecar, record, ensure_ascii=False)

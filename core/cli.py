@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from . import __version__
-from .atomic import open_replacing, write_json
+from .atomic import write_json
 from .errors import QuakeScanError
 
 log = logging.getLogger("quakescan")
@@ -161,6 +161,7 @@ def _check_scan_flags(args) -> None:
 def cmd_scan(args) -> int:
     from .scan import scan
     from .scene import read_scene
+    from .sensor_lidar import write_trajectory
     from .survey import load_survey
 
     _check_scan_flags(args)
@@ -178,7 +179,7 @@ def cmd_scan(args) -> int:
     fp = _cloud_fingerprint("scan", scene_dir, survey, args.seed)
     if not args.force and _cloud_is_up_to_date(out, summary_path, fp):
         if args.trajectory:
-            _write_trajectory(read_scene(scene_dir), survey, Path(args.trajectory))
+            write_trajectory(read_scene(scene_dir), survey, Path(args.trajectory))
         _out(f"{out}: up to date (same scene, survey and seed); use --force to rescan"
              + (f"; trajectory -> {args.trajectory}" if args.trajectory else ""))
         return 0
@@ -206,24 +207,12 @@ def cmd_scan(args) -> int:
     report["survey"] = survey.to_json()
     _write_cloud_summary(summary_path, report, out, fp)
     if args.trajectory:
-        _write_trajectory(scene, survey, Path(args.trajectory))
+        write_trajectory(scene, survey, Path(args.trajectory))
     if summary.lines_resumed:
         _out(f"resumed: {summary.lines_resumed} of {summary.lines} flight lines came from the interrupted run "
              f"({checkpoint})")
     _print_summary(summary, scene)
     return 0
-
-
-def _write_trajectory(scene, survey, path: Path) -> None:
-    from .scan import ground_level
-    from .survey import plan_flight
-
-    plan = plan_flight(survey, scene.bounds(), ground_level(scene))
-    traj = plan.trajectory()
-    traj[:, 1:4] += scene.origin
-    with open_replacing(path, "wb") as f:
-        np.savetxt(f, traj, delimiter=",", fmt=["%.6f", "%.3f", "%.3f", "%.3f", "%.3f", "%d"],
-                   header="gps_time_s,x_m,y_m,z_m,heading_deg,line", comments="")
 
 
 def _print_summary(summary, scene) -> None:
@@ -613,19 +602,19 @@ def cmd_evaluate(args) -> int:
 
 def cmd_dim(args) -> int:
     """A photogrammetric (dense image matching) point cloud of a scene bundle."""
-    from .dim import load_photo_survey, simulate_dim
     from .scene import read_scene
+    from .sensors import get, simulate
 
     scene_dir = Path(args.scene)
     out = Path(args.output)
-    survey = load_photo_survey(args.survey)
+    survey = get("dim").load_settings(args.survey)
     summary_path = out.with_name(out.name + ".summary.json")
     fp = _cloud_fingerprint("dim", scene_dir, survey, args.seed)
     if not args.force and _cloud_is_up_to_date(out, summary_path, fp):
         _out(f"{out}: up to date (same scene, photo survey and seed); use --force to simulate it again")
         return 0
-    summary = simulate_dim(read_scene(scene_dir), survey, out, seed=args.seed, threads=args.threads,
-                           progress=_progress(args, "dim"), source=str(scene_dir))
+    summary = simulate("dim", read_scene(scene_dir), survey, out, seed=args.seed, threads=args.threads,
+                       progress=_progress(args, "dim"), source=str(scene_dir))
     report = summary.to_json()
     report["photo_survey"] = survey.to_json()
     _write_cloud_summary(summary_path, report, out, fp)
@@ -635,7 +624,7 @@ def cmd_dim(args) -> int:
 
 
 def cmd_dim_survey_template(args) -> int:
-    from .dim import preset_dim, write_photo_survey_template
+    from .dim_settings import preset_dim, write_photo_survey_template
 
     write_photo_survey_template(args.output, preset_dim(args.preset))
     print(f"photo survey template ({args.preset}) -> {args.output}")

@@ -92,18 +92,16 @@ def scan_scene(scene_dir: Path, out: Path, seed: int, progress=None) -> None:
     """Scan with the paper's survey unless `out` is current (`core.fingerprint`): the scene's
     files by path, size and time, so that a city regenerated in place is scanned again even
     where its bytes came out the same (the demo always did), the survey and the seed."""
-    from . import fingerprint
-    from .scan import scan
+    from . import fingerprint, sensors
     from .scene import read_scene
-    from .survey import preset
 
-    survey = preset("paper")
+    survey = sensors.get("uls").default()
     scene_dir = Path(scene_dir)
     fp = fingerprint.make("demo-scan", inputs={name: fingerprint.stat(scene_dir / name)
                                                for name in ("scene.json", "mesh.ply")},
                           settings={"survey": survey.to_json(), "seed": seed})
-    fingerprint.reuse_or_make(out, fp, lambda: scan(read_scene(scene_dir), survey, out, seed=seed, progress=progress,
-                                                     source=str(scene_dir)))
+    fingerprint.reuse_or_make(out, fp, lambda: sensors.simulate("uls", read_scene(scene_dir), survey, out, seed=seed,
+                                                                progress=progress, source=str(scene_dir)))
 
 
 def las_is_complete(path: Path) -> bool:

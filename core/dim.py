@@ -1,6 +1,6 @@
 """Photogrammetry-like point clouds: dense image matching (DIM) from a virtual UAV photo flight.
 
-The model, step by step (every number is a `PhotoSurvey` field; see `FIELD_DOC`):
+The model, step by step (every number is a `PhotoSurvey` field; see `core.dim_settings.FIELD_DOC`):
 
 1. **Camera network.** Parallel, serpentine flight lines at `altitude_agl_m` above the
    scene's ground level, over the scene's xy extent grown by `margin_m` on every side (so
@@ -24,7 +24,7 @@ The model, step by step (every number is a `PhotoSurvey` field; see `FIELD_DOC`)
    it: inside the image frame, incidence angle below `max_incidence_deg` (both sides of a
    face count, so flipped normals do not matter) and nothing on the ray from the camera
    to the point closer than `visibility_tolerance_m` before it (Embree through
-   `core.scan.RayCaster`: local origin, float32 only at that boundary, hit distance
+   `core.raycast.RayCaster`: local origin, float32 only at that boundary, hit distance
    refined in float64). Every piece is first probed (its centre and a jittered grid of
    `probe_spacing_m`) against its ranked cameras: a piece that fewer than `min_views`
    cameras see at any probe (under buildings, inside closed solids) gets no candidates,
@@ -57,7 +57,6 @@ scene, survey and seed give the same bytes whatever the number of threads.
 """
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 import os
@@ -68,306 +67,22 @@ from dataclasses import dataclass, field
 import numpy as np
 from numba import njit, prange
 
-from . import settings_file
+from .dim_cameras import Cameras, plan_cameras
+from .dim_settings import PhotoSurvey
 from .errors import QuakeScanError, SurveyError
+from .las_output import label_counts, las_offset
 from .pointcloud import LasChunkWriter, PointChunk
+from .raycast import RayCaster, check_scannable, ground_level
 from .scene import Scene
 
 log = logging.getLogger(__name__)
 
-FORMAT = "quakescan-photo-survey"
-VERSION = 1
 # Mesh pieces are at most this long (m): density and camera ranking are set per piece.
 _TILE_M = 8.0
 # Grid cells per work chunk (memory and thread granularity; does not change the output).
 _CHUNK_CELLS = 1 << 19
 # Points written per LAS chunk.
 _WRITE_CHUNK = 1 << 20
-
-# name → (meaning, unit); the JSON template carries this table as "_doc".
-FIELD_DOC = {
-    "altitude_agl_m": ("flight altitude above the scene's ground level", "m"),
-    "speed_m_s": ("platform ground speed (sets the image times only)", "m/s"),
-    "forward_overlap_pct": ("overlap of consecutive nadir images along a line, on flat ground", "%"),
-    "side_overlap_pct": ("overlap of nadir images of neighbouring lines, on flat ground", "%"),
-    "line_direction_deg": ("direction of the flight lines, counter-clockwise from the scene's +x axis", "deg"),
-    "margin_m": (("the flown area is the scene's xy extent grown by this on every side; about "
-                 "altitude · tan(oblique tilt) lets the obliques see the facades at the scene's edges"), "m"),
-    "gps_start_s": ("GPS time of the first image", "s"),
-    "image_width_px": ("image width (across track for the nadir camera)", "px"),
-    "image_height_px": ("image height (along track for the nadir camera)", "px"),
-    "pixel_pitch_um": ("sensor pixel size", "µm"),
-    "focal_length_mm": ("focal length of the nadir camera", "mm"),
-    "oblique_cameras": ("oblique cameras per station: 0 (nadir only) or 4 (front, back, left, right)", "-"),
-    "oblique_tilt_deg": ("tilt of the oblique cameras' axes from nadir", "deg"),
-    "oblique_focal_length_mm": ("focal length of the oblique cameras", "mm"),
-    "point_step_px": (("DIM keeps about one point per point_step_px × point_step_px image pixels of the "
-                      "best view (Metashape quality: 1 ultra high, 2 high, 4 medium, 8 low, 16 lowest)"), "px"),
-    "min_views": ("cameras that must see a point for it to be reconstructed", "-"),
-    "max_incidence_deg": (("a camera sees a surface point only below this angle between its ray and "
-                          "the surface normal (grazing cut-off)"), "deg"),
-    "max_candidate_views": ("cameras ranked per mesh piece and tried per point, best first", "-"),
-    "probe_spacing_m": (("visibility is first probed on every mesh piece (its centre and a grid of this "
-                        "spacing); a piece whose probes fewer than min_views cameras see gets no points, and a "
-                        "point tries only the cameras that see a probe of its piece: surfaces seen only "
-                        "through openings narrower than this can be missed"), "m"),
-    "visibility_tolerance_m": ("a hit closer than this before the point does not occlude it", "m"),
-    "noise_px": (("depth noise: sigma = noise_px · GSD / cos(incidence)^noise_angle_exponent "
-                 "along the best view's ray, GSD of the best view at the point"), "px"),
-    "noise_angle_exponent": ("growth of the depth noise with the incidence angle (see noise_px)", "-"),
-    "smoothing_radius_m": (("points this close to a crease are pulled towards their neighbours' mean "
-                           "(rounded edges and corners); 0 = off"), "m"),
-    "crease_angle_deg": ("mesh edges whose faces meet at more than this are creases", "deg"),
-    "acquisition_date": ("date written to the LAS header (fixed so that reruns are byte-identical)", "YYYY-MM-DD"),
-}
-
-
-# Bounds beyond which no UAV photo flight goes (see core.survey.FIELD_RANGES): without them a
-# typo (99.999 % overlap, a point per 10⁻⁶ pixels, probes every nanometre) plans millions of
-# images or points and runs for hours.
-DIM_FIELD_RANGES = {
-    "altitude_agl_m": (1.0, 6000.0),
-    "speed_m_s": (0.5, 150.0),
-    "forward_overlap_pct": (0.0, 95.0),
-    "side_overlap_pct": (0.0, 95.0),
-    "line_direction_deg": (-360.0, 360.0),
-    "margin_m": (0.0, 5000.0),
-    "gps_start_s": (0.0, 1e10),
-    "image_width_px": (2, 100_000),
-    "image_height_px": (2, 100_000),
-    "pixel_pitch_um": (0.5, 100.0),
-    "focal_length_mm": (1.0, 2000.0),
-    "oblique_focal_length_mm": (1.0, 2000.0),
-    "point_step_px": (0.5, 1000.0),
-    "probe_spacing_m": (0.01, 100.0),
-    "visibility_tolerance_m": (0.0, 10.0),
-    "noise_px": (0.0, 100.0),
-    "noise_angle_exponent": (0.0, 10.0),
-    "smoothing_radius_m": (0.0, 10.0),
-}
-
-
-@dataclass(frozen=True)
-class PhotoSurvey:
-    """A UAV photo flight and the dense image matching settings (defaults: preset `paper`).
-
-    The `paper` preset is a 45 MP full-frame UAV camera (8192 × 5460 px, 4.4 µm, like the
-    DJI Zenmuse P1) with a 24 mm nadir and 35 mm oblique lenses tilted 45°, 120 m above
-    ground, 80 %/70 % overlap, one point per 8 × 8 pixels (Metashape "low" quality):
-    chosen so that a box city gets the point spacing of the L'Aquila DIM clouds in Zahs et
-    al. (measured on a 3 × 4 box city: roofs 0.086 m, std 0.028; facades 0.121 m, std 0.041;
-    paper: roofs 0.09 m, std 0.03; facades 0.12 m, std 0.04)."""
-
-    name: str = "paper"
-    altitude_agl_m: float = 120.0
-    speed_m_s: float = 10.0
-    forward_overlap_pct: float = 80.0
-    side_overlap_pct: float = 70.0
-    line_direction_deg: float = 0.0
-    margin_m: float = 120.0
-    gps_start_s: float = 0.0
-    image_width_px: int = 8192
-    image_height_px: int = 5460
-    pixel_pitch_um: float = 4.4
-    focal_length_mm: float = 24.0
-    oblique_cameras: int = 4
-    oblique_tilt_deg: float = 45.0
-    oblique_focal_length_mm: float = 35.0
-    point_step_px: float = 8.0
-    min_views: int = 2
-    max_incidence_deg: float = 75.0
-    max_candidate_views: int = 12
-    probe_spacing_m: float = 0.5
-    visibility_tolerance_m: float = 0.01
-    noise_px: float = 1.0
-    noise_angle_exponent: float = 2.0
-    smoothing_radius_m: float = 0.15
-    crease_angle_deg: float = 30.0
-    acquisition_date: str = "2020-01-01"
-
-    def __post_init__(self):
-        self.validate()
-
-    def validate(self, source: str = "photo survey") -> None:
-        def bad(msg):
-            raise SurveyError(f"{source}: {msg}")
-
-        def num(name):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-                bad(f"{name} must be a finite number [{FIELD_DOC[name][1]}], got {v!r}")
-            return v
-
-        for name in ("altitude_agl_m", "speed_m_s", "pixel_pitch_um", "focal_length_mm",
-                     "oblique_focal_length_mm", "point_step_px", "probe_spacing_m"):
-            if num(name) <= 0:
-                bad(f"{name} must be a positive number [{FIELD_DOC[name][1]}], got {getattr(self, name)!r}")
-        for name in ("margin_m", "gps_start_s", "visibility_tolerance_m", "noise_px", "noise_angle_exponent",
-                     "smoothing_radius_m", "line_direction_deg"):
-            if name != "line_direction_deg" and num(name) < 0:
-                bad(f"{name} must be a number >= 0 [{FIELD_DOC[name][1]}], got {getattr(self, name)!r}")
-            num(name)
-        for name in ("forward_overlap_pct", "side_overlap_pct"):
-            if not 0 <= num(name) < 100:
-                bad(f"{name} must be in [0, 100), got {getattr(self, name)!r}")
-        for name in ("image_width_px", "image_height_px"):
-            v = getattr(self, name)
-            if not isinstance(v, int) or isinstance(v, bool) or v < 2:
-                bad(f"{name} must be an integer >= 2 [px], got {v!r}")
-        for name, (lo, hi) in DIM_FIELD_RANGES.items():
-            v = getattr(self, name)
-            if not lo <= v <= hi:
-                bad(f"{name} must lie in [{lo:g}, {hi:g}] {FIELD_DOC[name][1]} (the range of real photo flights; "
-                    f"outside it a simulation runs for hours or sees nothing), got {v!r}")
-        if self.oblique_cameras not in (0, 4) or isinstance(self.oblique_cameras, bool):
-            bad(f"oblique_cameras must be 0 or 4, got {self.oblique_cameras!r}")
-        if not 0 < num("oblique_tilt_deg") < 80:
-            bad(f"oblique_tilt_deg must be in (0, 80), got {self.oblique_tilt_deg!r}")
-        if not 0 < num("max_incidence_deg") < 90:
-            bad(f"max_incidence_deg must be in (0, 90), got {self.max_incidence_deg!r}")
-        if not 0 < num("crease_angle_deg") < 180:
-            bad(f"crease_angle_deg must be in (0, 180), got {self.crease_angle_deg!r}")
-        if not isinstance(self.min_views, int) or isinstance(self.min_views, bool) or self.min_views < 1:
-            bad(f"min_views must be an integer >= 1, got {self.min_views!r}")
-        k = self.max_candidate_views
-        if not isinstance(k, int) or isinstance(k, bool) or not self.min_views <= k <= 64:
-            bad(f"max_candidate_views must be an integer between min_views ({self.min_views}) and 64, got {k!r}")
-        try:
-            import datetime
-
-            datetime.date.fromisoformat(self.acquisition_date)
-        except (TypeError, ValueError):
-            bad(f"acquisition_date must be YYYY-MM-DD, got {self.acquisition_date!r}")
-
-    # Derived quantities -------------------------------------------------------------
-    @property
-    def gsd_m(self) -> float:
-        """Nadir ground sampling distance on flat ground at ground level."""
-        return self.altitude_agl_m * self.pixel_pitch_um * 1e-6 / (self.focal_length_mm * 1e-3)
-
-    @property
-    def footprint_m(self) -> tuple[float, float]:
-        """(across, along) track size of the nadir image on flat ground at ground level."""
-        return self.gsd_m * self.image_width_px, self.gsd_m * self.image_height_px
-
-    @property
-    def station_spacing_m(self) -> float:
-        return self.footprint_m[1] * (1 - self.forward_overlap_pct / 100)
-
-    @property
-    def line_spacing_m(self) -> float:
-        return self.footprint_m[0] * (1 - self.side_overlap_pct / 100)
-
-    def replace(self, **changes) -> PhotoSurvey:
-        return dataclasses.replace(self, **changes)
-
-    def to_json(self) -> dict:
-        return settings_file.to_json(self, FORMAT, VERSION, FIELD_DOC)
-
-
-def preset_dim(name: str) -> PhotoSurvey:
-    """Named photo survey presets: 'paper' (L'Aquila DIM point spacing of Zahs et al.)."""
-    if name == "paper":
-        return PhotoSurvey()
-    raise SurveyError(f"unknown photo survey preset {name!r}; known: 'paper', or give a photo survey JSON file")
-
-
-def load_photo_survey(spec: str | os.PathLike) -> PhotoSurvey:
-    """A preset name or the path of a photo survey JSON file (fields missing from the file
-    take the values of its `preset`, default 'paper')."""
-    return settings_file.load(spec, cls=PhotoSurvey, fmt=FORMAT, version=VERSION, kind="photo survey",
-                              preset=preset_dim)
-
-
-def write_photo_survey_template(path: str | os.PathLike, survey: PhotoSurvey | None = None) -> None:
-    """A photo survey JSON file with every field and its documentation (`_doc`)."""
-    settings_file.write_template(path, (survey or preset_dim("paper")).to_json())
-
-
-# Camera network ----------------------------------------------------------------------
-
-@dataclass
-class Cameras:
-    """The camera network in the scene's local frame (float64).
-
-    `rotation[i]` has rows x (image width), y (image height), z (viewing axis) of camera i;
-    a point p is in front of camera i when z · (p - position) > 0."""
-
-    position: np.ndarray  # (n, 3)
-    rotation: np.ndarray  # (n, 3, 3)
-    focal_m: np.ndarray  # (n,)
-    tan_half_w: np.ndarray  # (n,) half image width / focal length
-    tan_half_h: np.ndarray  # (n,)
-    time_s: np.ndarray  # (n,) image time
-    line: np.ndarray  # (n,) flight line, 0-based
-    kind: np.ndarray  # (n,) 0 nadir, 1 front, 2 back, 3 left, 4 right
-    stations: int = 0
-    lines: int = 0
-
-    def __len__(self):
-        return len(self.position)
-
-
-def _camera_axes(view: np.ndarray, heading: np.ndarray) -> np.ndarray:
-    z = view / np.linalg.norm(view)
-    ref = np.array([0.0, 0.0, 1.0]) if abs(z[2]) < 0.99 else heading
-    x = np.cross(z, ref)
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    return np.array([x, y, z])
-
-
-def plan_cameras(survey: PhotoSurvey, bounds: np.ndarray, ground_z: float) -> Cameras:
-    """Exposure stations over `bounds` ((2, 3) local min/max) grown by `margin_m`, five
-    (or one) cameras each, serpentine lines centred on the scene."""
-    a = math.radians(survey.line_direction_deg)
-    u = np.array([math.cos(a), math.sin(a)])
-    v = np.array([-u[1], u[0]])
-    corners = np.array([[x, y] for x in bounds[:, 0] for y in bounds[:, 1]])
-    along, across = corners @ u, corners @ v
-    m = survey.margin_m
-    a0, a1 = along.min() - m, along.max() + m
-    c0, c1 = across.min() - m, across.max() + m
-    ns = max(1, math.ceil((a1 - a0) / survey.station_spacing_m) + 1)
-    nl = max(1, math.ceil((c1 - c0) / survey.line_spacing_m) + 1)
-    a_mid, c_mid = 0.5 * (a0 + a1), 0.5 * (c0 + c1)
-    z = ground_z + survey.altitude_agl_m
-    tilt = math.radians(survey.oblique_tilt_deg)
-    pitch = survey.pixel_pitch_um * 1e-6
-    down = np.array([0.0, 0.0, -1.0])
-    pos, rot, foc, tw, th, tim, lin, kind = [], [], [], [], [], [], [], []
-    t = survey.gps_start_s
-    prev = None
-    for k in range(nl):
-        c = c_mid + (k - (nl - 1) / 2) * survey.line_spacing_m
-        forward = k % 2 == 0
-        h2 = u if forward else -u
-        heading = np.array([h2[0], h2[1], 0.0])
-        right = np.array([h2[1], -h2[0], 0.0])
-        views = [(0, down, survey.focal_length_mm)]
-        if survey.oblique_cameras == 4:
-            for kk, hd in ((1, heading), (2, -heading), (3, -right), (4, right)):
-                views.append((kk, math.cos(tilt) * down + math.sin(tilt) * hd, survey.oblique_focal_length_mm))
-        axes = [(kk, _camera_axes(vw, heading), f * 1e-3) for kk, vw, f in views]
-        for j in range(ns):
-            s = a_mid + (j - (ns - 1) / 2) * survey.station_spacing_m
-            s = s if forward else 2 * a_mid - s
-            p = np.array([*(s * u + c * v), z])
-            if prev is not None:
-                t += float(np.linalg.norm(p - prev)) / survey.speed_m_s
-            prev = p
-            for kk, r, f in axes:
-                pos.append(p)
-                rot.append(r)
-                foc.append(f)
-                tw.append(survey.image_width_px * pitch / 2 / f)
-                th.append(survey.image_height_px * pitch / 2 / f)
-                tim.append(t)
-                lin.append(k)
-                kind.append(kk)
-    return Cameras(np.array(pos), np.array(rot), np.array(foc), np.array(tw), np.array(th), np.array(tim),
-                   np.array(lin, np.int64), np.array(kind, np.uint8), stations=ns * nl, lines=nl)
-
 
 # Mesh pieces -------------------------------------------------------------------------
 
@@ -742,8 +457,6 @@ def simulate_dim(scene: Scene, photo_survey: PhotoSurvey, out_path: str | os.Pat
 
     `progress` is called with (chunks_done, chunks_total). Same scene, survey and seed give
     the same bytes whatever `threads`."""
-    from .scan import RayCaster, _las_offset, check_scannable, ground_level, label_counts
-
     started = time.perf_counter()
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise QuakeScanError(f"seed must be an integer >= 0, got {seed!r}")
@@ -791,7 +504,7 @@ def simulate_dim(scene: Scene, photo_survey: PhotoSurvey, out_path: str | os.Pat
     pts += disp
     face = pieces.face[g]
     summary.points = len(pts)
-    offset, shift = _las_offset(scene, caster)
+    offset, shift = las_offset(scene, caster)
     writer = LasChunkWriter(out_path, offset, scene.crs, s.acquisition_date)
     writer.header.system_identifier = "QuakeScan virtual DIM"
     with writer:

@@ -107,16 +107,15 @@ class ExperimentSettings:
 
 
 def _acquire(kind: str, scene_dir: Path, stem: Path, seed: int, say=None) -> Path:
-    """stem.seedN.las acquired from scene_dir with the paper's survey of `kind`; reused only
-    when its acquisition record says the same scene, survey and seed (`core.acquisition`)."""
+    """stem.seedN.las acquired from scene_dir with the default settings of sensor `kind`
+    (`core.sensors`); reused only when its acquisition record says the same scene, settings
+    and seed (`core.acquisition`)."""
+    from . import sensors
     from .acquisition import Acquisition, acquire
-    from .dim import preset_dim
-    from .survey import preset
 
     out = stem.with_name(f"{stem.name}.seed{seed}.las")
     t0 = time.perf_counter()
-    got = acquire(scene_dir, Acquisition(kind, preset("paper") if kind == "uls" else preset_dim("paper")), out,
-                  seed=seed)
+    got = acquire(scene_dir, Acquisition(kind, sensors.get(kind).default()), out, seed=seed)
     if say and not got.resumed:
         say(f"  {out.name}: {kind.upper()} in {time.perf_counter() - t0:.0f} s")
     return out

@@ -14,7 +14,8 @@ Neighbourhood
     (|d| <= r, error <= ~3 (N + 3) eps r^2 on every eigenvalue) and redoes, centred on the
     neighbourhood's own mean (two passes), every neighbourhood where a small eigenvalue
     decides: l1 <= 1e-4 r^2, l2 <= 1e-6 l1 or l3 <= 1e-6 l1 (near-collinear, near-exact
-    planes); see `core._feature_kernels`. The numpy reference always centres on the mean.
+    planes); see `core._feature_kernels`. The numpy reference (`core._feature_reference`,
+    one point at a time) always centres on the mean.
 
 Definitions (CloudCompare / CCCoreLib "Geometric features"; jakteristics copies them)
     C = (1/N) sum (p - mean)(p - mean)^T (population covariance, as CloudCompare; jakteristics
@@ -56,12 +57,31 @@ Degenerate neighbourhoods: one rule
         degenerate layout; relative pivot 1e-12).
     An exact plane (l3 = 0) is not degenerate: eigenentropy stays finite (0 ln 0 := 0),
     sphericity and omnivariance are 0. No feature is ever silently inf.
+
+Registry: how a feature is declared
+    One pass over each neighbourhood measures what the requested features need (`MEASURES`:
+    count, eigen, normal, roughness, z, curvature, cylinder), into a `Measures`; every
+    feature is then a function of those measures and r. `REGISTRY` holds one `Feature` per
+    name: its category, the measures it needs and `derive`, its numpy definition. FEATURES,
+    what the kernel is asked to measure and the derivation all read it; the reference
+    (`core._feature_reference`) derives every feature with the same `derive`.
+    * A feature derived from existing measures: one `Feature` entry, appended at the end of
+      REGISTRY (FEATURES is its order, and models and cached training tables name their
+      columns in it). `compiled=` is optional: a code of `_feature_kernels.eigen_features`
+      computing the same formula in the compiled pass over the eigenvalues (then add the
+      code there; the tests compare it with `derive`).
+    * A feature needing a new measure (a new moment of the neighbourhood): a name in
+      MEASURES with the kernel switch that computes it, a field of `Measures` (and its
+      undefined value in `Measures.undefined`), its accumulation and output array in
+      `_feature_kernels.neighbourhoods` (and the switch in `_kernel_measures`), the same
+      quantity in `_feature_reference.neighbourhoods`, then the `Feature` entry.
 """
 from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -69,33 +89,166 @@ from .errors import QuakeScanError
 
 log = logging.getLogger(__name__)
 
-FEATURES = (
-    "linearity", "planarity", "omnivariance", "surface_variation", "curvature", "point_density",
-    "num_neighbours", "surface_density", "volume_density", "sphericity", "verticality",
-    "eigenentropy", "anisotropy", "eigenvalue1", "eigenvalue2", "eigenvalue3", "eigenvalue_sum",
-    "roughness", "z_rank", "z_range", "normal_x", "normal_y", "normal_z", "echo_ratio",
+MIN_POINTS = 4
+
+# What one pass over a neighbourhood can measure, and the switch of
+# `_feature_kernels.neighbourhoods` (and of the reference) that measures it; the count is
+# always measured. eigen and normal come from one eigen decomposition, hence one switch.
+MEASURES = {
+    "count": None,  # N, points within r
+    "eigen": "do_eig",  # l1 >= l2 >= l3 of the population covariance
+    "normal": "do_eig",  # unit eigenvector of l3, oriented
+    "roughness": "do_rough",  # distance to the plane of the other neighbours
+    "z": "do_z",  # z range and z rank
+    "curvature": "do_curv",  # |H| of the quadric
+    "cylinder": "do_cyl",  # N_cyl, points in the vertical cylinder of radius r
+}
+KERNEL_SWITCHES = ("do_eig", "do_rough", "do_z", "do_curv", "do_cyl")  # the kernel's argument order
+
+
+@dataclass
+class Measures:
+    """Per query point (m of them): what the features are derived from. Arrays not measured
+    are NaN (ncyl None); see the module's degenerate rule for where measured ones are NaN."""
+
+    count: np.ndarray  # (m,) int64
+    lam: np.ndarray  # (m, 3) eigenvalues, descending
+    normal: np.ndarray  # (m, 3)
+    rough: np.ndarray  # (m,)
+    zrank: np.ndarray
+    zrange: np.ndarray
+    curv: np.ndarray
+    ncyl: np.ndarray | None  # (m,) float64
+
+    @classmethod
+    def undefined(cls, m: int) -> Measures:
+        """m queries with no neighbour at all (an empty cloud)."""
+        return cls(np.zeros(m, np.int64), np.full((m, 3), np.nan), np.full((m, 3), np.nan),
+                   *(np.full(m, np.nan) for _ in range(4)), np.zeros(m))
+
+    @property
+    def n(self) -> np.ndarray:
+        return self.count.astype(np.float64)
+
+    @property
+    def l1(self) -> np.ndarray:
+        return self.lam[:, 0]
+
+    @property
+    def l2(self) -> np.ndarray:
+        return self.lam[:, 1]
+
+    @property
+    def l3(self) -> np.ndarray:
+        return self.lam[:, 2]
+
+    @property
+    def eigensum(self) -> np.ndarray:
+        return self.l1 + self.l2 + self.l3
+
+
+@dataclass(frozen=True)
+class Feature:
+    """One point feature: `derive(measures, r)` gives its (m,) values from the measures it
+    `needs` (names of MEASURES); `compiled` is its code in `_feature_kernels.eigen_features`
+    when a compiled pass computes the same formula (eigen ratios: numpy's temporaries would
+    cost more than the neighbourhood kernel)."""
+
+    name: str
+    category: str  # one of CATEGORIES
+    needs: frozenset
+    derive: Callable[[Measures, float], np.ndarray]
+    compiled: int | None = None
+
+    def value(self, measures: Measures, radius: float) -> np.ndarray:
+        """(m,) float64; NaN (never inf) where the measures are undefined."""
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.asarray(self.derive(measures, radius), dtype=np.float64)
+
+
+def _omnivariance(q, r):
+    s = q.eigensum
+    return np.cbrt((q.l1 / s) * (q.l2 / s) * (q.l3 / s))
+
+
+def _eigenentropy(q, r):
+    s = q.eigensum
+    v = np.zeros(len(s))
+    for lam in (q.l1, q.l2, q.l3):
+        e = lam / s
+        pos = e > 0.0  # 0 ln 0 := 0
+        v -= np.where(pos, e * np.log(np.where(pos, e, 1.0)), 0.0)
+    return np.where(np.isnan(s), np.nan, v)
+
+
+def _echo_ratio(q, r):
+    return np.where(q.ncyl > 0, 100.0 * q.n / np.maximum(q.ncyl, 1), np.nan)
+
+
+CATEGORIES = ("eigen", "normal", "density", "height", "surface")
+
+
+def _entry(name, category, needs, derive, compiled=None):
+    unknown = set(needs.split()) - set(MEASURES)
+    if unknown or category not in CATEGORIES:
+        raise ValueError(f"feature {name}: category {category!r}, measures {needs!r}; "
+                         f"known: {CATEGORIES}, {tuple(MEASURES)}")
+    return Feature(name, category, frozenset(needs.split()), derive, compiled)
+
+
+# q: the Measures, r: the radius asked for. In FEATURES order: a new feature goes at the end.
+_ENTRIES = (
+    _entry("linearity", "eigen", "eigen", lambda q, r: (q.l1 - q.l2) / q.l1, compiled=0),
+    _entry("planarity", "eigen", "eigen", lambda q, r: (q.l2 - q.l3) / q.l1, compiled=1),
+    _entry("omnivariance", "eigen", "eigen", _omnivariance, compiled=5),
+    _entry("surface_variation", "eigen", "eigen", lambda q, r: q.l3 / q.eigensum, compiled=4),
+    _entry("curvature", "surface", "curvature", lambda q, r: q.curv),
+    _entry("point_density", "density", "cylinder", lambda q, r: q.ncyl / (math.pi * r ** 2)),
+    _entry("num_neighbours", "density", "count", lambda q, r: q.n),
+    _entry("surface_density", "density", "count", lambda q, r: q.n / (math.pi * r ** 2)),
+    _entry("volume_density", "density", "count", lambda q, r: q.n / (4.0 / 3.0 * math.pi * r ** 3)),
+    _entry("sphericity", "eigen", "eigen", lambda q, r: q.l3 / q.l1, compiled=2),
+    _entry("verticality", "normal", "normal", lambda q, r: 1.0 - np.abs(q.normal[:, 2])),
+    _entry("eigenentropy", "eigen", "eigen", _eigenentropy, compiled=6),
+    _entry("anisotropy", "eigen", "eigen", lambda q, r: (q.l1 - q.l3) / q.l1, compiled=3),
+    _entry("eigenvalue1", "eigen", "eigen", lambda q, r: q.l1.copy()),
+    _entry("eigenvalue2", "eigen", "eigen", lambda q, r: q.l2.copy()),
+    _entry("eigenvalue3", "eigen", "eigen", lambda q, r: q.l3.copy()),
+    _entry("eigenvalue_sum", "eigen", "eigen", lambda q, r: q.eigensum, compiled=7),
+    _entry("roughness", "surface", "roughness", lambda q, r: q.rough),
+    _entry("z_rank", "height", "z", lambda q, r: q.zrank),
+    _entry("z_range", "height", "z", lambda q, r: q.zrange),
+    _entry("normal_x", "normal", "normal", lambda q, r: q.normal[:, 0].copy()),
+    _entry("normal_y", "normal", "normal", lambda q, r: q.normal[:, 1].copy()),
+    _entry("normal_z", "normal", "normal", lambda q, r: q.normal[:, 2].copy()),
+    _entry("echo_ratio", "density", "count cylinder", _echo_ratio),
 )
+REGISTRY: dict[str, Feature] = {f.name: f for f in _ENTRIES}
+FEATURES = tuple(REGISTRY)
 # what the damage pipeline computes by default: the paper's robust set plus curvature (the
 # changed/unchanged split needs it)
 DEFAULT_PIPELINE_FEATURES = (
     "planarity", "surface_variation", "point_density", "num_neighbours", "surface_density",
     "volume_density", "roughness", "z_rank", "z_range", "normal_x", "normal_y", "normal_z", "curvature",
 )
-MIN_POINTS = 4
-_EIGEN = {"linearity", "planarity", "omnivariance", "surface_variation", "sphericity", "eigenentropy",
-          "anisotropy", "eigenvalue1", "eigenvalue2", "eigenvalue3", "eigenvalue_sum"}
-_NORMAL = {"verticality", "normal_x", "normal_y", "normal_z"}
-_Z = {"z_rank", "z_range"}
-_EIG_CODES = {"linearity": 0, "planarity": 1, "sphericity": 2, "anisotropy": 3, "surface_variation": 4,
-              "omnivariance": 5, "eigenentropy": 6, "eigenvalue_sum": 7}
-_CYL = {"point_density", "echo_ratio"}
+
+
+def needs(names) -> frozenset:
+    """The measures the features `names` need."""
+    return frozenset().union(*(REGISTRY[f].needs for f in names))
+
+
+def kernel_switches(names) -> tuple:
+    """(do_eig, do_rough, do_z, do_curv, do_cyl) for the features `names`."""
+    on = {MEASURES[m] for m in needs(names)}
+    return tuple(s in on for s in KERNEL_SWITCHES)
 
 
 class FeatureError(QuakeScanError):
     """Features cannot be computed as asked (bad radius, names or coordinates)."""
 
 
-def _check(xyz, radius, features, core_points):
+def _check(xyz, radius, features, core_points, query_index):
     xyz = np.asarray(xyz, dtype=np.float64)
     if xyz.ndim != 2 or xyz.shape[1] != 3:
         raise FeatureError(f"xyz must be an (n, 3) array, got shape {xyz.shape}")
@@ -104,14 +257,52 @@ def _check(xyz, radius, features, core_points):
     if not (isinstance(radius, (int, float, np.floating)) and math.isfinite(radius) and radius > 0):
         raise FeatureError(f"radius must be a positive number of metres, got {radius!r}")
     names = FEATURES if features is None else tuple(features)
-    unknown = [f for f in names if f not in FEATURES]
+    unknown = [f for f in names if f not in REGISTRY]
     if unknown:
         raise FeatureError(f"unknown features {unknown}; known: {', '.join(FEATURES)}")
     if core_points is not None:
         core_points = np.asarray(core_points, dtype=np.float64)
         if core_points.ndim != 2 or core_points.shape[1] != 3 or not np.all(np.isfinite(core_points)):
             raise FeatureError(f"core_points must be a finite (m, 3) array, got shape {core_points.shape}")
-    return xyz, float(radius), names, core_points
+    n = len(xyz)
+    if query_index is not None:
+        if core_points is not None:
+            raise FeatureError("give core_points or query_index, not both")
+        query_index = np.asarray(query_index, dtype=np.int64)
+        if query_index.ndim != 1 or (len(query_index) and (query_index.min() < 0 or query_index.max() >= n)):
+            raise FeatureError(f"query_index must index the {n} points of the cloud")
+    return xyz, float(radius), names, core_points, query_index
+
+
+def _query_count(xyz, core_points, query_index) -> int:
+    if query_index is not None:
+        return len(query_index)
+    return len(xyz) if core_points is None else len(core_points)
+
+
+def _evaluate(names, radius, measures: Measures) -> dict[str, np.ndarray]:
+    """Every feature from its numpy definition, in the order asked."""
+    return {f: REGISTRY[f].value(measures, radius) for f in names}
+
+
+def _derive(names, radius, measures: Measures) -> dict[str, np.ndarray]:
+    """The features from the kernel's measures: those with a compiled code in one parallel
+    pass, the others from their definition. The compiled ones come first, by code: the
+    dict's order has always been so, and the change descriptors are listed in it."""
+    compiled = sorted((REGISTRY[f] for f in set(names) if REGISTRY[f].compiled is not None),
+                      key=lambda f: f.compiled)
+    out = {}
+    if compiled:
+        from . import _feature_kernels as K
+
+        arr = np.empty((len(compiled), len(measures.count)))
+        K.eigen_features(np.ascontiguousarray(measures.lam), np.array([f.compiled for f in compiled], np.int64),
+                         arr)
+        out.update(zip((f.name for f in compiled), arr))
+    for f in names:
+        if f not in out:
+            out[f] = REGISTRY[f].value(measures, radius)
+    return out
 
 
 # Neighbours are the points with |p - q| <= r (1 + RADIUS_TOLERANCE). On the millimetre grid
@@ -120,71 +311,16 @@ def _check(xyz, radius, features, core_points):
 # out. The next distance a mm grid allows beyond r is ~1e-6 relative away, so 1e-9 keeps
 # every tie inside in any frame and admits nothing else.
 RADIUS_TOLERANCE = 1e-9
-
-
-def _derive(names, radius, count, lam, normal, rough, zrank, zrange, curv, ncyl):
-    """Feature arrays from the per-neighbourhood quantities (same for fast and reference)."""
-    out = {}
-    n = count.astype(np.float64)
-    eig = [f for f in _EIG_CODES if f in names]
-    if eig:  # the ratios in one compiled parallel pass (numpy's temporaries cost more than the kernel)
-        from . import _feature_kernels as K
-
-        arr = np.empty((len(eig), len(count)))
-        K.eigen_features(np.ascontiguousarray(lam), np.array([_EIG_CODES[f] for f in eig], np.int64), arr)
-        out.update(zip(eig, arr))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        for name in names:
-            if name in out:
-                continue
-            if name == "num_neighbours":
-                v = n
-            elif name == "surface_density":
-                v = n / (math.pi * radius ** 2)
-            elif name == "volume_density":
-                v = n / (4.0 / 3.0 * math.pi * radius ** 3)
-            elif name == "point_density":
-                v = ncyl / (math.pi * radius ** 2)
-            elif name == "echo_ratio":
-                v = np.where(ncyl > 0, 100.0 * n / np.maximum(ncyl, 1), np.nan)
-            elif name in ("eigenvalue1", "eigenvalue2", "eigenvalue3"):
-                v = lam[:, int(name[-1]) - 1].copy()
-            elif name == "verticality":
-                v = 1.0 - np.abs(normal[:, 2])
-            elif name in ("normal_x", "normal_y", "normal_z"):
-                v = normal[:, "xyz".index(name[-1])].copy()
-            elif name == "roughness":
-                v = rough
-            elif name == "z_rank":
-                v = zrank
-            elif name == "z_range":
-                v = zrange
-            elif name == "curvature":
-                v = curv
-            out[name] = np.asarray(v, dtype=np.float64)
-    return out
-
-
-def _needs(names):
-    names = set(names)
-    do_curv = "curvature" in names
-    do_rough = "roughness" in names
-    do_eig = bool(names & (_EIGEN | _NORMAL))
-    return do_eig, do_rough, bool(names & _Z), do_curv, bool(names & _CYL)
-
-
 CELLS_PER_RADIUS = 3  # grid columns of side r/3: 1.45x the sphere's points tested (side r: 2.5x)
 _BLOCK = 8  # query groups per prange block (blocks are interleaved over the threads)
 PROGRESS_STEPS = 50  # kernel calls when progress is reported (each call a 2 % share of the query groups)
 
 
-def _fast(cloud, query, radius, names, workers, cells_per_radius=None, stats=None, query_index=None,
-          progress=None):
-    """Run the numba kernel. cloud: (x, y, z) contiguous arrays in the local frame (z >= 0);
-    query: the same for core points, or None for the cloud's own points (all of them, or
-    those in `query_index`).
-
-    Returns count, lam, normal, rough, zrank, zrange, curv, ncyl (None where not asked for)."""
+def _kernel_measures(cloud, query, radius, names, workers, cells_per_radius=None, stats=None, query_index=None,
+                     progress=None) -> Measures:
+    """What the features `names` need, by the numba kernel. cloud: (x, y, z) contiguous
+    arrays in the local frame (z >= 0); query: the same for core points, or None for the
+    cloud's own points (all of them, or those in `query_index`)."""
     from numba import get_num_threads, set_num_threads
 
     from . import _feature_kernels as K
@@ -244,7 +380,7 @@ def _fast(cloud, query, radius, names, workers, cells_per_radius=None, stats=Non
         gstart = np.concatenate([[0], np.flatnonzero(gkey[1:] != gkey[:-1]) + 1, [len(gkey)]]).astype(np.int64)
         gcol = qkeys[gstart[:-1]] >> zbits
         del gkey
-        do_eig, do_rough, do_z, do_curv, do_cyl = _needs(names)
+        do_eig, do_rough, do_z, do_curv, do_cyl = kernel_switches(names)
         do_mom = do_eig or do_rough or do_curv
         m = len(qx)
         empty1, empty3 = np.empty(0), np.empty((0, 3))
@@ -279,9 +415,9 @@ def _fast(cloud, query, radius, names, workers, cells_per_radius=None, stats=Non
         stats["exact_share"] = float(nexact.mean()) if m else 0.0
         stats["groups"] = len(gcol)
     nan1 = np.full(m, np.nan)
-    return (count, lam if do_mom else np.full((m, 3), np.nan), normal if do_mom else np.full((m, 3), np.nan),
-            rough if do_rough else nan1, zrank if do_z else nan1, zrange if do_z else nan1,
-            curv if do_curv else nan1, ncyl if do_cyl else None)
+    return Measures(count, lam if do_mom else np.full((m, 3), np.nan), normal if do_mom else np.full((m, 3), np.nan),
+                    rough if do_rough else nan1, zrank if do_z else nan1, zrange if do_z else nan1,
+                    curv if do_curv else nan1, ncyl.astype(np.float64) if do_cyl else None)
 
 
 def position_keys(xyz) -> np.ndarray:
@@ -322,8 +458,7 @@ def duplicate_groups(xyz):
 
 
 def compute_features(xyz, radius: float, features: Sequence[str] | None = None, core_points=None,
-                     workers: int | None = None, fast: bool = True, query_index=None,
-                     progress=None) -> dict[str, np.ndarray]:
+                     workers: int | None = None, query_index=None, progress=None) -> dict[str, np.ndarray]:
     """Geometric features of every point (or of every core point) at a spherical radius.
 
     Parameters
@@ -345,33 +480,21 @@ def compute_features(xyz, radius: float, features: Sequence[str] | None = None, 
     workers : int, optional
         Threads for the compiled kernel (default: all of numba's). Load is balanced by
         handing the threads interleaved blocks of query groups.
-    fast : bool
-        False runs the plain numpy reference (slow; for tests).
     progress : callable, optional
-        Called as progress(points_done, points_total) about 50 times (fast path only); the
-        results are the same with and without it.
+        Called as progress(points_done, points_total) about 50 times; the results are the
+        same with and without it.
 
     Returns
     -------
     dict of str -> (n,) or (m,) float64
         One array per requested feature, NaN where the degenerate rule of the module says so.
+        `core._feature_reference.reference_features` computes the same with plain numpy.
     """
-    xyz, radius, names, core_points = _check(xyz, radius, features, core_points)
-    n = len(xyz)
-    if query_index is not None:
-        if core_points is not None:
-            raise FeatureError("give core_points or query_index, not both")
-        query_index = np.asarray(query_index, dtype=np.int64)
-        if query_index.ndim != 1 or (len(query_index) and (query_index.min() < 0 or query_index.max() >= n)):
-            raise FeatureError(f"query_index must index the {n} points of the cloud")
-    m = n if core_points is None else len(core_points)
-    if query_index is not None:
-        m = len(query_index)
-    if m == 0 or n == 0:
-        nan = np.full(m, np.nan)
-        return {f: (np.zeros(m) if f in ("num_neighbours", "surface_density", "volume_density",
-                                         "point_density") else nan.copy()) for f in names}
-    if fast and m > 1:
+    xyz, radius, names, core_points, query_index = _check(xyz, radius, features, core_points, query_index)
+    m = _query_count(xyz, core_points, query_index)
+    if m == 0 or len(xyz) == 0:
+        return _evaluate(names, radius, Measures.undefined(m))
+    if m > 1:
         # Coincident query points have one neighbourhood: computed once. Without this the
         # kernel is quadratic in the duplicates (200 000 copies of one point: hours).
         qpts = core_points if core_points is not None else (xyz if query_index is None else xyz[query_index])
@@ -389,96 +512,7 @@ def compute_features(xyz, radius: float, features: Sequence[str] | None = None, 
             return {k: v[inverse] for k, v in once.items()}
     origin = xyz.min(axis=0)
     cols = [np.ascontiguousarray(xyz[:, k] - origin[k]) for k in range(3)]
-    r_test = radius * (1.0 + RADIUS_TOLERANCE)
-    need_cyl = bool(set(names) & _CYL)
-    if fast:
-        query = None if core_points is None else [np.ascontiguousarray(core_points[:, k] - origin[k])
-                                                  for k in range(3)]
-        count, lam, normal, rough, zrank, zrange, curv, ncyl = _fast(cols, query, r_test, names, workers,
-                                                                     query_index=query_index, progress=progress)
-        ncyl = ncyl.astype(np.float64) if need_cyl else None
-    else:
-        cloud = np.column_stack(cols)
-        if core_points is not None:
-            query = core_points - origin
-            qself = np.full(m, -1, np.int64)
-        elif query_index is not None:
-            query, qself = cloud[query_index], query_index
-        else:
-            query, qself = cloud, np.arange(n, dtype=np.int64)
-        count, lam, normal, rough, zrank, zrange, curv, ncyl = _reference(cloud, query, qself, r_test, names)
-    return _derive(names, radius, count, lam, normal, rough, zrank, zrange, curv, ncyl)
-
-
-def _reference(cloud, query, qself, radius, names):
-    """Plain numpy, one point at a time: the obvious reading of the module's definitions."""
-    from scipy.spatial import cKDTree
-
-    do_eig, do_rough, do_z, do_curv, do_cyl = _needs(names)
-    tree = cKDTree(cloud)
-    m = len(query)
-    count = np.zeros(m, np.int64)
-    lam = np.full((m, 3), np.nan)
-    normal = np.full((m, 3), np.nan)
-    rough, zrank, zrange, curv = (np.full(m, np.nan) for _ in range(4))
-    ncyl = None
-    if do_cyl:
-        ncyl = np.asarray(cKDTree(cloud[:, :2]).query_ball_point(query[:, :2], radius, return_length=True),
-                          dtype=np.float64)
-    tiny = (1e-9 * radius) ** 2
-    for i, q in enumerate(query):
-        idx = np.array(sorted(tree.query_ball_point(q, radius)), dtype=np.int64)
-        # query_ball_point tests the distance as scipy does; use the kernel's test exactly
-        d = cloud[idx] - q
-        idx = idx[np.sum(d * d, axis=1) <= radius * radius]
-        nb = cloud[idx]
-        k = len(idx)
-        count[i] = k
-        if k < MIN_POINTS:
-            continue
-        if do_z:
-            zrange[i] = nb[:, 2].max() - nb[:, 2].min()
-            below = np.sum(nb[:, 2] < q[2])
-            zrank[i] = below / (k - 1) if qself[i] >= 0 else below / k
-        if not (do_eig or do_rough or do_curv):
-            continue
-        mean = nb.mean(axis=0)
-        c = nb - mean
-        w, v = np.linalg.eigh(c.T @ c / k)
-        w = np.clip(w[::-1], 0.0, None)
-        v = v[:, ::-1]
-        if w[0] <= tiny:
-            continue
-        lam[i] = w
-        if w[1] <= 1e-10 * w[0]:
-            continue
-        nrm = v[:, 2] * (1 if (v[2, 2], v[1, 2], v[0, 2]) >= (0, 0, 0) else -1)
-        normal[i] = nrm
-        if do_rough:
-            if qself[i] >= 0:
-                others = nb[idx != qself[i]]
-                mo = others.mean(axis=0)
-                wo, vo = np.linalg.eigh((others - mo).T @ (others - mo) / len(others))
-                if wo[1] > 1e-10 * wo[2] and wo[2] > tiny:
-                    rough[i] = abs(vo[:, 0] @ (q - mo))
-            else:
-                rough[i] = abs(nrm @ (q - mean))
-        if do_curv and k >= 6:
-            u, vv, h = (c @ v / radius).T
-            X = np.column_stack([np.ones(k), u, vv, u * u, u * vv, vv * vv])
-            MtM = X.T @ X
-            if np.linalg.cond(MtM) < 1e12:
-                coef = np.linalg.solve(MtM, X.T @ h)
-                uq, vq = (q - mean) @ v[:, :2] / radius
-                fx = coef[1] + 2 * coef[3] * uq + coef[4] * vq
-                fy = coef[2] + coef[4] * uq + 2 * coef[5] * vq
-                fxx, fxy, fyy = 2 * coef[3], coef[4], 2 * coef[5]
-                g = 1 + fx * fx + fy * fy
-                curv[i] = abs(((1 + fy * fy) * fxx - 2 * fx * fy * fxy + (1 + fx * fx) * fyy)
-                              / (2 * g ** 1.5)) / radius
-    return count, lam, normal, rough, zrank, zrange, curv, ncyl
-
-
-def _reference_features(xyz, radius, features=None, core_points=None, query_index=None):
-    """The slow numpy reference of `compute_features` (same definitions, same NaN rule)."""
-    return compute_features(xyz, radius, features, core_points, fast=False, query_index=query_index)
+    query = None if core_points is None else [np.ascontiguousarray(core_points[:, k] - origin[k]) for k in range(3)]
+    measures = _kernel_measures(cols, query, radius * (1.0 + RADIUS_TOLERANCE), names, workers,
+                                query_index=query_index, progress=progress)
+    return _derive(names, radius, measures)

@@ -791,15 +791,15 @@ def run_experiment(pre_scene_dir: str | os.PathLike, post_scene_dir, out_dir: st
     (clouds {uls,dim}_post1.las, _post2.las, ...; stage k is scanned with seed + k).
     `spacing` thins every cloud before the features (module doc). `progress(done, total)`
     over the clouds and then the radii."""
+    from . import sensors
     from .acquisition import Acquisition, acquire
-    from .dim import preset_dim
     from .pointcloud import read_epoch
-    from .survey import preset
 
     started = time.perf_counter()
     spacing = check_spacing(spacing)
-    survey = survey or preset("paper")
-    photo_survey = photo_survey or preset_dim("paper")
+    survey = survey or sensors.get("uls").default()
+    photo_survey = photo_survey or sensors.get("dim").default()
+    settings = {"uls": survey, "dim": photo_survey}
     if isinstance(post_scene_dir, (str, os.PathLike)):
         post_dirs = [Path(post_scene_dir)]
     else:
@@ -821,10 +821,9 @@ def run_experiment(pre_scene_dir: str | os.PathLike, post_scene_dir, out_dir: st
             path = clouds / f"{src}_{ep}.las"
             paths[(src, ep)] = path
             t0 = time.perf_counter()
-            # reused only when made from the same scene, survey and seed: a folder of another
+            # reused only when made from the same scene, settings and seed: a folder of another
             # run's clouds is acquired again, never mixed into this one
-            got = acquire(folder, Acquisition(src, survey if src == "uls" else photo_survey), path,
-                          seed=seeds[ep], threads=workers)
+            got = acquire(folder, Acquisition(src, settings[src]), path, seed=seeds[ep], threads=workers)
             if got.resumed:
                 log.info("robustness: keeping %s", path)
             else:

@@ -1,7 +1,7 @@
 """Scene bundles: `scene.json` (manifest) + `mesh.ply` (labelled triangle mesh).
 
 The format is QuakeScan's contract between the Blender add-on and the core; see docs/DESIGN.md
-and the README section "Scene bundle". Coordinates in the mesh are float64 relative to
+and docs/formats.md "Scene bundle". Coordinates in the mesh are float64 relative to
 `origin`, so a scene at UTM coordinates keeps millimetres.
 """
 from __future__ import annotations

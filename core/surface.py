@@ -125,7 +125,7 @@ class SurfaceSettings:
         if self.cell_max_m < self.cell_min_m:
             raise SurfaceError(f"cell_max_m {self.cell_max_m} < cell_min_m {self.cell_min_m}")
         if isinstance(self.m3c2, dict):
-            object.__setattr__(self, "m3c2", M3C2Settings(**self.m3c2))
+            object.__setattr__(self, "m3c2", M3C2Settings.from_json(self.m3c2))
 
     def cell_for(self, sparser_density_pts_m2: float) -> float:
         """Raster cell side (m) for a pair whose sparser epoch has this planimetric density."""
@@ -142,7 +142,7 @@ class SurfaceSettings:
     @classmethod
     def from_json(cls, d: dict) -> SurfaceSettings:
         d = dict(d)
-        d["m3c2"] = M3C2Settings(**d.get("m3c2", {}))
+        d["m3c2"] = M3C2Settings.from_json(d.get("m3c2", {}))
         return cls(**d)
 
 

@@ -1,4 +1,4 @@
-"""The epoch LAS contract (README "Epoch point cloud") that both simulators' outputs must keep."""
+"""The epoch LAS contract (docs/formats.md "Epoch point cloud") that both simulators' outputs must keep."""
 import laspy
 import numpy as np
 

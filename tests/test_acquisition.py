@@ -8,20 +8,10 @@ import laspy
 import numpy as np
 import pytest
 
-import core.acquisition as acquisition_module
+import core.dim
+import core.scan
 from core.acquisition import (
-    ALS_DENSITY_PTS_M2,
-    ALS_MISALIGNMENT_M,
-    ALS_RANGE_NOISE_M,
-    DIM_ALTITUDE_M,
-    DIM_NOISE_PX,
-    DIM_POINT_STEP_PX,
     KINDS,
-    ULS_ALTITUDE_M,
-    ULS_MISALIGNMENT_M,
-    ULS_OVERLAP_PCT,
-    ULS_PULSE_RATE_HZ,
-    ULS_RANGE_NOISE_M,
     Acquisition,
     acquire,
     measured_density,
@@ -29,11 +19,22 @@ from core.acquisition import (
     sidecar_path,
     thin_to_density,
 )
-from core.dim import preset_dim
+from core.dim_settings import preset_dim
 from core.errors import PointCloudError, QuakeScanError, SurveyError
 from core.pointcloud import Epoch
 from core.scan import scan
 from core.scene import write_scene
+from core.sensor_dim import DIM_ALTITUDE_M, DIM_NOISE_PX, DIM_POINT_STEP_PX
+from core.sensor_lidar import (
+    ALS_DENSITY_PTS_M2,
+    ALS_MISALIGNMENT_M,
+    ALS_RANGE_NOISE_M,
+    ULS_ALTITUDE_M,
+    ULS_MISALIGNMENT_M,
+    ULS_OVERLAP_PCT,
+    ULS_PULSE_RATE_HZ,
+    ULS_RANGE_NOISE_M,
+)
 from core.survey import als_for_density, preset
 from core.synthetic import box_city
 
@@ -162,8 +163,8 @@ def test_acquire_writes_a_sidecar_and_resumes_without_simulating(tmp_path, monke
     def no_simulation(*args, **kwargs):
         raise AssertionError("resumed acquisition simulated again")
 
-    monkeypatch.setattr(acquisition_module, "scan", no_simulation)
-    monkeypatch.setattr(acquisition_module, "simulate_dim", no_simulation)
+    monkeypatch.setattr(core.scan, "scan", no_simulation)
+    monkeypatch.setattr(core.dim, "simulate_dim", no_simulation)
     again = acquire(scene_dir, acq, out, seed=4)
     assert again.resumed and out.read_bytes() == data
     # another seed or other settings are another acquisition

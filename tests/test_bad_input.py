@@ -561,12 +561,13 @@ def test_identical_points_do_not_make_features_quadratic(tmp_path, capsys):
 
 
 def test_duplicates_give_the_reference_features():
-    from core.features import _reference_features, compute_features
+    from core._feature_reference import reference_features
+    from core.features import compute_features
 
     rng = np.random.default_rng(3)
     xyz = np.round(rng.random((1500, 3)) * [8.0, 8.0, 2.0], 3)
     xyz = np.vstack([xyz, xyz[:300], xyz[:40], xyz[:40]])
-    fast, ref = compute_features(xyz, 1.0), _reference_features(xyz, 1.0)
+    fast, ref = compute_features(xyz, 1.0), reference_features(xyz, 1.0)
     for name in fast:
         np.testing.assert_allclose(fast[name], ref[name], rtol=1e-6, atol=1e-9, err_msg=name)
     sub = compute_features(xyz, 1.0, query_index=np.array([5, 1500 + 5, 1800 + 5, 7]))

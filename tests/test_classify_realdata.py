@@ -210,3 +210,30 @@ def test_text_footprint_ids_and_attributes_reach_the_results(ahn3, tmp_path):
     first = gj["features"][0]["properties"]
     assert first["footprint"]["gml_id"] == rows[0]["footprint_id"]
     assert len(str(first["footprint"]["identificatiebagpnd"])) >= 15
+
+
+@pytest.mark.slow
+def test_a_sparse_rescan_of_a_real_tile_shows_no_displaced_surface_by_chance(ahn3, tmp_path):
+    """AHN3 tile 1 against itself thinned to 25 % (~2 pts/m² after): nothing changed, so a
+    surface is 'displaced' only by chance. With the binomial test on the few post-event points
+    near a core point (M3C2Settings.displaced_alpha) no core point of any building is; the
+    share rule alone let chance patches through (a 3-point patch on one roof step read as a
+    1.2 m sag)."""
+    import dataclasses
+
+    from core.pipeline import describe_pair, settings_for_descriptors
+    from core.surface import SURFACE_DESCRIPTORS
+
+    las, fp = ahn3
+    pre, post = _split(las, tmp_path, lambda n: np.ones(n, bool),
+                       lambda n: np.random.default_rng(5).random(n) < 0.25)
+    pair = load_pair(pre, post, fp)
+    settings = settings_for_descriptors(SURFACE_DESCRIPTORS, 1.5)
+    assert settings.surface.m3c2.displaced_alpha == 0.01
+    legacy = dataclasses.replace(settings, surface=dataclasses.replace(
+        settings.surface, m3c2=dataclasses.replace(settings.surface.m3c2, displaced_alpha=0.0)))
+    inward = {}
+    for name, s in (("chance test", settings), ("share rule", legacy)):
+        rows = [r for r in describe_pair(pair.pre, pair.post, s, workers=2) if r.assessable]
+        inward[name] = sum(r.descriptors["m_inward"] + r.descriptors["m_outward"] > 0 for r in rows)
+    assert inward["chance test"] == 0 < inward["share rule"], inward

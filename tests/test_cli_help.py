@@ -1,4 +1,4 @@
-"""The command line explains itself: help on every argument, the README's command list
+"""The command line explains itself: help on every argument, the command list of docs/cli.md
 checked against the parser, one way to give a pair of epochs (--pre/--post)."""
 import argparse
 import re
@@ -8,7 +8,7 @@ import pytest
 
 from core.cli import build_parser, main
 
-README = Path(__file__).resolve().parents[1] / "README.md"
+CLI_PAGE = Path(__file__).resolve().parents[1] / "docs" / "cli.md"
 GLOBAL = "(global)"
 
 
@@ -23,16 +23,16 @@ def _arguments(parser) -> list:
 
 def _parser_flags(parser, command: bool = True) -> list:
     """Each optional argument as the tuple of its option strings (-h left out, and in a
-    command -q/--quiet, which the README lists once with the global options)."""
+    command -q/--quiet, which docs/cli.md lists once with the global options)."""
     return [tuple(a.option_strings) for a in _arguments(parser)
             if a.option_strings and not (command and a.dest == "quiet")]
 
 
-def _readme_entries() -> dict:
-    """{command: text of its entry} from the code block of the README's "Command line"
+def _cli_page_entries() -> dict:
+    """{command: text of its entry} from the code block of docs/cli.md's "The commands"
     section; an entry is a `quakescan …` line and its indented continuation lines, comments cut."""
-    text = README.read_text()
-    section = text[text.index("## Command line\n"):]
+    text = CLI_PAGE.read_text()
+    section = text[text.index("## The commands\n"):]
     block = section[section.index("```sh\n") + 6:]
     block = block[:block.index("```")]
     entries: dict = {}
@@ -42,15 +42,15 @@ def _readme_entries() -> dict:
         if line.startswith("quakescan "):
             word = code.split()[1]
             current = GLOBAL if word.startswith("[") else word
-            assert current not in entries, f"README lists {current} twice"
+            assert current not in entries, f"docs/cli.md lists {current} twice"
             entries[current] = code
         elif line.strip():
-            assert current is not None and line.startswith(" "), f"README line outside an entry: {line!r}"
+            assert current is not None and line.startswith(" "), f"docs/cli.md line outside an entry: {line!r}"
             entries[current] += " " + code
     return entries
 
 
-def _readme_flags(text: str) -> set:
+def _listed_flags(text: str) -> set:
     return set(re.findall(r"(?<![\w-])(--?[a-z][a-z0-9-]*)", text))
 
 
@@ -76,26 +76,26 @@ def test_help_shows_the_defaults_that_matter(flag, command):
     assert "default" in action.help, f"{command} {flag}: {action.help!r}"
 
 
-def test_readme_lists_every_command_and_flag_of_the_parser_and_no_other():
+def test_cli_page_lists_every_command_and_flag_of_the_parser_and_no_other():
     parser = build_parser()
-    entries = _readme_entries()
+    entries = _cli_page_entries()
     commands = _commands(parser)
-    assert set(entries) - {GLOBAL} == set(commands), "README's command list and the parser's commands differ"
+    assert set(entries) - {GLOBAL} == set(commands), "docs/cli.md's command list and the parser's commands differ"
     problems = []
     for name, command in [(GLOBAL, parser), *commands.items()]:
-        named = _readme_flags(entries[name])
+        named = _listed_flags(entries[name])
         flags = _parser_flags(command, command=name != GLOBAL)
-        problems += [f"{name}: {'/'.join(f)} not in the README" for f in flags if not set(f) & named]
+        problems += [f"{name}: {'/'.join(f)} not in docs/cli.md" for f in flags if not set(f) & named]
         known = {s for f in flags for s in f}
-        problems += [f"{name}: README names {f}, which the parser lacks" for f in sorted(named - known)]
+        problems += [f"{name}: docs/cli.md names {f}, which the parser lacks" for f in sorted(named - known)]
     assert not problems, "\n".join(problems)
 
 
-def test_readme_check_sees_a_flag_the_parser_lacks(monkeypatch):
-    """The check above can fail: a README flag the parser does not have is reported."""
-    entries = _readme_entries()
-    assert "--no-such-flag" not in _readme_flags(entries["classify"])
-    assert "--no-such-flag" in _readme_flags(entries["classify"] + " [--no-such-flag]")
+def test_cli_page_check_sees_a_flag_the_parser_lacks(monkeypatch):
+    """The check above can fail: a docs/cli.md flag the parser does not have is reported."""
+    entries = _cli_page_entries()
+    assert "--no-such-flag" not in _listed_flags(entries["classify"])
+    assert "--no-such-flag" in _listed_flags(entries["classify"] + " [--no-such-flag]")
 
 
 def test_train_takes_pre_post_pairs_and_refuses_unmatched_ones(tmp_path, capsys):

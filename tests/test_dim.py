@@ -7,17 +7,11 @@ import laspy
 import numpy as np
 import pytest
 
-from core.dim import (
-    FIELD_DOC,
-    PhotoSurvey,
-    load_photo_survey,
-    plan_cameras,
-    preset_dim,
-    simulate_dim,
-    write_photo_survey_template,
-)
+from core.dim import simulate_dim
+from core.dim_cameras import plan_cameras
+from core.dim_settings import FIELD_DOC, PhotoSurvey, load_photo_survey, preset_dim, write_photo_survey_template
 from core.errors import SceneError, SurveyError
-from core.scan import RayCaster, ground_level
+from core.raycast import RayCaster, ground_level
 from core.scene import GROUND, ROOF, WALL, Building, Scene
 from core.synthetic import _MeshBuilder, box_city, box_mesh, ground_mesh
 from tests.las_contract import CONTRACT_ORIGIN, read_checked

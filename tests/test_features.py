@@ -4,7 +4,10 @@ import math
 import numpy as np
 import pytest
 
+from core import _feature_kernels as K
+from core import _feature_reference as R
 from core import features as F
+from core._feature_reference import reference_features
 from core.errors import QuakeScanError
 from core.features import FEATURES, compute_features
 
@@ -114,7 +117,7 @@ def test_reference_agrees_with_fast():
     wall = np.column_stack([rng.uniform(0, 8, 800), np.full(800, 4.0), rng.uniform(0, 3, 800)])
     xyz = np.vstack([ground, wall, rng.uniform(0, 8, (300, 3)), ground[:5], [[20.0, 20, 20]]])
     a = compute_features(xyz, 1.0)
-    b = F._reference_features(xyz, 1.0)
+    b = reference_features(xyz, 1.0)
     _same_normals(a, b)
     for name in FEATURES:
         assert np.array_equal(np.isnan(a[name]), np.isnan(b[name])), name
@@ -122,7 +125,7 @@ def test_reference_agrees_with_fast():
         np.testing.assert_allclose(a[name][ok], b[name][ok], rtol=1e-6, atol=1e-9, err_msg=name)
     core = rng.uniform(0, 8, (50, 3))
     a = compute_features(xyz, 1.0, core_points=core)
-    b = F._reference_features(xyz, 1.0, core_points=core)
+    b = reference_features(xyz, 1.0, core_points=core)
     _same_normals(a, b)
     for name in FEATURES:
         ok = ~np.isnan(b[name])
@@ -166,8 +169,6 @@ def test_degenerate_rule():
 
 def test_only_requested_features(monkeypatch):
     xyz = np.random.default_rng(2).uniform(0, 5, (500, 3))
-    from core import _feature_kernels as K
-
     seen = []
     orig = K.neighbourhoods
 
@@ -230,10 +231,10 @@ def test_exact_fallback_planes_and_lines_at_utm():
     line = utm + [0, 10.0, 0] + np.outer(np.linspace(-2, 2, 300), [1.0, 2.0, 0.5])
     for xyz in (flat, tilted, line):
         st = {}
-        F._fast(_local(xyz), None, 1.0, FEATURES, None, stats=st)
+        F._kernel_measures(_local(xyz), None, 1.0, FEATURES, None, stats=st)
         assert st["exact_share"] > 0.9
         a = compute_features(xyz, 1.0)
-        b = F._reference_features(xyz, 1.0)
+        b = reference_features(xyz, 1.0)
         # omnivariance = cbrt(e1 e2 e3) turns l3 ~ 1e-18 of UTM round-off into ~1e-6 that
         # no two eigen solvers share: only its size is compared on the rounded plane
         _assert_same(a, b, [f for f in FEATURES if f != "omnivariance"])
@@ -251,9 +252,9 @@ def test_one_pass_is_used_on_noisy_surfaces_and_agrees():
     xy = rng.uniform(0, 6, (3000, 2))
     xyz = np.column_stack([xy, 0.2 * np.sin(xy[:, 0]) + 0.01 * rng.normal(size=3000)]) + [500000.0, 5000000.0, 0]
     st = {}
-    F._fast(_local(xyz), None, 1.0, FEATURES, None, stats=st)
+    F._kernel_measures(_local(xyz), None, 1.0, FEATURES, None, stats=st)
     assert st["exact_share"] < 0.01
-    _assert_same(compute_features(xyz, 1.0), F._reference_features(xyz, 1.0))
+    _assert_same(compute_features(xyz, 1.0), reference_features(xyz, 1.0))
 
 
 @pytest.mark.parametrize("cells", [1, 2, 3, 5])
@@ -268,13 +269,13 @@ def test_cell_size_gives_identical_neighbourhoods(cells, monkeypatch):
     for xyz, r in ((lattice, 2.0), (np.vstack([blob, wall]), 1.3)):
         names = ("num_neighbours", "point_density", "echo_ratio", "z_rank", "z_range", "planarity", "roughness")
         a = compute_features(xyz, r, features=names)
-        b = F._reference_features(xyz, r, features=names)
+        b = reference_features(xyz, r, features=names)
         for name in ("num_neighbours", "point_density", "z_rank", "z_range"):
             assert np.array_equal(a[name], b[name]), name
         _assert_same(a, b, names)
         core = np.vstack([rng.uniform(-2, 11, (200, 3)), [[-5.0, -5, -5], [20.0, 20, 20]]])
         a = compute_features(xyz, r, features=names, core_points=core)
-        b = F._reference_features(xyz, r, features=names, core_points=core)
+        b = reference_features(xyz, r, features=names, core_points=core)
         for name in ("num_neighbours", "point_density", "z_rank", "z_range"):
             assert np.array_equal(a[name], b[name], equal_nan=True), name
         _assert_same(a, b, names)
@@ -302,7 +303,7 @@ def test_points_on_the_sphere_counted_as_the_reference():
     strict = np.sum(d * d, axis=1) <= r * r
     assert 1000 < (~strict[:20001]).sum() < 19000  # without the tolerance many would fall outside
     want = 20001
-    assert F._reference_features(xyz, r, ("num_neighbours",), core_points=q)["num_neighbours"][0] == want
+    assert reference_features(xyz, r, ("num_neighbours",), core_points=q)["num_neighbours"][0] == want
     for names in (("num_neighbours",), ("planarity", "z_range"), ("curvature", "point_density")):
         a = compute_features(xyz, r, features=(*names, "num_neighbours"), core_points=q)
         assert a["num_neighbours"][0] == want
@@ -323,9 +324,88 @@ def test_query_index_equals_the_full_cloud_subset():
     names = ("planarity", "roughness", "z_rank", "point_density", "curvature", "num_neighbours")
     full = compute_features(xyz, 1.0, names)
     part = compute_features(xyz, 1.0, names, query_index=pick)
-    ref = F._reference_features(xyz, 1.0, names, query_index=pick)
+    ref = reference_features(xyz, 1.0, names, query_index=pick)
     for name in names:
         np.testing.assert_array_equal(part[name], full[name][pick])
         np.testing.assert_allclose(part[name], ref[name], rtol=1e-9, atol=1e-12, equal_nan=True)
     with pytest.raises(F.FeatureError, match="query_index"):
         compute_features(xyz, 1.0, names, query_index=[6000])
+
+
+def test_feature_names_and_order_are_unchanged():
+    """Models, cached training tables and the change descriptors name their columns in this
+    order: the registry must keep it (new features go at the end)."""
+    assert FEATURES == (
+        "linearity", "planarity", "omnivariance", "surface_variation", "curvature", "point_density",
+        "num_neighbours", "surface_density", "volume_density", "sphericity", "verticality",
+        "eigenentropy", "anisotropy", "eigenvalue1", "eigenvalue2", "eigenvalue3", "eigenvalue_sum",
+        "roughness", "z_rank", "z_range", "normal_x", "normal_y", "normal_z", "echo_ratio")
+    # the result's order (compiled eigen ratios first, by code) is what feature_changes and
+    # the change descriptors list
+    got = list(compute_features(np.random.default_rng(0).uniform(0, 3, (60, 3)), 1.0))
+    assert got[:8] == ["linearity", "planarity", "sphericity", "anisotropy", "surface_variation",
+                       "omnivariance", "eigenentropy", "eigenvalue_sum"]
+    assert got[8:] == [f for f in FEATURES if F.REGISTRY[f].compiled is None]
+
+
+def test_registry_declarations_are_consistent():
+    codes = [f.compiled for f in F.REGISTRY.values() if f.compiled is not None]
+    assert sorted(codes) == list(range(8))  # one formula per branch of the compiled pass
+    for f in F.REGISTRY.values():
+        assert f.needs and f.needs <= set(F.MEASURES), f.name
+        if f.category == "eigen":
+            assert f.needs == {"eigen"}, f.name
+        if f.compiled is not None:
+            assert f.category == "eigen", f.name  # the compiled pass reads only eigenvalues
+    assert F.kernel_switches(["eigenvalue1"]) == (True, False, False, False, False)
+    assert F.kernel_switches(["normal_z", "echo_ratio", "z_rank"]) == (True, False, True, False, True)
+    assert F.kernel_switches(["num_neighbours"]) == (False,) * 5
+
+
+def test_a_feature_from_existing_measures_is_one_registry_entry(monkeypatch):
+    """The documented way to add a feature: one `Feature`; kernel, reference, name check and
+    NaN rule follow from its declaration."""
+    flatness = F.Feature("flatness", "eigen", frozenset({"eigen"}), lambda q, r: q.lam[:, 2] / q.lam[:, 1])
+    monkeypatch.setitem(F.REGISTRY, "flatness", flatness)
+    rng = np.random.default_rng(11)
+    xyz = np.vstack([rng.uniform(0, 4, (800, 3)) * [1, 1, 0.05], [[30.0, 30, 30]]])
+    a = compute_features(xyz, 1.0, ("flatness", "eigenvalue2", "eigenvalue3"))
+    b = reference_features(xyz, 1.0, ("flatness",))
+    with np.errstate(invalid="ignore"):
+        np.testing.assert_array_equal(a["flatness"], a["eigenvalue3"] / a["eigenvalue2"])
+    assert np.isnan(a["flatness"][-1])  # an isolated point: undefined, as every eigen feature
+    _assert_same(a, b, ["flatness"])
+
+
+def test_compiled_eigen_features_match_their_definitions():
+    """`_feature_kernels.eigen_features` against the registry's numpy formulas, with NaN
+    rows (degenerate neighbourhoods), exact planes (l3 = 0) and lines (l2 = l3 = 0)."""
+    rng = np.random.default_rng(12)
+    lam = np.sort(rng.exponential(1.0, (2000, 3)), axis=1)[:, ::-1] * rng.uniform(1e-4, 10, (2000, 1))
+    lam[:50] = np.nan
+    lam[50:100, 2] = 0.0
+    lam[100:150, 1:] = 0.0
+    lam = np.ascontiguousarray(lam)
+    codes = np.arange(8, dtype=np.int64)
+    fast, ref = np.empty((8, len(lam))), np.empty((8, len(lam)))
+    K.eigen_features(lam, codes, fast)
+    R.eigen_features(lam, codes, ref)
+    assert np.array_equal(np.isnan(fast), np.isnan(ref))
+    assert not np.isinf(fast).any()
+    np.testing.assert_allclose(fast, ref, rtol=1e-12, atol=1e-15)
+
+
+def test_grid_keys_and_gather_match_the_reference():
+    rng = np.random.default_rng(13)
+    x, y, z = (np.ascontiguousarray(rng.uniform(0, 20, 5000) * s) for s in (1.0, 0.7, 0.3))
+    s, q, nxc, nyc, zbits = 0.5, 0.5 / 64, 40, 28, 30
+    a, b = np.empty(5000, np.int64), np.empty(5000, np.int64)
+    K.grid_keys(x, y, z, 0.0, 0.0, s, q, nxc, nyc, zbits, a)
+    R.grid_keys(x, y, z, 0.0, 0.0, s, q, nxc, nyc, zbits, b)
+    np.testing.assert_array_equal(a, b)
+    order = np.argsort(a)
+    fast, ref = [np.empty(5000) for _ in range(3)], [np.empty(5000) for _ in range(3)]
+    K.gather(x, y, z, order, *fast)
+    R.gather(x, y, z, order, *ref)
+    for u, v in zip(fast, ref):
+        np.testing.assert_array_equal(u, v)

@@ -7,7 +7,8 @@ import pytest
 
 from core.errors import SceneError
 from core.reflectance import MATERIAL_REFLECTANCE, SURFACE_REFLECTANCE, intensity
-from core.scan import ground_level, scan
+from core.raycast import ground_level
+from core.scan import scan
 from core.scene import GROUND, ROOF, read_scene, write_scene
 from core.survey import FlightLine, preset
 from core.synthetic import box_city, flat_ground

@@ -8,6 +8,7 @@ from core.features import compute_features
 from core.m3c2 import (
     ColumnGrid,
     M3C2Error,
+    M3C2Result,
     M3C2Settings,
     curvature_lod,
     curvature_standard_error,
@@ -198,3 +199,67 @@ def test_sparse_cylinders_keep_the_false_positive_rate_near_five_percent():
     z_only = res.comparable & (np.abs(res.distance) > 1.96 * np.sqrt(res.std_pre ** 2 / res.n_pre
                                                                       + res.std_post ** 2 / res.n_post))
     assert z_only[res.comparable].mean() > rate + 0.02
+
+
+def _result(n_pre, near_pre, n_post, near_post, alpha):
+    """One significant core point (distance 1 m, LoD 0.1 m) with the given cylinder counts."""
+    one = np.ones(1)
+    return M3C2Result(one, 0.1 * one, np.array([n_pre]), np.array([n_post]), one, one, 1.0, 4, None,
+                      np.array([near_pre]), np.array([near_post]), alpha)
+
+
+@pytest.mark.parametrize("n_post,near_post,alpha,expected", [
+    # 10 post-event points, half of the pre-event ones near the core point: P(X <= 1) = 11/1024
+    (10, 1, 0.01, False), (10, 1, 0.02, True), (10, 0, 0.01, True),  # P(X = 0) = 1/1024
+    (10, 1, 0.0, True),  # the share rule alone: 0.1 < 0.25 x 0.5
+    (10, 2, 0.0, False),  # 0.2 >= 0.125: the surface is still there
+    (100, 10, 0.01, True),  # dense: P(X <= 10 | 100, 0.5) ~ 1e-17, the share rule decides
+])
+def test_a_surface_is_displaced_only_where_chance_does_not_explain_the_missing_points(n_post, near_post, alpha,
+                                                                                       expected):
+    assert _result(100, 50, n_post, near_post, alpha).displaced.tolist() == [expected]
+
+
+def test_settings_stored_before_the_chance_test_keep_the_share_rule():
+    assert M3C2Settings().displaced_alpha == 0.01
+    assert M3C2Settings.from_json({}).displaced_alpha == 0.0
+    assert M3C2Settings.from_json(M3C2Settings().to_json()) == M3C2Settings()
+    from core.surface import SurfaceSettings
+
+    stored = SurfaceSettings().to_json()
+    del stored["m3c2"]["displaced_alpha"]
+    assert SurfaceSettings.from_json(stored).m3c2.displaced_alpha == 0.0
+    with pytest.raises(M3C2Error, match="displaced_alpha"):
+        M3C2Settings(displaced_alpha=1.5)
+
+
+@pytest.mark.parametrize("sample", [8, 32])
+def test_cylinder_kernel_matches_the_numpy_reference(sample):
+    """`_m3c2_kernels.cylinder_robust` against `core._m3c2_reference` on a roof, a wall and
+    scattered points, cylinders of every orientation: the kernel's grid and z runs skip only
+    points no cylinder can hold, so counts, the reservoir sample (median, spread) and the
+    running sums are the reference's to the bit."""
+    from core import _m3c2_reference as R
+
+    rng = np.random.default_rng(14)
+    roof = noisy_plane(rng, 60, 0.03, size=10.0, z0=5.0)
+    wall = np.column_stack([rng.uniform(0, 10, 1500), np.full(1500, 4.0) + rng.normal(0, 0.02, 1500),
+                            rng.uniform(0, 5, 1500)])
+    xyz = np.vstack([roof, wall, rng.uniform(0, 10, (500, 3))])
+    grid = ColumnGrid(xyz, 0.5)
+    m = 300
+    centres = np.column_stack([rng.uniform(0, 10, (m, 2)), rng.choice([5.0, 2.5], m)])
+    axes = rng.normal(size=(m, 3))
+    axes[:100] = [0, 0, 1.0]
+    axes[100:150] = [0, 1.0, 0]
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    r, h, hb, hn = rng.uniform(0.2, 0.8, m), np.full(m, 1.0), np.full(m, 6.0), np.full(m, 0.15)
+    fast = grid.cylinders(centres, axes, r, h, hb, sample=sample, near_length=0.15)
+    count, behind, near = (np.zeros(m, np.int64) for _ in range(3))
+    median, spread, mean, var = (np.empty(m) for _ in range(4))
+    R.cylinder_robust(*centres.T, *axes.T, r, h, hb, hn, grid.px, grid.py, grid.pz, np.empty((m, sample)),
+                      count, median, spread, behind, near, mean, var)
+    assert (count > sample).sum() > 50 and (behind > 0).sum() > 20 and (count == 0).any()
+    for name, want in (("count", count), ("behind", behind), ("near", near), ("median", median),
+                       ("spread", spread), ("mean", mean), ("var", var)):
+        np.testing.assert_array_equal(getattr(fast, name), want, err_msg=name)

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from core.cli import main
-from core.dim import preset_dim
+from core.dim_settings import preset_dim
 from core.pointcloud import Epoch
 from core.robustness import (
     NORMAL,

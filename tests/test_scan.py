@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from core.errors import SceneError, SurveyError
-from core.scan import RayCaster, ground_level, scan
+from core.raycast import RayCaster, ground_level
+from core.scan import scan
 from core.scene import GROUND, ROOF, WALL, Scene
 from core.survey import FlightLine, plan_flight, preset
 from core.synthetic import box_city, flat_ground

@@ -3,7 +3,8 @@ import json
 
 import pytest
 
-from core.scan import _pulse_count, ground_level, scan
+from core.raycast import ground_level
+from core.scan import _pulse_count, scan
 from core.scene import write_scene
 from core.survey import plan_flight, preset
 from core.synthetic import box_city

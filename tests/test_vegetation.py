@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from core.errors import SceneError
-from core.scan import RayCaster, scan
+from core.raycast import RayCaster
+from core.scan import scan
 from core.scene import OBJECT, VEGETATION, read_scene, write_scene
 from core.survey import preset
 from core.synthetic import box_city, box_mesh, flat_ground, with_trees
@@ -147,7 +148,8 @@ def test_dim_sees_crowns_as_opaque_surfaces(tmp_path):
     """Photogrammetry reconstructs a crown's outer surface: class 5 points on it, no ground
     matched beside the trunk under a crown reaching down to 0.5 m, where no camera sees the
     ground past the crown's surface (the laser scan, seeing through, has some there)."""
-    from core.dim import preset_dim, simulate_dim
+    from core.dim import simulate_dim
+    from core.dim_settings import preset_dim
     scene = with_trees(box_city(rows=1, cols=1, height=6.0), [(30.0, 6.0, 3.5, 3.0)])
     simulate_dim(scene, preset_dim("paper").replace(margin_m=60.0), tmp_path / "dim.las", seed=1)
     las = laspy.read(tmp_path / "dim.las")

@@ -73,11 +73,19 @@ def damage_for_grade(bm, spec, grade: int, rng, building_id: int, vulnerability_
     features = spec.features()
     last = None
     for attempt in range(8):
+        # each pattern draws its parameters and geometry from a stream of its own, salted by its
+        # name: adding a pattern to the catalogue (or a secondary pattern drawing more numbers)
+        # changes no other pattern's output
+        base, streams = int(rng.integers(0, 2 ** 32)), {}
+
+        def stream(name, base=base, streams=streams):
+            return streams.setdefault(name, pattern_rng(base, ems98.pattern_salt(name)))
+
         plan = ems98.choose_patterns(grade, spec.material, features, rng, vulnerability_class,
-                                     secondary_probability)
+                                     secondary_probability, streams=stream)
         trial = bm.copy()
         try:
-            records = [apply_pattern(trial, spec, n, p, rng, building_id) for n, p in plan]
+            records = [apply_pattern(trial, spec, n, p, stream(n), building_id) for n, p in plan]
         except PatternNotApplicable as e:
             trial.free()
             last = e

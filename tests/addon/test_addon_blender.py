@@ -164,7 +164,7 @@ print("QS_RESULT " + json.dumps({"enabled": loaded_state, "add_building": sorted
 
 
 def _zip_addon(tmp_path):
-    """The README's zip: the addon/ folder as quakescan_damage/ (bl_info for Blender < 4.2,
+    """docs/addon.md's zip: the addon/ folder as quakescan_damage/ (bl_info for Blender < 4.2,
     blender_manifest.toml for 4.2+ extensions)."""
     zpath = tmp_path / "quakescan_damage.zip"
     with zipfile.ZipFile(zpath, "w") as z:
@@ -176,7 +176,7 @@ def _zip_addon(tmp_path):
 
 @needs_blender
 def test_addon_installs_from_zip_in_blender(tmp_path):
-    """What the README tells a user of Blender < 4.2: Preferences > Add-ons > Install, enable."""
+    """What docs/addon.md tells a user of Blender < 4.2: Preferences > Add-ons > Install, enable."""
     zpath = _zip_addon(tmp_path)
     out = _result(_blender(["--python-expr", f"ZIP = {str(zpath)!r}\n" + INSTALL], tmp_path))
     assert out["enabled"] and out["add_building"] == ["FINISHED"] and out["id"] == 1

@@ -1,7 +1,9 @@
 """citygen: procedural layouts (pure Python)."""
+import numpy as np
 import pytest
 
 from addon import citygen
+from addon.geometry import poly2d
 
 
 @pytest.mark.parametrize("set_name", citygen.SETS)
@@ -51,3 +53,50 @@ def test_bad_arguments():
         citygen.city_plan("suburb", 3, 0)
     with pytest.raises(ValueError, match=">= 1"):
         citygen.city_plan("generic", 0, 0)
+
+
+def _plan(*buildings):
+    """A hand-made plan of rectangles: (id, x0, y0, x1, y1, party walls)."""
+    out = []
+    for bid, x0, y0, x1, y1, party in buildings:
+        L, W = x1 - x0, y1 - y0
+        shell = {"footprint": [[-L / 2, -W / 2], [L / 2, -W / 2], [L / 2, W / 2], [-L / 2, W / 2]]}
+        if party:
+            shell["party_walls"] = list(party)
+        out.append(citygen.BuildingPlan(bid, shell, ((x0 + x1) / 2, (y0 + y1) / 2), 0.0, "B", bid, "t",
+                                        (x0, y0, x1, y1)))
+    return citygen.CityPlan(out, citygen._bounds(out), "test", 0)
+
+
+def test_a_wall_facing_the_end_of_the_next_building_is_a_party_wall():
+    # a courtyard block's corner: building 1 (8 x 8 m) along the street, building 2 on the
+    # block's next side, its end wall 5 cm behind building 1's inner facade (edge 2, +y);
+    # building 3 stands 4 m away across a yard: its facing wall stays a facade
+    plan = citygen.mark_covered_walls(_plan((1, 0, 0, 8, 8, [1]), (2, 0, 8.05, 8, 20, None),
+                                            (3, 12, 0, 20, 8, None)))
+    walls = {b.id: b.shell.get("party_walls") for b in plan.buildings}
+    assert walls == {1: [1, 2], 2: [0], 3: None}
+
+
+def test_a_wall_covered_over_less_than_half_its_length_stays_a_facade():
+    # building 2 (4 m wide) covers 4 of the 10 m of building 1's +y wall, which covers 4 of its 4 m
+    plan = citygen.mark_covered_walls(_plan((1, 0, 0, 10, 8, None), (2, 0, 8.05, 4, 14, None)))
+    walls = {b.id: b.shell.get("party_walls") for b in plan.buildings}
+    assert walls == {1: None, 2: [0]}
+
+
+@pytest.mark.parametrize("set_name", citygen.SETS)
+def test_no_exposed_wall_of_a_plan_faces_another_building(set_name):
+    plan = citygen.city_plan(set_name, 120, 7)
+    worlds = [citygen._world_polygon(b, ccw=True) for b in plan.buildings]
+    t = (np.arange(20) + 0.5) / 20
+    for k, b in enumerate(plan.buildings):
+        party = set(b.shell.get("party_walls", []))
+        w = worlds[k]
+        for i in range(len(w)):
+            if i in party:
+                continue
+            a, d = w[i], w[(i + 1) % len(w)] - w[i]
+            pts = a + t[:, None] * d + np.array([d[1], -d[0]]) / np.hypot(*d) * citygen.COVERED_WALL_GAP_M
+            covered = np.any([poly2d.contains(o, pts) for j, o in enumerate(worlds) if j != k], axis=0)
+            assert covered.mean() < citygen.COVERED_WALL_SHARE, (b.id, i)

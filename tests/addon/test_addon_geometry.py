@@ -455,3 +455,34 @@ def test_damage_for_grade(spec_name, grade):
     # the input mesh is untouched
     assert len(arr(bm)[1]) == len(arr(built(spec))[1])
     new.free()
+
+
+def test_adding_a_pattern_changes_no_other_pattern_s_output(monkeypatch):
+    """Each pattern draws from a stream salted by its name: a new secondary pattern that
+    draws many numbers (and leaves the mesh alone) changes nothing the others make. With one
+    stream for the whole building its draws shifted the primary pattern's geometry."""
+    def draws(bm, spec, rng, building_id, n=5):
+        rng.random(1000)
+        return {"n": n}
+
+    def damage(seed):
+        spec = masonry_gable()
+        bm = built(spec)
+        new, records = gp.damage_for_grade(bm, spec, 4, gp.pattern_rng(seed, 4), BID, secondary_probability=1.0)
+        v, t = arr(new)[:2]
+        new.free()
+        return records, v, t
+
+    monkeypatch.setitem(ems98.SECONDARY, ems98.MASONRY, [])  # no secondary damage
+    before = [damage(seed) for seed in range(3)]
+    monkeypatch.setitem(ems98.PATTERNS, "test_draws", ems98.Pattern(
+        "test_draws", "draws numbers", (ems98.MASONRY,), (3,), {"n": ems98.Param(1, 9, "int", "", "")}))
+    monkeypatch.setattr(ems98, "PATTERN_NAMES", ("test_draws",) + ems98.PATTERN_NAMES)
+    monkeypatch.setitem(gp.FUNCTIONS, "test_draws", draws)
+    monkeypatch.setitem(ems98.SECONDARY, ems98.MASONRY, [("test_draws", 1.0)])
+    for seed, (records, v, t) in enumerate(before):
+        records2, v2, t2 = damage(seed)
+        assert [r["name"] for r in records2] == ["test_draws"] + [r["name"] for r in records]
+        assert records2[1:] == records
+        np.testing.assert_array_equal(v2, v)
+        np.testing.assert_array_equal(t2, t)

@@ -202,3 +202,20 @@ def test_export_refuses_without_folder_or_buildings(blank, tmp_path):
         bpy.ops.damage.export_bundle()
     with pytest.raises(RuntimeError, match="no building objects"):
         bpy.ops.damage.make_post_scene()
+
+
+def test_a_pattern_applied_from_the_panel_keeps_its_draws_when_the_catalogue_grows(blank, monkeypatch):
+    """The panel's random parameters are salted by the pattern's name, not its place in the
+    catalogue: a pattern inserted before it changes nothing."""
+    bpy = blank
+    from addon import ems98, scene_tools
+
+    def wall_holes():
+        obj = _box(bpy, size=(16, 10, 12))
+        _active(bpy, obj)
+        bpy.ops.damage.assign_ids()
+        return scene_tools.apply_pattern_to_object(obj, "wall_holes", randomize=True)
+
+    first = wall_holes()
+    monkeypatch.setattr(ems98, "PATTERN_NAMES", ("a_new_pattern",) + ems98.PATTERN_NAMES)
+    assert wall_holes() == first

@@ -23,13 +23,15 @@ def _digest(plan):
     return hashlib.sha256(json.dumps([rows, list(plan.bounds)], sort_keys=True).encode()).hexdigest()
 
 
-# computed on main (f483014) before the small set existed: caches of thousands of scenes rely
-# on the generic and region plans staying what they are
+# computed on main (f483014) before the small set existed, then again when the walls another
+# building covers became party walls (citygen.mark_covered_walls; a deliberate change: bundles
+# generated before stay valid as they are, a regeneration gives the new plans): adding a set
+# must not change the generic and region plans that caches of thousands of scenes rely on
 OLD_DIGESTS = {
-    ("generic", "none"): "2a4ea4f60abd12895bc91bf8564db7c2aea245d0ad615adcddacb11e3af08068",
-    ("region", "none"): "a31e227dd469668e5ed78356855ff08bac42ebe9407d0f25c8a2011912552748",
-    ("generic", "typical"): "48cde0fad74f30c4f1a98488fc26ba04824e464aff3e306ed1842da239a65ed8",
-    ("region", "typical"): "ef3a14091209302674ac22a2ec63da439044daa293575d1351998cf950e68063",
+    ("generic", "none"): "adb743f0de954718cdd1262e61ce7eaf7cdecf93d2a72eeedf544b26eb1340b4",
+    ("region", "none"): "51f5632fffc172b4b2bc0cbaf55b8bad2026f1b5403c1515bf1cdffe18269ba1",
+    ("generic", "typical"): "ab3ceaff493a52e481e261142ff965a7e49125fb7c92ddf898e3790cfe085235",
+    ("region", "typical"): "c463ec79b29696ad742abd84c46071a4f5fb767fab32d5b48205717e035065cc",
 }
 
 

@@ -121,7 +121,7 @@ def _faces_of(scene, surface):
 def test_generator_streetscape_keeps_trees_changes_cars_and_none_is_unchanged(bpy_registered, tmp_path, capsys):
     import json
 
-    from core.scan import RayCaster
+    from core.raycast import RayCaster
     from core.scene import OBJECT, VEGETATION, read_scene
     gen = _gen()
     argv = ["--set", "generic", "--dataset", "paper", "--buildings", "10", "--seed", "2"]

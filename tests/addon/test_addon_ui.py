@@ -211,24 +211,24 @@ def test_no_label_is_truncated_at_the_default_sidebar_width(blank):
     assert _px(ems98.VULNERABILITY_LABELS["B"]) + PAD + ARROW > SIDEBAR_PX
 
 
-def _readme_section(title):
+def _addon_page_section(title):
     from conftest import REPO
 
-    text = (REPO / "README.md").read_text()
-    start = text.index(f"### {title}\n")
-    end = text.index("\n### ", start + 1)
+    text = (REPO / "docs" / "addon.md").read_text()
+    start = text.index(f"## {title}\n")
+    end = text.index("\n## ", start + 1)
     return text[start:end]
 
 
-def test_readme_lists_the_registered_operators_and_properties(blank, tmp_path):
-    """"Scripting the add-on" names every operator with every option, and every property
+def test_addon_page_lists_the_registered_operators_and_properties(blank, tmp_path):
+    """docs/addon.md's "Scripting the add-on" names every operator with every option, and every property
     of obj.qs_building and scene.qs_scene, no more and no fewer; its example runs."""
     import re
 
     import addon
 
     bpy = blank
-    section = _readme_section("Scripting the add-on")
+    section = _addon_page_section("Scripting the add-on")
     documented = {}
     for line in section.splitlines():
         m = re.match(r"\| `bpy\.ops\.damage\.(\w+)\(\)` \|\s*([^|]*?)\s*\|", line)
@@ -249,7 +249,7 @@ def test_readme_lists_the_registered_operators_and_properties(blank, tmp_path):
         bpy.types.Object.bl_rna.properties["qs_building"])
     assert set(re.findall(r"\| `scene\.qs_scene\.(\w+)`", section)) == props(
         bpy.types.Scene.bl_rna.properties["qs_scene"])
-    # every `params.<pattern>__<parameter>` the README names exists
+    # every `params.<pattern>__<parameter>` the page names exists
     for name in re.findall(r"params\.(\w+__\w+)", section):
         assert name in bpy.types.Object.bl_rna.properties["qs_building"].fixed_type.properties["params"] \
             .fixed_type.properties.keys(), name

@@ -1,0 +1,142 @@
+"""The sensor registry (core/sensors.py): a sensor defined here, registered like a built-in
+one, runs through `acquire` to a LAS epoch that reads back as what it sampled."""
+import dataclasses
+import json
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from core import sensors
+from core.acquisition import Acquisition, acquire, random_acquisition, sidecar_path
+from core.errors import QuakeScanError, SurveyError
+from core.pointcloud import BUILDING_CLASS, GROUND_CLASS, UNCLASSIFIED, LasChunkWriter, PointChunk, read_epoch
+from core.scene import GROUND, Scene
+from core.survey import preset
+from core.synthetic import box_city
+
+UTM = (500000.0, 5000000.0, 0.0)
+
+
+@dataclass(frozen=True)
+class FaceCentres:
+    """Settings of the toy sensor: every `step`-th face's centroid becomes a point."""
+
+    name: str = "centres"
+    step: int = 1
+    acquisition_date: str = "2021-06-01"
+
+    def __post_init__(self):
+        if not isinstance(self.step, int) or isinstance(self.step, bool) or self.step < 1:
+            raise SurveyError(f"face centres: step must be an integer >= 1, got {self.step!r}")
+
+    def replace(self, **changes):
+        return dataclasses.replace(self, **changes)
+
+
+@dataclass
+class CentresSummary:
+    output: str
+    points: int
+    wall_time_s: float
+
+    def to_json(self) -> dict:
+        return dict(self.__dict__)
+
+
+def _centres(scene: Scene, step: int):
+    faces = np.arange(0, len(scene.faces), step)
+    return scene.vertices[scene.faces[faces]].mean(axis=1), faces
+
+
+def simulate_centres(scene: Scene, settings: FaceCentres, out_path, *, seed, threads, progress, source):
+    started = time.perf_counter()
+    xyz, faces = _centres(scene, settings.step)
+    building = scene.face_building[faces].astype(np.uint32)
+    surface = scene.face_surface[faces].astype(np.uint8)
+    cls = np.where(building > 0, BUILDING_CLASS, np.where(surface == GROUND, GROUND_CLASS, UNCLASSIFIED))
+    n = len(xyz)
+    with LasChunkWriter(out_path, scene.origin, scene.crs, settings.acquisition_date) as writer:
+        writer.write(PointChunk(xyz=xyz, gps_time=np.zeros(n), scan_angle_deg=np.zeros(n),
+                                return_number=np.ones(n, np.uint8), number_of_returns=np.ones(n, np.uint8),
+                                classification=cls.astype(np.uint8), building_id=building,
+                                grade=np.zeros(n, np.uint8), surface=surface,
+                                point_source_id=np.ones(n, np.uint16)))
+    if progress:
+        progress(1, 1)
+    return CentresSummary(str(out_path), n, time.perf_counter() - started)
+
+
+@pytest.fixture
+def centres_sensor():
+    sensor = sensors.register(sensors.Sensor(
+        "centres", FaceCentres, simulate_centres, preset=lambda name: FaceCentres(name=name),
+        label=lambda s: f"centres every {s.step} faces", default_preset="centres", settings_name="face centres"))
+    yield sensor
+    sensors.unregister("centres")
+
+
+def test_a_registered_sensor_acquires_a_readable_epoch_and_resumes(tmp_path, centres_sensor):
+    import core.acquisition
+
+    scene = box_city(rows=1, cols=2, origin=UTM)
+    assert "centres" in sensors.kinds() and "centres" in core.acquisition.KINDS
+    acq = Acquisition("centres", FaceCentres(step=3))
+    out = tmp_path / "toy" / "centres.las"
+    first = acquire(scene, acq, out, seed=2)
+    assert not first.resumed and first.record["summary"]["points"] == len(scene.faces[::3])
+
+    epoch = read_epoch(out)
+    xyz, faces = _centres(scene, 3)
+    # offset = scene origin (the LAS contract): the points come back at 1 mm
+    assert np.array_equal(epoch.origin, np.asarray(UTM))
+    assert np.abs(epoch.xyz - xyz).max() <= 0.0005 + 1e-9
+    assert np.array_equal(epoch.building_id, scene.face_building[faces])
+    assert np.array_equal(epoch.surface, scene.face_surface[faces])
+    assert set(np.unique(epoch.classification)) == {BUILDING_CLASS, GROUND_CLASS}
+
+    record = json.loads(sidecar_path(out).read_text())
+    assert record["acquisition"]["kind"] == "centres" and record["acquisition"]["label"] == "centres every 3 faces"
+    assert Acquisition.from_json(record["acquisition"]) == acq
+    assert acquire(scene, acq, out, seed=2).resumed
+    assert not acquire(scene, Acquisition("centres", FaceCentres(step=4)), out, seed=2).resumed
+    assert len(read_epoch(out)) == len(scene.faces[::4])
+
+    # sensors.simulate runs it without a sidecar
+    summary = sensors.simulate("centres", scene, centres_sensor.default(), tmp_path / "plain.las")
+    assert summary.points == len(scene.faces) and not sidecar_path(tmp_path / "plain.las").exists()
+
+
+def test_a_registered_sensor_s_settings_are_checked(centres_sensor):
+    with pytest.raises(SurveyError, match="a 'centres' acquisition needs a FaceCentres, got Survey"):
+        Acquisition("centres", preset("paper"))
+    with pytest.raises(SurveyError, match="a 'uls' acquisition needs a Survey, got FaceCentres"):
+        Acquisition("uls", FaceCentres())
+    doc = Acquisition("centres", FaceCentres()).to_json()
+    with pytest.raises(SurveyError, match=r"a.json: step must be an integer >= 1, got 0"):
+        Acquisition.from_json({**doc, "settings": {"step": 0}}, source="a.json")
+    with pytest.raises(SurveyError, match="unknown face centres fields"):
+        Acquisition.from_json({**doc, "settings": {"steps": 2}}, source="a.json")
+    with pytest.raises(SurveyError, match="'centres' has no random settings"):
+        random_acquisition("centres", 0)
+
+
+def test_the_registry_refuses_duplicate_and_malformed_kinds(centres_sensor):
+    with pytest.raises(QuakeScanError, match="'centres' is already registered"):
+        sensors.register(centres_sensor)
+    with pytest.raises(QuakeScanError, match="lower-case letters"):
+        sensors.register(dataclasses.replace(centres_sensor, kind="Toy Sensor"))
+    with pytest.raises(SurveyError, match=r"kind must be one of \('uls', 'als', 'dim', 'centres'\), got 'lidar'"):
+        sensors.get("lidar")
+
+
+def test_the_built_in_sensors_and_their_defaults():
+    assert sensors.kinds()[:3] == ("uls", "als", "dim")
+    assert sensors.get("uls").default() == preset("paper")
+    assert sensors.get("als").default() == preset("als")
+    for kind in ("uls", "als", "dim"):
+        sensor = sensors.get(kind)
+        default = sensor.default()
+        assert sensor.load_settings(sensor.default_preset) == default
+        assert sensor.from_values(dataclasses.asdict(default), "x") == default
