@@ -44,9 +44,9 @@ def spacing(path: Path) -> tuple[float, float]:
 
 
 def main():
-    from core.demo import generate
-    from core.dim import preset_dim, simulate_dim
-    from core.scene import read_scene
+    from quakescan.demo import generate
+    from quakescan.dim import preset_dim, simulate_dim
+    from quakescan.scene import read_scene
 
     if not (SCENE / "scene.json").is_file():
         generate("generic", "paper", 112, 1, SCENE.parent)

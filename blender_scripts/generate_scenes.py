@@ -66,6 +66,24 @@ PROG = "generate_scenes.py"
 SETS = ("generic", "region", "small", "bundle")
 
 
+def addon_module(name: str = ""):
+    """The add-on, or its submodule `name` ("geometry.shell"): the addon/ folder beside
+    blender_scripts/ in a checkout, else the installed add-on `quakescan_damage` (a wheel ships
+    this script as quakescan/blender_scripts/, two levels below site-packages)."""
+    import importlib
+
+    if (REPO / "addon" / "__init__.py").is_file():
+        package = "addon"
+        if str(REPO) not in sys.path:
+            sys.path.insert(0, str(REPO))
+    else:
+        package = "quakescan_damage"
+        # appended, not prepended: Blender's own Python keeps its own numpy ahead of a venv's
+        if str(REPO.parent) not in sys.path:
+            sys.path.append(str(REPO.parent))
+    return importlib.import_module(f"{package}.{name}" if name else package)
+
+
 def log(msg: str) -> None:
     print(f"[{PROG}] {msg}", file=sys.stderr, flush=True)
 
@@ -183,7 +201,7 @@ def _grade_mix(text):
 
 
 def scene_list(dataset, ids, seed, grade_mix=None):
-    from addon import citygen
+    citygen = addon_module("citygen")
     if dataset == "paper":
         return [("pre", None)] + [(name, g) for name, g in citygen.PAPER_SCENES]
     if grade_mix:
@@ -265,7 +283,7 @@ def build_bundle_pre(args, pre, manifest):
     (labels, storey splits, coarse interiors; a per-building damage seed from --seed)."""
     import numpy as np
 
-    from addon import io_import, scene_tools
+    io_import, scene_tools = addon_module("io_import"), addon_module("scene_tools")
     ids = bundle_ids(args, manifest)
     info = io_import.import_bundle(args.source, pre, building_ids=ids)
     for obj in info["buildings"]:
@@ -282,7 +300,8 @@ def add_streetscape(args, pre, plan):
     """Trees, hedges, furniture and cars around the buildings of collection `pre` (a CityPlan's
     footprints, or the xy extents of an imported bundle's buildings on its terrain).
     Returns (streetscape, footprints, bounds, ground_z, density set) for the post scenes."""
-    from addon import scene_tools, street_objects, streetscape
+    scene_tools, street_objects = addon_module("scene_tools"), addon_module("street_objects")
+    streetscape = addon_module("streetscape")
     objs = scene_tools.scene_objects(pre)
     if plan is not None:
         footprints, bounds, ground_z, set_name = streetscape.plan_footprints(plan), plan.bounds, None, plan.set_name
@@ -323,19 +342,17 @@ def run(args) -> int:
             f"{bpy.app.version_string}: Blender's own builds bundle it; for Debian's blender install "
             "python3-numpy (apt-get install python3-numpy)")
         return 1
-    if str(REPO) not in sys.path:
-        sys.path.insert(0, str(REPO))
     import bpy
-    import addon
-    from addon import citygen, io_export, scene_tools
-    from addon.geometry.shell import ShellSpec
+    addon = addon_module()
+    citygen, io_export, scene_tools = addon_module("citygen"), addon_module("io_export"), addon_module("scene_tools")
+    ShellSpec = addon_module("geometry.shell").ShellSpec
 
     if not hasattr(bpy.types.Object, "qs_building"):
         addon.register()
 
     origin, crs, manifest, plan = (0.0, 0.0, 0.0), None, None, None
     if args.set_name == "bundle":
-        from addon import io_import
+        io_import = addon_module("io_import")
         try:
             manifest = io_import.read_bundle(args.source)[0]  # the whole bundle is checked up front
             args.source_sha256 = source_sha256(args.source)
@@ -416,7 +433,7 @@ def run(args) -> int:
                 if street is None:
                     scene_tools.make_post_scene(pre_objs, coll, grades=grades, on_progress=progress, **damage)
                 else:  # trees, hedges, furniture copied; the pre-event cars replaced by this scene's
-                    from addon import street_objects, streetscape
+                    street_objects, streetscape = addon_module("street_objects"), addon_module("streetscape")
                     scene_tools.make_post_scene([o for o in pre_objs if not street_objects.is_car_object(o)], coll,
                                                 grades=grades, on_progress=progress, **damage)
                     scape, footprints, bounds, ground_z, set_name = street

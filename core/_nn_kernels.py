@@ -1,4 +1,4 @@
-"""Compiled nearest-neighbour search for `core.change.nearest_neighbours` (numba).
+"""Compiled nearest-neighbour search for `quakescan.change.nearest_neighbours` (numba).
 
 The post-event points are bucketed in square x/y columns (a counting sort, O(n)), each
 column sorted by z. A query looks at its own column and then at rings of columns around

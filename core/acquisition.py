@@ -2,8 +2,8 @@
 training data varies the sensor the way real pre/post pairs do.
 
 An `Acquisition` is a kind and the full settings that kind uses: `uls` (UAV laser
-scanning) and `als` (airborne laser scanning from an aircraft) are a `core.survey.Survey`,
-`dim` (dense image matching of a UAV photo flight) is a `core.dim.PhotoSurvey`.
+scanning) and `als` (airborne laser scanning from an aircraft) are a `quakescan.survey.Survey`,
+`dim` (dense image matching of a UAV photo flight) is a `quakescan.dim.PhotoSurvey`.
 `acquire` runs it on a scene; `thin_to_density` makes a sparser copy of an epoch.
 
 Ranges of `random_acquisition` (each value drawn independently; rates and densities
@@ -19,7 +19,7 @@ log-uniformly, since their effects are multiplicative, everything else uniformly
   misalignment 0–0.05 m per axis (0 = perfectly adjusted strips, 5 cm = an unadjusted
   UAV trajectory); strip overlap 30–70 % (flight plans from economical to the paper's 60 %
   and beyond).
-- `als` (the `als` preset otherwise, see `core.survey.als_for_density`): nominal density
+- `als` (the `als` preset otherwise, see `quakescan.survey.als_for_density`): nominal density
   2–30 pts/m² (national archives: older blocks 1–4, AHN2/3 6–15, others up to 30; the
   sparse end matters: a building the model never saw that sparse is 'not assessable'); range noise
   0.02–0.04 m (aircraft scanners' ranging precision plus GNSS/INS noise at 500 m);
@@ -87,7 +87,7 @@ DIM_NOISE_PX = (0.5, 1.5)
 DIM_POINT_STEP_PX = (6.0, 12.0)
 DIM_NADIR_ONLY_SHARE = 0.25
 
-# Density measurement (see the module docstring): the one measure of core.surface.
+# Density measurement (see the module docstring): the one measure of quakescan.surface.
 from .surface import DENSITY_CELL_M  # noqa: E402
 
 
@@ -272,7 +272,7 @@ def _write_json_atomic(path: Path, data: dict) -> None:
 def acquire(scene: str | os.PathLike | Scene, acquisition: Acquisition, out_path: str | os.PathLike,
             seed: int = 0, threads: int | None = None, progress=None) -> Acquired:
     """Acquire `scene` (a bundle folder or a Scene) with `acquisition` into `out_path`
-    (.las/.laz) through `core.scan.scan` (uls, als) or `core.dim.simulate_dim` (dim).
+    (.las/.laz) through `quakescan.scan.scan` (uls, als) or `quakescan.dim.simulate_dim` (dim).
 
     Resumable: when `out_path` exists and its sidecar OUT.acquisition.json records the same
     acquisition, seed, scene (fingerprint) and QuakeScan version, nothing is simulated.
@@ -312,7 +312,7 @@ def acquire(scene: str | os.PathLike | Scene, acquisition: Acquisition, out_path
 # Density ------------------------------------------------------------------------------
 
 def _roof_cell_density(cells: np.ndarray, z: np.ndarray) -> tuple[float, int]:
-    """The one density measure of the project (`core.surface.roof_cell_density`)."""
+    """The one density measure of the project (`quakescan.surface.roof_cell_density`)."""
     from .surface import roof_cell_density
 
     return roof_cell_density(cells, z)

@@ -2,7 +2,7 @@
 
 Reads both epochs into one float64 local frame, takes building IDs from the clouds'
 `building_id` dimension or from footprints, optionally aligns the post epoch to the pre
-epoch by ICP on stable areas, describes every building's change (`core.pipeline`, tile by
+epoch by ICP on stable areas, describes every building's change (`quakescan.pipeline`, tile by
 tile) and applies a model: the shipped default unless one is given. A building with too
 few points is reported as not assessable, never guessed; a building without changed
 points is "no damage" by the paper's rule, without asking the model, unless the model was
@@ -80,7 +80,7 @@ def model_settings(model: DamageModel, source: str = "model") -> PipelineSetting
 class PairData:
     pre: Epoch
     post: Epoch
-    footprints: object = None  # core.footprints.Footprints
+    footprints: object = None  # quakescan.footprints.Footprints
     footprint_ids_without_points: list = field(default_factory=list)
 
 
@@ -320,7 +320,7 @@ def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=N
 
 def counts_by_grade_name(res) -> dict:
     """{"0 no damage": n, "3 substantial to heavy (heavy)": n, ..., "not assessable": n} in
-    grade order: what the CLI prints (core.grades)."""
+    grade order: what the CLI prints (quakescan.grades)."""
     from .grades import long_label
     from .results import NOT_ASSESSABLE
 

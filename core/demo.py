@@ -7,7 +7,7 @@ against the generator's grades → map. Every step writes atomically and is skip
 output is already there, so an interrupted demo continues where it stopped.
 
 The generator needs Blender's Python: the `bpy` module in this environment (set-up
-installs it) or a `blender` binary on PATH. `core` itself never imports bpy; it runs the
+installs it) or a `blender` binary on PATH. `quakescan` itself never imports bpy; it runs the
 generator as a separate process.
 """
 from __future__ import annotations
@@ -21,8 +21,12 @@ from pathlib import Path
 
 from .errors import QuakeScanError
 
-REPO = Path(__file__).resolve().parent.parent
-GENERATOR = REPO / "blender_scripts" / "generate_scenes.py"
+PACKAGE = Path(__file__).resolve().parent
+# An installed wheel carries the generator inside this package; a checkout has it only in
+# blender_scripts/ beside core/, where users run it (an editable install maps nothing there).
+_INSTALLED_GENERATOR = PACKAGE / "blender_scripts" / "generate_scenes.py"
+GENERATOR = (_INSTALLED_GENERATOR if _INSTALLED_GENERATOR.is_file()
+             else PACKAGE.parent / "blender_scripts" / "generate_scenes.py")
 # The demo city stands in L'Aquila (the paper's test region), in UTM zone 33N: its
 # GeoJSON, maps and clouds land there in QGIS or CloudCompare.
 DEMO_CRS = "EPSG:32633"
@@ -36,7 +40,8 @@ class DemoError(QuakeScanError):
 def generator_command(args: list[str]) -> list[str]:
     """How to run blender_scripts/generate_scenes.py here: with the bpy module, else blender -b."""
     if not GENERATOR.is_file():
-        raise DemoError(f"{GENERATOR}: the scene generator is missing (run from a source checkout)")
+        raise DemoError(f"{GENERATOR}: the scene generator is missing (neither this installation nor a "
+                        "source checkout has blender_scripts/generate_scenes.py)")
     if importlib.util.find_spec("bpy") is not None:
         return [sys.executable, str(GENERATOR), *args]
     blender = shutil.which("blender")

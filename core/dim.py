@@ -24,7 +24,7 @@ The model, step by step (every number is a `PhotoSurvey` field; see `FIELD_DOC`)
    it: inside the image frame, incidence angle below `max_incidence_deg` (both sides of a
    face count, so flipped normals do not matter) and nothing on the ray from the camera
    to the point closer than `visibility_tolerance_m` before it (Embree through
-   `core.scan.RayCaster`: local origin, float32 only at that boundary, hit distance
+   `quakescan.scan.RayCaster`: local origin, float32 only at that boundary, hit distance
    refined in float64). Every piece is first probed (its centre and a jittered grid of
    `probe_spacing_m`) against its ranked cameras: a piece that fewer than `min_views`
    cameras see at any probe (under buildings, inside closed solids) gets no candidates,
@@ -122,7 +122,7 @@ FIELD_DOC = {
 }
 
 
-# Bounds beyond which no UAV photo flight goes (see core.survey.FIELD_RANGES): without them a
+# Bounds beyond which no UAV photo flight goes (see quakescan.survey.FIELD_RANGES): without them a
 # typo (99.999 % overlap, a point per 10⁻⁶ pixels, probes every nanometre) plans millions of
 # images or points and runs for hours.
 DIM_FIELD_RANGES = {

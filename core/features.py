@@ -14,7 +14,7 @@ Neighbourhood
     (|d| <= r, error <= ~3 (N + 3) eps r^2 on every eigenvalue) and redoes, centred on the
     neighbourhood's own mean (two passes), every neighbourhood where a small eigenvalue
     decides: l1 <= 1e-4 r^2, l2 <= 1e-6 l1 or l3 <= 1e-6 l1 (near-collinear, near-exact
-    planes); see `core._feature_kernels`. The numpy reference always centres on the mean.
+    planes); see `quakescan._feature_kernels`. The numpy reference always centres on the mean.
 
 Definitions (CloudCompare / CCCoreLib "Geometric features"; jakteristics copies them)
     C = (1/N) sum (p - mean)(p - mean)^T (population covariance, as CloudCompare; jakteristics

@@ -25,7 +25,7 @@ Definitions (the choices this module makes; the paper does not spell them out)
         100 * (median_post - median_pre) / scale_f
         median_pre over f at the pre building points, median_post over f at their nearest
         post points, both over the same pairs: pairs where either value is NaN (degenerate
-        neighbourhood, see core.features) are dropped. The median, not the mean, because
+        neighbourhood, see quakescan.features) are dropped. The median, not the mean, because
         roughness, curvature and the eigenvalues have heavy tails at edges.
     Scale (near-zero features): scale_f = |median_pre|, unless |median_pre| is below
         NEAR_ZERO (0.1) x the pre-event interquartile range IQR_pre of f: then scale_f =
@@ -95,7 +95,7 @@ NORMAL = "normal_vector"
 NORMAL_COMPONENTS = ("normal_x", "normal_y", "normal_z")
 NEAR_ZERO = 0.1  # |median| below NEAR_ZERO x IQR: the IQR is the scale
 DEFAULT_SAMPLE = 20_000
-SURFACES = {1: "roof", 2: "wall"}  # core.pointcloud surface codes looked at in pre_values
+SURFACES = {1: "roof", 2: "wall"}  # quakescan.pointcloud surface codes looked at in pre_values
 PRE_VALUE_FEATURES = ("surface_variation", "eigenvalue3", "sphericity", "omnivariance", "roughness", "planarity",
                       "eigenvalue_sum", "curvature", "point_density", "num_neighbours")  # in the report's table
 # All 24 per-point features with the normal's components as one feature: 22 names.

@@ -23,7 +23,7 @@ Beam model (`Survey.beam`):
   hit within a fraction of a millimetre (measured in bench/bench_scan.py).
   Discontinuities narrower than the pulse spacing (wires, antennas) can be missed.
 
-Vegetation (`core.vegetation`): a ray that hits a porous face (a tree crown) is returned
+Vegetation (`quakescan.vegetation`): a ray that hits a porous face (a tree crown) is returned
 there with probability 1 - transmission, else cast again from just beyond the hit; every
 beam model's rays do this, seeded per (seed, line, pulse, sub-ray, crossing). Re-cast rays
 are not counted in `rays_cast`. A scene without porous faces is cast as before.
@@ -90,7 +90,7 @@ class RayCaster:
         self.face_class = np.where(self.face_building > 0, BUILDING_CLASS,
                                    np.where(self.face_surface == GROUND, GROUND_CLASS, UNCLASSIFIED)
                                    ).astype(np.uint8)
-        # Porous faces (tree crowns) let rays pass (core.vegetation); None: every face is opaque
+        # Porous faces (tree crowns) let rays pass (quakescan.vegetation); None: every face is opaque
         # and casting is exactly what it was before vegetation existed.
         self.face_porous = scene.face_porous.astype(bool) if scene.has_porous else None
         self.transmission = float(scene.transmission)
@@ -113,7 +113,7 @@ class RayCaster:
         the hit on that face's plane (inf where there is no hit). Embree releases the GIL,
         so calls from several threads run in parallel. `origins32`/`directions32` skip the
         float32 conversion when the caller has them; `fast=False` refines with the numpy
-        reference instead of the compiled loop. `ray_ids` (`core.vegetation.RayIds`) lets
+        reference instead of the compiled loop. `ray_ids` (`quakescan.vegetation.RayIds`) lets
         rays pass porous faces (tree crowns); without it every face is opaque (DIM).
         """
         o32 = origins.astype(np.float32) if origins32 is None else origins32
@@ -344,7 +344,7 @@ class _Simulator:
         self.sub_weights = w / w.sum()
 
     def record_from_bytes(self, raw: bytes):
-        """A packed LAS record from the bytes of one (`core.scan_checkpoint`)."""
+        """A packed LAS record from the bytes of one (`quakescan.scan_checkpoint`)."""
         import laspy
 
         h = self.header
@@ -711,7 +711,7 @@ def scan(scene: Scene, survey: Survey, out_path: str | os.PathLike, seed: int = 
     compiled loops (same bytes, slower).
 
     `checkpoint`: a folder where every finished flight line is kept
-    (`core.scan_checkpoint`); a rerun of the same scan (same `fingerprint`, the caller's
+    (`quakescan.scan_checkpoint`); a rerun of the same scan (same `fingerprint`, the caller's
     digest of its inputs, and the same scene, survey, seed and batches) takes the finished
     lines from there instead of scanning them again, and writes the same bytes as an
     uninterrupted scan. Removed on success.

@@ -12,15 +12,15 @@ every building looks changed. This training set varies what real pairs vary:
   included and trained as "no damage": undamaged and slightly damaged buildings next to
   collapses, with a neighbour's debris on their walls), and the paper's design (every
   building heavy / extreme / destroyed) for more damaged examples;
-- **acquisition**: every cloud drawn by `core.acquisition.random_acquisition` (ULS altitude,
+- **acquisition**: every cloud drawn by `quakescan.acquisition.random_acquisition` (ULS altitude,
   pulse rate, range noise 1–3 cm, strip misalignment; ALS-like 4–30 pts/m²; DIM GSD,
   matching noise, nadir-only flights), and the pre-/post-event sensors of a pair cycle
   through same-source and cross-source combinations (an ALS archive before and a drone
   after is what responders really have);
 - **labels**: the post-event scene's grade per building (grades 1–2 → 0).
 
-`build` generates the scenes (the add-on's generator, `core.demo.generate`), acquires the
-clouds (`core.acquisition.acquire`), describes every pair (`core.pipeline.describe_pair`)
+`build` generates the scenes (the add-on's generator, `quakescan.demo.generate`), acquires the
+clouds (`quakescan.acquisition.acquire`), describes every pair (`quakescan.pipeline.describe_pair`)
 and keeps one descriptor table per pair. Every step is resumable: a scene with the same
 generator settings, a cloud whose sidecar records the same acquisition, seed and scene,
 and a table for the same settings and clouds are not made again. The same plan and seed

@@ -8,8 +8,8 @@ import laspy
 import numpy as np
 import pytest
 
-import core.acquisition as acquisition_module
-from core.acquisition import (
+import quakescan.acquisition as acquisition_module
+from quakescan.acquisition import (
     ALS_DENSITY_PTS_M2,
     ALS_MISALIGNMENT_M,
     ALS_RANGE_NOISE_M,
@@ -29,13 +29,13 @@ from core.acquisition import (
     sidecar_path,
     thin_to_density,
 )
-from core.dim import preset_dim
-from core.errors import PointCloudError, QuakeScanError, SurveyError
-from core.pointcloud import Epoch
-from core.scan import scan
-from core.scene import write_scene
-from core.survey import als_for_density, preset
-from core.synthetic import box_city
+from quakescan.dim import preset_dim
+from quakescan.errors import PointCloudError, QuakeScanError, SurveyError
+from quakescan.pointcloud import Epoch
+from quakescan.scan import scan
+from quakescan.scene import write_scene
+from quakescan.survey import als_for_density, preset
+from quakescan.synthetic import box_city
 
 UTM = (500000.0, 5000000.0, 0.0)
 

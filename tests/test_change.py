@@ -2,12 +2,12 @@
 import numpy as np
 import pytest
 
-from core.change import (ChangeError, SplitSettings, building_changes, feature_changes, lod_from_noise,
+from quakescan.change import (ChangeError, SplitSettings, building_changes, feature_changes, lod_from_noise,
                          morton_order, nearest_neighbours, nearest_neighbours_reference, split_changed)
-from core.pointcloud import read_epoch
-from core.scan import scan
-from core.survey import preset
-from core.synthetic import box_city
+from quakescan.pointcloud import read_epoch
+from quakescan.scan import scan
+from quakescan.survey import preset
+from quakescan.synthetic import box_city
 
 
 def test_nearest_neighbours_match_brute_force():

@@ -6,8 +6,8 @@ import laspy
 import numpy as np
 import pytest
 
-from core.classify import classify, load_pair
-from core.cli import main
+from quakescan.classify import classify, load_pair
+from quakescan.cli import main
 
 pytestmark = pytest.mark.realdata
 
@@ -65,7 +65,7 @@ def test_shifted_post_epoch_is_aligned_and_a_real_collapse_is_found(ahn3, tmp_pa
     removes the shift, the collapsed building is found damaged, the rest stay undamaged."""
     import shapely
 
-    from core.footprints import read_footprints
+    from quakescan.footprints import read_footprints
 
     las_path, fp = ahn3
     las = laspy.read(las_path)

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from core.cli import build_parser, main
+from quakescan.cli import build_parser, main
 
 README = Path(__file__).resolve().parents[1] / "README.md"
 GLOBAL = "(global)"

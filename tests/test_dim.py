@@ -7,7 +7,7 @@ import laspy
 import numpy as np
 import pytest
 
-from core.dim import (
+from quakescan.dim import (
     FIELD_DOC,
     PhotoSurvey,
     load_photo_survey,
@@ -16,10 +16,10 @@ from core.dim import (
     simulate_dim,
     write_photo_survey_template,
 )
-from core.errors import SceneError, SurveyError
-from core.scan import RayCaster, ground_level
-from core.scene import GROUND, ROOF, WALL, Building, Scene
-from core.synthetic import _MeshBuilder, box_city, box_mesh, ground_mesh
+from quakescan.errors import SceneError, SurveyError
+from quakescan.scan import RayCaster, ground_level
+from quakescan.scene import GROUND, ROOF, WALL, Building, Scene
+from quakescan.synthetic import _MeshBuilder, box_city, box_mesh, ground_mesh
 from tests.las_contract import CONTRACT_ORIGIN, read_checked
 from tests.spacing import nearest_neighbour_spacing
 

@@ -4,9 +4,9 @@ import math
 import numpy as np
 import pytest
 
-from core import features as F
-from core.errors import QuakeScanError
-from core.features import FEATURES, compute_features
+from quakescan import features as F
+from quakescan.errors import QuakeScanError
+from quakescan.features import FEATURES, compute_features
 
 
 def grid_plane(h=0.05, half=3.0):
@@ -166,7 +166,7 @@ def test_degenerate_rule():
 
 def test_only_requested_features(monkeypatch):
     xyz = np.random.default_rng(2).uniform(0, 5, (500, 3))
-    from core import _feature_kernels as K
+    from quakescan import _feature_kernels as K
 
     seen = []
     orig = K.neighbourhoods

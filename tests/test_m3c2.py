@@ -4,8 +4,8 @@ import math
 import numpy as np
 import pytest
 
-from core.features import compute_features
-from core.m3c2 import (
+from quakescan.features import compute_features
+from quakescan.m3c2 import (
     ColumnGrid,
     M3C2Error,
     M3C2Settings,
