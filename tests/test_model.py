@@ -1,5 +1,6 @@
 """Model persistence: round trip, tampered and incompatible files refused, grouped split."""
 import zipfile
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -299,6 +300,33 @@ def test_a_model_file_of_the_first_format_loads_and_predicts_as_before(tmp_path)
         else:
             assert r.decided_by == "model" and r.grade == m.classes[int(np.argmax(p))]
             assert r.probabilities == {**{g: 0.0 for g in m.grades}, **dict(zip(m.classes, p.tolist()))}
+
+
+def _recorded_modules(path) -> set:
+    """The modules whose types a skops file asks to rebuild (its schema's `__module__`s)."""
+    import re
+
+    with zipfile.ZipFile(path) as z:
+        return set(re.findall(r'"__module__": "([^"]+)"', z.read("schema.json").decode()))
+
+
+def test_a_model_file_saved_before_the_rename_to_quakescan_loads_and_predicts_as_then(tmp_path, model):
+    """tests/data/model_saved_as_core.skops was written by save_model when the library's import
+    name was `core` (main at 1dc0058; a 3-tree forest, its predictions for three probe rows in
+    its provenance). skops records only numpy, sklearn and builtins types, never the library's,
+    so it loads without any `core` package; the shipped model and a file saved now likewise."""
+    from quakescan.classify import DEFAULT_MODEL
+
+    old = Path(__file__).parent / "data" / "model_saved_as_core.skops"
+    m = load_model(old)
+    assert "core" in m.provenance["saved_by"] and m.classes == [0, 3, 5]
+    probe = np.array(m.provenance["probe_rows"])
+    got = m.predict_proba({n: probe[:, i] for i, n in enumerate(m.feature_names)})
+    np.testing.assert_allclose(got, m.provenance["probe_proba"], rtol=0, atol=1e-12)
+    save_model(model[0], tmp_path / "now.skops")
+    for path in (old, DEFAULT_MODEL, tmp_path / "now.skops"):
+        mods = _recorded_modules(path)
+        assert mods and all(mod.split(".")[0] in ("builtins", "numpy", "sklearn") for mod in mods), (path, mods)
 
 
 def test_the_shipped_model_is_the_transfer_model_with_its_limits_and_provenance():
