@@ -57,9 +57,9 @@ np.savez(sys.argv[2], distance=dist, lod=unc["lodetection"], n1=unc["num_samples
 def main(argv=None) -> int:
     from bench_transfer import real_pairs
 
-    from core.classify import load_pair
-    from core.features import compute_features
-    from core.m3c2 import ColumnGrid, M3C2Settings, m3c2
+    from quakescan.classify import load_pair
+    from quakescan.features import compute_features
+    from quakescan.m3c2 import ColumnGrid, M3C2Settings, m3c2
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--work", default=str(ROOT / "out" / "bench_m3c2"))

@@ -48,7 +48,7 @@ def previous_model() -> Path | None:
 
 
 def ensure_big_pair() -> tuple[Path, Path]:
-    from core.demo import generate, scan_scene
+    from quakescan.demo import generate, scan_scene
 
     big = WORK / "big"
     if not (big / "pre.las").is_file() or not (big / "post_destruction.las").is_file():
@@ -59,7 +59,7 @@ def ensure_big_pair() -> tuple[Path, Path]:
 
 
 def ensure_pair() -> tuple[Path, Path]:
-    from core.demo import generate, scan_scene
+    from quakescan.demo import generate, scan_scene
 
     if not (WORK / "pre.las").is_file() or not (WORK / "post_destruction.las").is_file():
         generate("generic", "paper", 112, 1, WORK / "generic")
@@ -97,8 +97,8 @@ def classify_run(pre: Path, post: Path, out: Path, model: Path | None = None) ->
 
 def nn_rates(pre: Path, others: dict) -> list:
     """M points/s of the NN mapping (build + queries): the grid search and the kd-tree alone."""
-    from core.change import nearest_neighbours, nearest_neighbours_reference
-    from core.pointcloud import read_epoch
+    from quakescan.change import nearest_neighbours, nearest_neighbours_reference
+    from quakescan.pointcloud import read_epoch
 
     a = read_epoch(pre)
     nearest_neighbours(a.xyz[:1000], a.xyz[:1000])  # compile outside the timing
@@ -149,7 +149,7 @@ def main(argv=None):
                       f"stages {r['summary']['seconds']}", flush=True)
         rescan = WORK / "pre_rescan.las"
         if not rescan.is_file():
-            from core.demo import scan_scene
+            from quakescan.demo import scan_scene
 
             scan_scene(WORK / "generic" / "pre", rescan, seed=12)
         nn_rows = nn_rates(pre, {"pre → pre rescanned (new noise)": rescan, "pre → post_destruction": post})

@@ -66,6 +66,46 @@ PROG = "generate_scenes.py"
 SETS = ("generic", "region", "small", "bundle")
 
 
+def addon_module(name: str = ""):
+    """The add-on, or its submodule `name` ("geometry.shell"): the addon/ folder beside
+    blender_scripts/ in a checkout, else the installed add-on `quakescan_damage` (a wheel ships
+    this script as quakescan/blender_scripts/, two levels below site-packages)."""
+    import importlib
+
+    if (REPO / "addon" / "__init__.py").is_file():
+        package = "addon"
+        if str(REPO) not in sys.path:
+            sys.path.insert(0, str(REPO))
+    else:
+        package = "quakescan_damage"
+        # appended, not prepended: Blender's own Python keeps its own numpy ahead of a venv's
+        if str(REPO.parent) not in sys.path:
+            sys.path.append(str(REPO.parent))
+    return importlib.import_module(f"{package}.{name}" if name else package)
+
+
+def library_module(name: str):
+    """The library's standard-library-only module `name` ("fingerprint") for Blender's own
+    Python, which has no QuakeScan installed: the installed package `quakescan` (a venv's
+    bpy module, or this script shipped in a wheel), else the core/ folder beside
+    blender_scripts/ in a checkout, loaded under its import name."""
+    import importlib
+    import importlib.util
+
+    if "quakescan" not in sys.modules:
+        init = REPO / "core" / "__init__.py"
+        if not init.is_file():  # shipped in a wheel: site-packages/quakescan/blender_scripts/
+            if str(REPO.parent) not in sys.path:
+                sys.path.append(str(REPO.parent))
+        elif importlib.util.find_spec("quakescan") is None:
+            spec = importlib.util.spec_from_file_location("quakescan", init,
+                                                          submodule_search_locations=[str(init.parent)])
+            module = importlib.util.module_from_spec(spec)
+            sys.modules["quakescan"] = module
+            spec.loader.exec_module(module)
+    return importlib.import_module(f"quakescan.{name}")
+
+
 def log(msg: str) -> None:
     print(f"[{PROG}] {msg}", file=sys.stderr, flush=True)
 
@@ -183,7 +223,7 @@ def _grade_mix(text):
 
 
 def scene_list(dataset, ids, seed, grade_mix=None):
-    from addon import citygen
+    citygen = addon_module("citygen")
     if dataset == "paper":
         return [("pre", None)] + [(name, g) for name, g in citygen.PAPER_SCENES]
     if grade_mix:
@@ -215,14 +255,12 @@ def generator_info(args, scene_name):
 def bundle_state(folder: Path, info: dict) -> str:
     """'missing', 'done' (same settings) or 'different'.
 
-    The resume rule of core.fingerprint, with the bundle's own record as the fingerprint: the
+    The resume rule of quakescan.fingerprint, with the bundle's own record as the fingerprint: the
     generator record in scene.json (settings, GENERATOR_VERSION, the source bundle's digest)
     must be the one this run would write. The add-on's code is versioned by
     GENERATOR_VERSION, not by QuakeScan's version, so that bundles made by an earlier
     QuakeScan with the same generator stay reusable."""
-    if str(REPO) not in sys.path:  # core is standard library only here: Blender's Python imports it
-        sys.path.insert(0, str(REPO))
-    from core import fingerprint
+    fingerprint = library_module("fingerprint")
 
     manifest = folder / "scene.json"
     if not manifest.is_file():
@@ -278,7 +316,7 @@ def build_bundle_pre(args, pre, manifest):
     (labels, storey splits, coarse interiors; a per-building damage seed from --seed)."""
     import numpy as np
 
-    from addon import io_import, scene_tools
+    io_import, scene_tools = addon_module("io_import"), addon_module("scene_tools")
     ids = bundle_ids(args, manifest)
     info = io_import.import_bundle(args.source, pre, building_ids=ids)
     for obj in info["buildings"]:
@@ -295,7 +333,8 @@ def add_streetscape(args, pre, plan):
     """Trees, hedges, furniture and cars around the buildings of collection `pre` (a CityPlan's
     footprints, or the xy extents of an imported bundle's buildings on its terrain).
     Returns (streetscape, footprints, bounds, ground_z, density set) for the post scenes."""
-    from addon import scene_tools, street_objects, streetscape
+    scene_tools, street_objects = addon_module("scene_tools"), addon_module("street_objects")
+    streetscape = addon_module("streetscape")
     objs = scene_tools.scene_objects(pre)
     if plan is not None:
         footprints, bounds, ground_z, set_name = streetscape.plan_footprints(plan), plan.bounds, None, plan.set_name
@@ -336,19 +375,17 @@ def run(args) -> int:
             f"{bpy.app.version_string}: Blender's own builds bundle it; for Debian's blender install "
             "python3-numpy (apt-get install python3-numpy)")
         return 1
-    if str(REPO) not in sys.path:
-        sys.path.insert(0, str(REPO))
     import bpy
-    import addon
-    from addon import citygen, io_export, scene_tools
-    from addon.geometry.shell import ShellSpec
+    addon = addon_module()
+    citygen, io_export, scene_tools = addon_module("citygen"), addon_module("io_export"), addon_module("scene_tools")
+    ShellSpec = addon_module("geometry.shell").ShellSpec
 
     if not hasattr(bpy.types.Object, "qs_building"):
         addon.register()
 
     origin, crs, manifest, plan = (0.0, 0.0, 0.0), None, None, None
     if args.set_name == "bundle":
-        from addon import io_import
+        io_import = addon_module("io_import")
         try:
             manifest = io_import.read_bundle(args.source)[0]  # the whole bundle is checked up front
             args.source_sha256 = source_sha256(args.source)
@@ -429,7 +466,7 @@ def run(args) -> int:
                 if street is None:
                     scene_tools.make_post_scene(pre_objs, coll, grades=grades, on_progress=progress, **damage)
                 else:  # trees, hedges, furniture copied; the pre-event cars replaced by this scene's
-                    from addon import street_objects, streetscape
+                    street_objects, streetscape = addon_module("street_objects"), addon_module("streetscape")
                     scene_tools.make_post_scene([o for o in pre_objs if not street_objects.is_car_object(o)], coll,
                                                 grades=grades, on_progress=progress, **damage)
                     scape, footprints, bounds, ground_z, set_name = street

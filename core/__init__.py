@@ -1,4 +1,5 @@
-"""QuakeScan core: scene bundles, virtual UAV laser scanning, damage classification.
+"""QuakeScan's library, imported as `quakescan` (kept in the folder core/): scene bundles,
+virtual UAV laser scanning, damage classification.
 
 Headless: never imports bpy.
 """

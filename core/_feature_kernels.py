@@ -1,4 +1,4 @@
-"""Compiled inner loop of `core.features` (numba, GIL released, parallel over query groups).
+"""Compiled inner loop of `quakescan.features` (numba, GIL released, parallel over query groups).
 
 Grid: vertical columns of side s = r / CELLS_PER_RADIUS (default 3), column key ix*ny + iy;
 points sorted by one int64 key (column << zbits | floor(z / (s/64))), so a column is one
@@ -33,7 +33,7 @@ neighbours are the same sums with n - 1. Curvature (quadric in the PCA frame) ne
 second masked pass over the candidates, run only when curvature is asked for. The
 cylinder count (point_density, echo_ratio) runs over whole columns with a 2-D test, in
 the same kernel, only when asked for.
-Same definitions as `core._feature_reference`, the numpy reference of every function here
+Same definitions as `quakescan._feature_reference`, the numpy reference of every function here
 (tests compare the two).
 """
 from __future__ import annotations
@@ -593,7 +593,7 @@ def neighbourhoods(px, py, pz, pkeys, zbits, zq, ucol, cstart, qx, qy, qz, qidx,
     in column gcol[g]. blocks: order in which blocks of `block` groups are handed to prange
     (interleaved, for load balance). qself[i] = index of the query in the sorted cloud or -1.
     Outputs are indexed by the query's original index qidx[i] and written here (NaN where
-    undefined, see `core.features` for the rule), only those asked for (the others may be
+    undefined, see `quakescan.features` for the rule), only those asked for (the others may be
     empty); nexact = 1 where the two-pass path ran."""
     r2 = radius * radius
     marg = 1e-7 * s
@@ -860,7 +860,7 @@ def gather(x, y, z, order, ox, oy, oz):
 def eigen_features(lam, codes, out):
     """out[k] = eigen feature codes[k] of every row of lam (l1 >= l2 >= l3, NaN rows stay NaN):
     0 linearity, 1 planarity, 2 sphericity, 3 anisotropy, 4 surface_variation, 5 omnivariance,
-    6 eigenentropy, 7 eigenvalue_sum: the `compiled` codes of `core.features.REGISTRY`, whose
+    6 eigenentropy, 7 eigenvalue_sum: the `compiled` codes of `quakescan.features.REGISTRY`, whose
     `derive` is the definition each branch must reproduce."""
     for i in prange(lam.shape[0]):
         l1 = lam[i, 0]

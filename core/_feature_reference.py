@@ -1,11 +1,11 @@
-"""Plain numpy references of `core._feature_kernels`, one per compiled function, for the
+"""Plain numpy references of `quakescan._feature_kernels`, one per compiled function, for the
 tests (and benchmarks) that compare the two; nothing in production calls them.
 
-`neighbourhoods` reads the definitions of `core.features` literally: one query at a time,
+`neighbourhoods` reads the definitions of `quakescan.features` literally: one query at a time,
 neighbours from a kd-tree filtered by the kernel's own distance test, the covariance
 centred on the neighbourhood's mean (the kernel sums relative to the query point and
 recentres only where a small eigenvalue decides), a quadric fitted by `numpy.linalg`.
-`reference_features` is `core.features.compute_features` on top of it, each feature from
+`reference_features` is `quakescan.features.compute_features` on top of it, each feature from
 its registry definition (no compiled eigen pass, no duplicate folding).
 """
 from __future__ import annotations
@@ -110,7 +110,7 @@ def gather(x, y, z, order, ox, oy, oz):
 
 
 def reference_features(xyz, radius, features=None, core_points=None, query_index=None) -> dict[str, np.ndarray]:
-    """`core.features.compute_features` in plain numpy (same definitions, same NaN rule)."""
+    """`quakescan.features.compute_features` in plain numpy (same definitions, same NaN rule)."""
     xyz, radius, names, core_points, query_index = F._check(xyz, radius, features, core_points, query_index)
     m = F._query_count(xyz, core_points, query_index)
     n = len(xyz)

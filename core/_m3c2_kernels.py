@@ -1,10 +1,10 @@
-"""Compiled cylinder statistics for `core.m3c2` (numba).
+"""Compiled cylinder statistics for `quakescan.m3c2` (numba).
 
-The points are bucketed in square x/y columns (the counting sort of `core._nn_kernels`),
+The points are bucketed in square x/y columns (the counting sort of `quakescan._nn_kernels`),
 each column sorted by z. A cylinder (centre c, unit axis n, radius r, half length L) visits
 only the columns that its x/y bounding box touches and, in each, only the z run that its
 height range can reach (binary search), so a roof cylinder reads little more than its
-own points and a wall cylinder a thin slab. `core._m3c2_reference` is the numpy version
+own points and a wall cylinder a thin slab. `quakescan._m3c2_reference` is the numpy version
 (tests compare the two).
 """
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Plain numpy reference of `core._m3c2_kernels`, for the tests that compare the two;
+"""Plain numpy reference of `quakescan._m3c2_kernels`, for the tests that compare the two;
 nothing in production calls it.
 
 The kernel visits only the grid columns and z runs a cylinder can reach, in the order of

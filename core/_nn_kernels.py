@@ -1,4 +1,4 @@
-"""Compiled nearest-neighbour search for `core.change.nearest_neighbours` (numba).
+"""Compiled nearest-neighbour search for `quakescan.change.nearest_neighbours` (numba).
 
 The post-event points are bucketed in square x/y columns (a counting sort, O(n)), each
 column sorted by z. A query looks at its own column and then at rings of columns around
@@ -8,7 +8,7 @@ longer than the distance to the edge of the searched block, so the answer is exa
 (ties: the lower index wins, as in a brute-force argmin). Airborne
 clouds are 2.5-D, so columns hold few points and rings rarely grow past one; queries
 whose neighbour is farther than a few rings are left to a kd-tree.
-`core._nn_reference` holds the numpy version of each function (tests compare the two).
+`quakescan._nn_reference` holds the numpy version of each function (tests compare the two).
 """
 from __future__ import annotations
 

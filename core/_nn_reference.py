@@ -1,5 +1,5 @@
-"""Plain numpy references of `core._nn_kernels`, one per compiled function, for the tests
-that compare the two; nothing in production calls them. (`core.change.
+"""Plain numpy references of `quakescan._nn_kernels`, one per compiled function, for the tests
+that compare the two; nothing in production calls them. (`quakescan.change.
 nearest_neighbours_reference`, scipy's kd-tree, is a public alternative to the whole
 search, and the fallback for far queries; `nearest` here is the brute-force definition.)
 """

@@ -2,7 +2,7 @@
 
 Each loop is one pass over a batch that numpy would do in ten: building rays, refining
 Embree's hits in float64 and packing LAS records. They are plain loops with the same
-arithmetic as the numpy reference in `core.scan` (tests compare the two).
+arithmetic as the numpy reference in `quakescan.scan` (tests compare the two).
 """
 from __future__ import annotations
 
@@ -86,7 +86,7 @@ def _write_point(cols, m, xyz_int, gps, theta, forward, edge, ret, nret, line_id
 
 @njit(inline="always", **_JIT)
 def _intensity(reflect, normals, f, d, rng, ref2):
-    """ρ · |cos θ_inc| · R_ref² / R² scaled to uint16 (see core.reflectance; its numpy
+    """ρ · |cos θ_inc| · R_ref² / R² scaled to uint16 (see quakescan.reflectance; its numpy
     reference `intensity` does the same arithmetic in the same order)."""
     cos = abs(normals[f, 0] * d[0] + normals[f, 1] * d[1] + normals[f, 2] * d[2])
     v = 65535.0 * reflect * cos * ref2 / (rng * rng)

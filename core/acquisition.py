@@ -2,10 +2,10 @@
 training data varies the sensor the way real pre/post pairs do.
 
 An `Acquisition` is a sensor kind and the full settings that kind uses; the kinds and
-what each needs are those of the sensor registry `core.sensors` (built in: `uls` and
-`als`, a `core.survey.Survey`; `dim`, a `core.dim_settings.PhotoSurvey`). `acquire` runs
+what each needs are those of the sensor registry `quakescan.sensors` (built in: `uls` and
+`als`, a `quakescan.survey.Survey`; `dim`, a `quakescan.dim_settings.PhotoSurvey`). `acquire` runs
 one on a scene, resumably; `random_acquisition` draws one for the training set from the
-ranges its sensor documents (`core.sensor_lidar`, `core.sensor_dim`); `thin_to_density`
+ranges its sensor documents (`quakescan.sensor_lidar`, `quakescan.sensor_dim`); `thin_to_density`
 makes a sparser copy of an epoch.
 
 Density of an epoch (`measured_density`, the quantity `thin_to_density` aims at): the
@@ -52,13 +52,13 @@ def __getattr__(name):
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
-# Density measurement (see the module docstring): the one measure of core.surface.
+# Density measurement (see the module docstring): the one measure of quakescan.surface.
 from .surface import DENSITY_CELL_M  # noqa: E402
 
 
 @dataclass(frozen=True)
 class Acquisition:
-    """A sensor kind (one of `core.sensors.kinds()`) and the full settings it flies with."""
+    """A sensor kind (one of `quakescan.sensors.kinds()`) and the full settings it flies with."""
 
     kind: str
     settings: object
@@ -160,9 +160,9 @@ def _read_record(path: Path) -> dict | None:
 def acquire(scene: str | os.PathLike | Scene, acquisition: Acquisition, out_path: str | os.PathLike,
             seed: int = 0, threads: int | None = None, progress=None) -> Acquired:
     """Acquire `scene` (a bundle folder or a Scene) with `acquisition` into `out_path`
-    (.las/.laz) with its sensor (`core.sensors.simulate`).
+    (.las/.laz) with its sensor (`quakescan.sensors.simulate`).
 
-    Resumable (`core.fingerprint`'s rule): when `out_path` exists with the size and its
+    Resumable (`quakescan.fingerprint`'s rule): when `out_path` exists with the size and its
     sidecar OUT.acquisition.json records the same acquisition, seed, scene (fingerprint) and
     QuakeScan version, nothing is simulated.
     Atomic: the cloud appears under its name only when complete, and its sidecar only
@@ -198,7 +198,7 @@ def acquire(scene: str | os.PathLike | Scene, acquisition: Acquisition, out_path
 # Density ------------------------------------------------------------------------------
 
 def _roof_cell_density(cells: np.ndarray, z: np.ndarray) -> tuple[float, int]:
-    """The one density measure of the project (`core.surface.roof_cell_density`)."""
+    """The one density measure of the project (`quakescan.surface.roof_cell_density`)."""
     from .surface import roof_cell_density
 
     return roof_cell_density(cells, z)

@@ -75,7 +75,7 @@ def _fsync_folder(folder: Path) -> None:
 
 def commit(tmp: str | os.PathLike, path: str | os.PathLike) -> None:
     """Flush the finished temporary file `tmp` to the disk and rename it to `path` (for a
-    streaming writer that manages its own temporary file, `core.pointcloud.LasChunkWriter`)."""
+    streaming writer that manages its own temporary file, `quakescan.pointcloud.LasChunkWriter`)."""
     tmp, path = Path(tmp), Path(path)
     _fsync_file(tmp)
     os.replace(tmp, path)

@@ -152,7 +152,7 @@ class SplitSettings:
     def __post_init__(self):
         # A level of detection above a storey's height (or a curvature of a 10 cm sphere) calls a
         # collapsed storey unchanged: every building would be "no damage". Beyond these ranges a
-        # value is a typo or an edited model file, never a measurement (`core.lod` measures them).
+        # value is a typo or an edited model file, never a measurement (`quakescan.lod` measures them).
         for name, value, (low, high), unit in (("lod_height_m", self.lod_height_m, LOD_HEIGHT_RANGE_M, "m"),
                                                ("lod_curvature", self.lod_curvature, LOD_CURVATURE_RANGE, "1/m")):
             if not (_is_number(value) and low < value <= high):
@@ -187,7 +187,7 @@ def split_changed(d_curv: np.ndarray, d_height: np.ndarray, settings: SplitSetti
     Features are scaled by their LoDs, so "one LoD" weighs the same in both. The cluster
     whose centre lies farther from zero change is the changed one; only its points that
     exceed an LoD count as changed. `lod_height`/`lod_curvature` (per point, optional) are
-    levels of detection that the points' own neighbourhoods give (`core.m3c2`); the
+    levels of detection that the points' own neighbourhoods give (`quakescan.m3c2`); the
     settings' constants stay as floors."""
     from sklearn.cluster import KMeans
 

@@ -1,7 +1,7 @@
 """Import real CityJSON city models (LoD1/LoD2/…) into a QuakeScan scene.
 
-`import_cityjson` reads a CityJSON 1.0, 1.1 or 2.0 file and returns a `core.scene.Scene`
-(write it with `core.scene.write_scene`):
+`import_cityjson` reads a CityJSON 1.0, 1.1 or 2.0 file and returns a `quakescan.scene.Scene`
+(write it with `quakescan.scene.write_scene`):
 
 - one building ID (1..n, in the order of the sorted CityJSON object ids) per `Building`;
   its `BuildingPart`s and `BuildingInstallation`s (also nested ones) are merged into it; a
@@ -117,7 +117,7 @@ def import_cityjson(path: str | os.PathLike, lod: str | None = None, terrain_mar
         The CRS ("EPSG:NNNN") of a file whose metadata names none (or names one that is not an
         EPSG code). When the file names an EPSG code, `crs` must be the same.
     material : str
-        Material of every imported building (`core.scene.MATERIALS`), for the damage patterns
+        Material of every imported building (`quakescan.scene.MATERIALS`), for the damage patterns
         and the scanner's reflectance.
     terrain_margin : float
         How far (m) the terrain reaches beyond the x/y bounding box of each cluster of

@@ -2,14 +2,14 @@
 
 Reads both epochs into one float64 local frame, takes building IDs from the clouds'
 `building_id` dimension or from footprints, optionally aligns the post epoch to the pre
-epoch by ICP on stable areas, describes every building's change (`core.pipeline`, tile by
+epoch by ICP on stable areas, describes every building's change (`quakescan.pipeline`, tile by
 tile) and applies a model: the shipped default unless one is given. A building with too
 few points is reported as not assessable, never guessed; a building without changed
 points is "no damage" by the paper's rule, without asking the model, unless the model was
 trained on every row (`DamageModel.no_change_rule` False) and is asked about all of them.
 
 Long runs checkpoint every finished tile to OUT/.checkpoint.jsonl; a rerun with the same
-inputs, model and options (`core.fingerprint`'s rule) continues from there. Every output is
+inputs, model and options (`quakescan.fingerprint`'s rule) continues from there. Every output is
 written under a temporary name and renamed.
 """
 from __future__ import annotations
@@ -81,7 +81,7 @@ def model_settings(model: DamageModel, source: str = "model") -> PipelineSetting
 class PairData:
     pre: Epoch
     post: Epoch
-    footprints: object = None  # core.footprints.Footprints
+    footprints: object = None  # quakescan.footprints.Footprints
     footprint_ids_without_points: list = field(default_factory=list)
 
 
@@ -118,7 +118,7 @@ def load_pair(pre_path, post_path, footprints_path=None, id_field: str | None = 
 
 
 def _fingerprint(pre_path, post_path, footprints_path, model_path, align: bool | None, options: dict):
-    """What a classification depends on (`core.fingerprint`): the clouds by path, size and time
+    """What a classification depends on (`quakescan.fingerprint`): the clouds by path, size and time
     (gigabytes: hashing them would cost more than many reruns), the footprints and the model
     by content, the alignment mode and the output options."""
     inputs = {"pre": fingerprint.stat(pre_path), "post": fingerprint.stat(post_path),
@@ -311,7 +311,7 @@ def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=N
 
 def counts_by_grade_name(res) -> dict:
     """{"0 no damage": n, "3 substantial to heavy (heavy)": n, ..., "not assessable": n} in
-    grade order: what the CLI prints (core.grades)."""
+    grade order: what the CLI prints (quakescan.grades)."""
     from .grades import long_label
     from .results import NOT_ASSESSABLE
 

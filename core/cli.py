@@ -103,7 +103,7 @@ def _note(args, message: str) -> None:
 
 
 def _cloud_fingerprint(kind: str, scene_dir: Path, survey, seed: int):
-    """What a simulated cloud depends on (`core.fingerprint`): the scene bundle's bytes, the
+    """What a simulated cloud depends on (`quakescan.fingerprint`): the scene bundle's bytes, the
     survey and the seed (threads do not change the bytes)."""
     from .fingerprint import make, scene_fingerprint
 
@@ -306,7 +306,7 @@ def _csv_list(text: str | None) -> tuple | None:
 
 def cmd_features(args) -> int:
     """Features of every point as extra LAS dimensions (float32; CloudCompare shows them as
-    scalar fields). NaN marks the degenerate neighbourhoods of core.features."""
+    scalar fields). NaN marks the degenerate neighbourhoods of quakescan.features."""
     import laspy
 
     from .atomic import replacing
@@ -400,7 +400,7 @@ def _check_threads(value) -> None:
 
 
 def _check_split_flags(args) -> None:
-    """The pipeline's flags in the ranges a model may hold (core.pipeline, core.change), named."""
+    """The pipeline's flags in the ranges a model may hold (quakescan.pipeline, quakescan.change), named."""
     from .change import LOD_CURVATURE_RANGE, LOD_HEIGHT_RANGE_M
     from .pipeline import RADIUS_RANGE_M
 

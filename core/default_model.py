@@ -2,12 +2,12 @@
 the data it can judge, and where it all came from.
 
 1. **Descriptors** (`TRANSFER_SETTINGS`): the density-invariant surface descriptors of
-   `core.surface` only, without the distances and LoD of the significant core points
+   `quakescan.surface` only, without the distances and LoD of the significant core points
    (`MODEL_DESCRIPTORS`). The paper's point-feature descriptors are left out of the shipped
    model: several of them count points (densities, neighbours) and the rest are statistics
    over a split whose gate depends on the sensor's noise; `bench/bench_transfer.py` measures
    both with and without them on the same rows.
-2. **Training set** (`core.trainset.default_plan`): thousands of buildings, every
+2. **Training set** (`quakescan.trainset.default_plan`): thousands of buildings, every
    acquisition randomised, cross-source pairs; rows labelled damaged whose acquisition saw
    no change at all are left out (`visible_damage`).
 3. **Classifier** (`select_classifier`): random forest and gradient boosting, with and
@@ -104,7 +104,7 @@ def data_limits(table) -> tuple[float, float]:
 
 def without_twins(table):
     """The rows of the table's own acquisitions: a physics twin repeats its city's buildings
-    and acquisitions (core.trainset.PHYSICS_TWINS), so counting its rows in the data limits
+    and acquisitions (quakescan.trainset.PHYSICS_TWINS), so counting its rows in the data limits
     would weigh four cities' sensors twice (it moved the density limit from 1.8 to 1.9 pts/m²,
     and a quarter of a real district thinned to 1.8 pts/m² out of what the model answers)."""
     twin = np.array([c.endswith("-physics") for c in table.pair_city], dtype=bool)
@@ -178,7 +178,7 @@ def fit_default_model(table, plan, config: dict, scores, *, seed: int = 0, comma
         "command": command,
         "dataset": (f"transfer training set '{plan.name}' (seed {plan.seed}): {len(plan.cities)} cities, "
                     f"{len(plan.pairs)} pairs, {len(table.y)} building rows; random acquisitions, "
-                    "cross-source pairs, mixed post-event cities (core.trainset)"),
+                    "cross-source pairs, mixed post-event cities (quakescan.trainset)"),
         "cities": [c.name for c in plan.cities],
         "rows_per_sensor_pair": sensors,
         "grades_train": {str(g): int(n) for g, n in zip(*np.unique(table.y, return_counts=True))},
@@ -209,7 +209,7 @@ def transfer_training_table(work: Path, *, seed: int = 0, size: str = "full", sc
     generator's bare scenes, under work/trainset), realistic (the same cities with roof detail,
     trees and cars, labelled through footprints, under work/trainset_realistic) or both;
     `damage` "both" adds the clean plan's physics twins, `small` the small-building cities
-    (`core.trainset.default_plan`)."""
+    (`quakescan.trainset.default_plan`)."""
     from .trainset import TrainingPlan, build, combine_tables, default_plan
 
     if scenes not in ("clean", "realistic", "both"):

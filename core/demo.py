@@ -4,11 +4,11 @@ generate (the add-on's headless generator: a mixed city, a grade drawn per build
 in L'Aquila, EPSG:32633)
 → scan both epochs with the paper's survey → classify with the shipped model → evaluate
 against the generator's grades → map. Every step writes atomically and is skipped when its
-output is there and current (`core.fingerprint`), so an interrupted demo continues where it
+output is there and current (`quakescan.fingerprint`), so an interrupted demo continues where it
 stopped.
 
 The generator needs Blender's Python: the `bpy` module in this environment (set-up
-installs it) or a `blender` binary on PATH. `core` itself never imports bpy; it runs the
+installs it) or a `blender` binary on PATH. `quakescan` itself never imports bpy; it runs the
 generator as a separate process.
 """
 from __future__ import annotations
@@ -22,8 +22,12 @@ from pathlib import Path
 
 from .errors import QuakeScanError
 
-REPO = Path(__file__).resolve().parent.parent
-GENERATOR = REPO / "blender_scripts" / "generate_scenes.py"
+PACKAGE = Path(__file__).resolve().parent
+# An installed wheel carries the generator inside this package; a checkout has it only in
+# blender_scripts/ beside core/, where users run it (an editable install maps nothing there).
+_INSTALLED_GENERATOR = PACKAGE / "blender_scripts" / "generate_scenes.py"
+GENERATOR = (_INSTALLED_GENERATOR if _INSTALLED_GENERATOR.is_file()
+             else PACKAGE.parent / "blender_scripts" / "generate_scenes.py")
 # The demo city stands in L'Aquila (the paper's test region), in UTM zone 33N: its
 # GeoJSON, maps and clouds land there in QGIS or CloudCompare.
 DEMO_CRS = "EPSG:32633"
@@ -37,7 +41,8 @@ class DemoError(QuakeScanError):
 def generator_command(args: list[str]) -> list[str]:
     """How to run blender_scripts/generate_scenes.py here: with the bpy module, else blender -b."""
     if not GENERATOR.is_file():
-        raise DemoError(f"{GENERATOR}: the scene generator is missing (run from a source checkout)")
+        raise DemoError(f"{GENERATOR}: the scene generator is missing (neither this installation nor a "
+                        "source checkout has blender_scripts/generate_scenes.py)")
     if importlib.util.find_spec("bpy") is not None:
         return [sys.executable, str(GENERATOR), *args]
     blender = shutil.which("blender")
@@ -89,7 +94,7 @@ def generate(set_name: str, dataset: str, buildings: int | None, seed: int, out:
 
 
 def scan_scene(scene_dir: Path, out: Path, seed: int, progress=None) -> None:
-    """Scan with the paper's survey unless `out` is current (`core.fingerprint`): the scene's
+    """Scan with the paper's survey unless `out` is current (`quakescan.fingerprint`): the scene's
     files by path, size and time, so that a city regenerated in place is scanned again even
     where its bytes came out the same (the demo always did), the survey and the seed."""
     from . import fingerprint, sensors

@@ -1,6 +1,6 @@
 """Photogrammetry-like point clouds: dense image matching (DIM) from a virtual UAV photo flight.
 
-The model, step by step (every number is a `PhotoSurvey` field; see `core.dim_settings.FIELD_DOC`):
+The model, step by step (every number is a `PhotoSurvey` field; see `quakescan.dim_settings.FIELD_DOC`):
 
 1. **Camera network.** Parallel, serpentine flight lines at `altitude_agl_m` above the
    scene's ground level, over the scene's xy extent grown by `margin_m` on every side (so
@@ -24,7 +24,7 @@ The model, step by step (every number is a `PhotoSurvey` field; see `core.dim_se
    it: inside the image frame, incidence angle below `max_incidence_deg` (both sides of a
    face count, so flipped normals do not matter) and nothing on the ray from the camera
    to the point closer than `visibility_tolerance_m` before it (Embree through
-   `core.raycast.RayCaster`: local origin, float32 only at that boundary, hit distance
+   `quakescan.raycast.RayCaster`: local origin, float32 only at that boundary, hit distance
    refined in float64). Every piece is first probed (its centre and a jittered grid of
    `probe_spacing_m`) against its ranked cameras: a piece that fewer than `min_views`
    cameras see at any probe (under buildings, inside closed solids) gets no candidates,

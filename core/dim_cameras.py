@@ -1,5 +1,5 @@
 """The camera network of a DIM photo flight: exposure stations along serpentine lines and
-the nadir and oblique cameras of each (step 1 of the model in `core.dim`)."""
+the nadir and oblique cameras of each (step 1 of the model in `quakescan.dim`)."""
 from __future__ import annotations
 
 import math

@@ -1,7 +1,7 @@
 """Settings of a virtual UAV photo flight and its dense image matching (`PhotoSurvey`):
 fields, their documentation table (`FIELD_DOC`, the `_doc` of a JSON file), the ranges of
-real photo flights, presets and the JSON files (`core.settings_file`). The simulator that
-flies them is `core.dim`."""
+real photo flights, presets and the JSON files (`quakescan.settings_file`). The simulator that
+flies them is `quakescan.dim`."""
 from __future__ import annotations
 
 import dataclasses
@@ -53,7 +53,7 @@ FIELD_DOC = {
 }
 
 
-# Bounds beyond which no UAV photo flight goes (see core.survey.FIELD_RANGES): without them a
+# Bounds beyond which no UAV photo flight goes (see quakescan.survey.FIELD_RANGES): without them a
 # typo (99.999 % overlap, a point per 10⁻⁶ pixels, probes every nanometre) plans millions of
 # images or points and runs for hours.
 DIM_FIELD_RANGES = {

@@ -19,12 +19,12 @@ classifier an undamaged building next to a collapse (debris on its walls, a neig
 newly exposed party wall), and the test city is full of them. The test city is a separate
 region-specific mixed city with the paper's exact class mix, acquired as DIM.
 
-Levels of detection of the changed/unchanged split (`core.lod`): by default measured on
+Levels of detection of the changed/unchanged split (`quakescan.lod`): by default measured on
 the region-specific pre-event scene acquired twice as DIM (the source the classifiers are
 applied to) and used for every training table and the test alike; explicit values
 override. Descriptor tables are computed once per dataset and split settings and shared
 between classifiers; every step reuses an output only when the fingerprint stored with it is
-the one the step would store now (`core.fingerprint`: resumable, never stale) and
+the one the step would store now (`quakescan.fingerprint`: resumable, never stale) and
 everything is seeded (reproducible).
 """
 from __future__ import annotations
@@ -86,7 +86,7 @@ class ExperimentSettings:
     seed: int = 0
     n_estimators: int = 100
     max_depth: int = 5
-    lod_height_m: float | None = None  # None: calibrated on the DIM rescan (core.lod)
+    lod_height_m: float | None = None  # None: calibrated on the DIM rescan (quakescan.lod)
     lod_curvature: float | None = None
     training: str = "paper+mixed"
 
@@ -108,8 +108,8 @@ class ExperimentSettings:
 
 def _acquire(kind: str, scene_dir: Path, stem: Path, seed: int, say=None) -> Path:
     """stem.seedN.las acquired from scene_dir with the default settings of sensor `kind`
-    (`core.sensors`); reused only when its acquisition record says the same scene, settings
-    and seed (`core.acquisition`)."""
+    (`quakescan.sensors`); reused only when its acquisition record says the same scene, settings
+    and seed (`quakescan.acquisition`)."""
     from . import sensors
     from .acquisition import Acquisition, acquire
 
@@ -397,7 +397,7 @@ def shipped_text(ev: Evaluation | None) -> str:
         return "The shipped default model was not found; no comparison with it."
     f1 = ", ".join(f"{GRADE_NAMES[g]} {metric_text(ev.per_grade[g], 'f1', unit='')}" for g in TARGET_GRADES)
     return (f"The shipped default model (`core/data/default_model.skops`: the transfer training set of "
-            f"`core.trainset`, nothing of this experiment's data), applied as it is to the same test pair: "
+            f"`quakescan.trainset`, nothing of this experiment's data), applied as it is to the same test pair: "
             f"overall accuracy {100 * ev.overall_accuracy:.1f} % on {ev.n} buildings ({ev.not_assessable} not "
             f"assessable); F1 {f1}; damaged vs undamaged F1 {metric_text(ev.damaged, 'f1')}.")
 

@@ -14,7 +14,7 @@ Neighbourhood
     (|d| <= r, error <= ~3 (N + 3) eps r^2 on every eigenvalue) and redoes, centred on the
     neighbourhood's own mean (two passes), every neighbourhood where a small eigenvalue
     decides: l1 <= 1e-4 r^2, l2 <= 1e-6 l1 or l3 <= 1e-6 l1 (near-collinear, near-exact
-    planes); see `core._feature_kernels`. The numpy reference (`core._feature_reference`,
+    planes); see `quakescan._feature_kernels`. The numpy reference (`quakescan._feature_reference`,
     one point at a time) always centres on the mean.
 
 Definitions (CloudCompare / CCCoreLib "Geometric features"; jakteristics copies them)
@@ -64,7 +64,7 @@ Registry: how a feature is declared
     feature is then a function of those measures and r. `REGISTRY` holds one `Feature` per
     name: its category, the measures it needs and `derive`, its numpy definition. FEATURES,
     what the kernel is asked to measure and the derivation all read it; the reference
-    (`core._feature_reference`) derives every feature with the same `derive`.
+    (`quakescan._feature_reference`) derives every feature with the same `derive`.
     * A feature derived from existing measures: one `Feature` entry, appended at the end of
       REGISTRY (FEATURES is its order, and models and cached training tables name their
       columns in it). `compiled=` is optional: a code of `_feature_kernels.eigen_features`
@@ -488,7 +488,7 @@ def compute_features(xyz, radius: float, features: Sequence[str] | None = None, 
     -------
     dict of str -> (n,) or (m,) float64
         One array per requested feature, NaN where the degenerate rule of the module says so.
-        `core._feature_reference.reference_features` computes the same with plain numpy.
+        `quakescan._feature_reference.reference_features` computes the same with plain numpy.
     """
     xyz, radius, names, core_points, query_index = _check(xyz, radius, features, core_points, query_index)
     m = _query_count(xyz, core_points, query_index)

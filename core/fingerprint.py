@@ -11,7 +11,7 @@ Identity of an input file:
   records): exact.
 - `stat(path)`: resolved path, size and modification time. For point clouds: they are
   gigabytes, hashing one takes longer than many runs that reuse it, and every writer of
-  the library replaces a cloud by renaming a new file over it (`core.atomic`), which always
+  the library replaces a cloud by renaming a new file over it (`quakescan.atomic`), which always
   gives it a new time; a moved or copied cloud counts as new (redone, never wrongly reused).
 - `scene_fingerprint(scene)`: a scene bundle's scene.json and mesh bytes, or a Scene's arrays.
 

@@ -3,7 +3,7 @@
 EMS-98 (Grünthal 1998) names grades 1-5; grade 0 is "no damage". Zahs et al. call the
 three damaged target classes heavy, extreme and destruction (grades 3, 4, 5): those short
 names are what `label` holds in buildings.csv and what tables use where space is short;
-maps, popups and the CLI's counts give the EMS-98 name. The add-on cannot import `core`
+maps, popups and the CLI's counts give the EMS-98 name. The add-on cannot import `quakescan`
 and keeps its own copy in addon/ems98.py; tests/test_grades.py checks both are identical.
 """
 from __future__ import annotations

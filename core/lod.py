@@ -1,6 +1,6 @@
 """Levels of detection of the changed/unchanged split, measured on a rescan of one source.
 
-The split (`core.change.split_changed`) only calls a point changed when its change in
+The split (`quakescan.change.split_changed`) only calls a point changed when its change in
 height or in curvature exceeds a level of detection (LoD). What an undamaged surface shows
 as "change" depends on how the clouds were made: on the paper's laser scanning the
 curvature of a rescanned roof moves by at most 0.14 1/m (99.9th percentile), on simulated

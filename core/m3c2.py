@@ -32,7 +32,7 @@ post-event flight did not observe it. `seen_through` (points behind the surface)
 holds at least `min_points` points of it on a plane (`cylinder_radius`).
 
 `curvature_lod` gives the same kind of level of detection for the change of the mean
-curvature (`core.features` "curvature") from the neighbourhood's eigenvalues: for a
+curvature (`quakescan.features` "curvature") from the neighbourhood's eigenvalues: for a
 least-squares quadric over N points spread uniformly on a disc of radius R with noise σ
 along the normal, Var(H) = 48 σ² / (N R⁴); with λ1 = λ2 = R²/4 and λ3 = σ² this is
 3 λ3 / (N λ1 λ2), which holds for any neighbourhood in terms of its own eigenvalues.
@@ -369,7 +369,7 @@ def voxel_core_points(xyz: np.ndarray, spacing_m: float) -> np.ndarray:
 
 
 def orient_normals(normals: np.ndarray, xy: np.ndarray, centre_xy: np.ndarray, vertical_below: float = 0.5):
-    """Normals of `core.features` point up (n_z >= 0); on walls (|n_z| < vertical_below) that
+    """Normals of `quakescan.features` point up (n_z >= 0); on walls (|n_z| < vertical_below) that
     sign is arbitrary, so there they are turned to point away from the building's centre:
     a wall that falls outwards or inwards then gives a distance of a known sign."""
     n = np.array(normals, dtype=np.float64, copy=True)

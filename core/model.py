@@ -4,7 +4,7 @@ A model file (skops format) holds the fitted scikit-learn classifier and everyth
 to apply it again: feature names, neighbourhood radius, split settings, class labels, the
 kind of classifier (random forest or gradient boosting, calibrated or not), whether
 buildings without changed points are decided by rule, training provenance and the versions
-that made it. Which classifier ships is decided by measurement (`core.model_selection`);
+that made it. Which classifier ships is decided by measurement (`quakescan.model_selection`);
 the choice lives in the file, so nothing downstream branches on it. Loading never executes
 code from the file: skops rebuilds only the types on an allow-list, and a file asking for
 anything else is refused.
@@ -30,7 +30,7 @@ VERSION = 1
 # written as version 1, which older readers read as before.
 VERSION_ALL_ROWS = 2
 SUPPORTED_VERSIONS = (VERSION, VERSION_ALL_ROWS)
-GRADE_LABELS = GRADE_SHORT_NAMES  # buildings.csv `label`: the paper's short names (core.grades)
+GRADE_LABELS = GRADE_SHORT_NAMES  # buildings.csv `label`: the paper's short names (quakescan.grades)
 # Everything the classifier kinds need beyond skops' built-in safe types, as
 # `skops.io.get_untrusted_types` reports them for saved files of each kind
 # (tests/test_model.py checks that this list is exactly their union).

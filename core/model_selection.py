@@ -1,7 +1,7 @@
 """Which classifier to ship, by measurement: grouped cross-validation of candidate
 configurations on one descriptor table.
 
-A candidate is a dict of `core.model.fit_classifier` arguments (kind, calibration, n_estimators,
+A candidate is a dict of `quakescan.model.fit_classifier` arguments (kind, calibration, n_estimators,
 ...) plus two optional keys: `rule` (True: fitted on buildings with changed points and the
 others decided by the no-change rule, as `train_damage_forest`/`predict_grades` do; default
 False: fitted on and asked about every row) and `name` (for the table). Every candidate is
@@ -33,7 +33,7 @@ class CandidateScore:
     config: dict
     accuracy: float  # overall accuracy: share of rows whose grade is right
     macro_f1: float  # mean of the per-grade F1 over the grades in the data
-    f1_per_grade: dict  # grade → one-vs-rest F1 (core.evaluate.binary_metrics)
+    f1_per_grade: dict  # grade → one-vs-rest F1 (quakescan.evaluate.binary_metrics)
     damaged_f1: float  # F1 of "damaged" (grade 3–5) against "undamaged" (0–2)
     log_loss: float  # mean −ln p(true grade), p floored at PROBABILITY_FLOOR; 0 is perfect
     brier: float  # mean over rows of Σ_k (p_k − [grade = k])²: 0 perfect, 2 worst

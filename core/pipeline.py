@@ -11,7 +11,7 @@ The steps of Zahs et al. in the order they run here:
    the searched box is searched again in a box that surely holds it), features of those
    post-event points, and the change of each feature, of height and the distance;
 3. per building: the LoD-gated k-means split into changed/unchanged points and the
-   descriptors of the changed points (`core.change`).
+   descriptors of the changed points (`quakescan.change`).
 
 Only the point features that the descriptors (and the split) need are computed.
 """
@@ -72,7 +72,7 @@ class PipelineSettings:
     # The paper's descriptors: statistics of the point features' changes over the changed
     # points of the LoD-gated split (share_changed, <feature>_<statistic>).
     paper_descriptors: bool = True
-    # Descriptors of 2.5-D surfaces and M3C2 core points (core.surface); None: not computed.
+    # Descriptors of 2.5-D surfaces and M3C2 core points (quakescan.surface); None: not computed.
     surface: SurfaceSettings | None = None
     # which surface descriptors are columns (all by default; a model may use fewer)
     surface_descriptors: tuple = SURFACE_DESCRIPTORS
@@ -538,7 +538,7 @@ def _per_point_lods(q_xyz, q_bid, d_height_nn, pre_f, post_f, inv, cores):
     (its surface's change, not a neighbour's height) with that core's level of detection;
     where the core's cylinders are not comparable (the surface left the cylinder) the
     point-to-point change stays, with the floor as LoD (NaN here). The curvature's LoD comes
-    from both neighbourhoods' standard errors (core.m3c2.curvature_standard_error)."""
+    from both neighbourhoods' standard errors (quakescan.m3c2.curvature_standard_error)."""
     from scipy.spatial import cKDTree
 
     from .m3c2 import curvature_lod, curvature_standard_error

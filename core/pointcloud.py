@@ -92,7 +92,7 @@ class LasChunkWriter:
         self._compress = suffix == ".laz"
         self.count = 0
         # Where the temporary file goes when writing stops with an error (None: it is removed);
-        # a resumable scan keeps its points this way (core.scan_checkpoint).
+        # a resumable scan keeps its points this way (quakescan.scan_checkpoint).
         self.keep_partial_as: Path | None = None
 
     @property

@@ -2,7 +2,7 @@
 
 QGIS applies a `.qml` of the same base name when it loads a layer, so the GeoJSON opens
 with the map's colours: a categorised renderer on `predicted_grade`, one category per
-EMS-98 grade named as on the maps (`core.grades`), and the catch-all category (empty
+EMS-98 grade named as on the maps (`quakescan.grades`), and the catch-all category (empty
 value, which takes the null grade of a building not assessable) in grey; building IDs as
 labels.
 """

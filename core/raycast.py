@@ -49,7 +49,7 @@ class RayCaster:
         self.face_class = np.where(self.face_building > 0, BUILDING_CLASS,
                                    np.where(self.face_surface == GROUND, GROUND_CLASS, UNCLASSIFIED)
                                    ).astype(np.uint8)
-        # Porous faces (tree crowns) let rays pass (core.vegetation); None: every face is opaque
+        # Porous faces (tree crowns) let rays pass (quakescan.vegetation); None: every face is opaque
         # and casting is exactly what it was before vegetation existed.
         self.face_porous = scene.face_porous.astype(bool) if scene.has_porous else None
         self.transmission = float(scene.transmission)
@@ -72,7 +72,7 @@ class RayCaster:
         the hit on that face's plane (inf where there is no hit). Embree releases the GIL,
         so calls from several threads run in parallel. `origins32`/`directions32` skip the
         float32 conversion when the caller has them; `fast=False` refines with the numpy
-        reference instead of the compiled loop. `ray_ids` (`core.vegetation.RayIds`) lets
+        reference instead of the compiled loop. `ray_ids` (`quakescan.vegetation.RayIds`) lets
         rays pass porous faces (tree crowns); without it every face is opaque (DIM).
         """
         o32 = origins.astype(np.float32) if origins32 is None else origins32

@@ -6,7 +6,7 @@ as CSV and as GeoJSON when footprints are known."
 
 A building that cannot be assessed (too few points in an epoch, no point in its footprint)
 has no grade: the files leave it empty, never a guess. Every writer goes through
-`core.atomic`, so a file under its final name is always complete.
+`quakescan.atomic`, so a file under its final name is always complete.
 """
 from __future__ import annotations
 
@@ -40,7 +40,7 @@ OUTLINE_BUFFER = "buffer around points"  # fewer than 3 distinct points, or all 
 _FIXED = ["building_id", "assessable", "predicted_grade", "label"]
 _TAIL = ["share_changed", "n_pre", "n_post", "decided_by", "reason"]
 # Columns added after the first files: written after all others, optional on reading, so
-# readers that look columns up by name (core.evaluate, read_csv) take old and new files.
+# readers that look columns up by name (quakescan.evaluate, read_csv) take old and new files.
 _ADDED = ["confidence", "grade_name"]
 
 
@@ -133,8 +133,8 @@ def write_csv(rows, path, classes, own_ids: dict | None = None) -> None:
     """One line per building, sorted by building_id. Columns: building_id, assessable (1/0),
     predicted_grade (empty when not assessable), label, p_<grade> per model class (empty when
     not assessable), share_changed, n_pre, n_post, decided_by, reason, confidence (probability
-    of the predicted grade; empty when not assessable), grade_name (EMS-98 name, core.grades;
-    "not assessable" without a grade). `core.evaluate` reads it. `own_ids`
+    of the predicted grade; empty when not assessable), grade_name (EMS-98 name, quakescan.grades;
+    "not assessable" without a grade). `quakescan.evaluate` reads it. `own_ids`
     ({building_id: footprint ID}, for footprints whose IDs are text) adds a last column
     `footprint_id`."""
     classes = [int(c) for c in classes]
@@ -271,7 +271,7 @@ def write_geojson(rows, outlines: dict, path, crs: str | None, classes, attribut
     The coordinates are those of the point cloud, i.e. PROJECTED (metres in `crs`), not the
     WGS 84 longitude/latitude that RFC 7946 assumes; hence the GeoJSON 2008 `crs` member
     ("urn:ogc:def:crs:EPSG::n") when the CRS has an EPSG code, which QGIS/GDAL honour and
-    `core.footprints.read_footprints` reads back. Coordinates are rounded to 1 mm.
+    `quakescan.footprints.read_footprints` reads back. Coordinates are rounded to 1 mm.
     `attributes` ({building_id: the footprint's properties}) adds them as `footprint`: the
     cadastre's own ID, address or use stay with the result whatever their types.
     """

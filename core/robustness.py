@@ -25,7 +25,7 @@ Definitions (the choices this module makes; the paper does not spell them out)
         100 * (median_post - median_pre) / scale_f
         median_pre over f at the pre building points, median_post over f at their nearest
         post points, both over the same pairs: pairs where either value is NaN (degenerate
-        neighbourhood, see core.features) are dropped. The median, not the mean, because
+        neighbourhood, see quakescan.features) are dropped. The median, not the mean, because
         roughness, curvature and the eigenvalues have heavy tails at edges.
     Scale (near-zero features): scale_f = |median_pre|, unless |median_pre| is below
         NEAR_ZERO (0.1) x the pre-event interquartile range IQR_pre of f: then scale_f =
@@ -96,7 +96,7 @@ NORMAL = "normal_vector"
 NORMAL_COMPONENTS = ("normal_x", "normal_y", "normal_z")
 NEAR_ZERO = 0.1  # |median| below NEAR_ZERO x IQR: the IQR is the scale
 DEFAULT_SAMPLE = 20_000
-SURFACES = {1: "roof", 2: "wall"}  # core.pointcloud surface codes looked at in pre_values
+SURFACES = {1: "roof", 2: "wall"}  # quakescan.pointcloud surface codes looked at in pre_values
 PRE_VALUE_FEATURES = ("surface_variation", "eigenvalue3", "sphericity", "omnivariance", "roughness", "planarity",
                       "eigenvalue_sum", "curvature", "point_density", "num_neighbours")  # in the report's table
 # All 24 per-point features with the normal's components as one feature: 22 names.
@@ -784,7 +784,7 @@ def run_experiment(pre_scene_dir: str | os.PathLike, post_scene_dir, out_dir: st
                    threshold_pct: float = THRESHOLD_PCT, sample: int | None = DEFAULT_SAMPLE,
                    spacing: float | None = None) -> RobustnessResult:
     """Scan the scenes with ULS (`survey`, default the paper preset) and DIM (`photo_survey`,
-    default the paper preset) into out_dir/clouds/ (`core.acquisition.acquire`: a cloud made
+    default the paper preset) into out_dir/clouds/ (`quakescan.acquisition.acquire`: a cloud made
     from the same scene, survey and seed is kept, one of another run is made again), read
     them all in the pre ULS cloud's frame, run `robustness` and write the report to out_dir. `post_scene_dir` is one post-event scene
     folder (clouds {uls,dim}_post.las) or a sequence of them, the demolition stages in order

@@ -1,6 +1,6 @@
 """Virtual UAV laser scanning (ULS): pulses along the flight plan, ray-cast through Embree.
 
-Numerics: rays are cast by `core.raycast.RayCaster` (local origin, float32 only at the
+Numerics: rays are cast by `quakescan.raycast.RayCaster` (local origin, float32 only at the
 Embree boundary, hits refined in float64), so a scene at UTM coordinates gives the same
 points as the same scene at the origin.
 
@@ -21,7 +21,7 @@ Beam model (`Survey.beam`):
   hit within a fraction of a millimetre (measured in bench/bench_scan.py).
   Discontinuities narrower than the pulse spacing (wires, antennas) can be missed.
 
-Vegetation (`core.vegetation`): a ray that hits a porous face (a tree crown) is returned
+Vegetation (`quakescan.vegetation`): a ray that hits a porous face (a tree crown) is returned
 there with probability 1 - transmission, else cast again from just beyond the hit; every
 beam model's rays do this, seeded per (seed, line, pulse, sub-ray, crossing). Re-cast rays
 are not counted in `rays_cast`. A scene without porous faces is cast as before.
@@ -244,7 +244,7 @@ class _Simulator:
         self.sub_weights = w / w.sum()
 
     def record_from_bytes(self, raw: bytes):
-        """A packed LAS record from the bytes of one (`core.scan_checkpoint`)."""
+        """A packed LAS record from the bytes of one (`quakescan.scan_checkpoint`)."""
         import laspy
 
         h = self.header
@@ -595,7 +595,7 @@ def scan(scene: Scene, survey: Survey, out_path: str | os.PathLike, seed: int = 
     compiled loops (same bytes, slower).
 
     `checkpoint`: a folder where every finished flight line is kept
-    (`core.scan_checkpoint`); a rerun of the same scan (same `fingerprint`, the caller's
+    (`quakescan.scan_checkpoint`); a rerun of the same scan (same `fingerprint`, the caller's
     digest of its inputs, and the same scene, survey, seed and batches) takes the finished
     lines from there instead of scanning them again, and writes the same bytes as an
     uninterrupted scan. Removed on success.

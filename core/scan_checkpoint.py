@@ -36,7 +36,7 @@ _KEY = "key.json"
 
 
 def plan_key(fingerprint: str, scene, survey, seed: int, batch_rays: int, lines) -> str:
-    """The checkpoint key (`core.fingerprint`): the caller's fingerprint (the CLI's of the
+    """The checkpoint key (`quakescan.fingerprint`): the caller's fingerprint (the CLI's of the
     scene bundle's files), and what the scan's bytes depend on — the scene's arrays, origin,
     CRS and labels, the survey, the seed, the batch size and the flight lines — so that a
     library caller without a fingerprint cannot resume from another scan's lines either."""

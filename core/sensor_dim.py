@@ -1,8 +1,8 @@
 """Dense image matching of a UAV photo flight as a registered sensor: `dim`, a
-`core.dim_settings.PhotoSurvey` flown by `core.dim.simulate_dim`.
+`quakescan.dim_settings.PhotoSurvey` flown by `quakescan.dim.simulate_dim`.
 
-Ranges of its random settings (`core.acquisition.random_acquisition`; the flight-line
-direction first, `core.sensors.LINE_DIRECTION_DEG`), the paper's photo survey otherwise
+Ranges of its random settings (`quakescan.acquisition.random_acquisition`; the flight-line
+direction first, `quakescan.sensors.LINE_DIRECTION_DEG`), the paper's photo survey otherwise
 (45 MP camera, 24 mm nadir, four 35 mm obliques at 45°): altitude 80–150 m above ground,
 i.e. a nadir ground sampling distance of 1.47–2.75 cm; matching noise 0.5–1.5 px
 (well-textured to poorly textured façades); one point per 6–12 px (Metashape between
@@ -46,7 +46,7 @@ def label(s: PhotoSurvey) -> str:
 
 
 def _simulate(scene, survey: PhotoSurvey, out_path, *, seed, threads, progress, source):
-    # Looked up on the module at call time, so that what replaces `core.dim.simulate_dim`
+    # Looked up on the module at call time, so that what replaces `quakescan.dim.simulate_dim`
     # (a test that must see no simulation) replaces it here too.
     return _dim.simulate_dim(scene, survey, out_path, seed=seed, progress=progress, threads=threads, source=source)
 

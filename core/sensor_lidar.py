@@ -1,10 +1,10 @@
 """Laser scanning as registered sensors: `uls` (UAV laser scanning) and `als` (airborne
-laser scanning from an aircraft), both a `core.survey.Survey` flown by `core.scan.scan`,
+laser scanning from an aircraft), both a `quakescan.survey.Survey` flown by `quakescan.scan.scan`,
 and the flight trajectory a scan's survey flies (`write_trajectory`).
 
-Ranges of their random settings (`core.acquisition.random_acquisition`; rates and
+Ranges of their random settings (`quakescan.acquisition.random_acquisition`; rates and
 densities log-uniformly, since their effects are multiplicative, everything else uniformly;
-the flight-line direction first, `core.sensors.LINE_DIRECTION_DEG`):
+the flight-line direction first, `quakescan.sensors.LINE_DIRECTION_DEG`):
 
 - `uls` (the paper's preset otherwise: VUX-1UAV-like rotating polygon, 120° FOV, 8 m/s):
   altitude 50–150 m above ground (the span of published post-earthquake UAV-LiDAR
@@ -14,7 +14,7 @@ the flight-line direction first, `core.sensors.LINE_DIRECTION_DEG`):
   misalignment 0–0.05 m per axis (0 = perfectly adjusted strips, 5 cm = an unadjusted
   UAV trajectory); strip overlap 30–70 % (flight plans from economical to the paper's 60 %
   and beyond).
-- `als` (the `als` preset otherwise, see `core.survey.als_for_density`): nominal density
+- `als` (the `als` preset otherwise, see `quakescan.survey.als_for_density`): nominal density
   2–30 pts/m² (national archives: older blocks 1–4, AHN2/3 6–15, others up to 30; the
   sparse end matters: a building the model never saw that sparse is 'not assessable'); range noise
   0.02–0.04 m (aircraft scanners' ranging precision plus GNSS/INS noise at 500 m);
@@ -81,7 +81,7 @@ def _errors(s: Survey) -> str:
 
 
 def _simulate(scene, survey: Survey, out_path, *, seed, threads, progress, source):
-    # Looked up on the module at call time, so that what replaces `core.scan.scan` (a test
+    # Looked up on the module at call time, so that what replaces `quakescan.scan.scan` (a test
     # that must see no scan) replaces it here too.
     return _scan.scan(scene, survey, out_path, seed=seed, threads=threads, progress=progress, source=source)
 

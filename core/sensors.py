@@ -1,11 +1,11 @@
 """The sensor registry: every simulated sensor a scene can be acquired with, by kind name,
 and `simulate`, the one call that runs any of them.
 
-Built in: `uls` and `als` (laser scanning, `core.sensor_lidar`) and `dim` (dense image
-matching of a photo flight, `core.sensor_dim`). `core.acquisition` (acquisitions, their
-sidecars and random draws, hence the training set), `core.experiment`, `core.robustness`,
-`core.demo` and `quakescan dim` reach a sensor only through this registry; `quakescan scan`
-calls `core.scan.scan` itself for what only it has (flight-line checkpoints, the plan's
+Built in: `uls` and `als` (laser scanning, `quakescan.sensor_lidar`) and `dim` (dense image
+matching of a photo flight, `quakescan.sensor_dim`). `quakescan.acquisition` (acquisitions, their
+sidecars and random draws, hence the training set), `quakescan.experiment`, `quakescan.robustness`,
+`quakescan.demo` and `quakescan dim` reach a sensor only through this registry; `quakescan scan`
+calls `quakescan.scan.scan` itself for what only it has (flight-line checkpoints, the plan's
 cost before it flies).
 
 A new sensor is one module that calls `register(Sensor(...))` when it is imported, and
@@ -17,18 +17,18 @@ registers provides:
   acquisition documents and sidecars and names clouds of the training set.
 - `settings`: the class of everything the sensor flies with: a frozen dataclass whose
   fields all have defaults and are JSON values (`dataclasses.asdict` goes into the sidecar
-  and comes back through `core.settings_file.from_values`), that validates itself on
-  construction (a bad value raises `core.errors.SurveyError`) and has `replace(**changes)`.
+  and comes back through `quakescan.settings_file.from_values`), that validates itself on
+  construction (a bad value raises `quakescan.errors.SurveyError`) and has `replace(**changes)`.
 - `settings_name`: what messages call those settings ("survey", "photo survey").
 - `simulate(scene, settings, out_path, *, seed, threads, progress, source)`: writes the
-  epoch point cloud of the `core.scene.Scene` to `out_path` (.las or .laz) under the
-  contract of `core.pointcloud` (LAS 1.4 point format 6, 1 mm scale, offset
-  `core.las_output.las_offset`, extra dimensions building_id, grade and surface of the face
-  a point lies on): writing through `core.pointcloud.LasChunkWriter` gives all of it and
+  epoch point cloud of the `quakescan.scene.Scene` to `out_path` (.las or .laz) under the
+  contract of `quakescan.pointcloud` (LAS 1.4 point format 6, 1 mm scale, offset
+  `quakescan.las_output.las_offset`, extra dimensions building_id, grade and surface of the face
+  a point lies on): writing through `quakescan.pointcloud.LasChunkWriter` gives all of it and
   makes the file appear only when complete. The same scene, settings and seed give the
   same bytes whatever `threads` (None: the sensor's default, -1: all cores); `progress` is
   None or called with (done, total); `source` names the scene in messages. It raises
-  `core.errors.SceneError` or `SurveyError` when it cannot acquire the scene (nothing to
+  `quakescan.errors.SceneError` or `SurveyError` when it cannot acquire the scene (nothing to
   see, no points) and returns a summary with `points` (int), `wall_time_s` (float) and
   `to_json()` (a JSON object, kept in the sidecar).
 - `preset(name)`: named settings (`SurveyError` for an unknown name); `default_preset`
@@ -37,7 +37,7 @@ registers provides:
 - optional `load(spec)`: a preset name or the path of the sensor's JSON settings file
   (without it only preset names are understood);
 - optional `random(rng)`: settings drawn from a numpy Generator for the training set
-  (`core.acquisition.random_acquisition`); the same generator state gives the same
+  (`quakescan.acquisition.random_acquisition`); the same generator state gives the same
   settings. The built-in sensors draw the flight-line direction first
   (`LINE_DIRECTION_DEG`), then their own values.
 """
@@ -158,7 +158,7 @@ def check_settings(kind: str, settings) -> Sensor:
 def simulate(kind: str, scene, settings, out_path: str | os.PathLike, seed: int = 0, threads: int | None = None,
              progress=None, source: str = "scene"):
     """Acquire the Scene `scene` with the sensor `kind` and `settings` into `out_path`;
-    returns the sensor's summary. No sidecar and no resuming: `core.acquisition.acquire`
+    returns the sensor's summary. No sidecar and no resuming: `quakescan.acquisition.acquire`
     adds them."""
     sensor = check_settings(kind, settings)
     return sensor.simulate(scene, settings, out_path, seed=seed, threads=threads, progress=progress, source=source)

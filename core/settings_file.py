@@ -43,7 +43,7 @@ def load(spec: str | os.PathLike, *, cls: type, fmt: str, version: int, kind: st
 def from_values(values: dict, *, cls: type, kind: str, preset: Callable[[str], object], source: str):
     """The dataclass from a dict of (some of) its fields and optionally `preset` (missing
     fields come from it, else from the defaults); every refusal names `source`. Shared by the
-    settings files and the documents that embed settings (core.acquisition)."""
+    settings files and the documents that embed settings (quakescan.acquisition)."""
     values = dict(values)
     known = {f.name for f in dataclasses.fields(cls)}
     base = preset(values.pop("preset")) if "preset" in values else cls()

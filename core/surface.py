@@ -28,7 +28,7 @@ compared directly, so a hole of one or two cells is not smoothed away.
   (not other buildings' cells) that rose by more than `debris_rise_m`, as a share of the ring
   and as a volume relative to the building's.
 
-**Surface change on core points** (`core.m3c2`): core points one per `cell_m` voxel of the
+**Surface change on core points** (`quakescan.m3c2`): core points one per `cell_m` voxel of the
 building's pre-event points (so shares are shares of surface area), normals from the
 pre-event points, walls oriented outwards. A core point is *changed* when its M3C2 distance
 exceeds both its own level of detection and `lod_floor_m` and its old surface is no longer
@@ -76,7 +76,7 @@ _BAND_STRIDE_M = 1.0e4
 # share of a cell's pre-event points at the post-event height that makes it a surface seen before
 LOWER_SURFACE_SHARE = 0.2
 # Bumped whenever a descriptor's computation changes: cached training tables made with another
-# version are not reused (core.trainset), and a model records the version it was trained on.
+# version are not reused (quakescan.trainset), and a model records the version it was trained on.
 DESCRIPTOR_VERSION = 12
 RASTER_DESCRIPTORS = ("s_lowered_1m", "s_lowered_storey", "s_lowered_half", "s_raised", "s_volume_loss",
                       "s_volume_gain", "s_height_ratio_mean", "s_height_ratio_p10", "s_post_gap",
@@ -179,7 +179,7 @@ def roof_cell_density(cells: np.ndarray, z: np.ndarray) -> tuple[float, int]:
 
 def planimetric_density(xyz: np.ndarray) -> float:
     """Points per m² of roof seen from above (`roof_cell_density` on 1 m cells of the given
-    frame; the same measure as `core.acquisition.measured_density`). A building too small for
+    frame; the same measure as `quakescan.acquisition.measured_density`). A building too small for
     an interior cell takes the mean top-band count of all its cells; no point gives 0."""
     xyz = np.asarray(xyz, dtype=np.float64)
     if len(xyz) == 0:

@@ -43,7 +43,7 @@ class TrainingPair:
 
 def read_truth_csv(path: str | os.PathLike) -> dict[int, int]:
     """{building_id: grade} from a CSV with columns building_id, grade (0–5), one row per
-    building (`core.evaluate.read_grade_csv`, the one truth reader)."""
+    building (`quakescan.evaluate.read_grade_csv`, the one truth reader)."""
     return read_grade_csv(path, TrainingError)
 
 
@@ -110,7 +110,7 @@ def train(pairs: Sequence[TrainingPair], settings: PipelineSettings, *, n_estima
     With test_size 0 the forest sees every row and no evaluation is returned. rule: fit on
     buildings with changed points and decide the others by rule (the paper's way), or
     (False) fit on every row and ask the model about every building; the model file records
-    which. classifier: further `core.model.fit_classifier` arguments (kind, calibration, ...);
+    which. classifier: further `quakescan.model.fit_classifier` arguments (kind, calibration, ...);
     calibration folds are grouped by building."""
     t0 = time.perf_counter()
     table = training_table(pairs, settings, workers=workers, progress=progress)

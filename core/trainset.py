@@ -12,18 +12,18 @@ every building looks changed. This training set varies what real pairs vary:
   included and trained as "no damage": undamaged and slightly damaged buildings next to
   collapses, with a neighbour's debris on their walls), and the paper's design (every
   building heavy / extreme / destroyed) for more damaged examples;
-- **acquisition**: every cloud drawn by `core.acquisition.random_acquisition` (ULS altitude,
+- **acquisition**: every cloud drawn by `quakescan.acquisition.random_acquisition` (ULS altitude,
   pulse rate, range noise 1–3 cm, strip misalignment; ALS-like 4–30 pts/m²; DIM GSD,
   matching noise, nadir-only flights), and the pre-/post-event sensors of a pair cycle
   through same-source and cross-source combinations (an ALS archive before and a drone
   after is what responders really have);
 - **labels**: the post-event scene's grade per building (grades 1–2 → 0).
 
-`build` generates the scenes (the add-on's generator, `core.demo.generate`), acquires the
-clouds (`core.acquisition.acquire`), describes every pair (`core.pipeline.describe_pair`)
+`build` generates the scenes (the add-on's generator, `quakescan.demo.generate`), acquires the
+clouds (`quakescan.acquisition.acquire`), describes every pair (`quakescan.pipeline.describe_pair`)
 and keeps one descriptor table per pair. Every step is resumable: a scene with the same
 generator settings, a cloud whose sidecar records the same acquisition, seed and scene,
-and a table whose fingerprint (`core.fingerprint`: the pair, its scenes, the settings) is
+and a table whose fingerprint (`quakescan.fingerprint`: the pair, its scenes, the settings) is
 the one it would get now are not made again; anything else is made again. The same plan and seed
 give the same table.
 
@@ -311,7 +311,7 @@ def _settings_key(settings, labels: str = "simulator") -> str:
 
 
 def _table_fingerprint(pair: PairSpec, scenes: Path, settings, labels: str):
-    """What a pair's table depends on (`core.fingerprint`): the pair (its two acquisitions and
+    """What a pair's table depends on (`quakescan.fingerprint`): the pair (its two acquisitions and
     seeds), the scenes' scene.json by content (it records the generator's settings and every
     building's grade, and its mesh follows from them: hashing meshes on every rerun would cost
     more than it guards), the descriptor settings, the labels and the descriptor code."""

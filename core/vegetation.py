@@ -7,7 +7,7 @@ decides: with probability 1 - t the ray is returned there, with probability t it
 and is cast again from `STEP_M` beyond the hit, towards the next surface (the crown's far
 side, a branch of another crown, the roof or the ground below). t is the scene's
 `transmission` (scene.json `"vegetation": {"transmission": t}`, default
-`core.scene.DEFAULT_TRANSMISSION` = 0.5). A nadir ray through a crown therefore returns
+`quakescan.scene.DEFAULT_TRANSMISSION` = 0.5). A nadir ray through a crown therefore returns
 on its upper side with probability 1 - t, on its lower side with t(1 - t) and reaches what
 lies below with t². The full beam's sub-rays decide independently, so one pulse returns
 from the crown and from the roof or ground under it: multiple returns where the beam
@@ -25,7 +25,7 @@ seed gives the same returns whatever the threads and batches, and the central ra
 pulse makes the same draws in every beam model. Scenes without porous faces never reach
 this module (no cost).
 
-The DIM simulator (`core.dim`) casts without ray identities and so treats crowns as
+The DIM simulator (`quakescan.dim`) casts without ray identities and so treats crowns as
 opaque: photogrammetry reconstructs a crown's outer surface, not what lies under it.
 """
 from __future__ import annotations

@@ -5,7 +5,7 @@ the file works without internet and without the files beside it. There are no of
 tiles, so the map uses Leaflet's `L.CRS.Simple` (1 unit = 1 m) with the projected
 coordinates shifted to a local origin (the frame's lower-left corner, rounded to the
 metre); the popups give the real coordinates and the CRS. Colours and names are those of
-the PNG map and the CSV (`core.results.colour_of`, `core.grades`).
+the PNG map and the CSV (`quakescan.results.colour_of`, `quakescan.grades`).
 """
 from __future__ import annotations
 

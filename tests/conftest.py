@@ -9,6 +9,19 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 
+def pytest_configure(config):
+    """The tests test this checkout. Its folder core/ is imported as `quakescan` only through an
+    install (an editable one by .ci/setup): a virtual environment set up in another checkout,
+    or a wheel, would be tested instead, silently, as the folder no longer shadows the name."""
+    import importlib.util
+
+    spec = importlib.util.find_spec("quakescan")
+    found = Path(spec.origin).resolve().parent if spec is not None and spec.origin else None
+    if found != ROOT / "core":
+        raise pytest.UsageError(f"`quakescan` is {found or 'not installed'}, not this checkout's {ROOT / 'core'}: "
+                                f"run `bash .ci/setup` here and test with {ROOT / '.venv/bin/python'}")
+
+
 @pytest.fixture
 def shared_data():
     if not SHARED_DATA.is_dir():

@@ -1,12 +1,12 @@
-"""core.atomic: a file appears under its name complete or not at all; a failed write leaves
+"""quakescan.atomic: a file appears under its name complete or not at all; a failed write leaves
 the previous file as it was and no temporary file."""
 import json
 
 import numpy as np
 import pytest
 
-from core.atomic import commit, open_replacing, replacing, temp_path, write_bytes, write_json, write_text
-from core.errors import PointCloudError, ResultsError
+from quakescan.atomic import commit, open_replacing, replacing, temp_path, write_bytes, write_json, write_text
+from quakescan.errors import PointCloudError, ResultsError
 
 
 class Boom(Exception):

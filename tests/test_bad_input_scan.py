@@ -11,9 +11,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from core.cli import main
-from core.scene import write_scene
-from core.synthetic import box_city
+from quakescan.cli import main
+from quakescan.scene import write_scene
+from quakescan.synthetic import box_city
 
 REPO = Path(__file__).resolve().parents[1]
 # a small, quick survey (50 kHz): the demo's paper survey at a sixth of its pulse rate
@@ -69,7 +69,7 @@ def test_scan_output_names(tmp_path, capsys, scene_dir, survey_file, name, text)
 
 def test_scan_into_a_closed_pipe_finishes_without_a_traceback(tmp_path, scene_dir, survey_file):
     out = tmp_path / "a.las"
-    cmd = (f"set -o pipefail; {sys.executable} -m core.cli scan {scene_dir} -o {out} --survey {survey_file} "
+    cmd = (f"set -o pipefail; {sys.executable} -m quakescan.cli scan {scene_dir} -o {out} --survey {survey_file} "
            "| head -1")
     res = subprocess.run(["bash", "-c", cmd], cwd=REPO, capture_output=True, text=True, timeout=300)
     assert res.stdout.startswith("flight plan:") and len(res.stdout.splitlines()) == 1
@@ -127,9 +127,9 @@ def test_survey_fields_are_range_checked(tmp_path, capsys, scene_dir, field, val
 
 
 def test_a_plan_beyond_the_size_limit_needs_force(tmp_path, capsys, scene_dir, survey_file, monkeypatch):
-    import core.scan
+    import quakescan.scan
 
-    monkeypatch.setattr(core.scan, "MAX_SCAN_POINTS", 1000)
+    monkeypatch.setattr(quakescan.scan, "MAX_SCAN_POINTS", 1000)
     err = _error(capsys, _scan(scene_dir, survey_file, tmp_path / "a.las"))
     assert f"{survey_file} over {scene_dir}: the plan reaches" in err and "--force" in err
     assert not (tmp_path / "a.las").exists()
@@ -148,9 +148,9 @@ def test_a_plan_of_too_many_lines_is_refused_before_it_is_made(tmp_path, capsys)
 
 
 def test_library_scan_refuses_bad_seed_and_threads(tmp_path):
-    from core.errors import QuakeScanError
-    from core.scan import scan
-    from core.survey import preset
+    from quakescan.errors import QuakeScanError
+    from quakescan.scan import scan
+    from quakescan.survey import preset
 
     for kw, text in (({"seed": -1}, "seed must be an integer >= 0"), ({"seed": True}, "seed must be"),
                      ({"threads": -4}, "threads must be an integer >= 1")):
@@ -231,8 +231,8 @@ def test_a_valid_crs_passes_validate(tmp_path, capsys, scene_dir):
 
 
 def test_far_vertices_are_refused(tmp_path, capsys, survey_file):
-    from core.errors import SceneError
-    from core.scene import validate_scene
+    from quakescan.errors import SceneError
+    from quakescan.scene import validate_scene
 
     scene = box_city(rows=1, cols=1)
     scene.vertices[0] = [1e300, 0.0, 0.0]
@@ -241,9 +241,9 @@ def test_far_vertices_are_refused(tmp_path, capsys, survey_file):
 
 
 def test_scan_of_a_scene_object_with_a_bad_crs_names_its_source(tmp_path):
-    from core.errors import SceneError
-    from core.scan import scan
-    from core.survey import preset
+    from quakescan.errors import SceneError
+    from quakescan.scan import scan
+    from quakescan.survey import preset
 
     scene = box_city(rows=1, cols=1)
     scene.crs = "EPSG:999999"
@@ -306,7 +306,7 @@ def test_import_cityjson_crs_errors(tmp_path, capsys, crs, given, text):
 
 
 def test_import_cityjson_crs_and_material_give_the_scene(tmp_path, capsys):
-    from core.scene import read_scene
+    from quakescan.scene import read_scene
 
     argv = ["import-cityjson", str(_cityjson(tmp_path / "c.json")), "-o", str(tmp_path / "s"), "--crs", "EPSG:2056",
             "--material", "reinforced_concrete"]
@@ -332,7 +332,7 @@ def test_demo_argument_errors_name_quakescan_demo(tmp_path, capsys, flag, value)
 
 
 def test_the_demo_scans_again_a_cut_cloud(tmp_path, scene_dir):
-    from core.demo import las_is_complete, scan_scene
+    from quakescan.demo import las_is_complete, scan_scene
 
     out = tmp_path / "pre.las"
     scan_scene(scene_dir, out, seed=1)
@@ -347,17 +347,17 @@ def test_the_demo_scans_again_a_cut_cloud(tmp_path, scene_dir):
 
 
 def test_the_generators_own_refusals_do_not_name_its_script(monkeypatch, tmp_path):
-    import core.demo
-    from core.errors import QuakeScanError
+    import quakescan.demo
+    from quakescan.errors import QuakeScanError
 
     class Refused:
         returncode = 2
         stderr = "usage: generate_scenes.py [-h]\ngenerate_scenes.py: error: argument --seed: seed must be in 0..2^32-1"
 
-    monkeypatch.setattr(core.demo, "generator_command", lambda args: ["generator", *args])
-    monkeypatch.setattr(core.demo.subprocess, "run", lambda *a, **k: Refused())
+    monkeypatch.setattr(quakescan.demo, "generator_command", lambda args: ["generator", *args])
+    monkeypatch.setattr(quakescan.demo.subprocess, "run", lambda *a, **k: Refused())
     with pytest.raises(QuakeScanError, match=r"the scene generator refused .*--seed: seed must be") as e:
-        core.demo.generate("generic", "mixed", 3, 5, tmp_path)
+        quakescan.demo.generate("generic", "mixed", 3, 5, tmp_path)
     assert "usage" not in str(e.value)
 
 
@@ -370,7 +370,7 @@ def test_any_command_into_a_closed_pipe_ends_without_a_traceback(tmp_path, scene
     os.close(read)
     out = tmp_path / "fp.geojson"
     try:
-        res = subprocess.run([sys.executable, "-m", "core.cli", "footprints", str(scene_dir), "-o", str(out)],
+        res = subprocess.run([sys.executable, "-m", "quakescan.cli", "footprints", str(scene_dir), "-o", str(out)],
                              cwd=REPO, stdout=write, stderr=subprocess.PIPE, text=True, timeout=120)
     finally:
         os.close(write)

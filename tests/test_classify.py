@@ -6,11 +6,11 @@ import laspy
 import numpy as np
 import pytest
 
-from core.classify import classify, model_settings
-from core.cli import main
-from core.model import ModelError, load_model, save_model
-from core.pipeline import PipelineSettings
-from core.training import (
+from quakescan.classify import classify, model_settings
+from quakescan.cli import main
+from quakescan.model import ModelError, load_model, save_model
+from quakescan.pipeline import PipelineSettings
+from quakescan.training import (
     TrainingError,
     TrainingPair,
     grades_from_epoch,
@@ -34,7 +34,7 @@ def city(tmp_path_factory):
 
 
 def test_grades_come_from_the_post_epoch(city):
-    from core.pointcloud import read_epoch
+    from quakescan.pointcloud import read_epoch
 
     d, grades = city
     assert grades_from_epoch(read_epoch(d / "post.las")) == {i + 1: g for i, g in enumerate(grades)}
@@ -111,7 +111,7 @@ def test_identical_epochs_flag_no_building(city, tmp_path):
 
 
 def test_interrupted_classification_resumes(city, tmp_path, monkeypatch):
-    import core.classify as C
+    import quakescan.classify as C
 
     d, _ = city
     out = tmp_path / "res"
@@ -232,7 +232,7 @@ def test_train_with_per_point_levels_of_detection_round_trips_through_the_model(
 
 
 def test_a_rerun_into_a_finished_folder_is_up_to_date(city, tmp_path, capsys):
-    from core.cli import main
+    from quakescan.cli import main
 
     d, grades = city
     args = ["classify", "--pre", str(d / "pre.las"), "--post", str(d / "post.las"), "--model", str(d / "model.skops"),
@@ -252,12 +252,12 @@ def test_a_rerun_into_a_finished_folder_is_up_to_date(city, tmp_path, capsys):
 
 
 def test_a_finished_folder_of_another_model_or_cloud_is_classified_again(city, tmp_path, capsys):
-    """core.fingerprint's rule: the model by content, the clouds by path, size and time."""
+    """quakescan.fingerprint's rule: the model by content, the clouds by path, size and time."""
     import os
     import shutil
 
-    from core.cli import main
-    from core.model import load_model
+    from quakescan.cli import main
+    from quakescan.model import load_model
 
     d, _ = city
     for name in ("pre.las", "post.las", "model.skops"):

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from core.cli import build_parser, main
+from quakescan.cli import build_parser, main
 
 CLI_PAGE = Path(__file__).resolve().parents[1] / "docs" / "cli.md"
 GLOBAL = "(global)"

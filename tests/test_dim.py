@@ -7,13 +7,13 @@ import laspy
 import numpy as np
 import pytest
 
-from core.dim import simulate_dim
-from core.dim_cameras import plan_cameras
-from core.dim_settings import FIELD_DOC, PhotoSurvey, load_photo_survey, preset_dim, write_photo_survey_template
-from core.errors import SceneError, SurveyError
-from core.raycast import RayCaster, ground_level
-from core.scene import GROUND, ROOF, WALL, Building, Scene
-from core.synthetic import _MeshBuilder, box_city, box_mesh, ground_mesh
+from quakescan.dim import simulate_dim
+from quakescan.dim_cameras import plan_cameras
+from quakescan.dim_settings import FIELD_DOC, PhotoSurvey, load_photo_survey, preset_dim, write_photo_survey_template
+from quakescan.errors import SceneError, SurveyError
+from quakescan.raycast import RayCaster, ground_level
+from quakescan.scene import GROUND, ROOF, WALL, Building, Scene
+from quakescan.synthetic import _MeshBuilder, box_city, box_mesh, ground_mesh
 from tests.las_contract import CONTRACT_ORIGIN, read_checked
 from tests.spacing import nearest_neighbour_spacing
 

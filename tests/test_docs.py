@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from core.cli import build_parser
+from quakescan.cli import build_parser
 
 REPO = Path(__file__).resolve().parents[1]
 PAGES = [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]

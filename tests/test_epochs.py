@@ -2,11 +2,11 @@
 import numpy as np
 import pytest
 
-from core.errors import PointCloudError
-from core.pointcloud import check_pair, read_epoch
-from core.scan import scan
-from core.survey import preset
-from core.synthetic import box_city
+from quakescan.errors import PointCloudError
+from quakescan.pointcloud import check_pair, read_epoch
+from quakescan.scan import scan
+from quakescan.survey import preset
+from quakescan.synthetic import box_city
 
 
 @pytest.mark.realdata

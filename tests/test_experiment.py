@@ -3,8 +3,8 @@ import json
 
 import pytest
 
-from core.cli import main
-from core.experiment import CLASSIFIERS, PAPER_TABLE
+from quakescan.cli import main
+from quakescan.experiment import CLASSIFIERS, PAPER_TABLE
 
 
 @pytest.mark.slow

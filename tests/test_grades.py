@@ -2,9 +2,9 @@
 import sys
 from pathlib import Path
 
-from core import grades
-from core.evaluate import GRADE_NAMES as EVALUATION_NAMES
-from core.model import GRADE_LABELS
+from quakescan import grades
+from quakescan.evaluate import GRADE_NAMES as EVALUATION_NAMES
+from quakescan.model import GRADE_LABELS
 
 REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:

@@ -2,9 +2,9 @@
 import numpy as np
 import pytest
 
-from core.change import SplitSettings
-from core.lod import CalibrationError, calibrate
-from core.pointcloud import Epoch, read_epoch
+from quakescan.change import SplitSettings
+from quakescan.lod import CalibrationError, calibrate
+from quakescan.pointcloud import Epoch, read_epoch
 from tests.scenes import HEIGHTS, scan_box_pair
 
 UTM = np.array([500000.0, 5000000.0, 100.0])
@@ -73,7 +73,7 @@ def test_bad_input_is_refused():
 def test_calibrate_lod_command(tmp_path, capsys):
     import json
 
-    from core.cli import main
+    from quakescan.cli import main
 
     scan_box_pair(tmp_path, HEIGHTS)
     out = tmp_path / "lod.json"

@@ -1,10 +1,11 @@
 """Model persistence: round trip, tampered and incompatible files refused, grouped split."""
 import zipfile
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from core.model import DamageModel, ModelError, grouped_split, load_model, save_model, train_forest
+from quakescan.model import DamageModel, ModelError, grouped_split, load_model, save_model, train_forest
 
 pytestmark = pytest.mark.usefixtures("one_native_thread")  # tiny fits (tests/conftest.py)
 
@@ -89,7 +90,7 @@ def _descriptor_rows():
 
 def test_the_forest_learns_only_from_buildings_with_changed_points():
     """Rows without changed points are decided by rule: adding 500 of them changes nothing."""
-    from core.model import decided_by_rule, predict_grades, train_damage_forest
+    from quakescan.model import decided_by_rule, predict_grades, train_damage_forest
 
     names = ["share_changed", "height_median"]
     x, y = _descriptor_rows()
@@ -109,9 +110,9 @@ def test_the_forest_learns_only_from_buildings_with_changed_points():
 def test_a_forest_that_never_saw_grade_0_still_reports_it_by_rule():
     """Only destroyed buildings changed in training: the forest knows one grade; a building
     without changes is still "no damage" with p_0 = 1 in the results."""
-    from core.classify import predict_rows
-    from core.model import train_damage_forest
-    from core.pipeline import BuildingRow
+    from quakescan.classify import predict_rows
+    from quakescan.model import train_damage_forest
+    from quakescan.pipeline import BuildingRow
 
     names = ["share_changed", "height_median"]
     x = np.array([[0.0, 0.0], [0.0, 0.0], [0.6, -4.0], [0.7, -5.0]])
@@ -126,7 +127,7 @@ def test_a_forest_that_never_saw_grade_0_still_reports_it_by_rule():
 
 
 def test_training_rows_without_any_change_are_refused():
-    from core.model import train_damage_forest
+    from quakescan.model import train_damage_forest
 
     with pytest.raises(ModelError, match="none of the 3 training buildings has changed points"):
         train_damage_forest(np.zeros((3, 2)), np.array([0, 3, 5]), ["share_changed", "h"])
@@ -150,7 +151,7 @@ def test_train_forest_is_the_rf_kind_and_the_forest_it_always_was():
     """train_forest goes through fit_classifier("rf") and still fits the same forest."""
     from sklearn.ensemble import RandomForestClassifier
 
-    from core.model import fit_classifier
+    from quakescan.model import fit_classifier
 
     x, y = _grades_data()
     old = RandomForestClassifier(n_estimators=20, max_depth=5, random_state=3, n_jobs=None,
@@ -162,7 +163,7 @@ def test_train_forest_is_the_rf_kind_and_the_forest_it_always_was():
 
 @pytest.mark.parametrize("kind,calibration", KINDS)
 def test_same_rows_same_seed_same_predictions(kind, calibration):
-    from core.model import fit_classifier
+    from quakescan.model import fit_classifier
 
     x, y = _grades_data()
     a = fit_classifier(x, y, kind, calibration=calibration, seed=4, **SMALL[kind])
@@ -173,7 +174,7 @@ def test_same_rows_same_seed_same_predictions(kind, calibration):
 
 
 def test_hgb_defaults_and_arguments():
-    from core.model import HGB_DEFAULTS, fit_classifier
+    from quakescan.model import HGB_DEFAULTS, fit_classifier
 
     x, y = _grades_data()
     h = fit_classifier(x, y, "hgb", seed=2, learning_rate=0.2)
@@ -192,7 +193,7 @@ def test_hgb_defaults_and_arguments():
 
 
 def test_calibration_folds_keep_groups_apart_and_are_fixed():
-    from core.model import calibration_folds, fit_classifier
+    from quakescan.model import calibration_folds, fit_classifier
 
     x, y = _grades_data(120)
     groups = np.arange(120) // 4  # 30 buildings, 4 rows each
@@ -215,7 +216,7 @@ def test_calibration_folds_keep_groups_apart_and_are_fixed():
 def test_every_kind_round_trips_through_a_file_of_trusted_types(tmp_path, kind, calibration):
     import skops.io as sio
 
-    from core.model import TRUSTED_TYPES, fit_classifier
+    from quakescan.model import TRUSTED_TYPES, fit_classifier
 
     x, y = _grades_data()
     est = fit_classifier(x, y, kind, calibration=calibration, groups=np.arange(len(y)) // 3, seed=1,
@@ -239,7 +240,7 @@ def test_trusted_types_are_exactly_what_the_kinds_need(tmp_path):
     """No type on the allow-list that no classifier kind needs (and none missing)."""
     import skops.io as sio
 
-    from core.model import TRUSTED_TYPES, fit_classifier
+    from quakescan.model import TRUSTED_TYPES, fit_classifier
 
     x, y = _grades_data(60)
     needed = set()
@@ -271,8 +272,8 @@ def test_a_model_file_of_the_first_format_loads_and_predicts_as_before(tmp_path)
     predict_proba give."""
     import skops.io as sio
 
-    from core.classify import predict_rows
-    from core.pipeline import BuildingRow, PipelineSettings
+    from quakescan.classify import predict_rows
+    from quakescan.pipeline import BuildingRow, PipelineSettings
 
     settings = PipelineSettings()
     names = settings.descriptor_names()
@@ -301,9 +302,36 @@ def test_a_model_file_of_the_first_format_loads_and_predicts_as_before(tmp_path)
             assert r.probabilities == {**{g: 0.0 for g in m.grades}, **dict(zip(m.classes, p.tolist()))}
 
 
+def _recorded_modules(path) -> set:
+    """The modules whose types a skops file asks to rebuild (its schema's `__module__`s)."""
+    import re
+
+    with zipfile.ZipFile(path) as z:
+        return set(re.findall(r'"__module__": "([^"]+)"', z.read("schema.json").decode()))
+
+
+def test_a_model_file_saved_before_the_rename_to_quakescan_loads_and_predicts_as_then(tmp_path, model):
+    """tests/data/model_saved_as_core.skops was written by save_model when the library's import
+    name was `core` (main at 1dc0058; a 3-tree forest, its predictions for three probe rows in
+    its provenance). skops records only numpy, sklearn and builtins types, never the library's,
+    so it loads without any `core` package; the shipped model and a file saved now likewise."""
+    from quakescan.classify import DEFAULT_MODEL
+
+    old = Path(__file__).parent / "data" / "model_saved_as_core.skops"
+    m = load_model(old)
+    assert "core" in m.provenance["saved_by"] and m.classes == [0, 3, 5]
+    probe = np.array(m.provenance["probe_rows"])
+    got = m.predict_proba({n: probe[:, i] for i, n in enumerate(m.feature_names)})
+    np.testing.assert_allclose(got, m.provenance["probe_proba"], rtol=0, atol=1e-12)
+    save_model(model[0], tmp_path / "now.skops")
+    for path in (old, DEFAULT_MODEL, tmp_path / "now.skops"):
+        mods = _recorded_modules(path)
+        assert mods and all(mod.split(".")[0] in ("builtins", "numpy", "sklearn") for mod in mods), (path, mods)
+
+
 def test_the_shipped_model_is_the_transfer_model_with_its_limits_and_provenance():
-    from core.classify import DEFAULT_MODEL, model_settings
-    from core.default_model import MODEL_DESCRIPTORS
+    from quakescan.classify import DEFAULT_MODEL, model_settings
+    from quakescan.default_model import MODEL_DESCRIPTORS
 
     m = load_model(DEFAULT_MODEL)
     assert m.no_change_rule is False and m.grades == [0, 3, 4, 5]
@@ -328,7 +356,7 @@ def _rows_with_unchanged_heavy():
 
 
 def test_rule_off_fits_and_asks_every_row():
-    from core.model import fit_classifier, predict_grades, train_damage_forest
+    from quakescan.model import fit_classifier, predict_grades, train_damage_forest
 
     names = ["share_changed", "height_median"]
     x, y = _rows_with_unchanged_heavy()
@@ -344,7 +372,7 @@ def test_rule_off_fits_and_asks_every_row():
 
 
 def test_rule_off_keeps_calibration_groups_row_for_row():
-    from core.model import train_damage_forest
+    from quakescan.model import train_damage_forest
 
     names = ["share_changed", "height_median"]
     x, y = _rows_with_unchanged_heavy()
@@ -359,9 +387,9 @@ def test_rule_off_keeps_calibration_groups_row_for_row():
 def test_a_model_without_the_rule_is_asked_about_unchanged_buildings(tmp_path):
     import skops.io as sio
 
-    from core.classify import predict_rows
-    from core.model import TRUSTED_TYPES, VERSION_ALL_ROWS, train_damage_forest
-    from core.pipeline import BuildingRow
+    from quakescan.classify import predict_rows
+    from quakescan.model import TRUSTED_TYPES, VERSION_ALL_ROWS, train_damage_forest
+    from quakescan.pipeline import BuildingRow
 
     names = ["share_changed", "height_median"]
     x, y = _rows_with_unchanged_heavy()
@@ -386,7 +414,7 @@ def test_a_model_without_the_rule_is_asked_about_unchanged_buildings(tmp_path):
 
 
 def test_grades_of_a_model_without_the_rule_are_its_classes():
-    from core.model import train_damage_forest
+    from quakescan.model import train_damage_forest
 
     names = ["share_changed", "height_median"]
     x = np.array([[0.0, 0.0], [0.1, -1.0], [0.6, -4.0], [0.7, -5.0]])
@@ -409,8 +437,8 @@ def test_confidence_is_the_predicted_class_probability_and_margin_its_lead():
 
 
 def test_predict_rows_puts_the_confidence_on_each_building(model):
-    from core.classify import predict_rows
-    from core.pipeline import BuildingRow
+    from quakescan.classify import predict_rows
+    from quakescan.pipeline import BuildingRow
 
     m, x = model
     names = ["share_changed", "b", "c"]

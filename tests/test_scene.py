@@ -5,10 +5,10 @@ import struct
 import numpy as np
 import pytest
 
-from core.errors import SceneError
-from core.ply import read_ply, write_ply
-from core.scene import Building, read_scene, write_scene
-from core.synthetic import box_city
+from quakescan.errors import SceneError
+from quakescan.ply import read_ply, write_ply
+from quakescan.scene import Building, read_scene, write_scene
+from quakescan.synthetic import box_city
 
 
 @pytest.fixture

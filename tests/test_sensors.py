@@ -8,13 +8,13 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from core import sensors
-from core.acquisition import Acquisition, acquire, random_acquisition, sidecar_path
-from core.errors import QuakeScanError, SurveyError
-from core.pointcloud import BUILDING_CLASS, GROUND_CLASS, UNCLASSIFIED, LasChunkWriter, PointChunk, read_epoch
-from core.scene import GROUND, Scene
-from core.survey import preset
-from core.synthetic import box_city
+from quakescan import sensors
+from quakescan.acquisition import Acquisition, acquire, random_acquisition, sidecar_path
+from quakescan.errors import QuakeScanError, SurveyError
+from quakescan.pointcloud import BUILDING_CLASS, GROUND_CLASS, UNCLASSIFIED, LasChunkWriter, PointChunk, read_epoch
+from quakescan.scene import GROUND, Scene
+from quakescan.survey import preset
+from quakescan.synthetic import box_city
 
 UTM = (500000.0, 5000000.0, 0.0)
 
@@ -78,10 +78,10 @@ def centres_sensor():
 
 
 def test_a_registered_sensor_acquires_a_readable_epoch_and_resumes(tmp_path, centres_sensor):
-    import core.acquisition
+    import quakescan.acquisition
 
     scene = box_city(rows=1, cols=2, origin=UTM)
-    assert "centres" in sensors.kinds() and "centres" in core.acquisition.KINDS
+    assert "centres" in sensors.kinds() and "centres" in quakescan.acquisition.KINDS
     acq = Acquisition("centres", FaceCentres(step=3))
     out = tmp_path / "toy" / "centres.las"
     first = acquire(scene, acq, out, seed=2)

@@ -3,9 +3,9 @@ box buildings, the same answers at very different densities, and the quality gat
 import numpy as np
 import pytest
 
-from core.pipeline import PipelineSettings, describe_pair
-from core.pointcloud import Epoch
-from core.surface import (
+from quakescan.pipeline import PipelineSettings, describe_pair
+from quakescan.pointcloud import Epoch
+from quakescan.surface import (
     SURFACE_DESCRIPTORS,
     SurfaceError,
     SurfaceGeometry,

@@ -426,7 +426,7 @@ def test_generator_details_flag(tmp_path, bpy_registered, capsys):
     import importlib.util
 
     from conftest import REPO
-    from core.scene import read_scene
+    from quakescan.scene import read_scene
     sp = importlib.util.spec_from_file_location("generate_scenes", REPO / "blender_scripts" / "generate_scenes.py")
     gen = importlib.util.module_from_spec(sp)
     sp.loader.exec_module(gen)
@@ -450,7 +450,7 @@ def test_generator_details_flag(tmp_path, bpy_registered, capsys):
 def test_demo_generate_passes_details(monkeypatch, tmp_path):
     import subprocess
 
-    from core import demo
+    from quakescan import demo
     seen = {}
 
     def fake_run(cmd, **kw):

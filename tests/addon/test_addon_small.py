@@ -186,7 +186,7 @@ needs_bpy = pytest.mark.skipif(not HAVE_BPY, reason="bpy module not installed")
 
 
 def _check_city(folder, n):
-    from core.scene import read_scene
+    from quakescan.scene import read_scene
     doc = json.loads((folder / "scene.json").read_text())
     sc = read_scene(folder)
     assert [b.id for b in sc.buildings] == list(range(1, n + 1))
@@ -198,7 +198,7 @@ def _check_city(folder, n):
 
 @needs_bpy
 def test_small_mixed_city_through_demo_generate(tmp_path):
-    from core.demo import generate
+    from quakescan.demo import generate
     mix = {0: 3, 3: 3, 4: 3, 5: 3}
     out = tmp_path / "small"
     generate("small", "mixed", None, 3, out, grade_mix=mix)
