@@ -183,11 +183,16 @@ class _World:
             bpy.data.collections.remove(rbc)
 
 
+def _is_object(o) -> bool:
+    return not isinstance(o, tuple)
+
+
 def _collider_mesh(name, objs):
-    """One passive triangle mesh (world coordinates) from several objects."""
+    """One passive triangle mesh (world coordinates) from several objects, or (vertices,
+    polygons) pairs already in world coordinates (standing_part)."""
     verts, polys, off = [], [], 0
     for o in objs:
-        co, ps = _world_arrays(o)
+        co, ps = _world_arrays(o) if _is_object(o) else o
         verts.extend(map(tuple, co))
         polys.extend([[i + off for i in p] for p in ps])
         off += len(co)
@@ -257,7 +262,8 @@ def collapse_object(obj, grade: int | None = None, seed: int | None = None,
                     max_shards: int = 250) -> dict:
     """Collapse a building by simulation as its EMS-98 grade (4 or 5) requires; returns the
     manifest record and appends it to the building's patterns. `colliders`: other objects
-    (neighbours, terrain) debris may land on. Raises DamageError (object unchanged) when the
+    (neighbours, terrain) debris may land on, or (vertices, polygons) in world coordinates
+    (standing_part). Raises DamageError (object unchanged) when the
     grade has no physics trigger or the shards do not settle within `settle_steps` frames."""
     scene_tools._check_building(obj)
     pg = obj.qs_building
@@ -292,18 +298,10 @@ def collapse_object(obj, grade: int | None = None, seed: int | None = None,
     volumes = np.array([fr.polyhedron_volume(f) for f in local])
     ground_z = float(M[2, 3])
     # the part of the building that stands (outside the zone), as a collider
-    bm = scene_tools.read_bmesh(obj)
+    bm = None
     try:
+        bm, dropped_parts = _standing_bmesh(obj, trig)
         lab = gm.Labels(bm)
-        if trig.zone:
-            inside = gm.carve(bm, lambda b: list(b.faces), trig.zone)
-        else:
-            inside = list(bm.faces)
-        dropped_parts = sorted({gm.PART_NAMES.get(f[lab.part], "other") for f in inside
-                                if f[lab.part] not in (gm.P_WALL, gm.P_ROOF, gm.P_SLAB, gm.P_INNER, gm.P_GABLE,
-                                                       gm.P_PARAPET)})
-        gm.delete_faces(bm, inside)
-        gm.remove_loose(bm)
         passive = []
         if len(bm.faces):
             co = np.array([v.co[:] for v in bm.verts], dtype=np.float64) @ M[:3, :3].T + M[:3, 3]
@@ -311,7 +309,8 @@ def collapse_object(obj, grade: int | None = None, seed: int | None = None,
             me = bpy.data.meshes.new("qs_standing")
             me.from_pydata([tuple(c) for c in co], [], [[v.index for v in f.verts] for f in bm.faces])
             passive.append(me)
-        others = [o for o in colliders if o is not obj and o.type == 'MESH' and len(o.data.polygons)]
+        others = [o for o in colliders if not _is_object(o) or (o is not obj and o.type == 'MESH' and len(o.data.polygons))]
+        others = [o for o in others if _is_object(o) or len(o[1])]
         if others:
             passive.append(_collider_mesh("qs_neighbours", others))
         rel, drift, frames, settled = simulate(world, volumes * density, passive, ground_z, int(settle_steps))
@@ -375,6 +374,46 @@ def collapse_object(obj, grade: int | None = None, seed: int | None = None,
     pg.grade = g
     pg.patterns_json = json.dumps(done + [rec])
     return rec
+
+
+def _standing_bmesh(obj, trig):
+    """The object's mesh without the faces inside the trigger's zone (the part that stands),
+    and the names of the non-structural parts removed with the zone."""
+    bm = scene_tools.read_bmesh(obj)
+    lab = gm.Labels(bm)
+    if trig.zone:
+        inside = gm.carve(bm, lambda b: list(b.faces), trig.zone)
+    else:
+        inside = list(bm.faces)
+    dropped_parts = sorted({gm.PART_NAMES.get(f[lab.part], "other") for f in inside
+                            if f[lab.part] not in (gm.P_WALL, gm.P_ROOF, gm.P_SLAB, gm.P_INNER, gm.P_GABLE,
+                                                   gm.P_PARAPET)})
+    gm.delete_faces(bm, inside)
+    gm.remove_loose(bm)
+    return bm, dropped_parts
+
+
+def standing_part(obj, grade: int, seed: int | None = None, mode: str | None = None):
+    """What stands of a building that collapses by physics (its mesh without its trigger's
+    zone; nothing for grade 5), in world coordinates: (vertices (n, 3), polygons). A
+    neighbour collapsing in the same scene is a collider as this, not as it stood nor as it
+    lies afterwards: collapses are simultaneous, so none depends on another's outcome (and
+    a scene's collapses can be simulated in any order or process). Without a trigger (the
+    grade falls back to the patterns) the whole mesh."""
+    pg = obj.qs_building
+    s = int(pg.seed if seed is None else seed)
+    try:
+        trig = tg.make_trigger(scene_tools.shell_of(obj), int(grade), gp.pattern_rng(s, int(grade), _SALT), mode)
+    except (ValueError, DamageError):
+        return _world_arrays(obj)
+    bm, _ = _standing_bmesh(obj, trig)
+    try:
+        M = world_matrix(obj)
+        bm.verts.index_update()
+        co = np.array([v.co[:] for v in bm.verts], dtype=np.float64).reshape(-1, 3) @ M[:3, :3].T + M[:3, 3]
+        return co, [[v.index for v in f.verts] for f in bm.faces]
+    finally:
+        bm.free()
 
 
 def _inset(faces):
