@@ -482,13 +482,18 @@ class PhysicsColliders:
         self.grades, self.damage, self.seed_salt = grades, damage, seed_salt
         self._standing = {}
 
+    def grade_of(self, o) -> int:
+        return _grade_for(o.qs_building, self.grades)
+
+    def collapses(self, o) -> bool:
+        """Whether source building `o` collapses by physics in this scene."""
+        return o.qs_building.role == "BUILDING" and uses_physics(o, self.grade_of(o), self.damage)
+
     def _as_collider(self, o):
+        if not self.collapses(o):
+            return o
         pg = o.qs_building
-        if pg.role != "BUILDING":
-            return o
-        g = _grade_for(pg, self.grades)
-        if not uses_physics(o, g, self.damage):
-            return o
+        g = self.grade_of(o)
         if o.name not in self._standing:
             from . import physics
             seed = (pg.seed + self.seed_salt) if self.seed_salt else None
