@@ -170,6 +170,15 @@ class _World:
         self.objects.append(o)
         return o
 
+    def matrices(self, first: int) -> np.ndarray:
+        """World matrices (k, 4, 4) of the objects added from the `first`-th on, read at once
+        (reading them one by one costs more than a frame of the simulation)."""
+        n = len(self.coll.objects)
+        flat = np.empty(n * 16, dtype=np.float64)
+        self.coll.objects.foreach_get("matrix_world", flat)
+        # Blender stores matrices column by column
+        return flat.reshape(n, 4, 4).transpose(0, 2, 1)[first:]
+
     def close(self):
         rbc = self.rw.collection
         for o in self.objects:
@@ -231,12 +240,12 @@ def simulate(shards_world, masses, passive_meshes, ground_z, steps: int):
         radii = np.array(radii)
         frame = 1
         world.scene.frame_set(1)  # evaluates the bodies' start transforms
-        start = np.array([_np_matrix(o.matrix_world) for o in bodies])
+        start = world.matrices(len(world.objects) - len(bodies))
         history = [start]
         drift = np.full(len(bodies), np.inf)
         for frame in range(2, steps + 2):
             world.scene.frame_set(frame)
-            history.append(np.array([_np_matrix(o.matrix_world) for o in bodies]))
+            history.append(world.matrices(len(world.objects) - len(bodies)))
             if len(history) > FPS:
                 history.pop(0)
                 cur, old = history[-1], history[0]
@@ -431,5 +440,5 @@ def _inset(faces):
 
 
 def _area(f) -> float:
-    n = np.cross(f, np.roll(f, -1, axis=0)).sum(axis=0)
-    return 0.5 * float(np.linalg.norm(n))
+    n = fr.cross(f, np.roll(f, -1, axis=0)).sum(axis=0)
+    return 0.5 * fr.norm(n)
