@@ -11,8 +11,9 @@ What happens to one building (``collapse_object``):
 3. a temporary scene with a rigid-body world: every shard an active body (convex hull, mass =
    volume × the material's density, friction 0.6, restitution 0), passive colliders for the
    ground, the part of the building outside the zone, neighbouring buildings and terrain
-   objects (triangle meshes, as they are); the world is stepped frame by frame
-   (``scene.frame_set``) until no shard moved more than 5 cm within the last second, or the
+   objects (triangle meshes, as given: scene_tools.PhysicsColliders gives a scene's
+   neighbours as they stand when its collapses start, see standing_part); the world is
+   stepped frame by frame (``scene.frame_set``) until no shard moved more than 5 cm within the last second, or the
    step limit;
 4. the post-event mesh: the building's faces outside the zone as they were, plus the shards
    where they came to rest. A shard that moved less than 10 cm keeps its element's labels
@@ -318,8 +319,8 @@ def collapse_object(obj, grade: int | None = None, seed: int | None = None,
             me = bpy.data.meshes.new("qs_standing")
             me.from_pydata([tuple(c) for c in co], [], [[v.index for v in f.verts] for f in bm.faces])
             passive.append(me)
-        others = [o for o in colliders if not _is_object(o) or (o is not obj and o.type == 'MESH' and len(o.data.polygons))]
-        others = [o for o in others if _is_object(o) or len(o[1])]
+        others = [o for o in colliders if (o is not obj and o.type == 'MESH' and len(o.data.polygons)
+                                           if _is_object(o) else len(o[1]))]
         if others:
             passive.append(_collider_mesh("qs_neighbours", others))
         rel, drift, frames, settled = simulate(world, volumes * density, passive, ground_z, int(settle_steps))

@@ -43,6 +43,13 @@ cars and street furniture (addon/streetscape.py); every post-event scene keeps t
 hedges and furniture and gets its own mix of parked cars. Default none: no streetscape, the
 output is what it was before the option existed.
 
+--jobs N makes the scenes in N processes at once; with --damage physics|both it first shares
+out the collapses of every scene (each depends only on its building and its neighbours as
+they stand before the event): the N processes claim them one at a time, costliest scene
+first, and leave each in DIR/.<scene>.collapses/ (one part file a building), from which the
+scenes are then written. Same bytes as --jobs 1; an interrupted run keeps the finished
+collapses and redoes only the missing ones.
+
 Each scene is a bundle (scene.json + mesh.ply, docs/DESIGN.md "Scene bundle"). Bundles are
 written to a temporary folder and renamed into place, so DIR/<scene> is either complete or
 absent. A complete bundle made with the same settings is skipped (resume after an
