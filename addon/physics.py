@@ -11,8 +11,9 @@ What happens to one building (``collapse_object``):
 3. a temporary scene with a rigid-body world: every shard an active body (convex hull, mass =
    volume × the material's density, friction 0.6, restitution 0), passive colliders for the
    ground, the part of the building outside the zone, neighbouring buildings and terrain
-   objects (triangle meshes, as they are); the world is stepped frame by frame
-   (``scene.frame_set``) until no shard moved more than 5 cm within the last second, or the
+   objects (triangle meshes, as given: scene_tools.PhysicsColliders gives a scene's
+   neighbours as they stand when its collapses start, see standing_part); the world is
+   stepped frame by frame (``scene.frame_set``) until no shard moved more than 5 cm within the last second, or the
    step limit;
 4. the post-event mesh: the building's faces outside the zone as they were, plus the shards
    where they came to rest. A shard that moved less than 10 cm keeps its element's labels
@@ -170,6 +171,15 @@ class _World:
         self.objects.append(o)
         return o
 
+    def matrices(self, first: int) -> np.ndarray:
+        """World matrices (k, 4, 4) of the objects added from the `first`-th on, read at once
+        (reading them one by one costs more than a frame of the simulation)."""
+        n = len(self.coll.objects)
+        flat = np.empty(n * 16, dtype=np.float64)
+        self.coll.objects.foreach_get("matrix_world", flat)
+        # Blender stores matrices column by column
+        return flat.reshape(n, 4, 4).transpose(0, 2, 1)[first:]
+
     def close(self):
         rbc = self.rw.collection
         for o in self.objects:
@@ -183,11 +193,16 @@ class _World:
             bpy.data.collections.remove(rbc)
 
 
+def _is_object(o) -> bool:
+    return not isinstance(o, tuple)
+
+
 def _collider_mesh(name, objs):
-    """One passive triangle mesh (world coordinates) from several objects."""
+    """One passive triangle mesh (world coordinates) from several objects, or (vertices,
+    polygons) pairs already in world coordinates (standing_part)."""
     verts, polys, off = [], [], 0
     for o in objs:
-        co, ps = _world_arrays(o)
+        co, ps = _world_arrays(o) if _is_object(o) else o
         verts.extend(map(tuple, co))
         polys.extend([[i + off for i in p] for p in ps])
         off += len(co)
@@ -226,12 +241,12 @@ def simulate(shards_world, masses, passive_meshes, ground_z, steps: int):
         radii = np.array(radii)
         frame = 1
         world.scene.frame_set(1)  # evaluates the bodies' start transforms
-        start = np.array([_np_matrix(o.matrix_world) for o in bodies])
+        start = world.matrices(len(world.objects) - len(bodies))
         history = [start]
         drift = np.full(len(bodies), np.inf)
         for frame in range(2, steps + 2):
             world.scene.frame_set(frame)
-            history.append(np.array([_np_matrix(o.matrix_world) for o in bodies]))
+            history.append(world.matrices(len(world.objects) - len(bodies)))
             if len(history) > FPS:
                 history.pop(0)
                 cur, old = history[-1], history[0]
@@ -257,7 +272,8 @@ def collapse_object(obj, grade: int | None = None, seed: int | None = None,
                     max_shards: int = 250) -> dict:
     """Collapse a building by simulation as its EMS-98 grade (4 or 5) requires; returns the
     manifest record and appends it to the building's patterns. `colliders`: other objects
-    (neighbours, terrain) debris may land on. Raises DamageError (object unchanged) when the
+    (neighbours, terrain) debris may land on, or (vertices, polygons) in world coordinates
+    (standing_part). Raises DamageError (object unchanged) when the
     grade has no physics trigger or the shards do not settle within `settle_steps` frames."""
     scene_tools._check_building(obj)
     pg = obj.qs_building
@@ -292,18 +308,10 @@ def collapse_object(obj, grade: int | None = None, seed: int | None = None,
     volumes = np.array([fr.polyhedron_volume(f) for f in local])
     ground_z = float(M[2, 3])
     # the part of the building that stands (outside the zone), as a collider
-    bm = scene_tools.read_bmesh(obj)
+    bm = None
     try:
+        bm, dropped_parts = _standing_bmesh(obj, trig)
         lab = gm.Labels(bm)
-        if trig.zone:
-            inside = gm.carve(bm, lambda b: list(b.faces), trig.zone)
-        else:
-            inside = list(bm.faces)
-        dropped_parts = sorted({gm.PART_NAMES.get(f[lab.part], "other") for f in inside
-                                if f[lab.part] not in (gm.P_WALL, gm.P_ROOF, gm.P_SLAB, gm.P_INNER, gm.P_GABLE,
-                                                       gm.P_PARAPET)})
-        gm.delete_faces(bm, inside)
-        gm.remove_loose(bm)
         passive = []
         if len(bm.faces):
             co = np.array([v.co[:] for v in bm.verts], dtype=np.float64) @ M[:3, :3].T + M[:3, 3]
@@ -311,7 +319,8 @@ def collapse_object(obj, grade: int | None = None, seed: int | None = None,
             me = bpy.data.meshes.new("qs_standing")
             me.from_pydata([tuple(c) for c in co], [], [[v.index for v in f.verts] for f in bm.faces])
             passive.append(me)
-        others = [o for o in colliders if o is not obj and o.type == 'MESH' and len(o.data.polygons)]
+        others = [o for o in colliders if (o is not obj and o.type == 'MESH' and len(o.data.polygons)
+                                           if _is_object(o) else len(o[1]))]
         if others:
             passive.append(_collider_mesh("qs_neighbours", others))
         rel, drift, frames, settled = simulate(world, volumes * density, passive, ground_z, int(settle_steps))
@@ -377,6 +386,46 @@ def collapse_object(obj, grade: int | None = None, seed: int | None = None,
     return rec
 
 
+def _standing_bmesh(obj, trig):
+    """The object's mesh without the faces inside the trigger's zone (the part that stands),
+    and the names of the non-structural parts removed with the zone."""
+    bm = scene_tools.read_bmesh(obj)
+    lab = gm.Labels(bm)
+    if trig.zone:
+        inside = gm.carve(bm, lambda b: list(b.faces), trig.zone)
+    else:
+        inside = list(bm.faces)
+    dropped_parts = sorted({gm.PART_NAMES.get(f[lab.part], "other") for f in inside
+                            if f[lab.part] not in (gm.P_WALL, gm.P_ROOF, gm.P_SLAB, gm.P_INNER, gm.P_GABLE,
+                                                   gm.P_PARAPET)})
+    gm.delete_faces(bm, inside)
+    gm.remove_loose(bm)
+    return bm, dropped_parts
+
+
+def standing_part(obj, grade: int, seed: int | None = None, mode: str | None = None):
+    """What stands of a building that collapses by physics (its mesh without its trigger's
+    zone; nothing for grade 5), in world coordinates: (vertices (n, 3), polygons). A
+    neighbour collapsing in the same scene is a collider as this, not as it stood nor as it
+    lies afterwards: collapses are simultaneous, so none depends on another's outcome (and
+    a scene's collapses can be simulated in any order or process). Without a trigger (the
+    grade falls back to the patterns) the whole mesh."""
+    pg = obj.qs_building
+    s = int(pg.seed if seed is None else seed)
+    try:
+        trig = tg.make_trigger(scene_tools.shell_of(obj), int(grade), gp.pattern_rng(s, int(grade), _SALT), mode)
+    except (ValueError, DamageError):
+        return _world_arrays(obj)
+    bm, _ = _standing_bmesh(obj, trig)
+    try:
+        M = world_matrix(obj)
+        bm.verts.index_update()
+        co = np.array([v.co[:] for v in bm.verts], dtype=np.float64).reshape(-1, 3) @ M[:3, :3].T + M[:3, 3]
+        return co, [[v.index for v in f.verts] for f in bm.faces]
+    finally:
+        bm.free()
+
+
 def _inset(faces):
     """A shard's faces moved inwards by INSET (its body for the solver): with the collision
     margin added back, neighbours start a few millimetres apart instead of touching, which
@@ -392,5 +441,5 @@ def _inset(faces):
 
 
 def _area(f) -> float:
-    n = np.cross(f, np.roll(f, -1, axis=0)).sum(axis=0)
-    return 0.5 * float(np.linalg.norm(n))
+    n = fr.cross(f, np.roll(f, -1, axis=0)).sum(axis=0)
+    return 0.5 * fr.norm(n)

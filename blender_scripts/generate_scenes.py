@@ -43,6 +43,13 @@ cars and street furniture (addon/streetscape.py); every post-event scene keeps t
 hedges and furniture and gets its own mix of parked cars. Default none: no streetscape, the
 output is what it was before the option existed.
 
+--jobs N makes the scenes in N processes at once; with --damage physics|both it first shares
+out the collapses of every scene (each depends only on its building and its neighbours as
+they stand before the event): the N processes claim them one at a time, costliest scene
+first, and leave each in DIR/.<scene>.collapses/ (one part file a building), from which the
+scenes are then written. Same bytes as --jobs 1; an interrupted run keeps the finished
+collapses and redoes only the missing ones.
+
 Each scene is a bundle (scene.json + mesh.ply, docs/DESIGN.md "Scene bundle"). Bundles are
 written to a temporary folder and renamed into place, so DIR/<scene> is either complete or
 absent. A complete bundle made with the same settings is skipped (resume after an
@@ -175,9 +182,11 @@ def parse_args(argv):
     p.add_argument("--settle-steps", type=_positive_int, default=250,
                    help="--damage physics|both: frames (1/24 s) a collapse may take to come to rest (default 250)")
     p.add_argument("--jobs", type=_positive_int, default=1,
-                   help="scenes made in this many processes at once (default 1): the paper dataset's post-event "
-                   "scenes are independent, so --jobs 2 halves a physics run on 2 cores; same bytes as --jobs 1")
+                   help="processes at once (default 1): scenes are made in parallel, and with --damage "
+                   "physics|both the collapses of each scene are shared out first (each depends only on its "
+                   "building and its neighbours), so --jobs 2 halves a physics run on 2 cores; same bytes as --jobs 1")
     p.add_argument("--only-scenes", default=None, help=argparse.SUPPRESS)  # a --jobs child's share
+    p.add_argument("--collapse-claims", default=None, help=argparse.SUPPRESS)  # a --jobs child simulating collapses
     args = p.parse_args(argv)
     args.argv = list(argv)
     if args.set_name == "bundle" and not args.source:
@@ -416,8 +425,13 @@ def run(args) -> int:
         log("nothing to do")
         return 0
     out.mkdir(parents=True, exist_ok=True)
-    if args.jobs > 1 and len(todo) > 1:
-        return run_jobs(args, todo, len(ids))
+    if args.jobs > 1 and args.collapse_claims is None:
+        if collapse_scenes(args, todo):
+            code = run_collapse_jobs(args, out)
+            if code:
+                return code
+        if len(todo) > 1:
+            return run_jobs(args, todo, len(ids))
 
     scene = bpy.data.scenes.new("quakescan_generate")
     pre = bpy.data.collections.new("pre")
@@ -445,6 +459,9 @@ def run(args) -> int:
             street = add_streetscape(args, pre, plan)
         pre_objs = scene_tools.scene_objects(pre)
         log(f"pre: {n} buildings built in {time.perf_counter() - t0:.1f} s")
+        if args.collapse_claims is not None:
+            simulate_collapses(args, collapse_scenes(args, todo), pre_objs, out, Path(args.collapse_claims), street)
+            todo = []
         for name, grades, info in todo:
             t0 = time.perf_counter()
             tmp = out / f".{name}.tmp-{os.getpid()}"
@@ -463,6 +480,9 @@ def run(args) -> int:
                 def fallback(obj, message, name=name):
                     log(f"{name}: {message}; {obj.name} gets the patterns instead")
                 damage = dict(damage=args.damage, settle_steps=args.settle_steps, on_fallback=fallback)
+                if args.damage != "patterns":  # collapses simulated by --jobs children, where they exist
+                    from addon import collapse_parts
+                    damage["collapses"] = collapse_parts.loader(parts_folder(out, name), info)
                 if street is None:
                     scene_tools.make_post_scene(pre_objs, coll, grades=grades, on_progress=progress, **damage)
                 else:  # trees, hedges, furniture copied; the pre-event cars replaced by this scene's
@@ -483,6 +503,7 @@ def run(args) -> int:
                                                crs=getattr(args, "crs", None) or None,
                                                extra={"generator": info})
             _swap_into_place(tmp, out / name)
+            shutil.rmtree(parts_folder(out, name), ignore_errors=True)  # in the bundle now
             log(f"{name}: wrote {out / name} ({rep['buildings']} buildings, {rep['faces']} faces) "
                 f"in {time.perf_counter() - t0:.1f} s")
             if coll is not None:
@@ -498,18 +519,22 @@ def run(args) -> int:
     return 0
 
 
+def _scene_cost(grades, damage: str, buildings: int = 1) -> int:
+    """A scene costs one unit, and with physics 50 more per grade-4/5 building (a collapse
+    takes seconds, a pattern milliseconds). `grades`: a dict (building -> grade, mixed
+    datasets) or one grade for all `buildings` (paper scenes)."""
+    if damage == "patterns" or grades is None:
+        return 1
+    heavy = (sum(1 for g in grades.values() if g >= 4) if isinstance(grades, dict)
+             else buildings * (int(grades) >= 4))
+    return 1 + heavy * 50
+
+
 def job_shares(todo, jobs: int, damage: str, buildings: int = 1) -> list:
-    """Scene names split into at most `jobs` shares of about equal cost: a scene costs one
-    unit, and with physics 50 more per grade-4/5 building (a collapse takes seconds, a
-    pattern milliseconds). A scene's grades are a dict (building -> grade, mixed datasets) or
-    one grade for all `buildings` (paper scenes). Largest first onto the cheapest share;
-    deterministic."""
+    """Scene names split into at most `jobs` shares of about equal cost (_scene_cost).
+    Largest first onto the cheapest share; deterministic."""
     def cost(grades):
-        if damage == "patterns" or grades is None:
-            return 1
-        heavy = (sum(1 for g in grades.values() if g >= 4) if isinstance(grades, dict)
-                 else buildings * (int(grades) >= 4))
-        return 1 + heavy * 50
+        return _scene_cost(grades, damage, buildings)
     shares = [[0, []] for _ in range(min(jobs, len(todo)))]
     for name, grades, _ in sorted(todo, key=lambda t: -cost(t[1])):
         low = min(shares, key=lambda s: s[0])
@@ -533,17 +558,7 @@ def run_jobs(args, todo, buildings: int) -> int:
     """Make `todo`'s scenes in args.jobs child processes at once, each its share; every child
     writes its bundles atomically, so an interrupted run resumes as a single process does."""
     import subprocess
-    base, skip = [], False
-    for a in args.argv:  # the command line without --jobs: each child makes its share alone
-        if skip:
-            skip = False
-            continue
-        if a == "--jobs":
-            skip = True
-            continue
-        if a.startswith("--jobs="):
-            continue
-        base.append(a)
+    base = _without_jobs(args.argv)
     shares = job_shares(todo, args.jobs, args.damage, buildings)
     log(f"{len(todo)} scenes in {len(shares)} processes: " + "; ".join(",".join(s) for s in shares))
     procs = [subprocess.Popen(_child_command([*base, "--only-scenes", ",".join(s)])) for s in shares]
@@ -553,6 +568,100 @@ def run_jobs(args, todo, buildings: int) -> int:
         log(f"error: the process making {'; '.join(failed)} failed (see above); finished scenes are kept")
         return 1
     return 0
+
+
+def parts_folder(out: Path, scene: str) -> Path:
+    """Where --jobs children leave a scene's collapses until the scene is written."""
+    return out / f".{scene}.collapses"
+
+
+def collapse_scenes(args, todo) -> list:
+    """The scenes of `todo` with buildings that may collapse by physics, costliest first (a
+    grade-5 collapse takes about three times a grade-4 one: every storey falls)."""
+    if args.damage == "patterns":
+        return []
+
+    def cost(grades):
+        gs = list(grades.values()) if isinstance(grades, dict) else [int(grades)]
+        return sum(3 if g >= 5 else 1 if g == 4 else 0 for g in gs) / len(gs)
+    heavy = [t for t in todo if t[1] is not None and cost(t[1]) > 0]
+    return sorted(heavy, key=lambda t: -cost(t[1]))
+
+
+def simulate_collapses(args, scenes, pre_objs, out: Path, claims: Path, street=None):
+    """A --jobs child's share of the collapses: every child walks the same list (scenes
+    costliest first, buildings in order) and simulates those it claims first (a file created
+    exclusively in `claims`), so the processes stay busy until the last collapse; each is
+    written to its scene's parts folder (collapse_parts), those already there are skipped."""
+    from addon import collapse_parts, scene_tools
+    from addon.scene_tools import DamageError
+    if street is not None:
+        from addon import street_objects
+        pre_objs = [o for o in pre_objs if not street_objects.is_car_object(o)]
+    done = 0
+    for name, grades, info in scenes:
+        colliders = scene_tools.PhysicsColliders(pre_objs, grades, args.damage)
+        folder = parts_folder(out, name)
+        for src in colliders.sources:
+            pg = src.qs_building
+            if not colliders.collapses(src):
+                continue
+            if collapse_parts.is_done(folder, info, pg.building_id):
+                continue
+            try:
+                os.close(os.open(claims / f"{name}-{pg.building_id}", os.O_CREAT | os.O_EXCL | os.O_WRONLY))
+            except FileExistsError:
+                continue  # another process has it
+            t0 = time.perf_counter()
+            try:
+                obj, rec = scene_tools.collapse_copy(src, colliders, settle_steps=args.settle_steps)
+            except DamageError as e:
+                collapse_parts.save(folder, info, pg.building_id, error=str(e))
+                log(f"{name}: building {pg.building_id} did not come to rest ({time.perf_counter() - t0:.1f} s)")
+            else:
+                try:
+                    collapse_parts.save(folder, info, pg.building_id, obj, rec)
+                finally:
+                    scene_tools.remove_object(obj)
+                log(f"{name}: building {pg.building_id} collapsed in {time.perf_counter() - t0:.1f} s")
+            done += 1
+    log(f"{done} collapses simulated")
+
+
+def run_collapse_jobs(args, out: Path) -> int:
+    """Simulate the collapses of the scenes to make in args.jobs child processes at once
+    (simulate_collapses); the scenes are written afterwards from their parts."""
+    import subprocess
+    claims = out / f".collapse-claims-{os.getpid()}"
+    shutil.rmtree(claims, ignore_errors=True)
+    claims.mkdir(parents=True)
+    try:
+        base = _without_jobs(args.argv)
+        log(f"collapses in {args.jobs} processes")
+        procs = [subprocess.Popen(_child_command([*base, "--collapse-claims", str(claims)])) for _ in range(args.jobs)]
+        codes = [p.wait() for p in procs]
+    finally:
+        shutil.rmtree(claims, ignore_errors=True)
+    if any(codes):
+        log("error: a process simulating collapses failed (see above); finished collapses are kept")
+        return 1
+    return 0
+
+
+def _without_jobs(argv) -> list:
+    """The command line without --jobs: each child does its share alone."""
+    base, skip = [], False
+    for a in argv:
+        if skip:
+            skip = False
+            continue
+        if a == "--jobs":
+            skip = True
+            continue
+        if a.startswith("--jobs="):
+            continue
+        base.append(a)
+    return base
 
 
 def main(argv=None) -> int:

@@ -146,6 +146,46 @@ def test_jobs_make_the_same_bytes_in_several_processes(gen, bpy_registered, tmp_
     assert r.returncode == 0 and "nothing to do" in r.stderr and "processes" not in r.stderr
 
 
+def _tree(folder):
+    """Digest of every file by its path under `folder` (hidden leftovers included)."""
+    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+@needs_bpy
+@pytest.mark.slow
+def test_jobs_share_out_the_collapses_of_a_scene_with_the_same_bytes_and_resume(tmp_path):
+    import json
+    args = ["--set", "small", "--dataset", "mixed", "--grade-mix", "0:1,4:2,5:2", "--seed", "2", "--damage", "physics"]
+
+    def gen_run(*extra):
+        r = subprocess.run([sys.executable, str(SCRIPT), *args, *extra], capture_output=True, text=True, timeout=600)
+        assert r.returncode == 0, r.stderr[-2000:]
+        return r.stderr
+
+    def simulated(err):
+        return err.count("collapsed in") + err.count("did not come to rest")
+
+    gen_run("--out", str(tmp_path / "one"))
+    err = gen_run("--jobs", "2", "--out", str(tmp_path / "two"))
+    assert "collapses in 2 processes" in err and simulated(err) == 4  # every grade-4/5 building, once
+    post = json.loads((tmp_path / "two" / "post" / "scene.json").read_text())
+    assert any(p["name"] == "physics_collapse" for b in post["buildings"] for p in b["patterns"])
+    assert _tree(tmp_path / "one") == _tree(tmp_path / "two")  # no part file is left behind either
+    # an interrupted run keeps the collapses it finished: only the missing one is simulated again
+    out = tmp_path / "two"
+    (out / "post" / "scene.json").unlink()
+    claims = tmp_path / "claims"
+    claims.mkdir()
+    gen_run("--out", str(out), "--collapse-claims", str(claims))  # what a --jobs child does, alone
+    parts = sorted((out / ".post.collapses").glob("*.npz"))
+    assert len(parts) == 4
+    parts[1].unlink()
+    err = gen_run("--jobs", "2", "--out", str(out))
+    assert simulated(err) == 1
+    assert _tree(tmp_path / "one") == _tree(out)
+
+
 def test_job_shares_balance_collapses_by_physics(gen):
     todo = [("pre", None, {}), ("post_heavy", {1: 3, 2: 3}, {}), ("post_extreme", {1: 4, 2: 4}, {}),
             ("post_destruction", {1: 5, 2: 5}, {})]

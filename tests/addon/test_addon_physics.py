@@ -158,3 +158,32 @@ def test_generator_damage_physics_records_the_collapse(tmp_path):
     assert by_grade[0]["patterns"] == []
     pre = json.loads((out / "pre" / "scene.json").read_text())
     assert "damage" in pre["generator"]  # a patterns-only run would not reuse these bundles
+
+
+def test_neighbours_are_colliders_as_they_stand_when_the_collapses_start(blank):
+    from addon import physics, scene_tools
+    coll, spec, a, b = _city(blank)
+    terrain = scene_tools.create_terrain_object(coll, 0.0, 0.0, 40.0, 30.0)
+    objs = list(coll.objects)
+    # a neighbour that keeps the patterns is a collider as it was, the terrain too
+    got = scene_tools.PhysicsColliders(objs, {1: 5, 2: 3}, "physics").of(a)
+    assert b in got and terrain in got and a not in got
+    # one that collapses too: only what stands outside its own zone (nothing at grade 5)
+    co, polys = [c for c in scene_tools.PhysicsColliders(objs, 5, "physics").of(a) if isinstance(c, tuple)][0]
+    assert len(polys) == 0
+    co, polys = physics.standing_part(b, 4, mode="corner")
+    whole = physics._world_arrays(b)
+    # its standing part lost the corner of the roof (and nothing else of it)
+    assert 0 < _top_area(*whole) - _top_area(co, polys) < 0.7 * _top_area(*whole)
+    assert sorted(o.name for o in blank.data.objects) == sorted(o.name for o in objs)  # nothing left behind
+
+
+def _top_area(co, polys, tol=0.01):
+    """Area of the polygons lying at the mesh's highest level."""
+    top = co[:, 2].max() - tol
+    area = 0.0
+    for p in polys:
+        f = co[p]
+        if (f[:, 2] >= top).all():
+            area += 0.5 * abs(np.cross(f, np.roll(f, -1, axis=0)).sum(axis=0)[2])
+    return area
