@@ -481,7 +481,7 @@ def run(args) -> int:
                     log(f"{name}: {message}; {obj.name} gets the patterns instead")
                 damage = dict(damage=args.damage, settle_steps=args.settle_steps, on_fallback=fallback)
                 if args.damage != "patterns":  # collapses simulated by --jobs children, where they exist
-                    from addon import collapse_parts
+                    collapse_parts = addon_module("collapse_parts")
                     damage["collapses"] = collapse_parts.loader(parts_folder(out, name), info)
                 if street is None:
                     scene_tools.make_post_scene(pre_objs, coll, grades=grades, on_progress=progress, **damage)
@@ -593,10 +593,10 @@ def simulate_collapses(args, scenes, pre_objs, out: Path, claims: Path, street=N
     costliest first, buildings in order) and simulates those it claims first (a file created
     exclusively in `claims`), so the processes stay busy until the last collapse; each is
     written to its scene's parts folder (collapse_parts), those already there are skipped."""
-    from addon import collapse_parts, scene_tools
-    from addon.scene_tools import DamageError
+    collapse_parts, scene_tools = addon_module("collapse_parts"), addon_module("scene_tools")
+    DamageError = scene_tools.DamageError
     if street is not None:
-        from addon import street_objects
+        street_objects = addon_module("street_objects")
         pre_objs = [o for o in pre_objs if not street_objects.is_car_object(o)]
     done = 0
     for name, grades, info in scenes:
