@@ -412,23 +412,13 @@ def _check_split_flags(args) -> None:
 
 def _pipeline_settings(args):
     from .change import SplitSettings
-    from .pipeline import PAPER_FEATURES, PipelineSettings
+    from .pipeline import training_settings
 
     split = SplitSettings(lod_height_m=args.lod_height, lod_curvature=args.lod_curvature,
                           min_changed_share=args.min_changed_share, seed=args.seed)
-    which = getattr(args, "descriptors", "paper")
-    per_point = bool(getattr(args, "per_point_lod", False))
-    surface = None
-    if which in ("surface", "both") or per_point:
-        from .default_model import MODEL_DESCRIPTORS
-        from .surface import SurfaceSettings
-
-        surface = SurfaceSettings()
-    return PipelineSettings(radius_m=args.radius, point_features=_csv_list(args.features) or PAPER_FEATURES,
-                            split=split, paper_descriptors=which in ("paper", "both"),
-                            surface=surface, per_point_lod=per_point and which != "surface",
-                            **({"surface_descriptors": MODEL_DESCRIPTORS} if which in ("surface", "both") else
-                               {"surface_descriptors": ()} if surface else {}))
+    return training_settings(getattr(args, "descriptors", "paper"), radius_m=args.radius,
+                             point_features=_csv_list(args.features) or None, split=split,
+                             per_point_lod=bool(getattr(args, "per_point_lod", False)))
 
 
 def cmd_calibrate_lod(args) -> int:

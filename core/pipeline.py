@@ -190,6 +190,29 @@ def _newer_keys(d: dict) -> dict:
             "min_cells": int(d.get("min_cells", 0))}
 
 
+DESCRIPTOR_SETS = ("paper", "surface", "both")
+
+
+def training_settings(descriptors: str = "surface", *, radius_m: float = 1.5,
+                      point_features: Sequence[str] | None = None, split: SplitSettings | None = None,
+                      per_point_lod: bool = False) -> PipelineSettings:
+    """Settings of a model to train: the paper's descriptors (point features and the split's
+    changed share), the density-free surface descriptors of the shipped model, or both.
+    `per_point_lod` gates the paper's split by each point's level of detection."""
+    if descriptors not in DESCRIPTOR_SETS:
+        raise PipelineError(f"descriptors must be one of {DESCRIPTOR_SETS}, got {descriptors!r}")
+    surface = None
+    extra = {}
+    if descriptors in ("surface", "both") or per_point_lod:
+        from .default_model import MODEL_DESCRIPTORS
+
+        surface = SurfaceSettings()
+        extra["surface_descriptors"] = MODEL_DESCRIPTORS if descriptors in ("surface", "both") else ()
+    return PipelineSettings(radius_m=radius_m, point_features=tuple(point_features or PAPER_FEATURES),
+                            split=split or SplitSettings(), paper_descriptors=descriptors in ("paper", "both"),
+                            surface=surface, per_point_lod=per_point_lod and descriptors != "surface", **extra)
+
+
 def settings_for_descriptors(names: Sequence[str], radius_m: float, split: dict | None = None,
                              stored: dict | None = None, **kw) -> PipelineSettings:
     """Settings that produce the descriptor columns `names` (those a model was trained on);
