@@ -1,0 +1,80 @@
+"""The architecture's import rules, read from the source (ast): the add-on never imports the
+library, the library never imports Blender, and the library's modules import each other
+without cycles at module level (a module imported inside a function is loaded on use and
+may point back)."""
+import ast
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _imports(path: Path, package: str, top_level_only: bool):
+    """Absolute names of the modules `path` imports (relative ones resolved within `package`)."""
+    tree = ast.parse(path.read_text(), str(path))
+    nodes = tree.body if top_level_only else list(ast.walk(tree))
+    if top_level_only:  # imports under `if TYPE_CHECKING:`-free module-level statements only
+        nodes = [n for n in nodes if isinstance(n, (ast.Import, ast.ImportFrom))]
+    out = set()
+    mod_parts = [package] + list(path.relative_to(ROOT / package_dir(package)).with_suffix("").parts)
+    if mod_parts[-1] == "__init__":
+        mod_parts = mod_parts[:-1] + ["__init__"]
+    for n in nodes:
+        if isinstance(n, ast.Import):
+            out.update(a.name for a in n.names)
+        elif isinstance(n, ast.ImportFrom):
+            if n.level:
+                base = mod_parts[:-n.level]
+                name = ".".join(base + ([n.module] if n.module else []))
+                if n.module:
+                    out.add(name)
+                else:  # from . import x: x is a module of the package
+                    out.update(f"{name}.{a.name}" for a in n.names)
+            else:
+                out.add(n.module)
+    return out
+
+
+def package_dir(package):
+    return {"quakescan": "core", "quakescan_damage": "addon"}[package]
+
+
+def _modules(package):
+    folder = ROOT / package_dir(package)
+    return {p: package + "." + ".".join(p.relative_to(folder).with_suffix("").parts) for p in folder.rglob("*.py")}
+
+
+def test_the_add_on_never_imports_the_library():
+    for path in _modules("quakescan_damage"):
+        bad = {m for m in _imports(path, "quakescan_damage", False) if m and m.split(".")[0] in ("quakescan", "core")}
+        assert not bad, f"{path.relative_to(ROOT)} imports {bad}"
+
+
+def test_the_library_never_imports_blender():
+    for path in _modules("quakescan"):
+        bad = {m for m in _imports(path, "quakescan", False) if m and m.split(".")[0] in ("bpy", "bmesh", "addon",
+                                                                                           "quakescan_damage")}
+        assert not bad, f"{path.relative_to(ROOT)} imports {bad}"
+
+
+def test_the_library_has_no_import_cycle_at_module_level():
+    mods = _modules("quakescan")
+    names = {name.removesuffix(".__init__") for name in mods.values()}
+    graph = {}
+    for path, name in mods.items():
+        deps = {d.removesuffix(".__init__") for d in _imports(path, "quakescan", True)}
+        graph[name.removesuffix(".__init__")] = {d for d in deps if d in names and d != "quakescan"}
+    state = {}
+
+    def visit(n, stack):
+        state[n] = "open"
+        for d in sorted(graph.get(n, ())):
+            if state.get(d) == "open":
+                raise AssertionError("import cycle: " + " -> ".join(stack[stack.index(d):] + [d]))
+            if d not in state:
+                visit(d, stack + [d])
+        state[n] = "done"
+
+    for n in sorted(graph):
+        if n not in state:
+            visit(n, [n])
+    assert len(graph) > 40  # the walk saw the library
