@@ -331,8 +331,7 @@ def ablation(work: Path, model, training_work: Path, city: Path, pairs: dict, re
     tab = training_rows(transfer_training_table(training_work, seed=model.provenance.get("seed", 0) or 0, size="full",
                                                 scenes=model.provenance.get("scenes", "clean"),
                                                 damage=model.provenance.get("damage", "patterns"),
-                                                small=model.provenance.get("small_buildings", False),
-                                                say=lambda s: None)[1])
+                                                small=model.provenance.get("small_buildings", False))[1])
     names = tab.names
     truth = read_truth(city / "post")
     limits = model_settings(model)

@@ -15,6 +15,7 @@ Every step skips outputs that exist, so an interrupted run continues. Same seed,
 from __future__ import annotations
 
 import argparse
+import logging
 import shlex
 import sys
 import time
@@ -42,9 +43,12 @@ def main(argv=None) -> int:
                    "quakescan.trainset.PHYSICS_TWINS); patterns: the add-on's patterns only")
     p.add_argument("--small", action="store_true",
                    help="also the plan's two cities of small buildings (sheds, garages, row houses)")
-    p.add_argument("--threads", type=int, default=-1)
+    p.add_argument("--threads", type=int, default=-1, help="worker threads, or -1 for every core (default)")
     p.add_argument("-o", "--output", default=str(DEFAULT_MODEL))
     a = p.parse_args(argv)
+    # the library logs its stage messages (training set, classifier comparison) to quakescan.stages
+    logging.basicConfig(level=logging.WARNING, format="%(message)s")
+    logging.getLogger("quakescan.stages").setLevel(logging.INFO)
     t0 = time.perf_counter()
     command = "python blender_scripts/make_default_model.py " + shlex.join(argv if argv is not None else sys.argv[1:])
     model, scores, table = make_default_model(Path(a.work), Path(a.output), seed=a.seed, size=a.size,

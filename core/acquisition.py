@@ -35,7 +35,9 @@ from .atomic import replacing, write_json
 from .errors import PointCloudError, QuakeScanError, SurveyError
 from .fingerprint import Fingerprint, make, scene_fingerprint
 from .pointcloud import BUILDING_CLASS, Epoch, read_epoch, read_las
+from .progress import ProgressCallback
 from .scene import Scene, read_scene
+from .workers import accepts_old_threads
 
 log = logging.getLogger(__name__)
 
@@ -157,8 +159,9 @@ def _read_record(path: Path) -> dict | None:
     return data if isinstance(data, dict) else None
 
 
+@accepts_old_threads
 def acquire(scene: str | os.PathLike | Scene, acquisition: Acquisition, out_path: str | os.PathLike,
-            seed: int = 0, threads: int | None = None, progress=None) -> Acquired:
+            seed: int = 0, workers: int = -1, progress: ProgressCallback | None = None) -> Acquired:
     """Acquire `scene` (a bundle folder or a Scene) with `acquisition` into `out_path`
     (.las/.laz) with its sensor (`quakescan.sensors.simulate`).
 
@@ -186,7 +189,7 @@ def acquire(scene: str | os.PathLike | Scene, acquisition: Acquisition, out_path
     sidecar.unlink(missing_ok=True)
     loaded = scene if isinstance(scene, Scene) else read_scene(scene)
     summary = sensors.simulate(acquisition.kind, loaded, acquisition.settings, out, seed=int(seed),
-                               threads=threads, progress=progress, source=source)
+                               workers=workers, progress=progress, source=source)
     record["summary"] = summary.to_json()
     record["output_bytes"] = out.stat().st_size  # a cut or replaced cloud is acquired again
     write_json(sidecar, record, ensure_ascii=False)

@@ -30,6 +30,7 @@ from .model import DamageModel, load_model as _load_model, save_model
 from .pipeline import BuildingRow, describe_pair, training_settings
 from .pointcloud import Epoch, read_epoch
 from .scene import Scene, read_scene, write_scene
+from .workers import accepts_old_threads
 
 __all__ = ["acquire", "read_scene", "write_scene", "read_epoch", "read_pair", "describe", "train",
            "load_model", "save_model", "classify", "evaluate", "sensor_kinds",
@@ -46,8 +47,9 @@ def sensor_kinds() -> tuple[str, ...]:
     return tuple(sensors.kinds())
 
 
+@accepts_old_threads
 def acquire(scene: PathLike | Scene, out: PathLike, kind: str = "uls", settings=None, *, seed: int = 0,
-            threads: int | None = None) -> Acquired:
+            workers: int = -1) -> Acquired:
     """Acquire a scene with a simulated sensor into a LAS/LAZ epoch (`quakescan.acquisition`).
 
     Parameters
@@ -67,8 +69,9 @@ def acquire(scene: PathLike | Scene, out: PathLike, kind: str = "uls", settings=
         `quakescan.dim_settings.PhotoSurvey`).
     seed : int
         Seeds the sensor's noise: the same scene, settings and seed give the same bytes.
-    threads : int or None
-        Worker threads (None: the sensor's default, -1: every core).
+    workers : int
+        Worker threads (-1: every core; `threads`, its old name, still works). The bytes do
+        not depend on it.
 
     Returns
     -------
@@ -83,13 +86,13 @@ def acquire(scene: PathLike | Scene, out: PathLike, kind: str = "uls", settings=
         settings = sensor.default()
     elif isinstance(settings, (str, os.PathLike)):
         settings = sensor.load_settings(settings)
-    return _acquire(scene, Acquisition(kind, settings), out, seed=seed, threads=threads)
+    return _acquire(scene, Acquisition(kind, settings), out, seed=seed, workers=workers)
 
 
-def _acquire(scene, acquisition, out, seed, threads):
+def _acquire(scene, acquisition, out, seed, workers):
     from .acquisition import acquire as run
 
-    return run(scene, acquisition, out, seed=seed, threads=threads)
+    return run(scene, acquisition, out, seed=seed, workers=workers)
 
 
 def read_pair(pre: PathLike, post: PathLike, footprints: PathLike | None = None,
@@ -110,8 +113,9 @@ def read_pair(pre: PathLike, post: PathLike, footprints: PathLike | None = None,
     return load_pair(pre, post, footprints, id_field)
 
 
+@accepts_old_threads
 def describe(pre: PathLike | PairData, post: PathLike | None = None, *, footprints: PathLike | None = None,
-             model: PathLike | DamageModel | None = None, threads: int = -1) -> list[BuildingRow]:
+             model: PathLike | DamageModel | None = None, workers: int = -1) -> list[BuildingRow]:
     """Change descriptors of every building of a pair, as `model` reads them
     (`quakescan.pipeline.describe_pair`).
 
@@ -122,8 +126,8 @@ def describe(pre: PathLike | PairData, post: PathLike | None = None, *, footprin
         As in `read_pair`.
     model : path or DamageModel, optional
         Whose descriptors and settings to compute (default: the shipped model).
-    threads : int
-        Worker threads (-1: every core).
+    workers : int
+        Worker threads (-1: every core; `threads`, its old name, still works).
 
     Returns
     -------
@@ -134,11 +138,12 @@ def describe(pre: PathLike | PairData, post: PathLike | None = None, *, footprin
     """
     pair = pre if isinstance(pre, PairData) else read_pair(pre, _required(post, "post"), footprints)
     settings = model_settings(load_model(model) if not isinstance(model, DamageModel) else model)
-    return describe_pair(pair.pre, pair.post, settings, workers=threads)
+    return describe_pair(pair.pre, pair.post, settings, workers=workers)
 
 
+@accepts_old_threads
 def train(pairs: Sequence[tuple], *, descriptors: str = "surface", test_size: float = 0.3, seed: int = 0,
-          classifier: dict | None = None, threads: int = -1):
+          classifier: dict | None = None, workers: int = -1):
     """Train a damage model on described pairs with known grades (`quakescan.training.train`).
 
     Parameters
@@ -155,7 +160,8 @@ def train(pairs: Sequence[tuple], *, descriptors: str = "surface", test_size: fl
     classifier : dict, optional
         `quakescan.model.fit_classifier` arguments, e.g. {"kind": "hgb"} or
         {"kind": "rf", "n_estimators": 300, "max_depth": None, "calibration": "sigmoid"}.
-    threads : int
+    workers : int
+        Worker threads (-1: every core; `threads`, its old name, still works).
 
     Returns
     -------
@@ -173,7 +179,7 @@ def train(pairs: Sequence[tuple], *, descriptors: str = "surface", test_size: fl
         items.append(TrainingPair(*[None if v is None else os.fspath(v) for v in p]))
     settings = training_settings(descriptors)
     kw = {"classifier": classifier} if classifier else {}
-    return run(items, settings, test_size=test_size, seed=seed, workers=threads,
+    return run(items, settings, test_size=test_size, seed=seed, workers=workers,
                rule=settings.paper_descriptors, **kw)
 
 
@@ -183,8 +189,9 @@ def load_model(path: PathLike | None = None) -> DamageModel:
     return _load_model(default_model_path() if path is None else path)
 
 
+@accepts_old_threads
 def classify(pre: PathLike, post: PathLike, out_dir: PathLike, *, footprints: PathLike | None = None,
-             model: PathLike | None = None, threads: int = -1, **options) -> dict:
+             model: PathLike | None = None, workers: int = -1, **options) -> dict:
     """Grade every building of a pair and write the results (`quakescan.classify.classify`).
 
     Parameters
@@ -198,10 +205,11 @@ def classify(pre: PathLike, post: PathLike, out_dir: PathLike, *, footprints: Pa
     footprints : path, optional
     model : path, optional
         Default: the shipped model.
-    threads : int
+    workers : int
+        Worker threads (-1: every core; `threads`, its old name, still works).
     **options
         `align` (None: check registration, align when needed), `write_las`, `laz`, `force`,
-        `id_field`, `progress` (called with (done, total)).
+        `id_field`, `progress` (a `quakescan.progress.ProgressCallback`: called with (done, total)).
 
     Returns
     -------
@@ -210,7 +218,7 @@ def classify(pre: PathLike, post: PathLike, out_dir: PathLike, *, footprints: Pa
     """
     from .classify import classify as run
 
-    return run(pre, post, out_dir, model_path=model, footprints_path=footprints, workers=threads, **options)
+    return run(pre, post, out_dir, model_path=model, footprints_path=footprints, workers=workers, **options)
 
 
 def evaluate(result_csv: PathLike, truth: PathLike) -> Evaluation:

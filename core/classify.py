@@ -34,6 +34,7 @@ from .pipeline import (
     settings_for_descriptors,
 )
 from .pointcloud import Epoch, PointCloudError, check_pair, read_epoch
+from .progress import ProgressCallback
 
 log = logging.getLogger(__name__)
 
@@ -217,7 +218,7 @@ def predict_rows(rows, model: DamageModel, rule: bool | None = None) -> list:
 
 
 def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=None, id_field=None,
-             align: bool | None = None, workers: int = -1, progress=None, write_las: bool = True,
+             align: bool | None = None, workers: int = -1, progress: ProgressCallback | None = None, write_las: bool = True,
              laz: bool | None = None, force: bool = False) -> dict:
     """Run the whole classification and write OUT/buildings.csv, .geojson, .qml (its QGIS
     style), damage_map.png, damage_map.html (offline), post_grades.las and summary.json.

@@ -14,6 +14,7 @@ import numpy as np
 from . import __version__
 from .atomic import write_json
 from .errors import QuakeScanError
+from .workers import EVERY_CORE
 
 log = logging.getLogger("quakescan")
 
@@ -22,8 +23,10 @@ class Progress:
     """The one progress reporter of the command line: `label  done/total  pct  elapsed  ETA`
     on stderr, at most every `every_s` seconds or 5 %, and always at the end.
 
-    Called as progress(done, total), the shape every long core function takes. Elapsed time
-    counts from the reporter's creation (the command's start). The ETA assumes the remaining
+    Called as progress(done, total, stage=""), the one shape of `quakescan.progress`. The
+    line's label is the reporter's label followed by the stage; a new stage starts a new
+    count: its own first report, its elapsed time from that report, its own line. Elapsed
+    time of the first stage counts from the reporter's creation (the command's start). The ETA assumes the remaining
     steps go at the rate since the first report, (t1, d1):
 
         ETA = (now − t1) × (total − done) / (done − d1)
@@ -37,12 +40,18 @@ class Progress:
 
     def __init__(self, label: str, enabled: bool, *, clock=time.monotonic, stream=None, every_s: float = 2.0,
                  min_basis_s: float = 1.0):
-        self.label, self.enabled = label, enabled
+        self.base, self.enabled = label, enabled
         self.clock, self.every_s, self.min_basis_s = clock, every_s, min_basis_s
         self.stream = stream
-        self.t0 = clock()
+        self.stage = ""
+        self._start(clock())
+
+    def _start(self, now: float) -> None:
+        self.label = " ".join(p for p in (self.base, self.stage) if p)
+        self.t0 = now
         self.first = None  # (time, done) of the first report
         self.last_t, self.last_f = -float("inf"), -1.0
+        self.open_line = False  # a terminal line not yet ended by its last report
 
     def eta_s(self, done: int, total: int, now: float) -> float | None:
         """Seconds left at the rate since the first report; None while that rate is unknown."""
@@ -60,11 +69,16 @@ class Progress:
         return (f"{self.label}  {done:,}/{total:,}  {100 * done / total:3.0f} %  {_clock_time(now - self.t0)}  "
                 f"ETA {'?' if eta is None else _clock_time(eta)}")
 
-    def __call__(self, done, total) -> None:
+    def __call__(self, done: int, total: int, stage: str = "") -> None:
         if not self.enabled or total <= 0:
             return
         stream = self.stream or sys.stderr
         now = self.clock()
+        if stage != self.stage:
+            if self.open_line:
+                print(file=stream, flush=True)
+            self.stage = stage
+            self._start(now)
         if self.first is None:
             self.first = (now, done)
         f = done / total
@@ -74,6 +88,7 @@ class Progress:
             end = "\n" if f >= 1 or not tty else ""
             print(("\r" if tty else "") + self.line(done, total, now), end=end, file=stream, flush=True)
             self.last_t, self.last_f = now, f
+            self.open_line = not end
 
 
 def _clock_time(seconds: float) -> str:
@@ -89,11 +104,20 @@ def _progress(args, label: str) -> Progress:
     return Progress(label, not quiet and (getattr(args, "progress", False) or sys.stderr.isatty()))
 
 
-def _say(args):
-    """Stage messages of the multi-step commands (experiment, training-set, demo): stderr, unless `-q`."""
+def _show_stages(args) -> logging.Handler | None:
+    """Stage messages of the multi-step commands (experiment, training-set, demo; the library logs
+    them to `quakescan.stages`): plain lines on stderr, unless `-q`. Returns the handler that
+    `main` removes when the command ends (tests run many commands in one process)."""
+    stages = logging.getLogger("quakescan.stages")
     if getattr(args, "quiet", False):
-        return lambda message: None
-    return lambda message: print(message, file=sys.stderr, flush=True)
+        stages.setLevel(logging.WARNING)
+        return None
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("%(message)s"))
+    stages.addHandler(handler)
+    stages.setLevel(logging.INFO)
+    stages.propagate = False  # shown once, plain, also under -v
+    return handler
 
 
 def _note(args, message: str) -> None:
@@ -153,9 +177,7 @@ def _write_cloud_summary(summary_path: Path, report: dict, out: Path, fp) -> Non
 def _check_scan_flags(args) -> None:
     if args.seed < 0:
         raise QuakeScanError(f"--seed: expected an integer >= 0 (the same seed gives the same bytes), got {args.seed}")
-    if args.threads is not None and args.threads != -1 and args.threads < 1:
-        raise QuakeScanError(f"--threads: expected a number of worker threads >= 1 (or -1: all cores), "
-                             f"got {args.threads}")
+    _check_threads(args.threads)
 
 
 def cmd_scan(args) -> int:
@@ -165,7 +187,6 @@ def cmd_scan(args) -> int:
     from .survey import load_survey
 
     _check_scan_flags(args)
-    threads = None if args.threads in (None, -1) else args.threads
     scene_dir = Path(args.scene)
     out = Path(args.output)
     if out.suffix.lower() not in (".las", ".laz"):
@@ -201,7 +222,7 @@ def cmd_scan(args) -> int:
     progress = _progress(args, f"scan {scene_dir.name}")
     # Finished flight lines are kept here; a rerun after an interruption continues from them.
     checkpoint = out.with_name(out.name + ".lines")
-    summary = scan(scene, survey, out, seed=args.seed, threads=threads, progress=progress,
+    summary = scan(scene, survey, out, seed=args.seed, workers=args.threads, progress=progress,
                    source=str(scene_dir), checkpoint=checkpoint, fingerprint=fp.digest)
     report = summary.to_json()
     report["survey"] = survey.to_json()
@@ -394,9 +415,9 @@ def _check_seed(value) -> None:
 
 
 def _check_threads(value) -> None:
-    """Threads: a positive count, or -1 / None for every core (the libraries' convention)."""
-    if value is not None and value != -1 and value < 1:
-        raise QuakeScanError(f"--threads: expected a number of threads >= 1 (or -1: every core), got {value}")
+    """--threads: the library's `workers` (`quakescan.workers`), a count >= 1 or -1 for every core."""
+    if value != EVERY_CORE and value < 1:
+        raise QuakeScanError(f"--threads: expected a number of worker threads >= 1 (or -1: every core), got {value}")
 
 
 def _check_split_flags(args) -> None:
@@ -519,17 +540,10 @@ def cmd_train(args) -> int:
                             "or none (then grades come from the post epochs' grade dimension)")
     pairs = [TrainingPair(pre, post, args.truth[k] if args.truth else None, args.footprints)
              for k, (pre, post) in enumerate(args.pair)]
-    reporters: dict = {}
-
-    def progress(name, done, total):  # one reporter per pair: each counts its own buildings
-        if name not in reporters:
-            reporters[name] = _progress(args, f"describe {name}")
-        reporters[name](done, total)
-
     settings = _pipeline_settings(args)
     model, ev, table = train(pairs, settings, n_estimators=args.trees, max_depth=args.depth,
                              test_size=args.test_size, seed=args.seed, workers=args.threads,
-                             progress=progress,
+                             progress=_progress(args, "describe"),  # a stage per pair
                              command="quakescan " + " ".join(sys.argv[1:]),
                              rule=settings.paper_descriptors)
     save_model(model, out)
@@ -603,7 +617,7 @@ def cmd_dim(args) -> int:
     if not args.force and _cloud_is_up_to_date(out, summary_path, fp):
         _out(f"{out}: up to date (same scene, photo survey and seed); use --force to simulate it again")
         return 0
-    summary = simulate("dim", read_scene(scene_dir), survey, out, seed=args.seed, threads=args.threads,
+    summary = simulate("dim", read_scene(scene_dir), survey, out, seed=args.seed, workers=args.threads,
                        progress=_progress(args, "dim"), source=str(scene_dir))
     report = summary.to_json()
     report["photo_survey"] = survey.to_json()
@@ -665,7 +679,7 @@ def cmd_training_set(args) -> int:
     _check_folder_output(Path(args.output))
     table = build(args.output, default_plan(args.seed, args.size, args.scenes, args.damage, args.small),
                   TABLE_SETTINGS, workers=args.threads,
-                  say=_say(args), progress=_progress(args, "training set"))
+                  progress=_progress(args, "training set"))
     counts = dict(zip(*(v.tolist() for v in np.unique(table.y, return_counts=True))))
     print(f"{args.output}: {len(table.y)} building rows, grades {counts}; manifest.json and tables/")
     return 0
@@ -697,7 +711,7 @@ def cmd_experiment(args) -> int:
     settings = ExperimentSettings(buildings=args.buildings, test_mix=mix, seed=args.seed, n_estimators=args.trees,
                                   lod_height_m=args.lod_height, lod_curvature=args.lod_curvature,
                                   training=args.training)
-    results = run_paper_experiment(args.output, settings, workers=args.threads, say=_say(args),
+    results = run_paper_experiment(args.output, settings, workers=args.threads,
                                    progress=_progress(args, "experiment"))
     for name, ev in results.items():
         print(f"{name}: overall accuracy {100 * ev.overall_accuracy:.1f} %, damaged vs undamaged F1 "
@@ -710,8 +724,8 @@ def cmd_demo(args) -> int:
     """The built-in default: generate a small city, scan both epochs, classify, evaluate, map."""
     from .demo import run_demo
 
-    r = run_demo(args.output, seed=args.seed, buildings=args.buildings, say=_say(args),
-                 progress_factory=lambda label: _progress(args, label))
+    r = run_demo(args.output, seed=args.seed, buildings=args.buildings,
+                 progress=_progress(args, ""))  # its stages name themselves: "scan pre", ...
     ev = r["evaluation"]
     s = r["summary"]
     by_name = s.get("by_grade_name") or dict(sorted(s["by_label"].items()))  # a summary of an older QuakeScan
@@ -746,7 +760,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--survey", default="paper", help="preset name (paper, als) or survey JSON file (default paper)")
     s.add_argument("--beam", choices=("single", "adaptive", "full"), help="override the survey's beam model")
     s.add_argument("--seed", type=int, default=0, help="seed of the range noise (same seed, same bytes)")
-    s.add_argument("--threads", type=int, default=None, help="worker threads, >= 1 (default or -1: all cores)")
+    s.add_argument("--threads", type=int, default=EVERY_CORE, help=THREADS_HELP)
     s.add_argument("--trajectory", help="also write the platform trajectory as CSV (also when the scan is "
                    "up to date)")
     s.add_argument("--summary", help="summary JSON path (default: OUTPUT.summary.json)")
@@ -796,7 +810,7 @@ def build_parser() -> argparse.ArgumentParser:
     dm.add_argument("-o", "--output", required=True, help="output point cloud, .las or .laz")
     dm.add_argument("--survey", default="paper", help="photo survey preset (paper) or JSON file (default paper)")
     dm.add_argument("--seed", type=int, default=0, help="seed of sampling and noise (same seed, same bytes)")
-    dm.add_argument("--threads", type=int, default=None, help=THREADS_HELP)
+    dm.add_argument("--threads", type=int, default=EVERY_CORE, help=THREADS_HELP)
     dm.add_argument("--progress", action="store_true", help=PROGRESS_HELP)
     dm.add_argument("--force", action="store_true", help="simulate again even if the output is up to date "
                     "(same scene, photo survey and seed)")
@@ -823,7 +837,7 @@ def build_parser() -> argparse.ArgumentParser:
     rb.add_argument("--sample", type=int, default=None, help="pre-event building points used (seeded sample; "
                     "default 20000, 0 = all)")
     rb.add_argument("--seed", type=int, default=0, help="seed of the scans, the thinning and the sample (default 0)")
-    rb.add_argument("--threads", type=int, default=None, help=THREADS_HELP)
+    rb.add_argument("--threads", type=int, default=EVERY_CORE, help=THREADS_HELP)
     rb.add_argument("--progress", action="store_true", help=PROGRESS_HELP)
     rb.set_defaults(func=cmd_robustness)
 
@@ -843,7 +857,7 @@ def build_parser() -> argparse.ArgumentParser:
     ts.add_argument("--small", action="store_true",
                     help="full/large: also two cities of small buildings (sheds, garages, row houses), acquired "
                     "ALS-like before")
-    ts.add_argument("--threads", type=int, default=-1, help=THREADS_HELP)
+    ts.add_argument("--threads", type=int, default=EVERY_CORE, help=THREADS_HELP)
     ts.add_argument("--progress", action="store_true", help=PROGRESS_HELP)
     ts.set_defaults(func=cmd_training_set)
 
@@ -860,7 +874,7 @@ def build_parser() -> argparse.ArgumentParser:
     ex.add_argument("--lod-curvature", type=float, default=None,
                     help="level of detection of curvature change, 1/m (default: measured on a DIM rescan)")
     ex.add_argument("--seed", type=int, default=0, help="seed of the cities, acquisitions and forests (default 0)")
-    ex.add_argument("--threads", type=int, default=-1, help=THREADS_HELP)
+    ex.add_argument("--threads", type=int, default=EVERY_CORE, help=THREADS_HELP)
     ex.add_argument("--progress", action="store_true", help=PROGRESS_HELP)
     ex.set_defaults(func=cmd_experiment)
 
@@ -869,7 +883,7 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("-o", "--output", required=True, help="output LAS/LAZ with one extra dimension per feature")
     f.add_argument("--radius", type=float, required=True, help="spherical neighbourhood radius in m")
     f.add_argument("--features", help="comma-separated names (default: all 24)")
-    f.add_argument("--threads", type=int, default=None, help=THREADS_HELP)
+    f.add_argument("--threads", type=int, default=EVERY_CORE, help=THREADS_HELP)
     f.add_argument("--progress", action="store_true", help=PROGRESS_HELP)
     f.set_defaults(func=cmd_features)
 
@@ -888,7 +902,7 @@ def build_parser() -> argparse.ArgumentParser:
     lc.add_argument("--radius", type=float, default=1.5, help="feature radius in m (default 1.5)")
     lc.add_argument("--quantile", type=float, default=0.999, help="quantile of |change| (default 0.999)")
     lc.add_argument("--seed", type=int, default=0, help="seed of the sample of building points (default 0)")
-    lc.add_argument("--threads", type=int, default=-1, help=THREADS_HELP)
+    lc.add_argument("--threads", type=int, default=EVERY_CORE, help=THREADS_HELP)
     lc.add_argument("--progress", action="store_true", help=PROGRESS_HELP)
     lc.set_defaults(func=cmd_calibrate_lod)
 
@@ -924,7 +938,7 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--test-size", type=float, default=0.3, help="held-out share of buildings (default 0.3)")
     tr.add_argument("--seed", type=int, default=0, help="seed of the k-means split, the train/test split and the "
                     "forest (default 0)")
-    tr.add_argument("--threads", type=int, default=-1, help=THREADS_HELP)
+    tr.add_argument("--threads", type=int, default=EVERY_CORE, help=THREADS_HELP)
     tr.add_argument("--progress", action="store_true", help=PROGRESS_HELP)
     tr.add_argument("-o", "--output", required=True, help="model file (.skops)")
     tr.set_defaults(func=cmd_train)
@@ -948,7 +962,7 @@ def build_parser() -> argparse.ArgumentParser:
                     "of the same inputs, model and options")
     cl.add_argument("--laz", action="store_const", const=True, default=None,
                     help="compress the per-point grades (post_grades.laz); default: as the post-event file is")
-    cl.add_argument("--threads", type=int, default=-1, help=THREADS_HELP)
+    cl.add_argument("--threads", type=int, default=EVERY_CORE, help=THREADS_HELP)
     cl.add_argument("--progress", action="store_true", help=PROGRESS_HELP)
     cl.add_argument("-o", "--output", required=True, help="output folder")
     cl.set_defaults(func=cmd_classify)
@@ -963,7 +977,9 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-THREADS_HELP = "worker threads (default: all cores)"
+# One knob with one default in every command: -1, every core, as the library's `workers`
+# (`quakescan.workers`); outputs are the same bytes whatever it is, so the fastest is the default.
+THREADS_HELP = "worker threads, >= 1, or -1 for every core (default: -1); the results do not depend on it"
 PROGRESS_HELP = ("show progress (done/total, %%, elapsed, ETA) even when stderr is not a terminal; "
                  "on a terminal it is shown unless -q")
 QUIET_HELP = "no progress, stage messages or notes on stderr (warnings and errors stay)"
@@ -996,6 +1012,7 @@ def main(argv=None) -> int:
     tune_allocator()
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
+    stages = _show_stages(args)
     try:
         code = args.func(args)
     except QuakeScanError as e:
@@ -1009,6 +1026,9 @@ def main(argv=None) -> int:
         _drop_stdout()
         print("quakescan: the output pipe closed before the command finished", file=sys.stderr)
         return 141  # as a shell reports a command ended by SIGPIPE
+    finally:
+        if stages is not None:
+            logging.getLogger("quakescan.stages").removeHandler(stages)
     try:
         sys.stdout.flush()  # a closed pipe shows here, at the last buffered line, not at exit
     except BrokenPipeError:

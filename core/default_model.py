@@ -30,12 +30,12 @@ from __future__ import annotations
 import datetime
 import math
 import time
-from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
 from .pipeline import PipelineSettings
+from .progress import accepts_old_say, stage_log
 from .surface import DESCRIPTOR_VERSION, SURFACE_DESCRIPTORS, SurfaceSettings
 
 # The training set's tables hold every surface descriptor (so that an ablation can put any of
@@ -202,9 +202,9 @@ def fit_default_model(table, plan, config: dict, scores, *, seed: int = 0, comma
                        no_change_rule=False)
 
 
+@accepts_old_say
 def transfer_training_table(work: Path, *, seed: int = 0, size: str = "full", scenes: str = "both",
-                            damage: str = "patterns", small: bool = False, workers: int = -1,
-                            say: Callable[[str], None] = print):
+                            damage: str = "patterns", small: bool = False, workers: int = -1):
     """The plan and the descriptor table of the training set under `work`: `scenes` clean (the
     generator's bare scenes, under work/trainset), realistic (the same cities with roof detail,
     trees and cars, labelled through footprints, under work/trainset_realistic) or both;
@@ -219,7 +219,7 @@ def transfer_training_table(work: Path, *, seed: int = 0, size: str = "full", sc
     for kind in (("clean", "realistic") if scenes == "both" else (scenes,)):
         plan = default_plan(seed, size, kind, damage, small)
         folder = work / ("trainset" if kind == "clean" else "trainset_realistic")
-        parts[kind] = (plan, build(folder, plan, TABLE_SETTINGS, workers=workers, say=say))
+        parts[kind] = (plan, build(folder, plan, TABLE_SETTINGS, workers=workers))
     if scenes != "both":
         return parts[scenes]
     (clean_plan, clean), (real_plan, real) = parts["clean"], parts["realistic"]
@@ -228,25 +228,26 @@ def transfer_training_table(work: Path, *, seed: int = 0, size: str = "full", sc
     return plan, combine_tables(clean, real)
 
 
+@accepts_old_say
 def make_default_model(work: Path, output: Path, *, seed: int = 0, size: str = "full", scenes: str = "both",
                        damage: str = "both", small: bool = False, workers: int = -1,
-                       say: Callable[[str], None] = print, command: str = ""):
+                       command: str = ""):
     """Build the training set under `work`, choose and fit the classifier, write `output`."""
     from .model import save_model
 
     t0 = time.perf_counter()
     plan, table = transfer_training_table(work, seed=seed, size=size, scenes=scenes, damage=damage, small=small,
-                                          workers=workers, say=say)
+                                          workers=workers)
     full = model_columns(table)
     table = training_rows(full)
-    say(f"{len(full.y) - len(table.y)} of {len(full.y)} rows left out: damage their acquisition did not see")
+    stage_log.info(f"{len(full.y) - len(table.y)} of {len(full.y)} rows left out: damage their acquisition did not see")
     t_build = round(time.perf_counter() - t0, 1)
-    say(f"comparing {len(CANDIDATES)} classifiers (cross-validation holding out whole cities)")
+    stage_log.info(f"comparing {len(CANDIDATES)} classifiers (cross-validation holding out whole cities)")
     scores, config = select_classifier(table, seed=seed)
     from .model_selection import comparison_table
 
-    say(comparison_table(scores))
-    say(f"chosen: {config['name']}")
+    stage_log.info(comparison_table(scores))
+    stage_log.info(f"chosen: {config['name']}")
     model = fit_default_model(table, plan, config, scores, seed=seed, command=command, seconds_building=t_build)
     model.provenance["scenes"] = scenes
     model.provenance["damage"] = damage
@@ -256,5 +257,5 @@ def make_default_model(work: Path, output: Path, *, seed: int = 0, size: str = "
     output = Path(output)
     output.parent.mkdir(parents=True, exist_ok=True)
     save_model(model, output)
-    say(f"model -> {output} (limits: {model.provenance['limits']}); {time.perf_counter() - t0:.0f} s in all")
+    stage_log.info(f"model -> {output} (limits: {model.provenance['limits']}); {time.perf_counter() - t0:.0f} s in all")
     return model, scores, table

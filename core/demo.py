@@ -18,9 +18,11 @@ import json
 import shutil
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 from .errors import QuakeScanError
+from .progress import ProgressCallback, accepts_old_say, in_stage, stage_log
 
 PACKAGE = Path(__file__).resolve().parent
 # An installed wheel carries the generator inside this package; a checkout has it only in
@@ -93,7 +95,7 @@ def generate(set_name: str, dataset: str, buildings: int | None, seed: int, out:
         raise DemoError(f"scene generation failed (exit {proc.returncode}): {' '.join(cmd)}\n{tail}")
 
 
-def scan_scene(scene_dir: Path, out: Path, seed: int, progress=None) -> None:
+def scan_scene(scene_dir: Path, out: Path, seed: int, progress: ProgressCallback | None = None) -> None:
     """Scan with the paper's survey unless `out` is current (`quakescan.fingerprint`): the scene's
     files by path, size and time, so that a city regenerated in place is scanned again even
     where its bytes came out the same (the demo always did), the survey and the seed."""
@@ -139,24 +141,32 @@ def check_demo_options(seed, buildings) -> None:
         raise DemoError(f"demo --seed: expected an integer in 0..{2 ** 31 - 2}, got {seed!r}")
 
 
-def run_demo(out_dir, seed: int = 0, buildings: int = 30, say=print, progress_factory=None) -> dict:
+@accepts_old_say
+def run_demo(out_dir, seed: int = 0, buildings: int = 30, progress: ProgressCallback | None = None,
+             progress_factory=None) -> dict:
+    """The whole chain into out_dir (module doc). `progress` counts three stages: "scan pre",
+    "scan post" and "classify"; stage messages go to the logger `quakescan.stages`.
+    `progress_factory(stage)`, the old form (a reporter per stage), still works, deprecated."""
+    if progress_factory is not None:
+        warnings.warn("run_demo(progress_factory=...) is deprecated: pass progress(done, total, stage)",
+                      DeprecationWarning, stacklevel=3)
+        progress = _per_stage(progress_factory)
     check_demo_options(seed, buildings)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     city = out / "city"
-    say(f"demo 1/5: generating a mixed city of {buildings} buildings (seed {seed}) -> {city}")
+    stage_log.info(f"demo 1/5: generating a mixed city of {buildings} buildings (seed {seed}) -> {city}")
     # force: a demo folder from an older QuakeScan (its city at another place) is regenerated, then rescanned
     generate("generic", "mixed", buildings, seed, city, origin=DEMO_ORIGIN, crs=DEMO_CRS, force=True)
-    pf = progress_factory or (lambda label: None)
-    say("demo 2/5: scanning the pre- and post-event scenes with the paper's UAV survey")
-    scan_scene(city / "pre", out / "pre.las", seed=seed * 2 + 1, progress=pf("scan pre"))
-    scan_scene(city / "post", out / "post.las", seed=seed * 2 + 2, progress=pf("scan post"))
-    say("demo 3/5: classifying every building with the shipped model")
+    stage_log.info("demo 2/5: scanning the pre- and post-event scenes with the paper's UAV survey")
+    scan_scene(city / "pre", out / "pre.las", seed=seed * 2 + 1, progress=in_stage(progress, "scan pre"))
+    scan_scene(city / "post", out / "post.las", seed=seed * 2 + 2, progress=in_stage(progress, "scan post"))
+    stage_log.info("demo 3/5: classifying every building with the shipped model")
     from .classify import classify
 
     result = out / "result"
-    summary = classify(out / "pre.las", out / "post.las", result, progress=pf("classify"))
-    say("demo 4/5: evaluating against the grades the generator assigned")
+    summary = classify(out / "pre.las", out / "post.las", result, progress=in_stage(progress, "classify"))
+    stage_log.info("demo 4/5: evaluating against the grades the generator assigned")
     from .evaluate import evaluate_files, plot_confusion
 
     ev = evaluate_files(result / "buildings.csv", city / "post")
@@ -164,5 +174,17 @@ def run_demo(out_dir, seed: int = 0, buildings: int = 30, say=print, progress_fa
     from .atomic import write_text
 
     write_text(result / "evaluation.json", json.dumps(ev.to_json(), indent=1))
-    say(f"demo 5/5: maps -> {result / 'damage_map.png'}, {result / 'damage_map.html'} (opens offline)")
+    stage_log.info(f"demo 5/5: maps -> {result / 'damage_map.png'}, {result / 'damage_map.html'} (opens offline)")
     return {"summary": summary, "evaluation": ev, "result": result}
+
+
+def _per_stage(progress_factory) -> ProgressCallback:
+    """One progress callback from the old `progress_factory(stage)` (None or a (done, total) reporter per stage)."""
+    reporters: dict = {}
+
+    def progress(done: int, total: int, stage: str = "") -> None:
+        if stage not in reporters:
+            reporters[stage] = progress_factory(stage)
+        if reporters[stage] is not None:
+            reporters[stage](done, total)
+    return progress

@@ -72,8 +72,10 @@ from .dim_settings import PhotoSurvey
 from .errors import QuakeScanError, SurveyError
 from .las_output import label_counts, las_offset
 from .pointcloud import LasChunkWriter, PointChunk
+from .progress import ProgressCallback
 from .raycast import RayCaster, check_scannable, ground_level
 from .scene import Scene
+from .workers import EVERY_CORE, accepts_old_threads, check_workers
 
 log = logging.getLogger(__name__)
 
@@ -451,18 +453,17 @@ def _smooth(points, p0, p1, radius, piece_centre=None, piece_radius=None, piece=
     return len(near)
 
 
+@accepts_old_threads
 def simulate_dim(scene: Scene, photo_survey: PhotoSurvey, out_path: str | os.PathLike, seed: int = 0,
-                 progress=None, threads: int | None = None, source: str = "scene") -> DimSummary:
+                 progress: ProgressCallback | None = None, workers: int = -1, source: str = "scene") -> DimSummary:
     """Simulate a DIM point cloud of `scene` from `photo_survey` and write it to `out_path`.
 
     `progress` is called with (chunks_done, chunks_total). Same scene, survey and seed give
-    the same bytes whatever `threads`."""
+    the same bytes whatever `workers` (threads; -1: every core, at most 4 here)."""
     started = time.perf_counter()
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise QuakeScanError(f"seed must be an integer >= 0, got {seed!r}")
-    if threads is not None and (isinstance(threads, bool) or not isinstance(threads, int)
-                                or (threads < 1 and threads != -1)):
-        raise QuakeScanError(f"threads must be an integer >= 1 (or None or -1: all cores), got {threads!r}")
+    workers = check_workers(workers)
     s = photo_survey
     check_scannable(scene, source)
     caster = RayCaster(scene)
@@ -477,7 +478,7 @@ def simulate_dim(scene: Scene, photo_survey: PhotoSurvey, out_path: str | os.Pat
                           f"cameras of the photo survey '{s.name}' (is altitude_agl_m={s.altitude_agl_m} above "
                           f"the buildings?)")
     sim = _Sim(s, cams, pieces, caster, seed, geometry)
-    threads = (threads if threads != -1 else None) or min(4, os.cpu_count() or 1)
+    threads = workers if workers != EVERY_CORE else min(4, os.cpu_count() or 1)
     results = []
     with ThreadPoolExecutor(max_workers=threads) as pool:
         futures = [pool.submit(sim.run, k, i0, i1) for k, (i0, i1) in enumerate(chunks)]

@@ -33,7 +33,6 @@ import hashlib
 import json
 import logging
 import time
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -51,6 +50,7 @@ from .evaluate import (
     read_truth,
 )
 from .model import train_damage_forest, train_forest
+from .progress import ProgressCallback, accepts_old_say, stage_log
 
 log = logging.getLogger(__name__)
 
@@ -106,7 +106,7 @@ class ExperimentSettings:
         return {g: self.buildings // 4 for g in TARGET_GRADES}
 
 
-def _acquire(kind: str, scene_dir: Path, stem: Path, seed: int, say=None) -> Path:
+def _acquire(kind: str, scene_dir: Path, stem: Path, seed: int) -> Path:
     """stem.seedN.las acquired from scene_dir with the default settings of sensor `kind`
     (`quakescan.sensors`); reused only when its acquisition record says the same scene, settings
     and seed (`quakescan.acquisition`)."""
@@ -116,12 +116,12 @@ def _acquire(kind: str, scene_dir: Path, stem: Path, seed: int, say=None) -> Pat
     out = stem.with_name(f"{stem.name}.seed{seed}.las")
     t0 = time.perf_counter()
     got = acquire(scene_dir, Acquisition(kind, sensors.get(kind).default()), out, seed=seed)
-    if say and not got.resumed:
-        say(f"  {out.name}: {kind.upper()} in {time.perf_counter() - t0:.0f} s")
+    if not got.resumed:
+        stage_log.info(f"  {out.name}: {kind.upper()} in {time.perf_counter() - t0:.0f} s")
     return out
 
 
-def _table(pre: Path, posts: list, cache: Path, settings, workers, say=None) -> dict:
+def _table(pre: Path, posts: list, cache: Path, settings, workers) -> dict:
     """Descriptor rows {X, y, ids} of the training pairs (pre, post), cached.
 
     `posts`: (post cloud, grade) where grade is one grade for every building or a
@@ -151,9 +151,8 @@ def _table(pre: Path, posts: list, cache: Path, settings, workers, say=None) -> 
         t0 = time.perf_counter()
         data = load_pair(pre, post)
         rows = [r for r in describe_pair(data.pre, data.post, settings, workers=workers) if r.assessable]
-        if say:
-            say(f"  {Path(post).name} against {Path(pre).name}: {len(rows)} buildings in "
-                f"{time.perf_counter() - t0:.0f} s")
+        stage_log.info(f"  {Path(post).name} against {Path(pre).name}: {len(rows)} buildings in "
+                       f"{time.perf_counter() - t0:.0f} s")
         if isinstance(grade, dict):
             rows = [r for r in rows if r.building_id in grade]
         xs.append(descriptor_matrix(rows, names))
@@ -208,8 +207,9 @@ def _levels_of_detection(s: ExperimentSettings, pre: Path, rescan: Path, cache: 
     return lod
 
 
+@accepts_old_say
 def run_paper_experiment(out_dir, settings: ExperimentSettings | None = None, *, workers: int = -1,
-                         say: Callable[[str], None] = print, progress=None) -> dict:
+                         progress: ProgressCallback | None = None) -> dict:
     """Run everything and write the report to out_dir; returns {classifier: Evaluation}.
 
     `progress(done, total)` counts steps: cities generated, clouds acquired, the levels of
@@ -242,8 +242,8 @@ def run_paper_experiment(out_dir, settings: ExperimentSettings | None = None, *,
             progress(done[0], total)
         return result
 
-    say(f"experiment 1/5: generating the generic and region-specific datasets ({s.buildings} buildings each"
-        + (f", and a mixed city {s.mixed_training_mix} each" if mixed else "") + f") and the test city {s.test_mix}")
+    stage_log.info(f"experiment 1/5: generating the generic and region-specific datasets ({s.buildings} buildings each"
+                   + (f", and a mixed city {s.mixed_training_mix} each" if mixed else "") + f") and the test city {s.test_mix}")
     advance(generate("generic", "paper", s.buildings, s.seed, data / "generic"))
     advance(generate("region", "paper", s.buildings, s.seed + 1, data / "region"))
     advance(generate("region", "mixed", None, s.seed + 2, data / "test", grade_mix=s.test_mix))
@@ -252,43 +252,43 @@ def run_paper_experiment(out_dir, settings: ExperimentSettings | None = None, *,
         advance(generate("region", "mixed", None, s.seed + 4, data / "region_mixed", grade_mix=s.mixed_training_mix))
     step("generate")
 
-    say("experiment 2/5: acquiring the clouds (ULS: paper survey; DIM: paper photo flight)")
+    stage_log.info("experiment 2/5: acquiring the clouds (ULS: paper survey; DIM: paper photo flight)")
     clouds: dict[tuple, dict] = {}
     # every cloud its own seed, the same whatever the training layout
     for k, (dataset, kind) in enumerate((("generic", "uls"), ("region", "uls"), ("region", "dim"))):
         c = {}
         for j, (name, scene, _) in enumerate((("pre", "pre", None), *TRAINING_SCENES)):
             c[name] = advance(_acquire(kind, data / dataset / scene, data / f"{dataset}_{kind}_{name}",
-                                       s.seed * 100 + 5 * k + j + 1, say))
+                                       s.seed * 100 + 5 * k + j + 1))
         if mixed:
             for j, ep in enumerate(("pre", "post")):
                 c[f"mixed_{ep}"] = advance(_acquire(kind, data / f"{dataset}_mixed" / ep,
                                                     data / f"{dataset}_mixed_{kind}_{ep}",
-                                                    s.seed * 100 + 60 + 2 * k + j, say))
+                                                    s.seed * 100 + 60 + 2 * k + j))
         clouds[(dataset, kind)] = c
-    test_pre = advance(_acquire("dim", data / "test" / "pre", data / "test_dim_pre", s.seed * 100 + 90, say))
-    test_post = advance(_acquire("dim", data / "test" / "post", data / "test_dim_post", s.seed * 100 + 91, say))
+    test_pre = advance(_acquire("dim", data / "test" / "pre", data / "test_dim_pre", s.seed * 100 + 90))
+    test_post = advance(_acquire("dim", data / "test" / "post", data / "test_dim_post", s.seed * 100 + 91))
     step("acquire")
 
     dim = clouds[("region", "dim")]
     lod = advance(_levels_of_detection(s, dim["pre"], dim["pre_rescan"], data / f"lod_{dim['pre_rescan'].stem}.json",
                                        workers))
     pipe = PipelineSettings(split=lod.split())
-    say(f"experiment 3/5: change descriptors of every training pair (levels of detection {lod.lod_height_m:.2f} m, "
-        f"{lod.lod_curvature:.2f} 1/m; one table per dataset, shared)")
+    stage_log.info(f"experiment 3/5: change descriptors of every training pair (levels of detection {lod.lod_height_m:.2f} m, "
+                   f"{lod.lod_curvature:.2f} 1/m; one table per dataset, shared)")
     tables = {}  # cached under a hash of the settings and the input clouds' names (seeds included)
     for key in sorted(clouds):
         c = clouds[key]
         parts = [advance(_table(c["pre"], [(c[name], g) for name, _, g in TRAINING_SCENES],
-                                data / f"table_{key[0]}_{key[1]}", pipe, workers, say))]
+                                data / f"table_{key[0]}_{key[1]}", pipe, workers))]
         if mixed:
             truth = read_truth(data / f"{key[0]}_mixed" / "post")
             parts.append(advance(_table(c["mixed_pre"], [(c["mixed_post"], truth)],
-                                        data / f"table_{key[0]}_mixed_{key[1]}", pipe, workers, say)))
+                                        data / f"table_{key[0]}_mixed_{key[1]}", pipe, workers)))
         tables[key] = {"paper": parts[0], "mixed": parts[1] if mixed else None}
     step("describe training")
 
-    say("experiment 4/5: training the four classifiers and classifying the held-out DIM test city")
+    stage_log.info("experiment 4/5: training the four classifiers and classifying the held-out DIM test city")
     pair = load_pair(test_pre, test_post)
     test_rows = advance(describe_pair(pair.pre, pair.post, pipe, workers=workers))
     truth = read_truth(data / "test" / "post")
@@ -320,7 +320,7 @@ def run_paper_experiment(out_dir, settings: ExperimentSettings | None = None, *,
     advance()
     step("train + classify")
 
-    say(f"experiment 5/5: report -> {out}")
+    stage_log.info(f"experiment 5/5: report -> {out}")
     write_report(out, results, s, lod, timings, time.perf_counter() - t0, ablation, shipped)
     return results
 

@@ -86,6 +86,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import QuakeScanError
+from .progress import ProgressCallback
 
 log = logging.getLogger(__name__)
 
@@ -458,7 +459,8 @@ def duplicate_groups(xyz):
 
 
 def compute_features(xyz, radius: float, features: Sequence[str] | None = None, core_points=None,
-                     workers: int | None = None, query_index=None, progress=None) -> dict[str, np.ndarray]:
+                     workers: int = -1, query_index=None, progress: ProgressCallback | None = None
+                     ) -> dict[str, np.ndarray]:
     """Geometric features of every point (or of every core point) at a spherical radius.
 
     Parameters
@@ -478,9 +480,9 @@ def compute_features(xyz, radius: float, features: Sequence[str] | None = None, 
         Evaluate only at these points of the cloud (neighbourhoods from the whole cloud,
         the point itself included, as for the default); results in this order.
     workers : int, optional
-        Threads for the compiled kernel (default: all of numba's). Load is balanced by
+        Threads for the compiled kernel (default -1: every core, all of numba's; None as -1). Load is balanced by
         handing the threads interleaved blocks of query groups.
-    progress : callable, optional
+    progress : quakescan.progress.ProgressCallback, optional
         Called as progress(points_done, points_total) about 50 times; the results are the
         same with and without it.
 

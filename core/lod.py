@@ -26,6 +26,7 @@ import numpy as np
 from .change import SplitSettings
 from .errors import QuakeScanError
 from .pointcloud import Epoch
+from .progress import ProgressCallback, no_progress
 
 DEFAULT_QUANTILE = 0.999
 DEFAULT_SAMPLE = 200_000
@@ -57,7 +58,7 @@ class LevelsOfDetection:
 
 def calibrate(pre: Epoch, rescan: Epoch, radius_m: float = 1.5, *, quantile: float = DEFAULT_QUANTILE,
               floor: SplitSettings | None = None, sample: int = DEFAULT_SAMPLE, seed: int = 0,
-              workers: int = -1, progress=None) -> LevelsOfDetection:
+              workers: int = -1, progress: ProgressCallback | None = None) -> LevelsOfDetection:
     """Levels of detection from two acquisitions of the same undamaged buildings.
 
     Both epochs in one local frame (read the rescan with the first one's origin).
@@ -88,7 +89,7 @@ def calibrate(pre: Epoch, rescan: Epoch, radius_m: float = 1.5, *, quantile: flo
     pre_index = GridIndex(pre.xyz[:, :2], settings.tile_m / 4)
     post_index = GridIndex(rescan.xyz[:, :2], settings.tile_m / 4)
     curv = floor.curvature_feature
-    step = progress or (lambda done, total: None)
+    step = progress or no_progress
     pre_f = _features_at(pre, pre_index, q, settings, workers)[curv]
     step(1, 3)
     nn, _ = _exact_nearest(pre.xyz[q], rescan, post_index, _box(pre.xyz[q, :2], radius_m), workers)

@@ -28,6 +28,7 @@ from .change import STATISTICS, SplitSettings, building_changes, nearest_neighbo
 from .errors import QuakeScanError
 from .features import FEATURES, compute_features
 from .pointcloud import Epoch
+from .progress import ProgressCallback
 from .surface import SURFACE_DESCRIPTORS, SurfaceSettings
 
 log = logging.getLogger(__name__)
@@ -351,7 +352,7 @@ def _features_at(epoch: Epoch, index: GridIndex, at: np.ndarray, settings: Pipel
 
 
 def describe_pair(pre: Epoch, post: Epoch, settings: PipelineSettings, *, workers: int = -1,
-                  progress: Callable[[int, int], None] | None = None, done: dict | None = None,
+                  progress: ProgressCallback | None = None, done: dict | None = None,
                   on_tile: Callable[[list], None] | None = None) -> list[BuildingRow]:
     """Descriptor rows of every building of the pair (IDs > 0 in either epoch), tile by tile.
 

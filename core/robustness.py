@@ -86,6 +86,7 @@ from .errors import QuakeScanError
 from .features import FEATURES, compute_features
 from .pipeline import PAPER_FEATURES
 from .pointcloud import Epoch
+from .progress import ProgressCallback
 
 log = logging.getLogger(__name__)
 
@@ -208,7 +209,7 @@ class _Pair:
 
 
 def _pair(pre: Epoch, post: Epoch, role: str = "", sample: int | None = DEFAULT_SAMPLE, seed: int = 0,
-          workers: int | None = None) -> _Pair:
+          workers: int = -1) -> _Pair:
     from .change import nearest_neighbours
 
     tag = f"{role} " if role else ""
@@ -294,7 +295,7 @@ def _check_radius(radius) -> float:
 
 
 def relative_changes(pre: Epoch, post: Epoch, radius: float, features: Sequence[str] | None = FEATURES,
-                     workers: int | None = None, sample: int | None = DEFAULT_SAMPLE,
+                     workers: int = -1, sample: int | None = DEFAULT_SAMPLE,
                      seed: int = 0) -> dict[str, float]:
     """Relative change in % of each feature between two epochs (same local frame) over the
     pre-event building points and their nearest post-event points, at one radius.
@@ -443,7 +444,7 @@ def _pre_values(epoch: Epoch, idx: np.ndarray, fpre: dict, names: Sequence[str])
 
 def robustness(uls_pre: Epoch, uls_post, dim_pre: Epoch, dim_post,
                radii: Sequence[float] = RADII, threshold_pct: float = THRESHOLD_PCT,
-               features: Sequence[str] | None = None, workers: int | None = None, progress=None,
+               features: Sequence[str] | None = None, workers: int = -1, progress: ProgressCallback | None = None,
                sample: int | None = DEFAULT_SAMPLE, seed: int = 0, spacing: float | None = None,
                stage_names: Sequence[str] | None = None) -> RobustnessResult:
     """Relative change of every feature on the ULS pairs and on the DIM pairs at every radius,
@@ -780,7 +781,7 @@ def write_report(result: RobustnessResult, out_dir: str | os.PathLike, context: 
 
 def run_experiment(pre_scene_dir: str | os.PathLike, post_scene_dir, out_dir: str | os.PathLike,
                    radii: Sequence[float] = RADII, seed: int = 0,
-                   workers: int | None = None, progress=None, survey=None, photo_survey=None,
+                   workers: int = -1, progress: ProgressCallback | None = None, survey=None, photo_survey=None,
                    threshold_pct: float = THRESHOLD_PCT, sample: int | None = DEFAULT_SAMPLE,
                    spacing: float | None = None) -> RobustnessResult:
     """Scan the scenes with ULS (`survey`, default the paper preset) and DIM (`photo_survey`,
@@ -823,7 +824,7 @@ def run_experiment(pre_scene_dir: str | os.PathLike, post_scene_dir, out_dir: st
             t0 = time.perf_counter()
             # reused only when made from the same scene, settings and seed: a folder of another
             # run's clouds is acquired again, never mixed into this one
-            got = acquire(folder, Acquisition(src, settings[src]), path, seed=seeds[ep], threads=workers)
+            got = acquire(folder, Acquisition(src, settings[src]), path, seed=seeds[ep], workers=workers)
             if got.resumed:
                 log.info("robustness: keeping %s", path)
             else:

@@ -47,9 +47,11 @@ import numpy as np
 from .errors import PointCloudError, QuakeScanError, SceneError, SurveyError
 from .las_output import label_counts, las_offset
 from .pointcloud import SCALE, LasChunkWriter, PointChunk, make_header
+from .progress import ProgressCallback
 from .raycast import RayCaster, check_scannable, ground_level
 from .scene import Scene, check_crs
 from .survey import FlightLine, FlightPlan, Survey, plan_flight
+from .workers import EVERY_CORE, accepts_old_threads, check_workers
 
 log = logging.getLogger(__name__)
 
@@ -582,16 +584,17 @@ def _batches(survey: Survey, plan: FlightPlan, batch_rays: int):
             number += 1
 
 
+@accepts_old_threads
 def scan(scene: Scene, survey: Survey, out_path: str | os.PathLike, seed: int = 0,
-         threads: int | None = None, batch_rays: int = DEFAULT_BATCH_RAYS,
-         lines: list | None = None, progress=None, source: str = "scene",
+         workers: int = -1, batch_rays: int = DEFAULT_BATCH_RAYS,
+         lines: list | None = None, progress: ProgressCallback | None = None, source: str = "scene",
          require_buildings: bool = True, fast: bool = True,
          checkpoint: str | os.PathLike | None = None, fingerprint: str = "") -> ScanSummary:
     """Scan `scene` with `survey` and write the point cloud to `out_path` (.las / .laz).
 
     `lines` replaces the planned flight lines (tests use a single line); `progress` is
     called with (pulses_done, pulses_total). Same scene, survey and seed give the same
-    bytes, whatever the number of threads. `fast=False` runs the numpy reference of the
+    bytes, whatever `workers` (threads; -1: every core). `fast=False` runs the numpy reference of the
     compiled loops (same bytes, slower).
 
     `checkpoint`: a folder where every finished flight line is kept
@@ -603,9 +606,7 @@ def scan(scene: Scene, survey: Survey, out_path: str | os.PathLike, seed: int = 
     started = time.perf_counter()
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise QuakeScanError(f"seed must be an integer >= 0, got {seed!r}")
-    if threads is not None and (isinstance(threads, bool) or not isinstance(threads, int)
-                                or (threads < 1 and threads != -1)):
-        raise QuakeScanError(f"threads must be an integer >= 1 (or None or -1: all cores), got {threads!r}")
+    workers = check_workers(workers)
     check_crs(scene.crs, source)
     if require_buildings:
         check_scannable(scene, source)
@@ -616,7 +617,7 @@ def scan(scene: Scene, survey: Survey, out_path: str | os.PathLike, seed: int = 
     plan = plan_flight(survey, scene.bounds(), ground_z)
     if lines is not None:
         plan = FlightPlan(list(lines), plan.ground_z, plan.flight_z)
-    threads = (threads if threads != -1 else None) or os.cpu_count() or 1
+    threads = workers if workers != EVERY_CORE else os.cpu_count() or 1
     summary = ScanSummary(output=str(out_path), lines=len(plan.lines), flight_duration_s=plan.duration_s,
                           beam=survey.beam, seed=seed)
     total = sum(_pulse_count(survey, ln) for ln in plan.lines)

@@ -45,10 +45,10 @@ def label(s: PhotoSurvey) -> str:
             f"step {s.point_step_px:g}px {cams}")
 
 
-def _simulate(scene, survey: PhotoSurvey, out_path, *, seed, threads, progress, source):
+def _simulate(scene, survey: PhotoSurvey, out_path, *, seed, workers, progress, source):
     # Looked up on the module at call time, so that what replaces `quakescan.dim.simulate_dim`
     # (a test that must see no simulation) replaces it here too.
-    return _dim.simulate_dim(scene, survey, out_path, seed=seed, progress=progress, threads=threads, source=source)
+    return _dim.simulate_dim(scene, survey, out_path, seed=seed, progress=progress, workers=workers, source=source)
 
 
 register(Sensor("dim", PhotoSurvey, _simulate, preset_dim, label, default_preset="paper",

@@ -80,10 +80,10 @@ def _errors(s: Survey) -> str:
     return f"noise {s.range_noise_sigma_m:.3f} mis {s.strip_misalignment_m:.3f}"
 
 
-def _simulate(scene, survey: Survey, out_path, *, seed, threads, progress, source):
+def _simulate(scene, survey: Survey, out_path, *, seed, workers, progress, source):
     # Looked up on the module at call time, so that what replaces `quakescan.scan.scan` (a test
     # that must see no scan) replaces it here too.
-    return _scan.scan(scene, survey, out_path, seed=seed, threads=threads, progress=progress, source=source)
+    return _scan.scan(scene, survey, out_path, seed=seed, workers=workers, progress=progress, source=source)
 
 
 def write_trajectory(scene, survey: Survey, path: str | os.PathLike) -> None:

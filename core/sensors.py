@@ -20,14 +20,15 @@ registers provides:
   and comes back through `quakescan.settings_file.from_values`), that validates itself on
   construction (a bad value raises `quakescan.errors.SurveyError`) and has `replace(**changes)`.
 - `settings_name`: what messages call those settings ("survey", "photo survey").
-- `simulate(scene, settings, out_path, *, seed, threads, progress, source)`: writes the
+- `simulate(scene, settings, out_path, *, seed, workers, progress, source)`: writes the
   epoch point cloud of the `quakescan.scene.Scene` to `out_path` (.las or .laz) under the
   contract of `quakescan.pointcloud` (LAS 1.4 point format 6, 1 mm scale, offset
   `quakescan.las_output.las_offset`, extra dimensions building_id, grade and surface of the face
   a point lies on): writing through `quakescan.pointcloud.LasChunkWriter` gives all of it and
   makes the file appear only when complete. The same scene, settings and seed give the
-  same bytes whatever `threads` (None: the sensor's default, -1: all cores); `progress` is
-  None or called with (done, total); `source` names the scene in messages. It raises
+  same bytes whatever `workers` (worker threads, -1: every core; a sensor that names it
+  `threads`, the old name, gets it so); `progress` is None or a
+  `quakescan.progress.ProgressCallback`, called with (done, total); `source` names the scene in messages. It raises
   `quakescan.errors.SceneError` or `SurveyError` when it cannot acquire the scene (nothing to
   see, no points) and returns a summary with `points` (int), `wall_time_s` (float) and
   `to_json()` (a JSON object, kept in the sidecar).
@@ -44,6 +45,7 @@ registers provides:
 from __future__ import annotations
 
 import importlib
+import inspect
 import math
 import os
 import re
@@ -53,6 +55,8 @@ from typing import Any
 
 from . import settings_file
 from .errors import QuakeScanError, SurveyError
+from .progress import ProgressCallback
+from .workers import accepts_old_threads
 
 # Modules (of this package) that register the built-in sensors, in the order of `kinds()`.
 BUILTIN = ("sensor_lidar", "sensor_dim")
@@ -155,13 +159,17 @@ def check_settings(kind: str, settings) -> Sensor:
     return sensor
 
 
-def simulate(kind: str, scene, settings, out_path: str | os.PathLike, seed: int = 0, threads: int | None = None,
-             progress=None, source: str = "scene"):
+@accepts_old_threads
+def simulate(kind: str, scene, settings, out_path: str | os.PathLike, seed: int = 0, workers: int = -1,
+             progress: ProgressCallback | None = None, source: str = "scene"):
     """Acquire the Scene `scene` with the sensor `kind` and `settings` into `out_path`;
     returns the sensor's summary. No sidecar and no resuming: `quakescan.acquisition.acquire`
     adds them."""
     sensor = check_settings(kind, settings)
-    return sensor.simulate(scene, settings, out_path, seed=seed, threads=threads, progress=progress, source=source)
+    # a sensor written before the knob was `workers` takes it as `threads`: same meaning
+    knob = "workers" if "workers" in inspect.signature(sensor.simulate).parameters else "threads"
+    return sensor.simulate(scene, settings, out_path, seed=seed, progress=progress, source=source,
+                           **{knob: workers})
 
 
 # Draws of random settings ------------------------------------------------------------

@@ -13,7 +13,7 @@ import datetime
 import logging
 import os
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -25,6 +25,7 @@ from .evaluate import Evaluation, evaluate_grades, read_grade_csv, to_target_gra
 from .model import DamageModel, grouped_split, predict_grades, train_damage_forest
 from .pipeline import PipelineSettings, describe_pair, descriptor_matrix
 from .pointcloud import GRADE_UNKNOWN, Epoch
+from .progress import ProgressCallback, in_stage
 
 log = logging.getLogger(__name__)
 
@@ -76,7 +77,9 @@ class TrainingTable:
 
 
 def training_table(pairs: Sequence[TrainingPair], settings: PipelineSettings, *, workers: int = -1,
-                   progress: Callable[[str, int, int], None] | None = None) -> TrainingTable:
+                   progress: ProgressCallback | None = None) -> TrainingTable:
+    """The described rows of every pair. `progress` counts each pair's buildings as a stage
+    named after its post-event file."""
     names = settings.descriptor_names()
     xs, ys, groups, bids, pair_of = [], [], [], [], []
     group_codes: dict[tuple, int] = {}
@@ -84,8 +87,8 @@ def training_table(pairs: Sequence[TrainingPair], settings: PipelineSettings, *,
         data = load_pair(pair.pre, pair.post, pair.footprints)
         pre, post = data.pre, data.post
         truth = read_truth_csv(pair.truth) if pair.truth else grades_from_epoch(post)
-        cb = (lambda d, t, _p=pair: progress(Path(_p.post).name, d, t)) if progress else None
-        rows = [r for r in describe_pair(pre, post, settings, workers=workers, progress=cb)
+        rows = [r for r in describe_pair(pre, post, settings, workers=workers,
+                                         progress=in_stage(progress, Path(pair.post).name))
                 if r.assessable and r.building_id in truth]
         if not rows:
             raise TrainingError(f"{pair.post}: no assessable building has a grade")
@@ -103,7 +106,7 @@ def training_table(pairs: Sequence[TrainingPair], settings: PipelineSettings, *,
 
 def train(pairs: Sequence[TrainingPair], settings: PipelineSettings, *, n_estimators: int = 100,
           max_depth: int | None = 5, test_size: float = 0.3, seed: int = 0, workers: int = -1,
-          progress=None, command: str = "", rule: bool = True, classifier: dict | None = None
+          progress: ProgressCallback | None = None, command: str = "", rule: bool = True, classifier: dict | None = None
           ) -> tuple[DamageModel, Evaluation | None, TrainingTable]:
     """Fit the forest on the training 70 % (grouped by building) and evaluate it on the rest.
 

@@ -35,7 +35,6 @@ import hashlib
 import json
 import logging
 import time
-from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
@@ -44,6 +43,7 @@ import numpy as np
 from . import fingerprint
 from .atomic import open_replacing, replacing, write_json
 from .errors import QuakeScanError
+from .progress import ProgressCallback, accepts_old_say, stage_log
 
 log = logging.getLogger(__name__)
 
@@ -387,11 +387,13 @@ def _grades(scene_dir: Path) -> dict:
     return {int(b["id"]): int(b["grade"]) for b in doc["buildings"]}
 
 
+@accepts_old_say
 def build(out_dir, plan: TrainingPlan, settings, *, workers: int = -1,
-          say: Callable[[str], None] = print, progress=None) -> TransferTable:
+          progress: ProgressCallback | None = None) -> TransferTable:
     """Generate, acquire and describe everything the plan asks for under out_dir; returns the
     table of all pairs. Resumable and seeded (see the module docstring). `progress(done,
-    total)` counts cities generated and pairs acquired and described."""
+    total)` counts cities generated and pairs acquired and described; the stage messages go to
+    the logger `quakescan.stages` (`quakescan.progress`)."""
     from .acquisition import Acquisition, acquire
     from .classify import load_pair
     from .evaluate import to_target_grade
@@ -406,16 +408,16 @@ def build(out_dir, plan: TrainingPlan, settings, *, workers: int = -1,
     if unknown:
         raise TrainingSetError(f"pairs name cities the plan does not have: {unknown}")
     steps = len(plan.cities) + len(plan.pairs)
-    say(f"training set 1/3: {len(plan.cities)} cities -> {out / 'scenes'}")
+    stage_log.info(f"training set 1/3: {len(plan.cities)} cities -> {out / 'scenes'}")
     for k, city in enumerate(plan.cities, 1):
         t = time.perf_counter()
         generate_city(city, out / "scenes" / city.name)
-        say(f"  [{k}/{len(plan.cities)}] {city.name} ({city.source}, {city.dataset}) {time.perf_counter() - t:.0f} s")
+        stage_log.info(f"  [{k}/{len(plan.cities)}] {city.name} ({city.source}, {city.dataset}) {time.perf_counter() - t:.0f} s")
         if progress:
             progress(k, steps)
     key = _settings_key(settings, plan.labels)
     names = settings.descriptor_names()
-    say(f"training set 2/3 and 3/3: acquiring and describing {len(plan.pairs)} pairs")
+    stage_log.info(f"training set 2/3 and 3/3: acquiring and describing {len(plan.pairs)} pairs")
     parts, manifest_pairs = [], []
     for k, pair in enumerate(plan.pairs, 1):
         scenes = out / "scenes" / pair.city
@@ -467,8 +469,8 @@ def build(out_dir, plan: TrainingPlan, settings, *, workers: int = -1,
         manifest_pairs.append({"name": pair.name, "rows": int(len(part["y"])),
                                "acquire_s": round(float(part["seconds"][0]), 1),
                                "describe_s": round(float(part["seconds"][1]), 1)})
-        say(f"  [{k}/{len(plan.pairs)}] {pair.name}: {len(part['y'])} buildings "
-            f"(acquire {part['seconds'][0]:.0f} s, describe {part['seconds'][1]:.0f} s)")
+        stage_log.info(f"  [{k}/{len(plan.pairs)}] {pair.name}: {len(part['y'])} buildings "
+                       f"(acquire {part['seconds'][0]:.0f} s, describe {part['seconds'][1]:.0f} s)")
         if progress:
             progress(len(plan.cities) + k, steps)
     city_index = {c.name: i for i, c in enumerate(plan.cities)}
@@ -490,6 +492,6 @@ def build(out_dir, plan: TrainingPlan, settings, *, workers: int = -1,
         "format": FORMAT, "version": VERSION, "plan": plan.to_json(), "settings": settings.to_json(),
         "rows": int(len(table.y)), "grades": {str(g): int(n) for g, n in zip(*np.unique(table.y, return_counts=True))},
         "pairs": manifest_pairs, "seconds": round(time.perf_counter() - t0, 1)})
-    say(f"training set: {len(table.y)} building rows from {len(plan.pairs)} pairs in "
-        f"{time.perf_counter() - t0:.0f} s")
+    stage_log.info(f"training set: {len(table.y)} building rows from {len(plan.pairs)} pairs in "
+                   f"{time.perf_counter() - t0:.0f} s")
     return table
