@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import os
@@ -104,20 +105,29 @@ def _progress(args, label: str) -> Progress:
     return Progress(label, not quiet and (getattr(args, "progress", False) or sys.stderr.isatty()))
 
 
-def _show_stages(args) -> logging.Handler | None:
+@contextlib.contextmanager
+def _stage_messages(args):
     """Stage messages of the multi-step commands (experiment, training-set, demo; the library logs
-    them to `quakescan.stages`): plain lines on stderr, unless `-q`. Returns the handler that
-    `main` removes when the command ends (tests run many commands in one process)."""
+    them to `quakescan.stages`): plain lines on stderr, unless `-q`. The logger is as it was
+    once the command ends (tests run many commands in one process)."""
     stages = logging.getLogger("quakescan.stages")
+    level, propagate = stages.level, stages.propagate
+    handler = None
     if getattr(args, "quiet", False):
         stages.setLevel(logging.WARNING)
-        return None
-    handler = logging.StreamHandler(sys.stderr)
-    handler.setFormatter(logging.Formatter("%(message)s"))
-    stages.addHandler(handler)
-    stages.setLevel(logging.INFO)
-    stages.propagate = False  # shown once, plain, also under -v
-    return handler
+    else:
+        handler = logging.StreamHandler(sys.stderr)
+        handler.setFormatter(logging.Formatter("%(message)s"))
+        stages.addHandler(handler)
+        stages.setLevel(logging.INFO)
+        stages.propagate = False  # shown once, plain, also under -v
+    try:
+        yield
+    finally:
+        if handler is not None:
+            stages.removeHandler(handler)
+        stages.setLevel(level)
+        stages.propagate = propagate
 
 
 def _note(args, message: str) -> None:
@@ -1012,9 +1022,9 @@ def main(argv=None) -> int:
     tune_allocator()
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
-    stages = _show_stages(args)
     try:
-        code = args.func(args)
+        with _stage_messages(args):
+            code = args.func(args)
     except QuakeScanError as e:
         print(f"quakescan: error: {e}", file=sys.stderr)
         return 2
@@ -1026,9 +1036,6 @@ def main(argv=None) -> int:
         _drop_stdout()
         print("quakescan: the output pipe closed before the command finished", file=sys.stderr)
         return 141  # as a shell reports a command ended by SIGPIPE
-    finally:
-        if stages is not None:
-            logging.getLogger("quakescan.stages").removeHandler(stages)
     try:
         sys.stdout.flush()  # a closed pipe shows here, at the last buffered line, not at exit
     except BrokenPipeError:
