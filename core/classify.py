@@ -218,8 +218,8 @@ def predict_rows(rows, model: DamageModel, rule: bool | None = None) -> list:
 
 
 def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=None, id_field=None,
-             align: bool | None = None, workers: int = -1, progress: ProgressCallback | None = None, write_las: bool = True,
-             laz: bool | None = None, force: bool = False) -> dict:
+             align: bool | None = None, workers: int = -1, progress: ProgressCallback | None = None,
+             write_las: bool = True, laz: bool | None = None, force: bool = False) -> dict:
     """Run the whole classification and write OUT/buildings.csv, .geojson, .qml (its QGIS
     style), damage_map.png, damage_map.html (offline), post_grades.las and summary.json.
     Returns the summary.

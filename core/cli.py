@@ -27,8 +27,8 @@ class Progress:
     Called as progress(done, total, stage=""), the one shape of `quakescan.progress`. The
     line's label is the reporter's label followed by the stage; a new stage starts a new
     count: its own first report, its elapsed time from that report, its own line. Elapsed
-    time of the first stage counts from the reporter's creation (the command's start). The ETA assumes the remaining
-    steps go at the rate since the first report, (t1, d1):
+    time of the first stage counts from the reporter's creation (the command's start). The
+    ETA assumes the remaining steps go at the rate since the first report, (t1, d1):
 
         ETA = (now − t1) × (total − done) / (done − d1)
 

@@ -242,8 +242,9 @@ def run_paper_experiment(out_dir, settings: ExperimentSettings | None = None, *,
             progress(done[0], total)
         return result
 
-    stage_log.info(f"experiment 1/5: generating the generic and region-specific datasets ({s.buildings} buildings each"
-                   + (f", and a mixed city {s.mixed_training_mix} each" if mixed else "") + f") and the test city {s.test_mix}")
+    stage_log.info(f"experiment 1/5: generating the generic and region-specific datasets ({s.buildings} buildings "
+                   "each" + (f", and a mixed city {s.mixed_training_mix} each" if mixed else "")
+                   + f") and the test city {s.test_mix}")
     advance(generate("generic", "paper", s.buildings, s.seed, data / "generic"))
     advance(generate("region", "paper", s.buildings, s.seed + 1, data / "region"))
     advance(generate("region", "mixed", None, s.seed + 2, data / "test", grade_mix=s.test_mix))
@@ -274,8 +275,8 @@ def run_paper_experiment(out_dir, settings: ExperimentSettings | None = None, *,
     lod = advance(_levels_of_detection(s, dim["pre"], dim["pre_rescan"], data / f"lod_{dim['pre_rescan'].stem}.json",
                                        workers))
     pipe = PipelineSettings(split=lod.split())
-    stage_log.info(f"experiment 3/5: change descriptors of every training pair (levels of detection {lod.lod_height_m:.2f} m, "
-                   f"{lod.lod_curvature:.2f} 1/m; one table per dataset, shared)")
+    stage_log.info(f"experiment 3/5: change descriptors of every training pair (levels of detection "
+                   f"{lod.lod_height_m:.2f} m, {lod.lod_curvature:.2f} 1/m; one table per dataset, shared)")
     tables = {}  # cached under a hash of the settings and the input clouds' names (seeds included)
     for key in sorted(clouds):
         c = clouds[key]

@@ -33,11 +33,11 @@ def no_progress(done: int, total: int, stage: str = "") -> None:
 
 
 def in_stage(progress: ProgressCallback | None, stage: str) -> ProgressCallback | None:
-    """`progress` with `stage` filled in, for a single-stage function called as one stage of a
-    longer one (the demo's classification): the inner function reports (done, total) only."""
+    """`progress` with `stage` filled in, for a function called as one stage of a longer one
+    (the demo's classification); the inner function's own stages, if any, follow it."""
     if progress is None:
         return None
-    return lambda done, total, _inner="": progress(done, total, stage)
+    return lambda done, total, inner="": progress(done, total, f"{stage} {inner}" if inner else stage)
 
 
 class _Forward(logging.Handler):

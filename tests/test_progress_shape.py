@@ -109,6 +109,11 @@ def test_a_multi_stage_function_names_its_stages(pair):
     table = training_table([TrainingPair(str(pair[0]), str(pair[1]))], PipelineSettings(),
                            progress=lambda done, total, stage="": calls.append((stage, done, total)))
     assert calls == [("post.las", k, 6) for k in range(1, 7)] and len(table.y) == 6
+    from quakescan.progress import in_stage
+
+    got = []
+    in_stage(in_stage(lambda done, total, stage="": got.append((done, total, stage)), "demo"), "classify")(1, 2)
+    assert got == [(1, 2, "demo classify")] and in_stage(None, "demo") is None
 
 
 def test_the_cli_reporter_starts_a_line_and_a_clock_per_stage():
