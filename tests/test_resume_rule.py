@@ -148,18 +148,22 @@ def test_an_acquisition_record_of_before_output_bytes_is_still_reused(tmp_path):
 
 # experiment ---------------------------------------------------------------------------------
 
-def test_experiment_clouds_are_reacquired_when_their_scene_changed(tmp_path):
+def test_experiment_clouds_are_reacquired_when_their_scene_changed(tmp_path, caplog):
     from quakescan.experiment import _acquire
 
     scene = tmp_path / "scene"
     write_scene(box_city(rows=1, cols=1), scene)
-    said = []
-    path = _acquire("dim", scene, tmp_path / "c", 4, said.append)
-    assert path.name == "c.seed4.las" and len(said) == 1
-    assert _acquire("dim", scene, tmp_path / "c", 4, said.append) == path and len(said) == 1  # reused
+
+    def said():  # an acquisition's stage message, one per cloud made
+        return [r for r in caplog.records if r.name == "quakescan.stages" and "DIM in" in r.getMessage()]
+
+    caplog.set_level("INFO", logger="quakescan.stages")
+    path = _acquire("dim", scene, tmp_path / "c", 4)
+    assert path.name == "c.seed4.las" and len(said()) == 1
+    assert _acquire("dim", scene, tmp_path / "c", 4) == path and len(said()) == 1  # reused
     write_scene(box_city(rows=1, cols=1, height=12.0), scene)  # regenerated in place, same name and seed
-    _acquire("dim", scene, tmp_path / "c", 4, said.append)
-    assert len(said) == 2
+    _acquire("dim", scene, tmp_path / "c", 4)
+    assert len(said()) == 2
 
 
 def test_experiment_tables_and_levels_of_detection_follow_their_inputs_and_settings(tmp_path, monkeypatch):
