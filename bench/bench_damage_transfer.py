@@ -73,8 +73,8 @@ def city(work: Path, damage: str) -> tuple[Path, dict, float, list]:
 
 
 def main(argv=None) -> int:
-    from quakescan.classify import DEFAULT_MODEL
-    from quakescan.evaluate import evaluate_files
+    from quakescan.classification import DEFAULT_MODEL
+    from quakescan.evaluation import evaluate_files
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--work", default=str(ROOT / "out" / "bench_damage_transfer"))
@@ -150,10 +150,10 @@ def cross_generator(training_work: Path, model_path: str, tests: dict) -> dict:
     generator (and both), scored on the same described rows of every held-out pair."""
     import numpy as np
 
-    from quakescan.classify import model_settings
+    from quakescan.classification import model_settings
     from quakescan.default_model import (CANDIDATES, TABLE_SETTINGS, cv_groups, model_columns, training_rows,
                                     transfer_training_table)
-    from quakescan.evaluate import evaluate_grades, read_truth
+    from quakescan.evaluation import evaluate_grades, read_truth
     from quakescan.model import fit_classifier, load_model
     from quakescan.pipeline import descriptor_matrix
     from quakescan.trainset import PHYSICS_TWINS

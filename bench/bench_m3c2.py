@@ -57,7 +57,7 @@ np.savez(sys.argv[2], distance=dist, lod=unc["lodetection"], n1=unc["num_samples
 def main(argv=None) -> int:
     from bench_transfer import real_pairs
 
-    from quakescan.classify import load_pair
+    from quakescan.classification import load_pair
     from quakescan.features import compute_features
     from quakescan.m3c2 import ColumnGrid, M3C2Settings, m3c2
 

@@ -66,7 +66,7 @@ def halves(las_path: Path, out: Path) -> tuple[Path, Path]:
 
 def describe(pre: Path, post: Path, footprints: Path, settings, limits) -> dict:
     """{descriptor: values over the assessable buildings} and the buildings' densities."""
-    from quakescan.classify import load_pair
+    from quakescan.classification import load_pair
     from quakescan.pipeline import _quality_gate, describe_pair
 
     data = load_pair(pre, post, footprints)
@@ -176,7 +176,7 @@ def main(argv=None) -> int:
     p.add_argument("--variants", default="clean,realistic")
     p.add_argument("--no-write", action="store_true")
     a = p.parse_args(argv)
-    from quakescan.classify import default_model_path, model_settings
+    from quakescan.classification import default_model_path, model_settings
     from quakescan.model import load_model
 
     t0 = time.perf_counter()

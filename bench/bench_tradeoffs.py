@@ -109,7 +109,7 @@ class Study:
     def __init__(self, cfg: dict, workers: int = -1):
         self.cfg, self.workers = cfg, workers
         self.train_dir, self.test_dir = ensure_scenes(cfg)
-        from quakescan.evaluate import read_truth
+        from quakescan.evaluation import read_truth
 
         self.truth = read_truth(self.test_dir / "post")
         self.clouds = cfg["work"] / "clouds"
@@ -174,7 +174,7 @@ class Study:
         key = (tag, part, radius, step)
         if key in self._desc:
             return self._desc[key]
-        from quakescan.classify import load_pair
+        from quakescan.classification import load_pair
         from quakescan.pipeline import PipelineSettings, describe_pair, descriptor_matrix
 
         settings = PipelineSettings(radius_m=radius, core_point_step=step)
@@ -202,8 +202,8 @@ class Study:
     # one row -------------------------------------------------------------------
     def row(self, knob: str, value, *, train_tags=("beam single",), test_tag="beam single", radius=1.5,
             step=1, trees=100) -> dict:
-        from quakescan.classify import predict_rows
-        from quakescan.evaluate import evaluate_grades
+        from quakescan.classification import predict_rows
+        from quakescan.evaluation import evaluate_grades
         from quakescan.model import DamageModel, train_damage_forest
 
         tables = [self.describe(t, "train", radius, step) for t in train_tags]

@@ -17,7 +17,7 @@ Rows (the shipped model only, nothing trained on the test data):
 
 Every row also runs the previous shipped model (the paper's generic-ULS forest, from git)
 on the same clouds in the same run ("before"). Each classification goes through
-`quakescan classify` (`quakescan.classify.classify`) and reports its describe and total seconds.
+`quakescan classify` (`quakescan.classification.classify`) and reports its describe and total seconds.
 
 Ablation (same run, same test rows): the model's classifier refitted on the training set's
 tables without each descriptor group, and the other classifier candidates, scored on the
@@ -124,7 +124,7 @@ def previous_model(work: Path) -> Path | None:
 
 
 def run_classify(pre, post, out_dir, model, footprints=None):
-    from quakescan.classify import classify
+    from quakescan.classification import classify
 
     t0 = time.perf_counter()
     summary = classify(pre, post, out_dir, model_path=model, footprints_path=footprints, write_las=False,
@@ -142,8 +142,8 @@ def flagged(csv_path: Path) -> tuple:
 
 
 def main(argv=None) -> int:
-    from quakescan.classify import DEFAULT_MODEL
-    from quakescan.evaluate import evaluate_files
+    from quakescan.classification import DEFAULT_MODEL
+    from quakescan.evaluation import evaluate_files
     from quakescan.model import load_model
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -306,7 +306,7 @@ GROUPS = {
 def _describe_rows(pre, post, settings, footprints=None, limits=None):
     """Assessable rows of a pair; `limits`: the shipped model's pipeline settings, whose
     density and coverage limits decide what is assessable (as classify does)."""
-    from quakescan.classify import load_pair
+    from quakescan.classification import load_pair
     from quakescan.pipeline import _quality_gate, describe_pair
 
     data = load_pair(pre, post, footprints)
@@ -319,9 +319,9 @@ def _describe_rows(pre, post, settings, footprints=None, limits=None):
 def ablation(work: Path, model, training_work: Path, city: Path, pairs: dict, real: list) -> dict:
     """Refit the shipped classifier without each descriptor group (and the other candidates)
     on the training set; score all on the same test rows."""
-    from quakescan.classify import model_settings
+    from quakescan.classification import model_settings
     from quakescan.default_model import CANDIDATES, TABLE_SETTINGS, cv_groups, training_rows, transfer_training_table
-    from quakescan.evaluate import evaluate_grades, read_truth
+    from quakescan.evaluation import evaluate_grades, read_truth
     from quakescan.model import fit_classifier
     from quakescan.pipeline import descriptor_matrix
 

@@ -24,7 +24,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
-from quakescan.classify import DEFAULT_MODEL  # noqa: E402
+from quakescan.classification import DEFAULT_MODEL  # noqa: E402
 from quakescan.default_model import make_default_model  # noqa: E402
 
 

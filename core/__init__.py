@@ -5,8 +5,6 @@ Headless: never imports bpy.
 """
 __version__ = "0.1.0"
 
-import sys as _sys
-import types as _types
 import warnings as _warnings
 
 # numba probes TBB first and, finding Debian's older TBB, says so on every parallel kernel's
@@ -35,21 +33,3 @@ def __getattr__(name):
 def __dir__():
     return sorted(set(globals()) | set(_API))
 
-
-class _Package(_types.ModuleType):
-    """`quakescan.classify` and `quakescan.evaluate` are API functions and modules of the same
-    name. Importing such a module sets the package's attribute to it (the import system's
-    rule for submodules), which would hide the function; this keeps the function there. The
-    modules stay importable by their full names (`from quakescan.classify import ...`,
-    `importlib.import_module("quakescan.classify")`)."""
-
-    def __setattr__(self, name, value):
-        if name in _FUNCTIONS_NAMED_LIKE_MODULES and isinstance(value, _types.ModuleType):
-            return
-        super().__setattr__(name, value)
-
-
-_FUNCTIONS_NAMED_LIKE_MODULES = ("classify", "evaluate")
-for _name in _FUNCTIONS_NAMED_LIKE_MODULES:
-    globals().pop(_name, None)  # a submodule imported before this line
-_sys.modules[__name__].__class__ = _Package

@@ -23,9 +23,9 @@ import os
 from collections.abc import Sequence
 
 from .acquisition import Acquired, Acquisition
-from .classify import PairData, default_model_path, load_pair, model_settings
+from .classification import PairData, default_model_path, load_pair, model_settings
 from .errors import QuakeScanError
-from .evaluate import Evaluation, evaluate_files
+from .evaluation import Evaluation, evaluate_files
 from .model import DamageModel, load_model as _load_model, save_model
 from .pipeline import BuildingRow, describe_pair, training_settings
 from .pointcloud import Epoch, read_epoch
@@ -98,7 +98,7 @@ def _acquire(scene, acquisition, out, seed, workers):
 def read_pair(pre: PathLike, post: PathLike, footprints: PathLike | None = None,
               id_field: str | None = None) -> PairData:
     """Both epochs in the pre-event epoch's local frame, with building IDs
-    (`quakescan.classify.load_pair`).
+    (`quakescan.classification.load_pair`).
 
     Parameters
     ----------
@@ -192,7 +192,7 @@ def load_model(path: PathLike | None = None) -> DamageModel:
 @accepts_old_threads
 def classify(pre: PathLike, post: PathLike, out_dir: PathLike, *, footprints: PathLike | None = None,
              model: PathLike | None = None, workers: int = -1, **options) -> dict:
-    """Grade every building of a pair and write the results (`quakescan.classify.classify`).
+    """Grade every building of a pair and write the results (`quakescan.classification.classify`).
 
     Parameters
     ----------
@@ -216,13 +216,13 @@ def classify(pre: PathLike, post: PathLike, out_dir: PathLike, *, footprints: Pa
     dict
         The run's summary (also in summary.json): counts per grade, timings, alignment.
     """
-    from .classify import classify as run
+    from .classification import classify as run
 
     return run(pre, post, out_dir, model_path=model, footprints_path=footprints, workers=workers, **options)
 
 
 def evaluate(result_csv: PathLike, truth: PathLike) -> Evaluation:
-    """Compare graded buildings with known grades (`quakescan.evaluate.evaluate_files`).
+    """Compare graded buildings with known grades (`quakescan.evaluation.evaluate_files`).
 
     Parameters
     ----------

@@ -454,7 +454,7 @@ def _pipeline_settings(args):
 
 def cmd_calibrate_lod(args) -> int:
     """Levels of detection of the split from two acquisitions of the same undamaged buildings."""
-    from .classify import load_pair
+    from .classification import load_pair
     from .lod import calibrate
 
     _check_number("--radius", args.radius, low=0.0, low_open=True)
@@ -568,7 +568,7 @@ def cmd_train(args) -> int:
 
 
 def cmd_classify(args) -> int:
-    from .classify import classify
+    from .classification import classify
 
     _check_threads(args.threads)
     summary = classify(args.pre, args.post, args.output, model_path=args.model, footprints_path=args.footprints,
@@ -597,7 +597,7 @@ def cmd_classify(args) -> int:
 
 
 def cmd_evaluate(args) -> int:
-    from .evaluate import evaluate_files, plot_confusion
+    from .evaluation import evaluate_files, plot_confusion
 
     out = Path(args.output) if args.output else Path(args.result).parent
     if out.exists() and not out.is_dir():
@@ -698,7 +698,7 @@ def cmd_training_set(args) -> int:
 def cmd_experiment(args) -> int:
     """The paper's four classifiers evaluated on a held-out region-specific DIM city."""
     from .change import LOD_CURVATURE_RANGE, LOD_HEIGHT_RANGE_M
-    from .evaluate import metric_text
+    from .evaluation import metric_text
     from .experiment import ExperimentSettings, run_paper_experiment
 
     mix = None

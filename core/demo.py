@@ -162,12 +162,12 @@ def run_demo(out_dir, seed: int = 0, buildings: int = 30, progress: ProgressCall
     scan_scene(city / "pre", out / "pre.las", seed=seed * 2 + 1, progress=in_stage(progress, "scan pre"))
     scan_scene(city / "post", out / "post.las", seed=seed * 2 + 2, progress=in_stage(progress, "scan post"))
     stage_log.info("demo 3/5: classifying every building with the shipped model")
-    from .classify import classify
+    from .classification import classify
 
     result = out / "result"
     summary = classify(out / "pre.las", out / "post.las", result, progress=in_stage(progress, "classify"))
     stage_log.info("demo 4/5: evaluating against the grades the generator assigned")
-    from .evaluate import evaluate_files, plot_confusion
+    from .evaluation import evaluate_files, plot_confusion
 
     ev = evaluate_files(result / "buildings.csv", city / "post")
     plot_confusion(ev, result / "confusion.png", title="Demo city: truth vs prediction")

@@ -40,7 +40,7 @@ import numpy as np
 
 from . import fingerprint
 from .atomic import open_replacing, write_text
-from .evaluate import (
+from .evaluation import (
     GRADE_NAMES,
     TARGET_GRADES,
     Evaluation,
@@ -126,7 +126,7 @@ def _table(pre: Path, posts: list, cache: Path, settings, workers) -> dict:
 
     `posts`: (post cloud, grade) where grade is one grade for every building or a
     {building ID: grade} truth (a mixed city)."""
-    from .classify import load_pair
+    from .classification import load_pair
     from .pipeline import describe_pair, descriptor_matrix
     from .surface import DESCRIPTOR_VERSION
 
@@ -215,7 +215,7 @@ def run_paper_experiment(out_dir, settings: ExperimentSettings | None = None, *,
     `progress(done, total)` counts steps: cities generated, clouds acquired, the levels of
     detection, descriptor tables, the test city described, the classifiers trained (a cached
     step counts as done)."""
-    from .classify import load_pair, predict_rows
+    from .classification import load_pair, predict_rows
     from .demo import generate
     from .model import DamageModel
     from .pipeline import PipelineSettings, describe_pair
@@ -329,7 +329,7 @@ def run_paper_experiment(out_dir, settings: ExperimentSettings | None = None, *,
 def shipped_default(pair, truth: dict, workers) -> Evaluation | None:
     """The shipped default model (trained on the transfer training set, not on this experiment's
     data) applied as it is to the test pair: what a user gets without training anything."""
-    from .classify import default_model_path, model_settings, predict_rows
+    from .classification import default_model_path, model_settings, predict_rows
     from .model import ModelError, load_model
     from .pipeline import describe_pair
 

@@ -18,7 +18,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from .evaluate import GRADE_NAMES, binary_metrics, to_target_grade
+from .evaluation import GRADE_NAMES, binary_metrics, to_target_grade
 from .model import ModelError, decided_by_rule, native_threads, train_damage_forest
 
 PROBABILITY_FLOOR = 1e-15  # log-loss of a probability 0 given to the true grade: log(1e-15) ≈ -34.5
@@ -33,7 +33,7 @@ class CandidateScore:
     config: dict
     accuracy: float  # overall accuracy: share of rows whose grade is right
     macro_f1: float  # mean of the per-grade F1 over the grades in the data
-    f1_per_grade: dict  # grade → one-vs-rest F1 (quakescan.evaluate.binary_metrics)
+    f1_per_grade: dict  # grade → one-vs-rest F1 (quakescan.evaluation.binary_metrics)
     damaged_f1: float  # F1 of "damaged" (grade 3–5) against "undamaged" (0–2)
     log_loss: float  # mean −ln p(true grade), p floored at PROBABILITY_FLOOR; 0 is perfect
     brier: float  # mean over rows of Σ_k (p_k − [grade = k])²: 0 perfect, 2 worst

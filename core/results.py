@@ -40,7 +40,7 @@ OUTLINE_BUFFER = "buffer around points"  # fewer than 3 distinct points, or all 
 _FIXED = ["building_id", "assessable", "predicted_grade", "label"]
 _TAIL = ["share_changed", "n_pre", "n_post", "decided_by", "reason"]
 # Columns added after the first files: written after all others, optional on reading, so
-# readers that look columns up by name (quakescan.evaluate, read_csv) take old and new files.
+# readers that look columns up by name (quakescan.evaluation, read_csv) take old and new files.
 _ADDED = ["confidence", "grade_name"]
 
 
@@ -134,7 +134,7 @@ def write_csv(rows, path, classes, own_ids: dict | None = None) -> None:
     predicted_grade (empty when not assessable), label, p_<grade> per model class (empty when
     not assessable), share_changed, n_pre, n_post, decided_by, reason, confidence (probability
     of the predicted grade; empty when not assessable), grade_name (EMS-98 name, quakescan.grades;
-    "not assessable" without a grade). `quakescan.evaluate` reads it. `own_ids`
+    "not assessable" without a grade). `quakescan.evaluation` reads it. `own_ids`
     ({building_id: footprint ID}, for footprints whose IDs are text) adds a last column
     `footprint_id`."""
     classes = [int(c) for c in classes]

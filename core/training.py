@@ -19,9 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .classify import load_pair
+from .classification import load_pair
 from .errors import QuakeScanError
-from .evaluate import Evaluation, evaluate_grades, read_grade_csv, to_target_grade
+from .evaluation import Evaluation, evaluate_grades, read_grade_csv, to_target_grade
 from .model import DamageModel, grouped_split, predict_grades, train_damage_forest
 from .pipeline import PipelineSettings, describe_pair, descriptor_matrix
 from .pointcloud import GRADE_UNKNOWN, Epoch
@@ -44,7 +44,7 @@ class TrainingPair:
 
 def read_truth_csv(path: str | os.PathLike) -> dict[int, int]:
     """{building_id: grade} from a CSV with columns building_id, grade (0–5), one row per
-    building (`quakescan.evaluate.read_grade_csv`, the one truth reader)."""
+    building (`quakescan.evaluation.read_grade_csv`, the one truth reader)."""
     return read_grade_csv(path, TrainingError)
 
 

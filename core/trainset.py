@@ -395,8 +395,8 @@ def build(out_dir, plan: TrainingPlan, settings, *, workers: int = -1,
     total)` counts cities generated and pairs acquired and described; the stage messages go to
     the logger `quakescan.stages` (`quakescan.progress`)."""
     from .acquisition import Acquisition, acquire
-    from .classify import load_pair
-    from .evaluate import to_target_grade
+    from .classification import load_pair
+    from .evaluation import to_target_grade
     from .pipeline import describe_pair, descriptor_matrix
 
     out = Path(out_dir)

@@ -1,13 +1,12 @@
 """Train → classify → evaluate on scans with known damage, the command line, and bad input."""
 import csv
 import json
-import importlib
 
 import laspy
 import numpy as np
 import pytest
 
-from quakescan.classify import classify, model_settings
+from quakescan.classification import classify, model_settings
 from quakescan.cli import main
 from quakescan.model import ModelError, load_model, save_model
 from quakescan.pipeline import PipelineSettings
@@ -112,7 +111,7 @@ def test_identical_epochs_flag_no_building(city, tmp_path):
 
 
 def test_interrupted_classification_resumes(city, tmp_path, monkeypatch):
-    C = importlib.import_module("quakescan.classify")  # quakescan.classify is the API function
+    import quakescan.classification as C
 
     d, _ = city
     out = tmp_path / "res"

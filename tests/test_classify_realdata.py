@@ -6,7 +6,7 @@ import laspy
 import numpy as np
 import pytest
 
-from quakescan.classify import classify, load_pair
+from quakescan.classification import classify, load_pair
 from quakescan.cli import main
 
 pytestmark = pytest.mark.realdata

@@ -3,7 +3,7 @@ import sys
 from pathlib import Path
 
 from quakescan import grades
-from quakescan.evaluate import GRADE_NAMES as EVALUATION_NAMES
+from quakescan.evaluation import GRADE_NAMES as EVALUATION_NAMES
 from quakescan.model import GRADE_LABELS
 
 REPO = Path(__file__).resolve().parents[1]

@@ -110,7 +110,7 @@ def test_the_forest_learns_only_from_buildings_with_changed_points():
 def test_a_forest_that_never_saw_grade_0_still_reports_it_by_rule():
     """Only destroyed buildings changed in training: the forest knows one grade; a building
     without changes is still "no damage" with p_0 = 1 in the results."""
-    from quakescan.classify import predict_rows
+    from quakescan.classification import predict_rows
     from quakescan.model import train_damage_forest
     from quakescan.pipeline import BuildingRow
 
@@ -272,7 +272,7 @@ def test_a_model_file_of_the_first_format_loads_and_predicts_as_before(tmp_path)
     predict_proba give."""
     import skops.io as sio
 
-    from quakescan.classify import predict_rows
+    from quakescan.classification import predict_rows
     from quakescan.pipeline import BuildingRow, PipelineSettings
 
     settings = PipelineSettings()
@@ -315,7 +315,7 @@ def test_a_model_file_saved_before_the_rename_to_quakescan_loads_and_predicts_as
     name was `core` (main at 1dc0058; a 3-tree forest, its predictions for three probe rows in
     its provenance). skops records only numpy, sklearn and builtins types, never the library's,
     so it loads without any `core` package; the shipped model and a file saved now likewise."""
-    from quakescan.classify import DEFAULT_MODEL
+    from quakescan.classification import DEFAULT_MODEL
 
     old = Path(__file__).parent / "data" / "model_saved_as_core.skops"
     m = load_model(old)
@@ -330,7 +330,7 @@ def test_a_model_file_saved_before_the_rename_to_quakescan_loads_and_predicts_as
 
 
 def test_the_shipped_model_is_the_transfer_model_with_its_limits_and_provenance():
-    from quakescan.classify import DEFAULT_MODEL, model_settings
+    from quakescan.classification import DEFAULT_MODEL, model_settings
     from quakescan.default_model import MODEL_DESCRIPTORS
 
     m = load_model(DEFAULT_MODEL)
@@ -387,7 +387,7 @@ def test_rule_off_keeps_calibration_groups_row_for_row():
 def test_a_model_without_the_rule_is_asked_about_unchanged_buildings(tmp_path):
     import skops.io as sio
 
-    from quakescan.classify import predict_rows
+    from quakescan.classification import predict_rows
     from quakescan.model import TRUSTED_TYPES, VERSION_ALL_ROWS, train_damage_forest
     from quakescan.pipeline import BuildingRow
 
@@ -437,7 +437,7 @@ def test_confidence_is_the_predicted_class_probability_and_margin_its_lead():
 
 
 def test_predict_rows_puts_the_confidence_on_each_building(model):
-    from quakescan.classify import predict_rows
+    from quakescan.classification import predict_rows
     from quakescan.pipeline import BuildingRow
 
     m, x = model

@@ -45,7 +45,7 @@ def test_every_progress_parameter_has_the_one_shape():
     # the long functions of every kind: scanning, DIM, features, description, training, experiments
     for expected in ("quakescan.scan.scan", "quakescan.dim.simulate_dim", "quakescan.features.compute_features",
                      "quakescan.pipeline.describe_pair", "quakescan.training.training_table",
-                     "quakescan.trainset.build", "quakescan.demo.run_demo", "quakescan.classify.classify",
+                     "quakescan.trainset.build", "quakescan.demo.run_demo", "quakescan.classification.classify",
                      "quakescan.lod.calibrate", "quakescan.robustness.run_experiment",
                      "quakescan.experiment.run_paper_experiment", "quakescan.acquisition.acquire"):
         assert expected in with_progress

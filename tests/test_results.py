@@ -8,7 +8,7 @@ import pytest
 import shapely.geometry
 
 from quakescan import results as R
-from quakescan.evaluate import evaluate_files
+from quakescan.evaluation import evaluate_files
 from quakescan.footprints import Footprints, read_footprints
 from quakescan.model import GRADE_LABELS
 
