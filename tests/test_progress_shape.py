@@ -151,25 +151,10 @@ def test_every_threads_flag_has_one_default_and_one_meaning():
 def _stage_plan(tmp_path, monkeypatch):
     """A quick plan whose every table is finished on disk: build only reads them."""
     import quakescan.trainset as ts
-    from quakescan import fingerprint
     from quakescan.default_model import TABLE_SETTINGS
+    from tests.trainset_fakes import finished_tables
 
-    plan = ts.default_plan(0, "quick")
-    fake = {"x": np.zeros((2, len(TABLE_SETTINGS.descriptor_names()))), "y": np.array([0, 5]),
-            "building_id": np.array([1, 2]), "density": np.ones((2, 2)), "cells": np.array([50, 60]),
-            "seconds": np.zeros(2)}
-    monkeypatch.setattr(ts, "generate_city", lambda city, folder: None)
-    key = ts._settings_key(TABLE_SETTINGS, plan.labels)
-    (tmp_path / "tables").mkdir(parents=True)
-    for p in plan.pairs:
-        scenes = tmp_path / "scenes" / p.city
-        for scene in ("pre", p.post_scene):
-            (scenes / scene).mkdir(parents=True, exist_ok=True)
-            (scenes / scene / "scene.json").write_text("{}")
-        np.savez(tmp_path / "tables" / f"{p.name}.{key}.npz", **fake)
-        fingerprint.record(tmp_path / "tables" / f"{p.name}.{key}.npz",
-                           ts._table_fingerprint(p, scenes, TABLE_SETTINGS, plan.labels))
-    return plan, TABLE_SETTINGS
+    return finished_tables(tmp_path, monkeypatch, ts.default_plan(0, "quick"), TABLE_SETTINGS), TABLE_SETTINGS
 
 
 def test_stage_messages_are_log_records_and_the_old_say_still_gets_them(tmp_path, monkeypatch, capsys, caplog):

@@ -82,24 +82,9 @@ def test_physics_twins_copy_their_cities_and_acquisitions_and_change_nothing_els
 def test_a_physics_twin_is_held_out_with_its_city(tmp_path, monkeypatch):
     """Rows of a twin take its city's index, so city-held-out cross-validation keeps both
     versions of a building on one side (as a realistic twin's do)."""
-    import quakescan.trainset as ts
-    from quakescan import fingerprint
+    from tests.trainset_fakes import finished_tables
 
-    plan = default_plan(0, "quick", damage="both")
-    fake = {"x": np.zeros((2, len(TABLE_SETTINGS.descriptor_names()))), "y": np.array([0, 5]),
-            "building_id": np.array([1, 2]), "density": np.ones((2, 2)), "cells": np.array([50, 60]),
-            "seconds": np.zeros(2)}
-    monkeypatch.setattr(ts, "generate_city", lambda city, folder: None)
-    key = ts._settings_key(TABLE_SETTINGS, plan.labels)
-    (tmp_path / "tables").mkdir()
-    for p in plan.pairs:  # finished tables, each with the fingerprint build would give it
-        scenes = tmp_path / "scenes" / p.city
-        for scene in ("pre", p.post_scene):
-            (scenes / scene).mkdir(parents=True, exist_ok=True)
-            (scenes / scene / "scene.json").write_text("{}")
-        np.savez(tmp_path / "tables" / f"{p.name}.{key}.npz", **fake)
-        fingerprint.record(tmp_path / "tables" / f"{p.name}.{key}.npz",
-                           ts._table_fingerprint(p, scenes, TABLE_SETTINGS, plan.labels))
+    plan = finished_tables(tmp_path, monkeypatch, default_plan(0, "quick", damage="both"), TABLE_SETTINGS)
     table = build(tmp_path, plan, TABLE_SETTINGS, say=lambda s: None)
     names = [plan.cities[i].name for i in table.city]
     physics = np.array([table.pairs[i].startswith("generic_m0-physics.") for i in table.pair])
