@@ -22,6 +22,7 @@ from __future__ import annotations
 import os
 from collections.abc import Sequence
 
+from . import acquisition as _acquisition
 from .acquisition import Acquired, Acquisition
 from .classification import PairData, default_model_path, load_pair, model_settings
 from .errors import QuakeScanError
@@ -86,13 +87,7 @@ def acquire(scene: PathLike | Scene, out: PathLike, kind: str = "uls", settings=
         settings = sensor.default()
     elif isinstance(settings, (str, os.PathLike)):
         settings = sensor.load_settings(settings)
-    return _acquire(scene, Acquisition(kind, settings), out, seed=seed, workers=workers)
-
-
-def _acquire(scene, acquisition, out, seed, workers):
-    from .acquisition import acquire as run
-
-    return run(scene, acquisition, out, seed=seed, workers=workers)
+    return _acquisition.acquire(scene, Acquisition(kind, settings), out, seed=seed, workers=workers)
 
 
 def read_pair(pre: PathLike, post: PathLike, footprints: PathLike | None = None,
