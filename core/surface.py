@@ -77,7 +77,7 @@ _BAND_STRIDE_M = 1.0e4
 LOWER_SURFACE_SHARE = 0.2
 # Bumped whenever a descriptor's computation changes: cached training tables made with another
 # version are not reused (quakescan.trainset), and a model records the version it was trained on.
-DESCRIPTOR_VERSION = 12
+DESCRIPTOR_VERSION = 13
 RASTER_DESCRIPTORS = ("s_lowered_1m", "s_lowered_storey", "s_lowered_half", "s_raised", "s_volume_loss",
                       "s_volume_gain", "s_height_ratio_mean", "s_height_ratio_p10", "s_post_gap",
                       "s_debris_ring", "s_debris_volume")
@@ -505,7 +505,9 @@ def _raster(keys_b, own_tops, pre_tops, post_tops, building_keys, ground, n3, ri
     out["s_volume_loss"] = float(np.sum(np.clip(low, 0.0, h_pre)) * c * c / vol) if vol > 0 else 0.0
     out["s_volume_gain"] = float(np.sum(rise) * c * c / vol) if vol > 0 else 0.0
     tall = covered & (h_pre > 1.0)
-    ratio = np.clip((h_pre - low + rise) / np.maximum(h_pre, c), 0.0, 1.5)[tall]
+    # divided by the cell's own height: `tall` keeps it above 1 m (a building lower than one
+    # sparse raster cell kept its height at ratio 1, not h / cell)
+    ratio = np.clip((h_pre[tall] - low[tall] + rise[tall]) / h_pre[tall], 0.0, 1.5)
     out["s_height_ratio_mean"] = float(np.mean(ratio)) if len(ratio) else 1.0
     out["s_height_ratio_p10"] = float(np.percentile(ratio, 10)) if len(ratio) else 1.0
     edge_keys = cells[edge]
