@@ -31,6 +31,7 @@ the same bodies created in the same order).
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 
@@ -41,8 +42,10 @@ import numpy as np
 from . import scene_tools
 from .geometry import fracture as fr
 from .geometry import mesh as gm
+from .geometry import mesh_elements as mel
 from .geometry import patterns as gp
 from .geometry import trigger as tg
+from .geometry.shell import ShellSpec
 from .scene_tools import DamageError
 
 log = logging.getLogger(__name__)
@@ -283,14 +286,14 @@ def collapse_object(obj, grade: int | None = None, seed: int | None = None,
     done = scene_tools.applied_patterns(obj)
     if done:
         raise DamageError(f"{obj.name!r} is already damaged ({done[-1].get('name')}); reset it first")
-    spec = scene_tools.shell_of(obj)
+    spec, own_elements, source, base, source_info = collapse_basis(obj)
     s = int(pg.seed if seed is None else seed)
     rng = gp.pattern_rng(s, g, _SALT)
     try:
-        trig = tg.make_trigger(spec, g, rng, mode)
+        trig = _lifted(tg.make_trigger(spec, g, rng, mode), base)
     except ValueError as e:
         raise DamageError(f"{obj.name!r}: {e}") from None
-    elements, shards, (near, far) = tg.zone_shards(spec, trig, rng, max_shards=max_shards)
+    elements, shards, (near, far) = tg.zone_shards(spec, trig, rng, max_shards=max_shards, elements=own_elements)
     if not shards:
         raise DamageError(f"{obj.name!r}: the {trig.mode} zone holds no structural element")
     density = fr.MATERIAL[spec.material]["density"]
@@ -380,10 +383,58 @@ def collapse_object(obj, grade: int | None = None, seed: int | None = None,
         "unsettled_shards_dropped": int(moving.sum()), "unsettled_volume_share": share,
         "zone_volume": float(sum(sh.solid.volume() for sh in shards)), "debris_solid_volume": float(debris_vol),
         "cell_near": near, "cell_far": far, "material": spec.material,
+        "element_source": source, **source_info,
         "density": density, "details_dropped": dropped_parts, "blender": bpy.app.version_string})}
     pg.grade = g
     pg.patterns_json = json.dumps(done + [rec])
     return rec
+
+
+def collapse_basis(obj):
+    """What a collapse by physics of `obj` works from: (the shell description its trigger
+    reads, its elements (None: built from that description by fracture.building_elements),
+    the element source ``"shell"`` or ``"mesh"``, its ground level, extras for the record).
+
+    The add-on's procedural buildings use their shell description. A building without one
+    (a user mesh, an imported CityJSON shell: the description is inferred, a box) uses its own
+    faces (geometry/mesh_elements.py); its trigger then reads a flat-roofed description with
+    the mesh's outline and storeys. When the faces give no outline (an open or unlabelled
+    mesh) the inferred box is used, and the record says why."""
+    pg = obj.qs_building
+    spec = scene_tools.shell_of(obj)
+    if not spec.extra.get("inferred"):
+        return spec, None, "shell", 0.0, {}
+    bm = scene_tools.read_bmesh(obj)
+    try:
+        lab = gm.Labels(bm)
+        bm.verts.index_update()
+        verts = np.array([v.co[:] for v in bm.verts], dtype=np.float64).reshape(-1, 3)
+        polys = [[v.index for v in f.verts] for f in bm.faces]
+        surface = np.array([f[lab.surface] for f in bm.faces], dtype=np.int64)
+        part = np.array([f[lab.part] for f in bm.faces], dtype=np.int64)
+    finally:
+        bm.free()
+    try:
+        mb = mel.mesh_elements(verts, polys, surface, part, spec.material, pg.storeys, pg.storey_height)
+    except mel.MeshElementsError as e:
+        log.warning("%s: elements from the inferred box, not its own faces: %s", obj.name, e)
+        return spec, None, "shell", 0.0, {"element_source_note": f"own faces gave no elements: {e}"}
+    own = ShellSpec(footprint=mb.footprint.tolist(), storeys=mb.storeys, storey_height=mb.storey_height,
+                    roof="flat", material=spec.material, typology=spec.typology,
+                    extra={"inferred": True, "source": "mesh"})
+    info = {"footprint_source": mb.footprint_source, "footprint_vertices": len(mb.footprint),
+            "roof_planes": mb.roof_planes, "roof_faces_skipped": mb.roof_faces_skipped}
+    return own, mb.elements, "mesh", mb.base, info
+
+
+def _lifted(trig, dz: float):
+    """The trigger of a building whose ground is at z = dz in its frame (the description's
+    storey levels start at 0)."""
+    if dz == 0.0:
+        return trig
+    zone = [((c[0], c[1], c[2] + dz), n) for c, n in trig.zone]
+    o = trig.origin
+    return dataclasses.replace(trig, zone=zone, origin=(o[0], o[1], o[2] + dz))
 
 
 def _standing_bmesh(obj, trig):
@@ -413,7 +464,8 @@ def standing_part(obj, grade: int, seed: int | None = None, mode: str | None = N
     pg = obj.qs_building
     s = int(pg.seed if seed is None else seed)
     try:
-        trig = tg.make_trigger(scene_tools.shell_of(obj), int(grade), gp.pattern_rng(s, int(grade), _SALT), mode)
+        spec, _, _, base, _ = collapse_basis(obj)
+        trig = _lifted(tg.make_trigger(spec, int(grade), gp.pattern_rng(s, int(grade), _SALT), mode), base)
     except (ValueError, DamageError):
         return _world_arrays(obj)
     bm, _ = _standing_bmesh(obj, trig)

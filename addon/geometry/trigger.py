@@ -135,13 +135,15 @@ class Shard:
     support: bool  # a failing wall: crushed in place before the simulation
 
 
-def zone_shards(spec, trigger: Trigger, rng, max_shards: int = 600, max_cells: int = 40):
-    """Elements of `spec` and the shards of their parts inside the trigger's zone:
-    (elements, shards, (near, far) cell sizes used). Cells follow the material's sizes,
-    scaled up when the building would need more than `max_shards` (the simulation's cost)."""
+def zone_shards(spec, trigger: Trigger, rng, max_shards: int = 600, max_cells: int = 40, elements=None):
+    """Elements of `spec` (or the given ones: a mesh's own, geometry/mesh_elements.py) and the
+    shards of their parts inside the trigger's zone: (elements, shards, (near, far) cell sizes
+    used). Cells follow the material's sizes, scaled up when the building would need more
+    than `max_shards` (the simulation's cost)."""
     from . import fracture as fr
     m = fr.MATERIAL[spec.material]
-    elements = fr.building_elements(spec)
+    if elements is None:
+        elements = fr.building_elements(spec)
     clipped = []
     for ei, el in enumerate(elements):
         solid = fr.clip_to_zone(el, trigger.zone) if trigger.zone else el.solid
