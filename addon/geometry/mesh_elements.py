@@ -45,6 +45,7 @@ from . import poly2d
 
 DEFAULT_STOREY_HEIGHT = 3.0  # m: storeys of a mesh whose storey count is not known
 SIMPLIFY_TOL = 0.1  # m: a footprint vertex closer to its neighbours' line is dropped
+MIN_EDGE = 0.5  # m: shorter footprint edges are closed up (no wall thicker than its length)
 GROUND_TOL = 0.3  # m: faces and edges this close to the lowest point are at the ground
 PLANAR_TOL = 0.02  # m: a roof face with a vertex farther from its plane is not planar
 ROOF_MAX_PITCH = 75.0  # degrees: steeper "roof" faces are walls of a mansard, not plates
@@ -144,6 +145,22 @@ def simplify(poly, tol=SIMPLIFY_TOL) -> np.ndarray:
     return np.array(p)
 
 
+def close_short_edges(poly, min_edge=MIN_EDGE) -> np.ndarray:
+    """Drop, shortest edge first, one end of every edge shorter than `min_edge` (the end whose
+    loss changes the area least): a mitred wall along an edge shorter than its thickness has
+    crossing mitres. A small step in a facade becomes a slightly slanted facade."""
+    p = [np.asarray(v, dtype=np.float64) for v in poly]
+    while len(p) > 3:
+        n = len(p)
+        L = [float(np.hypot(*(p[(i + 1) % n] - p[i]))) for i in range(n)]
+        i = int(np.argmin(L))
+        if L[i] >= min_edge:
+            break
+        loss = [abs(fr._cross2(p[j] - p[j - 1], p[(j + 1) % n] - p[j])) for j in (i, (i + 1) % n)]
+        p.pop(i if loss[0] <= loss[1] else (i + 1) % n)
+    return np.array(p)
+
+
 def _is_simple(p) -> bool:
     n = len(p)
     for i in range(n):
@@ -195,7 +212,7 @@ def footprint(verts, polys, surface, part, normals, base):
         if not loops:
             continue
         best = max(loops, key=lambda lp: abs(poly2d.area(lp)))
-        p = simplify(poly2d.ccw(best))
+        p = close_short_edges(simplify(poly2d.ccw(best)))
         if len(p) >= 3 and poly2d.area(p) >= 1.0 and _is_simple(p):
             return p, source
     raise MeshElementsError("no closed outline of at least 1 m² among its ground faces or its walls' "
@@ -460,7 +477,11 @@ def mesh_elements(verts, polys, surface, part=None, material="masonry", storeys=
         ps[k + 1] = fr.SURFACE_INTERIOR
         els.append(fr.Element(fr.P_ROOF, ns, e, fr.SURFACE_ROOF, planes, plane_surface=ps))
     for el in els:
-        el.solid = fr.from_planes(el.planes, lo, hi)
+        try:
+            el.solid = fr.from_planes(el.planes, lo, hi)
+        except ValueError:
+            raise MeshElementsError(f"element (part {el.part}, {el.elem}) is not a closed solid "
+                                    "(an outline too ragged for its walls?)") from None
     els = [el for el in els if el.solid is not None and el.volume > 1e-6]
     return MeshBuilding(p, eaves, base, ns, hs, els, len(pieces), skipped, source)
 
