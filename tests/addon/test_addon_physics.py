@@ -93,14 +93,19 @@ def test_grade4_corner_leaves_the_rest_standing(blank):
     assert 0.05 < lowered < 0.8
 
 
-def test_same_seed_same_bytes(blank):
+@pytest.mark.parametrize("source", ["shell", "mesh"])
+def test_same_seed_same_bytes(blank, source):
     from addon import physics
     bpy = blank
     out = []
     for _ in range(2):
         bpy.ops.wm.read_homefile(use_empty=True, use_factory_startup=True)
-        _, _, a, _ = _city(bpy, neighbour=False)
+        if source == "shell":
+            _, _, a, _ = _city(bpy, neighbour=False)
+        else:
+            a = _l_object(bpy)
         rec = physics.collapse_object(a, 5, mode="ground_storey")
+        assert rec["params"]["element_source"] == source
         v, t, s, b, p = _mesh(a)
         out.append((v.tobytes(), t.tobytes(), s.tobytes(), rec))
     assert out[0] == out[1]
@@ -187,3 +192,112 @@ def _top_area(co, polys, tol=0.01):
         if (f[:, 2] >= top).all():
             area += 0.5 * abs(np.cross(f, np.roll(f, -1, axis=0)).sum(axis=0)[2])
     return area
+
+
+def _l_object(bpy, location=(30.0, 5.0, 0.0), rotation_z=0.3):
+    """The L-shaped gable-roofed building of tests/addon/l_building.py as a user mesh:
+    faces only, IDs and labels from 'Assign Building IDs' (2 storeys)."""
+    from addon import scene_tools
+    from tests.addon.l_building import l_building
+    coll = bpy.data.collections.new("own")
+    bpy.context.scene.collection.children.link(coll)
+    v, f, _ = l_building()
+    me = bpy.data.meshes.new("l_building")
+    me.from_pydata([tuple(map(float, c)) for c in v], [], f)
+    obj = bpy.data.objects.new("l_building", me)
+    coll.objects.link(obj)
+    obj.location = location
+    obj.rotation_euler = (0.0, 0.0, rotation_z)
+    scene_tools.assign_ids([obj], storeys=2)
+    obj.qs_building.seed = 5
+    return obj
+
+
+def _top_over(verts, tris, inside, cell=0.25):
+    """Highest surface over each cell of the xy bounding box of `verts` whose centre
+    `inside` ((m, 2) points -> (m,) bool) accepts (a footprint), as in _top_heights."""
+    x0, y0 = verts[:, 0].min() - 5, verts[:, 1].min() - 5
+    x1, y1 = verts[:, 0].max() + 5, verts[:, 1].max() + 5
+
+    class Box:
+        bbox = (x0, y0, x1, y1)
+    top = _top_heights(verts, tris, Box, cell)
+    nx, ny = top.shape
+    cx, cy = np.meshgrid(x0 + (np.arange(nx) + 0.5) * cell, y0 + (np.arange(ny) + 0.5) * cell, indexing="ij")
+    mask = inside(np.column_stack([cx.ravel(), cy.ravel()])).reshape(nx, ny)
+    return top[mask]
+
+
+def _collapse_own_mesh(obj, height, inside_footprint, settle_steps=250):
+    """Collapse by physics as grade 5 (everything fails); the checks of issue 14 on the
+    building's own outline. Returns the record."""
+    from addon import physics
+    from addon.geometry import mesh as gm
+    spec, elements, source, _, _ = physics.collapse_basis(obj)
+    assert source == "mesh" and elements
+    rec = physics.collapse_object(obj, 5, mode="everything", settle_steps=settle_steps)
+    p = rec["params"]
+    assert p["element_source"] == "mesh"
+    # the shards tile the elements (no zone: every element is fractured)
+    assert p["zone_volume"] == pytest.approx(sum(e.volume for e in elements), rel=1e-6)
+    verts, tris, surf, bid, part = _mesh(obj)
+    top = _top_over(verts, tris, inside_footprint)
+    assert (top < 0.4 * height).mean() >= 0.8
+    # the debris lies on and around the building's own outline, not over its bounding box
+    debris = verts[np.unique(tris[surf == gm.DEBRIS])]
+    return rec, debris
+
+
+def test_user_l_mesh_with_a_gable_roof_collapses_as_itself(blank):
+    from addon.geometry import poly2d
+    from tests.addon.l_building import FOOTPRINT, RIDGE
+    fp = np.array(FOOTPRINT, dtype=np.float64)
+    obj = _l_object(blank, location=(0.0, 0.0, 0.0), rotation_z=0.0)
+    rec, debris = _collapse_own_mesh(obj, RIDGE, lambda q: poly2d.contains(fp, q))
+    p = rec["params"]
+    assert (p["footprint_vertices"], p["roof_planes"], p["roof_faces_skipped"]) == (6, 4, 0)
+    near = poly2d.signed_distance(fp, debris[:, :2]) <= 3.0
+    assert near.mean() >= 0.95
+    # the L's empty quadrant (inside its bounding box) holds little of it
+    empty = (debris[:, 0] > 10.0) & (debris[:, 1] > 10.0)
+    assert empty.mean() < 0.05
+
+
+def test_rotterdam_building_collapses_over_its_own_outline(blank, tmp_path):
+    from pathlib import Path
+    data = Path("/work/shared/data/rotterdam_subset.json")
+    if not data.is_file():
+        pytest.skip(f"{data} not available (shared data folder absent)")
+    from quakescan.cityjson import import_cityjson
+    from quakescan.scene import write_scene
+    from addon import io_import, physics
+    from addon.geometry import mesh as gm
+    s = import_cityjson(data)
+    write_scene(s, tmp_path / "src")
+    coll = blank.data.collections.new("imported")
+    blank.context.scene.collection.children.link(coll)
+    objs = io_import.import_bundle(tmp_path / "src", coll)["buildings"]
+    for o in objs:
+        io_import.prepare_for_damage(o)
+    # the building whose own outline differs most from its bounding rectangle
+    def fill(o):
+        spec = physics.collapse_basis(o)[0]
+        x0, y0, x1, y1 = spec.bbox
+        return spec.footprint_area / ((x1 - x0) * (y1 - y0))
+    obj = min(objs, key=fill)
+    assert fill(obj) < 0.9
+    verts, tris, surf, _, _ = _mesh(obj)
+    ground = verts[tris[surf == gm.GROUND]][:, :, :2]  # the real outline, as triangles
+    assert len(ground)
+
+    def inside(q):
+        a, b, c = ground[:, 0][None], ground[:, 1][None], ground[:, 2][None]
+        qq = q[:, None, :]
+
+        def side(u, v):
+            return (v[..., 0] - u[..., 0]) * (qq[..., 1] - u[..., 1]) - (v[..., 1] - u[..., 1]) * (qq[..., 0] - u[..., 0])
+        s1, s2, s3 = side(a, b), side(b, c), side(c, a)
+        return (((s1 >= 0) & (s2 >= 0) & (s3 >= 0)) | ((s1 <= 0) & (s2 <= 0) & (s3 <= 0))).any(axis=1)
+    # an 18 m, 6-storey building falls longer than the default 250 frames allow
+    rec, debris = _collapse_own_mesh(obj, float(verts[:, 2].max()), inside, settle_steps=500)
+    assert rec["params"]["footprint_vertices"] > 4
