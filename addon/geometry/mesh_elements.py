@@ -442,32 +442,39 @@ def mesh_elements(verts, polys, surface, part=None, material="masonry", storeys=
     lo = np.array([allxy[:, 0].min(), allxy[:, 1].min(), base])
     hi = np.array([allxy[:, 0].max(), allxy[:, 1].max(), zmax + 1.0])
     els = []
-    # slabs: where the roof's underside clears them over the whole piece
-    slab_tops = {i: [] for i in range(n)}
+    slabs = []  # (polygon, top) of the slabs made
     for j, piece in enumerate(fr.convex_pieces(p)):
-        clear = lowest_underside(piece, pieces) if pieces else top
+        clear = lowest_underside(piece, pieces) if pieces else None
         clear = top if clear is None else clear
+        subs = _under_each_plane(piece, pieces)
         for k, z in enumerate(levels, start=1):
-            if z > clear + 1e-9:
-                break
-            els.append(fr.Element(fr.P_SLAB, k, j, fr.SURFACE_INTERIOR, fr._prism_planes(piece, z - ts, z),
-                                  plane_surface=fr._facade_planes(p, piece)))
-            for i in range(n):
-                if _overlap(strips[i], piece) > 1e-9:
-                    slab_tops[i].append(z)
+            # the whole piece where the roof clears it; under a stepped roof, the parts
+            # under the planes that clear it
+            parts = [piece] if z <= clear + 1e-9 else [r for r, pc in subs if z <= lowest_underside(r, [pc]) + 1e-9]
+            for r in parts:
+                els.append(fr.Element(fr.P_SLAB, k, j, fr.SURFACE_INTERIOR, fr._prism_planes(r, z - ts, z),
+                                      plane_surface=fr._facade_planes(p, r)))
+                slabs.append((r, z))
     for i in range(n):
         wp = fr._wall_planes(p, inner, i, tw)
-        cuts = sorted((z - ts, z) for z in levels if z - ts < eaves[i])
-        z, k = base, 0
-        for c0, c1 in cuts + [(eaves[i], eaves[i])]:
-            if min(c0, eaves[i]) - z > MIN_PIECE:
-                els.append(fr.Element(fr.P_WALL, min(k, ns - 1), i, fr.SURFACE_WALL,
-                                      wp + fr.z_between(z, min(c0, eaves[i]))))
-            z, k = c1, k + 1
-        gable = _gable_planes(strips[i], pieces)
-        if gable:
-            floor = max([eaves[i]] + [z for z in slab_tops[i]])
-            els.append(fr.Element(fr.P_GABLE, ns, i, fr.SURFACE_WALL, wp + [fr._pl((0, 0, floor), (0, 0, -1))] + gable))
+        els += _wall_pieces(wp, i, base, eaves[i], levels, ts, ns)
+        subs = _under_each_plane(strips[i], pieces)
+        if subs:
+            # above the eave, each part of the wall under one roof plane follows that plane:
+            # up to its lowest point (a step in the roof), then a gable under it
+            for r, pc in subs:
+                side = fr._prism_planes(r, 0.0, 0.0)[:len(r)]
+                e = lowest_underside(r, [pc])
+                els += _wall_pieces(side, i, eaves[i], e, levels, ts, ns)
+                floor = max([e] + [z for q, z in slabs if _overlap(r, q) > 1e-9])
+                els.append(fr.Element(fr.P_GABLE, ns, i, fr.SURFACE_WALL, side + [
+                    fr._pl((0, 0, floor), (0, 0, -1)), fr._pl(pc.co - pc.thickness * pc.no, pc.no)]))
+        else:
+            gable = _gable_planes(strips[i], pieces)
+            if gable:
+                floor = max([eaves[i]] + [z for q, z in slabs if _overlap(strips[i], q) > 1e-9])
+                els.append(fr.Element(fr.P_GABLE, ns, i, fr.SURFACE_WALL,
+                                      wp + [fr._pl((0, 0, floor), (0, 0, -1))] + gable))
     for e, pc in enumerate(pieces):
         k = len(pc.poly)
         planes = fr._prism_planes(pc.poly, 0.0, 0.0)[:k]
@@ -484,6 +491,40 @@ def mesh_elements(verts, polys, surface, part=None, material="masonry", storeys=
                                     "(an outline too ragged for its walls?)") from None
     els = [el for el in els if el.solid is not None and el.volume > 1e-6]
     return MeshBuilding(p, eaves, base, ns, hs, els, len(pieces), skipped, source)
+
+
+def _wall_pieces(side, i, z0, z1, levels, ts, ns):
+    """Wall elements with the lateral half-spaces `side` from z0 to z1, cut where the slabs
+    at `levels` (tops) pass; storeys counted from the ground."""
+    out = []
+    cuts = sorted((z - ts, z) for z in levels if z0 < z and z - ts < z1)
+    z = z0
+    for c0, c1 in cuts + [(z1, z1)]:
+        if min(c0, z1) - z > MIN_PIECE:
+            k = sum(1 for lv in levels if lv <= z + 1e-9)
+            out.append(fr.Element(fr.P_WALL, min(k, ns - 1), i, fr.SURFACE_WALL, side + fr.z_between(z, min(c0, z1))))
+        z = max(z, c1)
+    return out
+
+
+def _under_each_plane(region, pieces, cover=0.9):
+    """The convex `region` split by the roof pieces over it: [(part, piece)], or [] when they
+    cover less than `cover` of it (a skipped roof face above it; slivers of the simplified
+    outline outside the roof's own stay uncovered)."""
+    out, area = [], 0.0
+    for pc in pieces:
+        r = np.asarray(region, dtype=np.float64)
+        q = pc.poly
+        for k in range(len(q)):
+            if not len(r):
+                break
+            a, b = q[k], q[(k + 1) % len(q)]
+            r = poly2d.clip_halfplane(r, a, (b[1] - a[1], a[0] - b[0]))
+        if len(r) >= 3 and abs(poly2d.area(r)) > 1e-6:
+            r = poly2d.ccw(r)
+            out.append((r, pc))
+            area += abs(poly2d.area(r))
+    return out if area >= cover * abs(poly2d.area(region)) else []
 
 
 def _gable_planes(strip, pieces, tol=0.01):

@@ -125,3 +125,43 @@ def test_a_mesh_without_an_outline_is_refused():
     roof = [i for i in range(len(f)) if s[i] == 1]
     with pytest.raises(mel.MeshElementsError, match="outline"):
         mel.mesh_elements(v, [f[i] for i in roof], s[roof])
+
+
+def _stepped():
+    """10 x 8 m, a flat roof at 6 m over x < 5 and at 9 m over x > 5 (a step wall between)."""
+    v, f, s = [], [], []
+
+    def face(pts, code):
+        f.append(list(range(len(v), len(v) + len(pts))))
+        v.extend(pts)
+        s.append(code)
+    face([(0, 0, 0), (0, 8, 0), (10, 8, 0), (10, 0, 0)], 0)
+    face([(0, 0, 0), (10, 0, 0), (10, 0, 9), (5, 0, 9), (5, 0, 6), (0, 0, 6)], 2)
+    face([(10, 8, 0), (0, 8, 0), (0, 8, 6), (5, 8, 6), (5, 8, 9), (10, 8, 9)], 2)
+    face([(10, 0, 0), (10, 8, 0), (10, 8, 9), (10, 0, 9)], 2)
+    face([(0, 8, 0), (0, 0, 0), (0, 0, 6), (0, 8, 6)], 2)
+    face([(5, 0, 6), (5, 0, 9), (5, 8, 9), (5, 8, 6)], 2)
+    face([(0, 0, 6), (5, 0, 6), (5, 8, 6), (0, 8, 6)], 1)
+    face([(5, 0, 9), (10, 0, 9), (10, 8, 9), (5, 8, 9)], 1)
+    return np.array(v, dtype=np.float64), f, np.array(s)
+
+
+def test_stepped_roof_walls_and_slabs_follow_each_level():
+    v, f, s = _stepped()
+    mb = mel.mesh_elements(v, f, s, storeys=3, storey_height=3.0)
+    tr, ts = M["roof"], M["slab"]
+    assert mb.roof_planes == 2
+    q = np.random.default_rng(5).uniform((0, 0, 0), (10, 8, 9), (30000, 3))
+    assert _count(mb.elements, q).max() == 1
+    walls = [e for e in mb.elements if e.part == fr.P_WALL]
+    top = lambda e: float(np.concatenate(e.solid.faces)[:, 2].max())  # noqa: E731
+    lowx = lambda e: float(np.concatenate(e.solid.faces)[:, 0].max())  # noqa: E731
+    assert max(top(e) for e in walls if lowx(e) <= 5 + 1e-9) == pytest.approx(6 - tr)
+    assert max(top(e) for e in walls) == pytest.approx(9 - tr)
+    slab = {}
+    for e in mb.elements:
+        if e.part == fr.P_SLAB:
+            slab[round(top(e), 9)] = slab.get(round(top(e), 9), 0.0) + e.volume
+    # a floor at 3 m everywhere, at 6 m under the high roof only (the low roof is there)
+    assert slab == pytest.approx({3.0: 80 * ts, 6.0: 40 * ts})
+    assert sum(e.volume for e in mb.elements if e.part == fr.P_ROOF) == pytest.approx(80 * tr)
