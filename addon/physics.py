@@ -6,7 +6,9 @@ What happens to one building (``collapse_object``):
 1. the trigger of its grade (geometry/trigger.py: grade 4 a corner, a wall strip or part of a
    storey; grade 5 the ground storey or every storey) names a zone and the storeys whose walls
    fail there;
-2. the structural elements inside the zone are cut into convex shards (geometry/fracture.py),
+2. the structural elements inside the zone (from the shell description, or for a user mesh or
+   imported shell from its own faces: ``collapse_basis``) are cut into convex shards
+   (geometry/fracture.py),
    the failing walls' shards crushed in place to a fifth of their height;
 3. a temporary scene with a rigid-body world: every shard an active body (convex hull, mass =
    volume × the material's density, friction 0.6, restitution 0), passive colliders for the

@@ -10,7 +10,8 @@ i-th bounding plane, ``j >= 0`` for a face cut by the bisector towards Voronoi s
 the caller knows which shard lies on the other side of a fracture face).
 
 Elements (``building_elements``) are built from a ``ShellSpec``, the add-on's description of
-a procedural building (or the box inferred for a user mesh), as solids that do not overlap:
+a procedural building, as solids that do not overlap (a user mesh or an imported shell has
+no such description: mesh_elements.py builds its elements from its faces):
 
 - outer walls per storey and facade, extruded inwards by the wall thickness, mitred at the
   corners, from the slab below to the underside of the slab (or flat roof) above: slabs bear
