@@ -36,7 +36,7 @@ building's own faces stay where they were.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -75,7 +75,6 @@ class MeshBuilding:
     roof_planes: int  # roof planes made into elements
     roof_faces_skipped: int
     footprint_source: str  # "ground" or "walls"
-    info: dict = field(default_factory=dict)
 
 
 # --- outlines --------------------------------------------------------------------------------

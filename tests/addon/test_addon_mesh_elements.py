@@ -11,7 +11,6 @@ from addon.geometry import mesh_elements as mel
 from addon.geometry import poly2d
 from tests.addon.l_building import EAVE, FOOTPRINT, PITCH, RIDGE, l_building, roof_z
 
-T = math.tan(math.radians(PITCH))
 COS = math.cos(math.radians(PITCH))
 M = fr.MATERIAL["masonry"]
 FOOT_AREA = 20 * 8 + 8 * 10
@@ -20,6 +19,10 @@ FOOT_AREA = 20 * 8 + 8 * 10
 def _build(**kw):
     v, f, s = l_building()
     return mel.mesh_elements(v, f, s, material="masonry", **kw)
+
+
+def _top(e) -> float:
+    return float(np.concatenate(e.solid.faces)[:, 2].max())
 
 
 def _count(els, q):
@@ -43,12 +46,13 @@ def test_l_outline_eaves_and_closed_form_volumes():
     assert by[fr.P_WALL] == pytest.approx(ring * (eave - M["slab"]), rel=1e-9)  # cut where the slab passes
     assert by[fr.P_SLAB] == pytest.approx(FOOT_AREA * M["slab"], rel=1e-9)  # one floor at 3 m; no attic floor
     # the gable walls at x = 20 and y = 18 reach up under the ridge
-    top = {e.elem: np.concatenate(e.solid.faces)[:, 2].max() for e in mb.elements if e.part == fr.P_GABLE}
-    fp = np.array(FOOTPRINT, float)
+    top = {}
+    for e in mb.elements:
+        if e.part == fr.P_GABLE:
+            top[e.elem] = max(top.get(e.elem, 0.0), float(np.concatenate(e.solid.faces)[:, 2].max()))
     for x, y in ((20, 4), (4, 18)):
-        i = [k for k in range(len(mb.footprint)) if poly2d.boundary_distance(mb.footprint[[k, (k + 1) % 6]], [(x, y)])[0] < 1e-9][0]
+        i = [k for k in range(6) if poly2d.boundary_distance(mb.footprint[[k, (k + 1) % 6]], [(x, y)])[0] < 1e-9][0]
         assert top[i] == pytest.approx(RIDGE - M["roof"] / COS, abs=1e-6)
-    assert fp.shape == (6, 2)
 
 
 def test_l_elements_do_not_overlap_and_stay_inside_the_building():
@@ -81,8 +85,8 @@ def test_storeys_from_the_eaves_when_not_given():
     mb = _build()
     assert mb.storey_height == mel.DEFAULT_STOREY_HEIGHT
     assert mb.storeys == round((EAVE - M["roof"] / COS) / mel.DEFAULT_STOREY_HEIGHT)
-    slabs = sorted({round(float(np.concatenate(e.solid.faces)[:, 2].max()), 9) for e in mb.elements if e.part == fr.P_SLAB})
-    assert slabs == [3.0]
+    slabs = {round(_top(e), 9) for e in mb.elements if e.part == fr.P_SLAB}
+    assert slabs == {3.0}
 
 
 def test_outline_from_the_walls_without_a_ground_face():
@@ -91,7 +95,8 @@ def test_outline_from_the_walls_without_a_ground_face():
     mb = mel.mesh_elements(v, [f[i] for i in keep], s[keep], storeys=2, storey_height=3.0)
     assert mb.footprint_source == "walls"
     assert abs(poly2d.area(mb.footprint)) == pytest.approx(FOOT_AREA)
-    assert sum(e.volume for e in mb.elements) == pytest.approx(sum(e.volume for e in _build(storeys=2, storey_height=3.0).elements), rel=1e-12)
+    same = _build(storeys=2, storey_height=3.0)
+    assert sum(e.volume for e in mb.elements) == pytest.approx(sum(e.volume for e in same.elements), rel=1e-12)
 
 
 def test_non_planar_and_degenerate_roof_faces_are_skipped():
@@ -154,14 +159,13 @@ def test_stepped_roof_walls_and_slabs_follow_each_level():
     q = np.random.default_rng(5).uniform((0, 0, 0), (10, 8, 9), (30000, 3))
     assert _count(mb.elements, q).max() == 1
     walls = [e for e in mb.elements if e.part == fr.P_WALL]
-    top = lambda e: float(np.concatenate(e.solid.faces)[:, 2].max())  # noqa: E731
-    lowx = lambda e: float(np.concatenate(e.solid.faces)[:, 0].max())  # noqa: E731
-    assert max(top(e) for e in walls if lowx(e) <= 5 + 1e-9) == pytest.approx(6 - tr)
-    assert max(top(e) for e in walls) == pytest.approx(9 - tr)
+    low_part = [e for e in walls if np.concatenate(e.solid.faces)[:, 0].max() <= 5 + 1e-9]
+    assert max(_top(e) for e in low_part) == pytest.approx(6 - tr)
+    assert max(_top(e) for e in walls) == pytest.approx(9 - tr)
     slab = {}
     for e in mb.elements:
         if e.part == fr.P_SLAB:
-            slab[round(top(e), 9)] = slab.get(round(top(e), 9), 0.0) + e.volume
+            slab[round(_top(e), 9)] = slab.get(round(_top(e), 9), 0.0) + e.volume
     # a floor at 3 m everywhere, at 6 m under the high roof only (the low roof is there)
     assert slab == pytest.approx({3.0: 80 * ts, 6.0: 40 * ts})
     assert sum(e.volume for e in mb.elements if e.part == fr.P_ROOF) == pytest.approx(80 * tr)

@@ -295,7 +295,8 @@ def test_rotterdam_building_collapses_over_its_own_outline(blank, tmp_path):
         qq = q[:, None, :]
 
         def side(u, v):
-            return (v[..., 0] - u[..., 0]) * (qq[..., 1] - u[..., 1]) - (v[..., 1] - u[..., 1]) * (qq[..., 0] - u[..., 0])
+            return ((v[..., 0] - u[..., 0]) * (qq[..., 1] - u[..., 1])
+                    - (v[..., 1] - u[..., 1]) * (qq[..., 0] - u[..., 0]))
         s1, s2, s3 = side(a, b), side(b, c), side(c, a)
         return (((s1 >= 0) & (s2 >= 0) & (s3 >= 0)) | ((s1 <= 0) & (s2 <= 0) & (s3 <= 0))).any(axis=1)
     # an 18 m, 6-storey building falls longer than the default 250 frames allow
