@@ -435,8 +435,10 @@ def mesh_elements(verts, polys, surface, part=None, material="masonry", storeys=
     else:
         hs = float(storey_height) if storey_height and storey_height > 0 else DEFAULT_STOREY_HEIGHT
         ns = max(1, int(round((top - base) / hs)))
-    levels = [base + k * hs for k in range(1, ns + 1)]
     zmax = max([top] + [float(pc.top(pc.poly).max()) for pc in pieces])
+    # floors go on above the storeys counted where a higher part of a stepped roof has room
+    # for them (slabs are kept only where the roof clears them)
+    levels = [base + k * hs for k in range(1, max(ns, int((zmax - base) // hs)) + 1)]
     allxy = np.concatenate([p] + [pc.poly for pc in pieces])
     lo = np.array([allxy[:, 0].min(), allxy[:, 1].min(), base])
     hi = np.array([allxy[:, 0].max(), allxy[:, 1].max(), zmax + 1.0])
