@@ -8,8 +8,8 @@ its bounding box:
 
 - **footprint**: the outline of the building's lowest downward faces (ground surface), or
   else of its wall faces' bottom edges; vertices that deviate less than ``SIMPLIFY_TOL``
-  from the line of their neighbours are dropped (measured outlines carry many), holes
-  (courtyards) are ignored;
+  from the line of their neighbours are dropped (measured outlines carry many), edges
+  shorter than ``MIN_EDGE`` closed up, holes (courtyards) ignored;
 - **roof**: the roof faces (labelled roof, facing up at most ``ROOF_MAX_PITCH`` steep), merged
   where adjacent faces are coplanar, each plane's outline cut into convex pieces and
   thickened downwards by the material's roof thickness (perpendicular to the plane), so a
@@ -18,20 +18,22 @@ its bounding box:
   corners (as the procedural ones), from the ground to the eave under that edge: the lowest
   point of the roof's underside over the wall's strip (exact: a piecewise planar surface
   over a convex region is lowest at a vertex of one or the other, or where their edges
-  cross). Split at the storey levels where the slabs pass;
-- **gables**: the wall's strip above the eave, under the roof planes over it, where those
-  planes form a ridge (the roof is their lower envelope there); under a valley the strip
-  above the eave is left out;
+  cross). Above the eave the strip is split by the roof planes over it: each part rises to
+  the lowest point of its plane (a step in the roof) and ends in a **gable** under the
+  plane. Where the planes do not cover the strip (a skipped face), the gable is the strip
+  under all of them if they form a ridge there, else nothing. Walls are cut where slabs pass;
 - **slabs** at every storey level (``storeys`` and ``storey_height`` as given, else
-  ``DEFAULT_STOREY_HEIGHT``), over the footprint's convex pieces, where the roof's underside
-  lies above them;
-- inner walls are not modelled (a mesh does not say where they stand).
+  ``DEFAULT_STOREY_HEIGHT``; on up to the highest roof), over the footprint's convex pieces,
+  or their parts under one roof plane, where the roof's underside lies above them;
+- inner walls, walls between two roof levels inside the footprint and attic floors under
+  pitched roofs are not modelled (a mesh does not say where inner walls stand; the others
+  would need the roof's own vertical faces and the space under its plates).
 
 Roof faces that are not planar (vertices farther than ``PLANAR_TOL`` from their plane),
-degenerate (projected area below ``MIN_ROOF_AREA``) or steeper than ``ROOF_MAX_PITCH`` are
-skipped (counted in ``roof_faces_skipped``): no element stands for them, the walls under them
-end at the eave found under the rest of the roof, and outside a collapse's zone the
-building's own faces stay where they were.
+degenerate (a plane's projected area below ``MIN_ROOF_AREA``), steeper than
+``ROOF_MAX_PITCH`` or over another plane are skipped (counted in ``roof_faces_skipped``): no
+element stands for them, the walls under them end at the eave found under the rest of the
+roof, and outside a collapse's zone the building's own faces stay where they were.
 """
 from __future__ import annotations
 
