@@ -94,9 +94,9 @@ def pair(tmp_path_factory):
 @pytest.fixture(scope="module")
 def small_model(pair, tmp_path_factory):
     """A 10-tree model on the paper's descriptors: quicker to apply than the shipped one."""
-    from quakescan.model import save_model
-    from quakescan.pipeline import PipelineSettings
-    from quakescan.training import TrainingPair, train
+    from quakescan.learning.model import save_model
+    from quakescan.change.pipeline import PipelineSettings
+    from quakescan.learning.training import TrainingPair, train
 
     model, _, _ = train([TrainingPair(str(pair[0]), str(pair[1]))], PipelineSettings(), n_estimators=10,
                         test_size=0.0)
@@ -158,8 +158,8 @@ def test_classify_reports_once_per_building(pair, small_model, tmp_path, capsys)
 
 def test_features_report_progress_with_the_same_results(pair):
     """The kernel run in 50 calls for progress gives the bytes of one call; the last report is all points."""
-    from quakescan.features import compute_features
-    from quakescan.pointcloud import read_epoch
+    from quakescan.change.features import compute_features
+    from quakescan.formats.pointcloud import read_epoch
 
     xyz = read_epoch(pair[0]).xyz[::7]
     calls = []

@@ -31,9 +31,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from quakescan.features import compute_features
-from quakescan.pointcloud import read_epoch
-from quakescan.robustness import (
+from quakescan.change.features import compute_features
+from quakescan.formats.pointcloud import read_epoch
+from quakescan.studies.robustness import (
     _compare,
     _compute_names,
     _le,
@@ -83,7 +83,7 @@ def analyse(run: Path) -> dict:
            "dim": [read_epoch(clouds / f"{'dim'}_{s}.las", origin=origin) for s in ["pre"] + stages]}
     k = 0
     eps = {}
-    for src in ("uls", "dim"):  # same thinning seeds as quakescan.robustness.robustness
+    for src in ("uls", "dim"):  # same thinning seeds as quakescan.studies.robustness.robustness
         eps[src] = []
         for e in raw[src]:
             eps[src].append(thin(e, spacing, seed + k) if spacing else e)
@@ -170,7 +170,7 @@ def analyse(run: Path) -> dict:
 
 
 def _noisy(e, rng):
-    from quakescan.pointcloud import Epoch
+    from quakescan.formats.pointcloud import Epoch
 
     return Epoch(xyz=e.xyz + rng.normal(0.0, NOISE_M, e.xyz.shape), origin=e.origin,
                  classification=e.classification, building_id=e.building_id, grade=e.grade, surface=e.surface,
