@@ -24,13 +24,13 @@ from collections.abc import Sequence
 
 from .acquisition import acquire as _acquisition
 from .acquisition.acquire import Acquired, Acquisition
-from .learning.classification import PairData, default_model_path, load_pair, model_settings
-from .errors import QuakeScanError
-from .results.evaluation import Evaluation, evaluate_files
-from .learning.model import DamageModel, load_model as _load_model, save_model
 from .change.pipeline import BuildingRow, describe_pair, training_settings
+from .errors import QuakeScanError
 from .formats.pointcloud import Epoch, read_epoch
 from .formats.scene import Scene, read_scene, write_scene
+from .learning.classification import PairData, default_model_path, load_pair, model_settings
+from .learning.model import DamageModel, load_model as _load_model, save_model
+from .results.evaluation import Evaluation, evaluate_files
 from .runtime.workers import accepts_old_threads
 
 __all__ = ["acquire", "read_scene", "write_scene", "read_epoch", "read_pair", "describe", "train",

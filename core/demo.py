@@ -99,9 +99,9 @@ def scan_scene(scene_dir: Path, out: Path, seed: int, progress: ProgressCallback
     """Scan with the paper's survey unless `out` is current (`quakescan.runtime.fingerprint`): the scene's
     files by path, size and time, so that a city regenerated in place is scanned again even
     where its bytes came out the same (the demo always did), the survey and the seed."""
-    from .runtime import fingerprint
     from .acquisition import sensors
     from .formats.scene import read_scene
+    from .runtime import fingerprint
 
     survey = sensors.get("uls").default()
     scene_dir = Path(scene_dir)

@@ -10,15 +10,8 @@ import pytest
 
 import quakescan.acquisition.dim
 import quakescan.acquisition.scan
-from quakescan.acquisition.acquire import (
-    KINDS,
-    Acquisition,
-    acquire,
-    measured_density,
-    random_acquisition,
-    sidecar_path,
-    thin_to_density,
-)
+from quakescan.acquisition.acquire import KINDS, Acquisition, acquire, random_acquisition, sidecar_path
+from quakescan.acquisition.density import measured_density, thin_to_density
 from quakescan.acquisition.dim_settings import preset_dim
 from quakescan.errors import PointCloudError, QuakeScanError, SurveyError
 from quakescan.formats.pointcloud import Epoch

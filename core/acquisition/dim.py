@@ -67,15 +67,15 @@ from dataclasses import dataclass, field
 import numpy as np
 from numba import njit, prange
 
+from ..errors import QuakeScanError, SurveyError
+from ..formats.pointcloud import LasChunkWriter, PointChunk
+from ..formats.scene import Scene
+from ..runtime.progress import ProgressCallback
+from ..runtime.workers import EVERY_CORE, accepts_old_threads, check_workers
 from .dim_cameras import Cameras, plan_cameras
 from .dim_settings import PhotoSurvey
-from ..errors import QuakeScanError, SurveyError
 from .las_output import label_counts, las_offset
-from ..formats.pointcloud import LasChunkWriter, PointChunk
-from ..runtime.progress import ProgressCallback
 from .raycast import RayCaster, check_scannable, ground_level
-from ..formats.scene import Scene
-from ..runtime.workers import EVERY_CORE, accepts_old_threads, check_workers
 
 log = logging.getLogger(__name__)
 

@@ -9,8 +9,8 @@ import math
 import os
 from dataclasses import dataclass
 
-from ..runtime import settings_file
 from ..errors import SurveyError
+from ..runtime import settings_file
 
 FORMAT = "quakescan-photo-survey"
 VERSION = 1

@@ -7,8 +7,8 @@ import logging
 
 import numpy as np
 
-from .raycast import RayCaster
 from ..formats.scene import SURFACE_NAMES, Scene
+from .raycast import RayCaster
 
 log = logging.getLogger(__name__)
 

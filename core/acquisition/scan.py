@@ -45,13 +45,13 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import PointCloudError, QuakeScanError, SceneError, SurveyError
-from .las_output import label_counts, las_offset
 from ..formats.pointcloud import SCALE, LasChunkWriter, PointChunk, make_header
-from ..runtime.progress import ProgressCallback
-from .raycast import RayCaster, check_scannable, ground_level
 from ..formats.scene import Scene, check_crs
-from .survey import FlightLine, FlightPlan, Survey, plan_flight
+from ..runtime.progress import ProgressCallback
 from ..runtime.workers import EVERY_CORE, accepts_old_threads, check_workers
+from .las_output import label_counts, las_offset
+from .raycast import RayCaster, check_scannable, ground_level
+from .survey import FlightLine, FlightPlan, Survey, plan_flight
 
 log = logging.getLogger(__name__)
 

@@ -28,8 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
-from . import scan as _scan
 from ..runtime.atomic import open_replacing
+from . import scan as _scan
 from .raycast import ground_level
 from .sensors import LINE_DIRECTION_DEG, Sensor, log_uniform, register, uniform
 from .survey import Survey, als_for_density, load_survey, plan_flight, preset

@@ -53,8 +53,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from ..runtime import settings_file
 from ..errors import QuakeScanError, SurveyError
+from ..runtime import settings_file
 from ..runtime.progress import ProgressCallback
 from ..runtime.workers import accepts_old_threads
 

@@ -24,8 +24,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..runtime import settings_file
 from ..errors import SurveyError
+from ..runtime import settings_file
 
 FORMAT = "quakescan-survey"
 VERSION = 1
@@ -251,7 +251,7 @@ def _als() -> Survey:
     of a small scene equals that of a large block), 140 kHz at 140 lines/s (along-track and
     across-track spacing both ≈ 0.44 m per strip at nadir), range noise 2.5 cm, divergence
     0.3 mrad (15 cm footprint), returns up to 2 000 m. Nominal density
-    (`nominal_density_pts_m2`) 10.0 pts/m²; measured (`quakescan.acquisition.acquire.measured_density`,
+    (`nominal_density_pts_m2`) 10.0 pts/m²; measured (`quakescan.acquisition.density.measured_density`,
     roof cells of a 3 × 3 box city, 9 m roofs, seed 1): 10.35 pts/m², true roof points per
     roof area 10.37. `als_for_density` moves it to other densities."""
     return Survey(name="als", altitude_agl_m=500.0, speed_m_s=60.0, strip_overlap_pct=50.0, run_in_m=50.0,

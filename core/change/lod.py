@@ -23,10 +23,10 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from .split import SplitSettings
 from ..errors import QuakeScanError
 from ..formats.pointcloud import Epoch
 from ..runtime.progress import ProgressCallback, no_progress
+from .split import SplitSettings
 
 DEFAULT_QUANTILE = 0.999
 DEFAULT_SAMPLE = 200_000

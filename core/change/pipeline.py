@@ -24,11 +24,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .split import STATISTICS, SplitSettings, building_changes, nearest_neighbours
 from ..errors import QuakeScanError
-from .features import FEATURES, compute_features
 from ..formats.pointcloud import Epoch
 from ..runtime.progress import ProgressCallback
+from .features import FEATURES, compute_features
+from .split import STATISTICS, SplitSettings, building_changes, nearest_neighbours
 from .surface import SURFACE_DESCRIPTORS, SurfaceSettings
 
 log = logging.getLogger(__name__)

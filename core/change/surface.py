@@ -179,7 +179,7 @@ def roof_cell_density(cells: np.ndarray, z: np.ndarray) -> tuple[float, int]:
 
 def planimetric_density(xyz: np.ndarray) -> float:
     """Points per m² of roof seen from above (`roof_cell_density` on 1 m cells of the given
-    frame; the same measure as `quakescan.acquisition.acquire.measured_density`). A building too small for
+    frame; the same measure as `quakescan.acquisition.density.measured_density`). A building too small for
     an interior cell takes the mean top-band count of all its cells; no point gives 0."""
     xyz = np.asarray(xyz, dtype=np.float64)
     if len(xyz) == 0:

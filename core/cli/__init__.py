@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
-from ..runtime.atomic import write_json
 from ..errors import QuakeScanError
+from ..runtime.atomic import write_json
 from ..runtime.workers import EVERY_CORE
 
 log = logging.getLogger("quakescan")
@@ -192,9 +192,9 @@ def _check_scan_flags(args) -> None:
 
 def cmd_scan(args) -> int:
     from ..acquisition.scan import scan
-    from ..formats.scene import read_scene
     from ..acquisition.sensor_lidar import write_trajectory
     from ..acquisition.survey import load_survey
+    from ..formats.scene import read_scene
 
     _check_scan_flags(args)
     scene_dir = Path(args.scene)
@@ -340,9 +340,9 @@ def cmd_features(args) -> int:
     scalar fields). NaN marks the degenerate neighbourhoods of quakescan.change.features."""
     import laspy
 
-    from ..runtime.atomic import replacing
     from ..change.features import FEATURES, compute_features
     from ..formats.pointcloud import read_epoch, read_las
+    from ..runtime.atomic import replacing
 
     names = _csv_list(args.features) or FEATURES
     src = Path(args.input)
@@ -432,8 +432,8 @@ def _check_threads(value) -> None:
 
 def _check_split_flags(args) -> None:
     """The pipeline's flags in the ranges a model may hold (quakescan.change.pipeline, quakescan.change.split), named."""
-    from ..change.split import LOD_CURVATURE_RANGE, LOD_HEIGHT_RANGE_M
     from ..change.pipeline import RADIUS_RANGE_M
+    from ..change.split import LOD_CURVATURE_RANGE, LOD_HEIGHT_RANGE_M
 
     _check_number("--radius", args.radius, *RADIUS_RANGE_M)
     _check_number("--lod-height", args.lod_height, *LOD_HEIGHT_RANGE_M, low_open=True)
@@ -442,8 +442,8 @@ def _check_split_flags(args) -> None:
 
 
 def _pipeline_settings(args):
-    from ..change.split import SplitSettings
     from ..change.pipeline import training_settings
+    from ..change.split import SplitSettings
 
     split = SplitSettings(lod_height_m=args.lod_height, lod_curvature=args.lod_curvature,
                           min_changed_share=args.min_changed_share, seed=args.seed)
@@ -454,8 +454,8 @@ def _pipeline_settings(args):
 
 def cmd_calibrate_lod(args) -> int:
     """Levels of detection of the split from two acquisitions of the same undamaged buildings."""
-    from ..learning.classification import load_pair
     from ..change.lod import calibrate
+    from ..learning.classification import load_pair
 
     _check_number("--radius", args.radius, low=0.0, low_open=True)
     _check_number("--quantile", args.quantile, 0.5, 1.0, low_open=True, high_open=True)
@@ -616,8 +616,8 @@ def cmd_evaluate(args) -> int:
 
 def cmd_dim(args) -> int:
     """A photogrammetric (dense image matching) point cloud of a scene bundle."""
-    from ..formats.scene import read_scene
     from ..acquisition.sensors import get, simulate
+    from ..formats.scene import read_scene
 
     scene_dir = Path(args.scene)
     out = Path(args.output)

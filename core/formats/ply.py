@@ -13,8 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..runtime.atomic import open_replacing
 from ..errors import SceneError
+from ..runtime.atomic import open_replacing
 
 _PLY_TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",

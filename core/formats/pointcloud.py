@@ -15,8 +15,8 @@ from pathlib import Path
 import laspy
 import numpy as np
 
-from ..runtime.atomic import commit, is_write_failure, temp_path, write_failure_message
 from ..errors import PointCloudError
+from ..runtime.atomic import commit, is_write_failure, temp_path, write_failure_message
 
 log = logging.getLogger(__name__)
 

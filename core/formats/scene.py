@@ -13,8 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..runtime.atomic import write_json
 from ..errors import SceneError, read_json_file
+from ..runtime.atomic import write_json
 from .ply import MeshArrays, read_ply, write_ply
 
 FORMAT = "quakescan-scene"

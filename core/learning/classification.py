@@ -23,18 +23,18 @@ from pathlib import Path
 
 import numpy as np
 
-from ..runtime.atomic import is_write_failure, write_failure_message, write_json, write_text
-from ..runtime import fingerprint
-from ..errors import QuakeScanError, ResultsError
-from .model import DamageModel, ModelError, load_model
 from ..change.pipeline import (
     BuildingRow,
     PipelineSettings,
     describe_pair,
     settings_for_descriptors,
 )
+from ..errors import QuakeScanError, ResultsError
 from ..formats.pointcloud import Epoch, PointCloudError, check_pair, read_epoch
+from ..runtime import fingerprint
+from ..runtime.atomic import is_write_failure, write_failure_message, write_json, write_text
 from ..runtime.progress import ProgressCallback
+from .model import DamageModel, ModelError, load_model
 
 log = logging.getLogger(__name__)
 

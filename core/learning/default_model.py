@@ -35,8 +35,8 @@ from pathlib import Path
 import numpy as np
 
 from ..change.pipeline import PipelineSettings
-from ..runtime.progress import accepts_old_say, stage_log
 from ..change.surface import DESCRIPTOR_VERSION, SURFACE_DESCRIPTORS, SurfaceSettings
+from ..runtime.progress import accepts_old_say, stage_log
 
 # The training set's tables hold every surface descriptor (so that an ablation can put any of
 # them back); the model uses those whose meaning does not depend on the sensor's noise: the

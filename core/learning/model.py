@@ -464,8 +464,8 @@ def _check_archive_size(path: Path) -> None:
 def _check_settings(path, meta: dict) -> None:
     """Refuse settings no QuakeScan writes: a radius or levels of detection out of range (an
     edited file would classify every building at settings it was never trained on)."""
-    from ..change.split import SplitSettings
     from ..change.pipeline import RADIUS_RANGE_M
+    from ..change.split import SplitSettings
 
     r = meta.get("radius_m")
     if isinstance(r, bool) or not isinstance(r, (int, float)) or not (

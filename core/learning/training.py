@@ -19,13 +19,13 @@ from pathlib import Path
 
 import numpy as np
 
-from .classification import load_pair
-from ..errors import QuakeScanError
-from ..results.evaluation import Evaluation, evaluate_grades, read_grade_csv, to_target_grade
-from .model import DamageModel, grouped_split, predict_grades, train_damage_forest
 from ..change.pipeline import PipelineSettings, describe_pair, descriptor_matrix
+from ..errors import QuakeScanError
 from ..formats.pointcloud import GRADE_UNKNOWN, Epoch
+from ..results.evaluation import Evaluation, evaluate_grades, read_grade_csv, to_target_grade
 from ..runtime.progress import ProgressCallback, in_stage
+from .classification import load_pair
+from .model import DamageModel, grouped_split, predict_grades, train_damage_forest
 
 log = logging.getLogger(__name__)
 

@@ -40,9 +40,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import QuakeScanError
 from ..runtime import fingerprint
 from ..runtime.atomic import open_replacing, replacing, write_json
-from ..errors import QuakeScanError
 from ..runtime.progress import ProgressCallback, accepts_old_say, stage_log
 
 log = logging.getLogger(__name__)
@@ -395,9 +395,9 @@ def build(out_dir, plan: TrainingPlan, settings, *, workers: int = -1,
     total)` counts cities generated and pairs acquired and described; the stage messages go to
     the logger `quakescan.stages` (`quakescan.runtime.progress`)."""
     from ..acquisition.acquire import Acquisition, acquire
-    from .classification import load_pair
-    from ..results.evaluation import to_target_grade
     from ..change.pipeline import describe_pair, descriptor_matrix
+    from ..results.evaluation import to_target_grade
+    from .classification import load_pair
 
     out = Path(out_dir)
     for sub in ("scenes", "clouds", "tables"):

@@ -20,11 +20,11 @@ from pathlib import Path
 
 import numpy as np
 
-from ..runtime.atomic import open_replacing, replacing, write_text
 from ..errors import ResultsError
+from ..formats.pointcloud import SCALE
 from ..grades import grade_name, long_label
 from ..learning.model import GRADE_LABELS
-from ..formats.pointcloud import SCALE
+from ..runtime.atomic import open_replacing, replacing, write_text
 
 NOT_ASSESSABLE = "not assessable"
 # Map / LAS colours (hex RGB). Green → yellow → orange → red with the grade; grades 1 and 2

@@ -38,8 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..runtime import fingerprint
-from ..runtime.atomic import open_replacing, write_text
+from ..learning.model import train_damage_forest, train_forest
 from ..results.evaluation import (
     GRADE_NAMES,
     TARGET_GRADES,
@@ -49,7 +48,8 @@ from ..results.evaluation import (
     plot_confusion,
     read_truth,
 )
-from ..learning.model import train_damage_forest, train_forest
+from ..runtime import fingerprint
+from ..runtime.atomic import open_replacing, write_text
 from ..runtime.progress import ProgressCallback, accepts_old_say, stage_log
 
 log = logging.getLogger(__name__)
@@ -126,9 +126,9 @@ def _table(pre: Path, posts: list, cache: Path, settings, workers) -> dict:
 
     `posts`: (post cloud, grade) where grade is one grade for every building or a
     {building ID: grade} truth (a mixed city)."""
-    from ..learning.classification import load_pair
     from ..change.pipeline import describe_pair, descriptor_matrix
     from ..change.surface import DESCRIPTOR_VERSION
+    from ..learning.classification import load_pair
 
     inputs = json.dumps([settings.to_json(), Path(pre).name, [Path(p).name for p, _ in posts]], sort_keys=True)
     cache = cache.with_name(f"{cache.name}_{hashlib.sha256(inputs.encode()).hexdigest()[:10]}.npz")
@@ -215,10 +215,10 @@ def run_paper_experiment(out_dir, settings: ExperimentSettings | None = None, *,
     `progress(done, total)` counts steps: cities generated, clouds acquired, the levels of
     detection, descriptor tables, the test city described, the classifiers trained (a cached
     step counts as done)."""
-    from ..learning.classification import load_pair, predict_rows
-    from ..demo import generate
-    from ..learning.model import DamageModel
     from ..change.pipeline import PipelineSettings, describe_pair
+    from ..demo import generate
+    from ..learning.classification import load_pair, predict_rows
+    from ..learning.model import DamageModel
 
     s = settings or ExperimentSettings()
     mixed = s.training == "paper+mixed"
@@ -329,9 +329,9 @@ def run_paper_experiment(out_dir, settings: ExperimentSettings | None = None, *,
 def shipped_default(pair, truth: dict, workers) -> Evaluation | None:
     """The shipped default model (trained on the transfer training set, not on this experiment's
     data) applied as it is to the test pair: what a user gets without training anything."""
+    from ..change.pipeline import describe_pair
     from ..learning.classification import default_model_path, model_settings, predict_rows
     from ..learning.model import ModelError, load_model
-    from ..change.pipeline import describe_pair
 
     try:
         path = default_model_path()

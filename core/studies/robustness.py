@@ -81,11 +81,11 @@ from pathlib import Path
 
 import numpy as np
 
-from ..runtime.atomic import open_replacing, write_text
-from ..errors import QuakeScanError
 from ..change.features import FEATURES, compute_features
 from ..change.pipeline import PAPER_FEATURES
+from ..errors import QuakeScanError
 from ..formats.pointcloud import Epoch
+from ..runtime.atomic import open_replacing, write_text
 from ..runtime.progress import ProgressCallback
 
 log = logging.getLogger(__name__)
