@@ -48,7 +48,7 @@ def test_every_progress_parameter_has_the_one_shape():
     for expected in ("quakescan.acquisition.scan.scan", "quakescan.acquisition.dim.simulate_dim", "quakescan.change.features.compute_features",
                      "quakescan.change.pipeline.describe_pair", "quakescan.learning.training.training_table",
                      "quakescan.learning.trainset.build", "quakescan.demo.run_demo", "quakescan.learning.classification.classify",
-                     "quakescan.change.lod.calibrate", "quakescan.studies.robustness.run_experiment",
+                     "quakescan.change.lod.calibrate", "quakescan.studies.robustness.run.run_experiment",
                      "quakescan.studies.experiment.run_paper_experiment", "quakescan.acquisition.acquire.acquire"):
         assert expected in with_progress
     wrong = {name: (str(p.annotation), p.default) for name, p in with_progress.items()

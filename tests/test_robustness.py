@@ -12,7 +12,9 @@ import pytest
 from quakescan.cli import main
 from quakescan.acquisition.dim_settings import preset_dim
 from quakescan.formats.pointcloud import Epoch
-from quakescan.studies.robustness import (
+from quakescan.studies.robustness.report import write_report
+from quakescan.studies.robustness.run import run_experiment
+from quakescan.studies.robustness.selection import (
     NORMAL,
     PAPER_SET,
     REPORT_FEATURES,
@@ -25,10 +27,8 @@ from quakescan.studies.robustness import (
     relative_change,
     relative_changes,
     robustness,
-    run_experiment,
     thin,
     thin_index,
-    write_report,
 )
 from quakescan.formats.scene import write_scene
 from quakescan.acquisition.survey import preset
@@ -143,10 +143,10 @@ def test_best_radius_rule():
     d = {1.0: {"a": 1.0, "b": 20.0, "c": 30.0},   # 1 robust
          2.0: {"a": 5.0, "b": 9.0, "c": 40.0},    # 2 robust, mean 18
          3.0: {"a": 2.0, "b": 8.0, "c": 35.0}}    # 2 robust, mean 15 -> best
-    from quakescan.studies import robustness as R
+    from quakescan.studies.robustness import selection as R
 
     def key(r):
-        n = sum(R._le(d[r][f], 10.0) for f in feats)
+        n = sum(R.within(d[r][f], 10.0) for f in feats)
         return (-n, float(np.mean(list(d[r].values()))), r)
     assert min(d, key=key) == 3.0
 

@@ -647,7 +647,8 @@ def cmd_dim_survey_template(args) -> int:
 
 def cmd_robustness(args) -> int:
     """The paper's robust-feature selection: relative change per feature on ULS vs DIM clouds."""
-    from ..studies.robustness import DEFAULT_SAMPLE, check_spacing, run_experiment
+    from ..studies.robustness.run import run_experiment
+    from ..studies.robustness.selection import DEFAULT_SAMPLE, check_spacing
 
     try:
         radii = tuple(float(r) for r in args.radii.split(",")) if args.radii else None

@@ -8,7 +8,7 @@ points between ULS and DIM; the radius where the two agree best is selected.
 
     >>> res = robustness(uls_pre, uls_post, dim_pre, dim_post, radii=(1.0, 2.0))
     >>> res.best_radius, res.robust
-    >>> write_report(res, "out/robustness")
+    >>> write_report(res, "out/robustness")  # quakescan.studies.robustness.report
     >>> # the paper's design: two demolition stages, every cloud thinned to 0.1 m
     >>> res = robustness(uls_pre, [uls_s1, uls_s2], dim_pre, [dim_s1, dim_s2], spacing=0.1)
     >>> res.stage_robust_at("post1", res.best_radius), quiet_features(res)
@@ -68,25 +68,19 @@ Definitions (the choices this module makes; the paper does not spell them out)
 """
 from __future__ import annotations
 
-import csv
-import io
-import json
 import logging
 import math
-import os
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
-from ..change.features import FEATURES, compute_features
-from ..change.pipeline import PAPER_FEATURES
-from ..errors import QuakeScanError
-from ..formats.pointcloud import Epoch
-from ..runtime.atomic import open_replacing, write_text
-from ..runtime.progress import ProgressCallback
+from ...change.features import FEATURES, compute_features
+from ...change.pipeline import PAPER_FEATURES
+from ...errors import QuakeScanError
+from ...formats.pointcloud import Epoch
+from ...runtime.progress import ProgressCallback
 
 log = logging.getLogger(__name__)
 
@@ -210,7 +204,7 @@ class _Pair:
 
 def _pair(pre: Epoch, post: Epoch, role: str = "", sample: int | None = DEFAULT_SAMPLE, seed: int = 0,
           workers: int = -1) -> _Pair:
-    from ..change.split import nearest_neighbours
+    from ...change.split import nearest_neighbours
 
     tag = f"{role} " if role else ""
     idx = _building_index(pre, f"{tag}pre-event")
@@ -340,12 +334,12 @@ class RobustnessResult:
         d = self.stage_difference.get(stage, {}).get(radius) if self.stage_difference else None
         if d is None:
             d = self.difference[radius]
-        return [f for f in self.features if _le(d[f], t)]
+        return [f for f in self.features if within(d[f], t)]
 
     def robust_at(self, radius: float, threshold_pct: float | None = None) -> list[str]:
         t = self.threshold_pct if threshold_pct is None else threshold_pct
         d = self.difference[radius]
-        return [f for f in self.features if _le(d[f], t)]
+        return [f for f in self.features if within(d[f], t)]
 
     def mean_difference(self, radius: float) -> float:
         v = [x for x in self.difference[radius].values() if math.isfinite(x)]
@@ -394,7 +388,7 @@ class RobustnessResult:
         }
 
 
-def _le(x: float, t: float) -> bool:
+def within(x: float, t: float) -> bool:
     return x is not None and math.isfinite(x) and x <= t + 1e-9
 
 
@@ -532,13 +526,13 @@ def robustness(uls_pre: Epoch, uls_post, dim_pre: Epoch, dim_post,
             dim_t[r][f] = st_tab["dim"][stages[i]][r][f]
 
     def key(r):
-        n = sum(_le(diff[r][f], threshold_pct) for f in names)
+        n = sum(within(diff[r][f], threshold_pct) for f in names)
         v = [x for x in diff[r].values() if math.isfinite(x)]
         return (-n, float(np.mean(v)) if v else math.inf, r)
 
     best = min(radii, key=key)
-    robust = [f for f in names if _le(diff[best][f], threshold_pct)]
-    counts = {t: sum(_le(diff[best][f], t) for f in names) for t in THRESHOLDS}
+    robust = [f for f in names if within(diff[best][f], threshold_pct)]
+    counts = {t: sum(within(diff[best][f], t) for f in names) for t in THRESHOLDS}
     pre_values = {}
     for src in ("uls", "dim"):
         pv = _pre_values(pres[src], pairs[src][0].pre_idx, fpre_keep[best][src], names)
@@ -560,7 +554,7 @@ def quiet_features(result: RobustnessResult, radius: float | None = None) -> lis
     r = result.best_radius if radius is None else radius
     tabs = ([result.stage_uls[st][r] for st in result.stages] + [result.stage_dim[st][r] for st in result.stages]
             if result.stage_uls else [result.uls[r], result.dim[r]])
-    return [f for f in result.robust_at(r) if all(_le(abs(t[f]), result.threshold_pct) for t in tabs)]
+    return [f for f in result.robust_at(r) if all(within(abs(t[f]), result.threshold_pct) for t in tabs)]
 
 
 def compare_with_paper(result: RobustnessResult) -> dict:
@@ -574,283 +568,3 @@ def compare_with_paper(result: RobustnessResult) -> dict:
     return {"both": sorted(ours & paper), "only_ours": sorted(ours - paper), "only_paper": sorted(paper - ours),
             "not_tested": sorted(set(PAPER_SET) - tested),
             "agreement": round(len(ours & paper) / len(union), 4) if union else 1.0}
-
-
-# Report -----------------------------------------------------------------------------------
-
-def _write_figure(fig, path: Path) -> None:
-    import matplotlib.pyplot as plt
-
-    try:
-        with open_replacing(path, "wb") as fh:
-            fig.savefig(fh, format="png")
-    finally:
-        plt.close(fig)
-
-
-def _fmt(x) -> str:
-    return "" if x is None or not math.isfinite(x) else f"{x:.4f}"
-
-
-def _plot_counts(result: RobustnessResult, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    import matplotlib.ticker
-
-    ts = np.array(THRESHOLDS)
-    fig, ax = plt.subplots(figsize=(6.4, 4.2), dpi=120)
-    cmap = plt.get_cmap("viridis")
-    for k, r in enumerate(result.radii):
-        counts = [len(result.robust_at(r, t)) for t in ts]
-        best = r == result.best_radius
-        ax.step(ts, counts, where="post", lw=3.0 if best else 1.2, color="black" if best else
-                cmap(k / max(1, len(result.radii) - 1)), label=f"r = {r:g} m" + (" (selected)" if best else ""),
-                zorder=3 if best else 2)
-    ax.axvline(result.threshold_pct, color="red", ls="--", lw=1)
-    ax.text(result.threshold_pct, 0.2, f" {result.threshold_pct:g} %", color="red", va="bottom")
-    ax.set_xlabel("allowed difference in relative change, ULS vs DIM [percentage points]")
-    ax.set_ylabel("number of robust change features" + (" (every stage)" if len(result.stages) > 1 else ""))
-    ax.set_xlim(0, ts[-1])
-    ax.set_ylim(0, len(result.features) + 0.5)
-    ax.yaxis.set_major_locator(matplotlib.ticker.MaxNLocator(integer=True))
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8, loc="lower right")
-    fig.tight_layout()
-    _write_figure(fig, path)
-
-
-def _plot_heatmap(result: RobustnessResult, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    m = np.array([[result.difference[r][f] for r in result.radii] for f in result.features], dtype=float)
-    shown = np.clip(m, 0, 50)
-    fig, ax = plt.subplots(figsize=(1.6 + 0.75 * len(result.radii), 1.4 + 0.28 * len(result.features)), dpi=120)
-    im = ax.imshow(np.ma.masked_invalid(shown), cmap="magma_r", vmin=0, vmax=50, aspect="auto")
-    for i in range(m.shape[0]):
-        for j in range(m.shape[1]):
-            v = m[i, j]
-            txt = "n/a" if not math.isfinite(v) else (f"{v:.0f}" if v < 999 else ">999")
-            ax.text(j, i, txt, ha="center", va="center", fontsize=6,
-                    color="white" if math.isfinite(v) and v > 30 else "black")
-    ax.set_xticks(range(len(result.radii)), [f"{r:g}" + (" *" if r == result.best_radius else "")
-                                             for r in result.radii])
-    ax.set_yticks(range(len(result.features)), result.features, fontsize=7)
-    ax.set_xlabel("radius [m] (* selected)")
-    worst = " (largest over the stages)" if len(result.stages) > 1 else ""
-    ax.set_title(f"|relative change ULS - DIM| [percentage points]{worst}", fontsize=9)
-    fig.colorbar(im, ax=ax, label="clipped at 50")
-    fig.tight_layout()
-    _write_figure(fig, path)
-
-
-def _readme(result: RobustnessResult, context: str) -> str:
-    cmp = compare_with_paper(result)
-    lines = [
-        "# Robust change-feature selection", "",
-        ("Zahs et al., \"Object-specific change feature selection\": relative change of each geometric "
-        "feature between the pre- and the post-event epoch, on ULS and on DIM clouds of the same buildings; "
-        f"a feature is robust when the two differ by at most {result.threshold_pct:g} percentage points."), "",
-    ]
-    if context:
-        lines += [context, ""]
-    lines += [
-        (f"- radii: {', '.join(f'{r:g}' for r in result.radii)} m; features: {len(result.features)} "
-        "(normal_x/y/z as one normal_vector)"),
-        f"- pre-event building points used: ULS {result.points.get('uls', 0)}, DIM {result.points.get('dim', 0)}",
-        ("- relative change = 100 (median post - median pre) / scale over pre building points paired with their "
-        "nearest post point (NaN pairs dropped); scale = |median pre|, or the pre IQR when |median| < 0.1 IQR; "
-        "normal_vector: 100 x median angle between paired normals / 90 deg"),
-        (f"- selected radius: **{result.best_radius:g} m** ({len(result.robust)} robust features, mean difference "
-        f"{result.mean_difference(result.best_radius):.1f} percentage points)"),
-        f"- robust features: {', '.join(result.robust) or '(none)'}",
-        (f"- of these, changed by less than {result.threshold_pct:g} % on both sources at every stage (robust "
-         f"because neither source sees a change): {', '.join(quiet_features(result)) or '(none)'}"),
-        f"- run time: {result.wall_time_s:.1f} s", "",
-    ]
-    multi = len(result.stages) > 1 and bool(result.stage_difference)
-    if result.spacing_m is not None or result.clouds:
-        sp = "none" if result.spacing_m is None else f"{result.spacing_m:g} m (voxel grid, one random point per cell)"
-        lines.insert(len(lines) - 1, f"- thinning: {sp}")
-    if result.clouds:
-        lines.insert(len(lines) - 1, "- clouds (points before -> after thinning; median nearest-neighbour distance "
-                     "between building points): " + "; ".join(
-                         f"{k} {v.get('points_in', 0)} -> {v.get('points', 0)}, "
-                         f"{_fmt_m(v.get('building_spacing_m'))}" for k, v in result.clouds.items()))
-    if multi:
-        lines.insert(len(lines) - 1, (f"- stages: {', '.join(result.stages)}; a feature is robust at a radius when "
-                                      "ULS and DIM agree within the threshold at every stage (difference = the "
-                                      "largest over the stages)"))
-        head = "| radius [m] | robust at every stage | " + " | ".join(
-            f"robust at {st}" for st in result.stages) + " | mean difference [pp] |"
-        lines += [head, "|---|---|" + "---|" * len(result.stages) + "---|"]
-        for r in result.radii:
-            lines.append(f"| {r:g}{' (selected)' if r == result.best_radius else ''} | {len(result.robust_at(r))} | "
-                         + " | ".join(str(len(result.stage_robust_at(st, r))) for st in result.stages)
-                         + f" | {result.mean_difference(r):.1f} |")
-    else:
-        lines += ["| radius [m] | robust at threshold | mean difference [pp] |", "|---|---|---|"]
-        for r in result.radii:
-            lines.append(f"| {r:g}{' (selected)' if r == result.best_radius else ''} | {len(result.robust_at(r))} | "
-                         f"{result.mean_difference(r):.1f} |")
-    b = result.best_radius
-    if result.stage_uls:
-        lines += ["", f"## Relative change per stage at the selected radius ({b:g} m)", "",
-                  "| feature | " + " | ".join(f"{st} ULS % | {st} DIM % | {st} diff" for st in result.stages)
-                  + " | robust |",
-                  "|---|" + "---|---|---|" * len(result.stages) + "---|"]
-        for f in result.features:
-            cells = []
-            for st in result.stages:
-                cells += [_fmt1(result.stage_uls[st][b][f]), _fmt1(result.stage_dim[st][b][f]),
-                          _fmt1(result.stage_difference[st][b][f])]
-            lines.append(f"| {f} | " + " | ".join(cells) + f" | {'yes' if f in result.robust else 'no'} |")
-    if result.pre_values:
-        lines += ["", f"## Pre-event values by surface at {b:g} m (median [q1, q3])", "",
-                  "| feature | " + " | ".join(f"{src.upper()} {surf}" for src in result.pre_values
-                                             for surf in SURFACES.values()) + " |",
-                  "|---|" + "---|" * (len(result.pre_values) * len(SURFACES))]
-        for f in PRE_VALUE_FEATURES:
-            cells = []
-            for src in result.pre_values:
-                for surf in SURFACES.values():
-                    d = result.pre_values[src].get(surf, {}).get(f)
-                    cells.append("" if d is None else f"{d['median']:.3g} [{d['q1']:.3g}, {d['q3']:.3g}]")
-            if any(cells):
-                lines.append(f"| {f} | " + " | ".join(cells) + " |")
-    lines += ["", "## Comparison with the paper's set", "",
-              f"Paper: {', '.join(PAPER_SET)}.", "",
-              f"- in both: {', '.join(cmp['both']) or '(none)'}",
-              f"- only ours: {', '.join(cmp['only_ours']) or '(none)'}",
-              f"- only the paper's: {', '.join(cmp['only_paper']) or '(none)'}",
-              f"- agreement (Jaccard): {cmp['agreement']:.2f}", "",
-              ("Files: robustness.json, robustness.csv (radius, feature, uls %, dim %, difference: at the "
-              "deciding stage), robustness_stages.csv (the same per stage), features_vs_threshold.png, "
-              "difference_heatmap.png."), ""]
-    return "\n".join(lines)
-
-
-def _fmt1(x) -> str:
-    return "n/a" if x is None or not math.isfinite(x) else f"{x:.1f}"
-
-
-def _fmt_m(x) -> str:
-    return "n/a" if x is None or not math.isfinite(x) else f"{x:.3f} m"
-
-
-def write_report(result: RobustnessResult, out_dir: str | os.PathLike, context: str = "") -> None:
-    """robustness.json, robustness.csv, features_vs_threshold.png, difference_heatmap.png and
-    README.md in `out_dir` (created), each written to a .part file and renamed."""
-    out = Path(out_dir)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise RobustnessError(f"{out}: cannot create the report folder ({e})") from None
-    write_text(out / "robustness.json", json.dumps(result.to_json(), indent=2) + "\n")
-    buf = io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    w.writerow(["radius_m", "feature", "uls_pct", "dim_pct", "difference_pct_points", "robust"])
-    for r in result.radii:
-        for f in result.features:
-            d = result.difference[r][f]
-            w.writerow([f"{r:g}", f, _fmt(result.uls[r][f]), _fmt(result.dim[r][f]), _fmt(d),
-                        int(_le(d, result.threshold_pct))])
-    write_text(out / "robustness.csv", buf.getvalue())
-    buf = io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    w.writerow(["stage", "radius_m", "feature", "uls_pct", "dim_pct", "difference_pct_points", "robust_at_stage"])
-    for st in result.stages:
-        if st not in result.stage_uls:
-            continue
-        for r in result.radii:
-            for f in result.features:
-                d = result.stage_difference[st][r][f]
-                w.writerow([st, f"{r:g}", f, _fmt(result.stage_uls[st][r][f]), _fmt(result.stage_dim[st][r][f]),
-                            _fmt(d), int(_le(d, result.threshold_pct))])
-    write_text(out / "robustness_stages.csv", buf.getvalue())
-    _plot_counts(result, out / "features_vs_threshold.png")
-    _plot_heatmap(result, out / "difference_heatmap.png")
-    write_text(out / "README.md", _readme(result, context))
-
-
-# The whole experiment -------------------------------------------------------------------------
-
-def run_experiment(pre_scene_dir: str | os.PathLike, post_scene_dir, out_dir: str | os.PathLike,
-                   radii: Sequence[float] = RADII, seed: int = 0,
-                   workers: int = -1, progress: ProgressCallback | None = None, survey=None, photo_survey=None,
-                   threshold_pct: float = THRESHOLD_PCT, sample: int | None = DEFAULT_SAMPLE,
-                   spacing: float | None = None) -> RobustnessResult:
-    """Scan the scenes with ULS (`survey`, default the paper preset) and DIM (`photo_survey`,
-    default the paper preset) into out_dir/clouds/ (`quakescan.acquisition.acquire.acquire`: a cloud made
-    from the same scene, survey and seed is kept, one of another run is made again), read
-    them all in the pre ULS cloud's frame, run `robustness` and write the report to out_dir. `post_scene_dir` is one post-event scene
-    folder (clouds {uls,dim}_post.las) or a sequence of them, the demolition stages in order
-    (clouds {uls,dim}_post1.las, _post2.las, ...; stage k is scanned with seed + k).
-    `spacing` thins every cloud before the features (module doc). `progress(done, total)`
-    over the clouds and then the radii."""
-    from ..acquisition import sensors
-    from ..acquisition.acquire import Acquisition, acquire
-    from ..formats.pointcloud import read_epoch
-
-    started = time.perf_counter()
-    spacing = check_spacing(spacing)
-    survey = survey or sensors.get("uls").default()
-    photo_survey = photo_survey or sensors.get("dim").default()
-    settings = {"uls": survey, "dim": photo_survey}
-    if isinstance(post_scene_dir, (str, os.PathLike)):
-        post_dirs = [Path(post_scene_dir)]
-    else:
-        post_dirs = [Path(p) for p in post_scene_dir]
-    if not post_dirs:
-        raise RobustnessError("no post-event scene given")
-    stages = ["post"] if len(post_dirs) == 1 else [f"post{i + 1}" for i in range(len(post_dirs))]
-    out = Path(out_dir)
-    clouds = out / "clouds"
-    clouds.mkdir(parents=True, exist_ok=True)
-    scenes = {"pre": Path(pre_scene_dir), **dict(zip(stages, post_dirs))}
-    seeds = {"pre": seed, **{st: seed + 1 + i for i, st in enumerate(stages)}}  # different noise per epoch
-    paths = {}
-    n_clouds = 2 * len(scenes)
-    total_steps = n_clouds + 2 * len(set(radii))
-    step = 0
-    for src in ("uls", "dim"):
-        for ep, folder in scenes.items():
-            path = clouds / f"{src}_{ep}.las"
-            paths[(src, ep)] = path
-            t0 = time.perf_counter()
-            # reused only when made from the same scene, settings and seed: a folder of another
-            # run's clouds is acquired again, never mixed into this one
-            got = acquire(folder, Acquisition(src, settings[src]), path, seed=seeds[ep], workers=workers)
-            if got.resumed:
-                log.info("robustness: keeping %s", path)
-            else:
-                log.info("robustness: %s %s cloud in %.1f s", src, ep, time.perf_counter() - t0)
-            step += 1
-            if progress:
-                progress(step, total_steps)
-    uls_pre = read_epoch(paths[("uls", "pre")])
-    origin = uls_pre.origin
-    ep = {k: read_epoch(p, origin=origin) for k, p in paths.items() if k != ("uls", "pre")}
-
-    def inner(done, total):
-        if progress:
-            progress(n_clouds + done, total_steps)
-
-    res = robustness(uls_pre, [ep[("uls", st)] for st in stages], ep[("dim", "pre")],
-                     [ep[("dim", st)] for st in stages], radii=radii, threshold_pct=threshold_pct,
-                     workers=workers, progress=inner, sample=sample, seed=seed, spacing=spacing,
-                     stage_names=stages)
-    res.wall_time_s = time.perf_counter() - started
-    counts = {f"{s}_{e}": len(x) for (s, e), x in [(("uls", "pre"), uls_pre)] + list(ep.items())}
-    post_txt = ", ".join(f"{st} `{scenes[st]}`" for st in stages)
-    context = (f"Scenes: pre `{scenes['pre']}`, {post_txt}; ULS survey '{survey.name}' "
-               f"(pulse rate {survey.pulse_rate_hz:g} Hz), DIM photo survey '{photo_survey.name}' "
-               f"(point step {photo_survey.point_step_px:g} px); seed {seed}; sample {sample}; thinning "
-               + ("none" if spacing is None else f"{spacing:g} m") + ". Cloud points (as simulated): "
-               + ", ".join(f"{k} {v}" for k, v in counts.items()) + ".")
-    write_report(res, out, context)
-    return res
