@@ -6,7 +6,8 @@ import re
 import numpy as np
 import pytest
 
-from quakescan.cli import Progress, main
+from quakescan.cli import main
+from quakescan.cli.reporting import Progress
 from tests.scenes import HEIGHTS, scan_box_pair
 
 LINE = re.compile(r"^(?P<label>.+?)  (?P<done>[\d,]+)/(?P<total>[\d,]+)  +(?P<pct>\d+) %  (?P<elapsed>[\d:]+)  "

@@ -14,7 +14,9 @@ import numpy as np
 import pytest
 
 import quakescan
-from quakescan.cli import THREADS_HELP, Progress, build_parser
+from quakescan.cli import build_parser
+from quakescan.cli.options import THREADS_HELP
+from quakescan.cli.reporting import Progress
 from tests.test_cli_progress import LINE, _Clock, _Stream
 
 

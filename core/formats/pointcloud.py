@@ -16,7 +16,7 @@ import laspy
 import numpy as np
 
 from ..errors import PointCloudError
-from ..runtime.atomic import commit, is_write_failure, temp_path, write_failure_message
+from ..runtime.atomic import commit, is_write_failure, replacing, temp_path, write_failure_message
 
 log = logging.getLogger(__name__)
 
@@ -222,6 +222,23 @@ def read_las(path: str | os.PathLike) -> laspy.LasData:
         return laspy.read(path)
     except Exception as e:
         raise PointCloudError(f"{path}: cannot read as LAS/LAZ ({e})") from None
+
+
+def write_with_float_dims(las: laspy.LasData, out: str | os.PathLike, columns: dict, descriptions: dict) -> None:
+    """Write `las` with every array of `columns` (name → one value per point) added as a
+    float32 extra dimension (what CloudCompare shows as scalar fields) to `out`, LAZ when its
+    suffix is .laz; the file appears only when complete. A description is cut to the 32 bytes
+    LAS gives it."""
+    out = Path(out)
+    clash = [n for n in columns if n in set(las.point_format.dimension_names)]
+    if clash:
+        raise PointCloudError(f"{out}: the point cloud already has dimensions {clash}")
+    las.add_extra_dims([laspy.ExtraBytesParams(name=n, type=np.float32, description=descriptions.get(n, n)[:31])
+                        for n in columns])
+    for n, values in columns.items():
+        las[n] = np.asarray(values).astype(np.float32)
+    with replacing(out) as tmp:
+        las.write(tmp, do_compress=out.suffix.lower() == ".laz")
 
 
 @dataclass
