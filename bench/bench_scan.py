@@ -91,16 +91,18 @@ def run_worker(scene_dir, mode, out, exact=False, one_line=False, extra=()) -> d
 def raw_embree(scene, max_rays=4_000_000) -> list:
     """Rays/s of embreex alone on the single-ray scan's rays, 1 and 2 threads."""
     from quakescan.acquisition.raycast import RayCaster, ground_level
-    from quakescan.acquisition.scan import _batches, _Pulses, _Simulator
+    from quakescan.acquisition.beams import Simulator
+    from quakescan.acquisition.pulses import Pulses
+    from quakescan.acquisition.scan import _batches
     from quakescan.acquisition.survey import plan_flight
 
     survey = preset("paper")
     caster = RayCaster(scene)
-    sim = _Simulator(caster, survey, 0)
+    sim = Simulator(caster, survey, 0)
     plan = plan_flight(survey, scene.bounds(), ground_level(scene))
     o_parts, d_parts, n = [], [], 0
     for b in _batches(survey, plan, 1 << 20):
-        p = _Pulses(survey, b.line, b.j0, b.j1, caster.local_origin, sim.box)
+        p = Pulses(survey, b.line, b.j0, b.j1, caster.local_origin, sim.box)
         _, _, o, d = p.rays()
         o_parts.append(o)
         d_parts.append(d)

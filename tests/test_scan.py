@@ -329,7 +329,7 @@ def _roof_lines(survey, offsets_y, length=30.0):
 def test_strip_misalignment_moves_every_point_of_a_line_by_its_offset(tmp_path):
     """Same seed with and without misalignment: the same pulses and noise, every point of line k
     moved by strip_offset(k) (to the LAS millimetre); the paper preset has none."""
-    from quakescan.acquisition.scan import strip_offset
+    from quakescan.acquisition.beams import strip_offset
 
     assert preset("paper").strip_misalignment_m == 0
     scene = box_city(rows=1, cols=1)

@@ -4,7 +4,8 @@ import json
 import pytest
 
 from quakescan.acquisition.raycast import ground_level
-from quakescan.acquisition.scan import _pulse_count, scan
+from quakescan.acquisition.pulses import pulse_count
+from quakescan.acquisition.scan import scan
 from quakescan.formats.scene import write_scene
 from quakescan.acquisition.survey import plan_flight, preset
 from quakescan.formats.synthetic import box_city
@@ -30,7 +31,7 @@ def _line_ends(scene):
     plan = plan_flight(SURVEY, scene.bounds(), ground_level(scene))
     ends, total = [], 0
     for ln in plan.lines:
-        total += _pulse_count(SURVEY, ln)
+        total += pulse_count(SURVEY, ln)
         ends.append(total)
     return ends
 

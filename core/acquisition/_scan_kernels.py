@@ -2,7 +2,8 @@
 
 Each loop is one pass over a batch that numpy would do in ten: building rays, refining
 Embree's hits in float64 and packing LAS records. They are plain loops with the same
-arithmetic as the numpy reference in `quakescan.acquisition.scan` (tests compare the two).
+arithmetic as the numpy references in `quakescan.acquisition.pulses` and
+`quakescan.acquisition.beams` (tests compare the two).
 """
 from __future__ import annotations
 
@@ -156,7 +157,7 @@ def fov_pulses(lo, hi, t_start, prr, rate, g0, half_sweep, half_fov, oscillating
     aimed window [aim_lo, aim_hi]: index, time, angle, sweep direction, edge-of-line flag
     (the next pulse starts a new scan line or leaves the FOV) and the pulse's rank among
     all pulses inside the FOV. Also returns that count. Same arithmetic as
-    `scan._deflection`."""
+    `pulses.deflection`."""
     n_max = 0
     for i in range(lo.shape[0]):
         n_max += max(hi[i] - lo[i] + 1, 0)

@@ -6,7 +6,7 @@ where a function has several (the pairs of a training table, the scans and the c
 of the demo) and is left out where it has one, so a callable taking only `(done, total)` still
 follows the single-stage functions. Every function that reports progress takes it as one keyword,
 `progress: ProgressCallback | None = None`; the library never prints it: the command line
-(`quakescan.cli.Progress`) renders it.
+(`quakescan.cli.reporting.Progress`) renders it.
 
 Stage messages ("experiment 2/5: acquiring the clouds") are log lines, not progress: they go
 to the logger `quakescan.stages` at INFO, which the command line shows on stderr (unless `-q`)
