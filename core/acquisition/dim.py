@@ -13,7 +13,7 @@ The model, step by step (every number is a `PhotoSurvey` field; see `quakescan.a
    the oblique images' ground sampling distance, GSD, comes close to the nadir one).
    A camera's image time is the flight time to its station at `speed_m_s`.
 2. **Density from the image resolution and viewing angle.** The mesh is cut into pieces of
-   at most `_TILE_M` metres (large terrain triangles are split), and every piece ranks the
+   at most `dim_pieces.TILE_M` metres (large terrain triangles are split), and every piece ranks the
    cameras that may see it by their sampling interval on its surface
    `h = point_step_px · pixel · d / (f · sqrt(cos θ))` (d distance, θ incidence angle:
    the pixel's footprint is GSD × GSD/cos θ, `h` is the side of the square of the same
@@ -65,161 +65,24 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
-from numba import njit, prange
 
 from ..errors import QuakeScanError, SurveyError
 from ..formats.pointcloud import LasChunkWriter, PointChunk
 from ..formats.scene import Scene
 from ..runtime.progress import ProgressCallback
 from ..runtime.workers import EVERY_CORE, accepts_old_threads, check_workers
-from .dim_cameras import Cameras, plan_cameras
+from .dim_cameras import plan_cameras
+from .dim_edges import crease_segments, smooth
+from .dim_pieces import interval, make_pieces, work_chunks
 from .dim_settings import PhotoSurvey
 from .las_output import label_counts, las_offset
 from .raycast import RayCaster, check_scannable, ground_level
 
 log = logging.getLogger(__name__)
 
-# Mesh pieces are at most this long (m): density and camera ranking are set per piece.
-_TILE_M = 8.0
-# Grid cells per work chunk (memory and thread granularity; does not change the output).
-_CHUNK_CELLS = 1 << 19
 # Points written per LAS chunk.
 _WRITE_CHUNK = 1 << 20
 
-# Mesh pieces -------------------------------------------------------------------------
-
-def _split_long_triangles(a, b, c, parent, max_edge):
-    """4-way midpoint splits until no edge is longer than `max_edge` (coplanar pieces)."""
-    done = []
-    while len(a):
-        e = np.maximum(np.maximum(np.linalg.norm(b - a, axis=1), np.linalg.norm(c - b, axis=1)),
-                       np.linalg.norm(a - c, axis=1))
-        small = e <= max_edge
-        done.append((a[small], b[small], c[small], parent[small]))
-        a, b, c, parent = a[~small], b[~small], c[~small], parent[~small]
-        if not len(a):
-            break
-        ab, bc, ca = 0.5 * (a + b), 0.5 * (b + c), 0.5 * (c + a)
-        a, b, c, parent = (np.concatenate([a, ab, ca, ab]), np.concatenate([ab, b, bc, bc]),
-                           np.concatenate([ca, bc, c, ca]), np.tile(parent, 4))
-    out = [np.concatenate(x) for x in zip(*done)]
-    # keep mesh order: by parent face, stable
-    order = np.argsort(out[3], kind="stable")
-    return [x[order] for x in out]
-
-
-@dataclass
-class _Pieces:
-    a: np.ndarray
-    b: np.ndarray
-    c: np.ndarray
-    face: np.ndarray  # parent face
-    normal: np.ndarray
-    rank: np.ndarray  # (n, K) camera indices, -1 = none, best first
-    h: np.ndarray  # grid spacing (m); inf = not sampled
-
-
-def _interval(survey, cams: Cameras, idx, d, cos_t):
-    """Sampling interval on the surface (m) of cameras idx at distance d, incidence cos."""
-    pitch = survey.pixel_pitch_um * 1e-6
-    return survey.point_step_px * pitch * d / (cams.focal_m[idx] * np.sqrt(cos_t))
-
-
-@njit(parallel=True, nogil=True, cache=True, error_model="numpy")
-def _rank_kernel(centre, normal, radius, pos, rot, tan_w, tan_h, focal, cos_max, k, min_views):
-    """Per piece the k cameras with the smallest d / (f · sqrt(cos θ)) among those that may
-    see it (frame and incidence tested at its centre with a margin of its radius); ties
-    keep the lower camera index. best = that value of the first camera, inf when fewer
-    than min_views cameras qualify."""
-    n, m = centre.shape[0], pos.shape[0]
-    rank = np.full((n, k), -1, np.int64)
-    best = np.full(n, np.inf)
-    for i in prange(n):
-        sc = np.full(k, np.inf)
-        ix = np.full(k, -1, np.int64)
-        r = radius[i]
-        for c in range(m):
-            rx = centre[i, 0] - pos[c, 0]
-            ry = centre[i, 1] - pos[c, 1]
-            rz = centre[i, 2] - pos[c, 2]
-            qz = rot[c, 2, 0] * rx + rot[c, 2, 1] * ry + rot[c, 2, 2] * rz
-            if qz <= r:
-                continue
-            qx = rot[c, 0, 0] * rx + rot[c, 0, 1] * ry + rot[c, 0, 2] * rz
-            if abs(qx) > qz * tan_w[c] + 1.5 * r:
-                continue
-            qy = rot[c, 1, 0] * rx + rot[c, 1, 1] * ry + rot[c, 1, 2] * rz
-            if abs(qy) > qz * tan_h[c] + 1.5 * r:
-                continue
-            d = math.sqrt(rx * rx + ry * ry + rz * rz)
-            cs = abs(normal[i, 0] * rx + normal[i, 1] * ry + normal[i, 2] * rz) / d
-            if cs < cos_max - r / d:
-                continue
-            score = d / (focal[c] * math.sqrt(max(cs, cos_max)))
-            if score < sc[k - 1]:
-                j = k - 1
-                while j > 0 and score < sc[j - 1]:
-                    sc[j] = sc[j - 1]
-                    ix[j] = ix[j - 1]
-                    j -= 1
-                sc[j] = score
-                ix[j] = c
-        for j in range(k):
-            rank[i, j] = ix[j]
-        if ix[min_views - 1] >= 0:
-            best[i] = sc[0]
-    return rank, best
-
-
-def _rank_cameras(survey: PhotoSurvey, cams: Cameras, centre, normal, radius):
-    """Per piece: the `max_candidate_views` cameras that may see it, best interval first,
-    and the grid spacing of the best one (inf: fewer than min_views cameras)."""
-    cos_max = math.cos(math.radians(survey.max_incidence_deg))
-    k = min(survey.max_candidate_views, len(cams))
-    rank, best = _rank_kernel(np.ascontiguousarray(centre), np.ascontiguousarray(normal), radius,
-                              cams.position, np.ascontiguousarray(cams.rotation), cams.tan_half_w,
-                              cams.tan_half_h, cams.focal_m, cos_max, k, min(survey.min_views, k))
-    if k < survey.min_views:
-        best[:] = np.inf
-    return rank, survey.point_step_px * survey.pixel_pitch_um * 1e-6 * best
-
-
-def _make_pieces(survey, cams, verts, faces) -> _Pieces:
-    a, b, c = verts[faces[:, 0]], verts[faces[:, 1]], verts[faces[:, 2]]
-    area2 = np.linalg.norm(np.cross(b - a, c - a), axis=1)
-    keep = area2 > 2e-10
-    a, b, c, parent = _split_long_triangles(a[keep], b[keep], c[keep], np.flatnonzero(keep), _TILE_M)
-    n = np.cross(b - a, c - a)
-    n /= np.linalg.norm(n, axis=1, keepdims=True)
-    centre = (a + b + c) / 3
-    radius = np.max(np.stack([np.linalg.norm(p - centre, axis=1) for p in (a, b, c)]), axis=0)
-    rank, h = _rank_cameras(survey, cams, centre, n, radius)
-    return _Pieces(a, b, c, parent, n, rank, h)
-
-
-def _chunks(pieces: _Pieces):
-    """Deterministic runs of pieces with about _CHUNK_CELLS grid cells each."""
-    ab = np.linalg.norm(pieces.b - pieces.a, axis=1)
-    e1 = (pieces.b - pieces.a) / ab[:, None]
-    e2 = np.cross(pieces.normal, e1)
-    cx, cy = np.einsum("ij,ij->i", pieces.c - pieces.a, e1), np.einsum("ij,ij->i", pieces.c - pieces.a, e2)
-    w = np.maximum(ab, cx) - np.minimum(0, cx)
-    hh = np.abs(cy)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        cells = np.where(np.isfinite(pieces.h), (np.ceil(w / pieces.h) + 1) * (np.ceil(hh / pieces.h) + 1), 0)
-    sampled = np.flatnonzero(cells > 0)
-    bounds, acc, start = [], 0, 0
-    for i, n in zip(sampled, cells[sampled]):
-        acc += n
-        if acc >= _CHUNK_CELLS:
-            bounds.append((start, i + 1))
-            start, acc = i + 1, 0
-    if acc or not bounds:
-        bounds.append((start, len(pieces.h)))
-    return [(s, e) for s, e in bounds if s < e], e1, e2, cx, cy, ab
-
-
-# Simulation --------------------------------------------------------------------------
 
 @dataclass
 class DimSummary:
@@ -358,7 +221,7 @@ class _Sim:
         stats["rejected_by_angle"] = int(np.count_nonzero(~seen & (geometric < s.min_views)))
         stats["rejected_by_visibility"] = int(np.count_nonzero(~seen & (geometric >= s.min_views)))
         # density of the best view that really sees the point
-        h_best = _interval(s, cams, best, best_d, np.maximum(best_cos, 1e-6))
+        h_best = interval(s, cams, best, best_d, np.maximum(best_cos, 1e-6))
         u = rng.random(n)
         thin_keep = u < (p.h[g] / np.where(seen, h_best, np.inf)) ** 2
         stats["rejected_by_thinning"] = int(np.count_nonzero(seen & ~thin_keep))
@@ -370,87 +233,6 @@ class _Sim:
         ray = (pts - cams.position[cam]) / d[:, None]
         disp = ray * (sigma * rng.standard_normal(len(pts)))[:, None]
         return pts, disp, g, cam, stats
-
-
-def _crease_segments(verts, faces, face_building, crease_deg):
-    """Mesh edges that are creases (dihedral > crease_deg) or open edges of building faces.
-
-    Vertices are welded at 1 mm first, so triangle soups find their shared edges."""
-    key = np.round(verts / 1e-3).astype(np.int64)
-    _, weld = np.unique(key, axis=0, return_inverse=True)
-    weld = weld.ravel()
-    f = weld[faces]
-    a, b, c = verts[faces[:, 0]], verts[faces[:, 1]], verts[faces[:, 2]]
-    n = np.cross(b - a, c - a)
-    ln = np.linalg.norm(n, axis=1)
-    good = ln > 2e-10
-    n = n / np.where(good, ln, 1.0)[:, None]
-    fi = np.flatnonzero(good)
-    e = np.concatenate([f[fi][:, [0, 1]], f[fi][:, [1, 2]], f[fi][:, [2, 0]]])
-    ef = np.tile(fi, 3)
-    ev = np.concatenate([faces[fi][:, [0, 1]], faces[fi][:, [1, 2]], faces[fi][:, [2, 0]]])
-    e_sorted = np.sort(e, axis=1)
-    order = np.lexsort((e_sorted[:, 1], e_sorted[:, 0]))
-    es, ef, ev = e_sorted[order], ef[order], ev[order]
-    start = np.ones(len(es), bool)
-    start[1:] = np.any(es[1:] != es[:-1], axis=1)
-    group = np.cumsum(start) - 1
-    size = np.bincount(group)
-    first = np.flatnonzero(start)
-    cos_lim = math.cos(math.radians(crease_deg))
-    crease = np.zeros(len(first), bool)
-    # open edges of buildings
-    crease |= (size == 1) & (face_building[ef[first]] > 0)
-    # pairs (and beyond: any face of the edge against the first one); two-sided
-    for k in range(1, int(size.max()) if len(size) else 1):
-        has = size > k
-        fa, fb = ef[first[has]], ef[first[has] + k]
-        cosang = np.abs(np.einsum("ij,ij->i", n[fa], n[fb]))
-        crease[np.flatnonzero(has)[cosang < cos_lim]] = True
-    seg = ev[first[crease]]
-    return verts[seg[:, 0]], verts[seg[:, 1]]
-
-
-def _smooth(points, p0, p1, radius, piece_centre=None, piece_radius=None, piece=None):
-    """Pull points near crease segments towards the mean of their neighbours within
-    `radius` (in place), by a weight 1 - distance to the crease / radius. Only pieces
-    (centre, radius; `piece` = each point's piece) that reach the creases are searched.
-    Returns the number of points moved."""
-    from scipy.spatial import cKDTree
-
-    if radius <= 0 or not len(p0) or not len(points):
-        return 0
-    # samples along the creases, spaced radius/4: the nearest sample is within radius/8 of
-    # the nearest point on the segment
-    ln = np.linalg.norm(p1 - p0, axis=1)
-    k = np.maximum(1, np.ceil(ln / (radius / 4)).astype(np.int64))
-    seg = np.repeat(np.arange(len(ln)), k + 1)
-    tt = (np.arange(int((k + 1).sum())) - np.repeat(np.cumsum(k + 1) - (k + 1), k + 1)) / np.repeat(k, k + 1)
-    samples = p0[seg] + (p1 - p0)[seg] * tt[:, None]
-    tree = cKDTree(samples)
-    cand = np.arange(len(points))
-    if piece_centre is not None:
-        # a piece reaches a crease when its centre lies within its radius + 2 radius of a sample
-        dc, _ = tree.query(piece_centre, k=1, workers=-1)
-        reach = dc <= piece_radius + 2 * radius + radius / 8
-        cand = np.flatnonzero(reach[piece])
-    dist = np.full(len(points), np.inf)
-    dist[cand], _ = tree.query(points[cand], k=1, distance_upper_bound=2 * radius, workers=-1)
-    band = np.flatnonzero(np.isfinite(dist))
-    if not len(band):
-        return 0
-    near = band[dist[band] < radius]
-    if not len(near):
-        return 0
-    ptree = cKDTree(points[band])
-    dd, nb = ptree.query(points[near], k=16, distance_upper_bound=radius, workers=-1)
-    valid = np.isfinite(dd)
-    nbp = points[band][np.where(valid, nb, 0)]
-    cnt = valid.sum(axis=1)
-    mean = (nbp * valid[..., None]).sum(axis=1) / np.maximum(cnt, 1)[:, None]
-    w = np.clip(1.0 - dist[near] / radius, 0.0, 1.0)[:, None]
-    points[near] += w * (mean - points[near])
-    return len(near)
 
 
 @accepts_old_threads
@@ -469,8 +251,8 @@ def simulate_dim(scene: Scene, photo_survey: PhotoSurvey, out_path: str | os.Pat
     caster = RayCaster(scene)
     verts = scene.vertices - caster.local_origin
     cams = plan_cameras(s, caster.bounds_local, ground_level(scene) - caster.local_origin[2])
-    pieces = _make_pieces(s, cams, verts, scene.faces)
-    chunks, *geometry = _chunks(pieces)
+    pieces = make_pieces(s, cams, verts, scene.faces)
+    chunks, *geometry = work_chunks(pieces)
     summary = DimSummary(output=str(out_path), cameras=len(cams), stations=cams.stations, lines=cams.lines,
                          pieces=len(pieces.h), gsd_nadir_m=s.gsd_m, seed=seed)
     if not np.isfinite(pieces.h).any():
@@ -498,10 +280,10 @@ def simulate_dim(scene: Scene, photo_survey: PhotoSurvey, out_path: str | os.Pat
     cam = np.concatenate([r[3] for r in results])
     del results
     if s.smoothing_radius_m > 0:
-        p0, p1 = _crease_segments(verts, scene.faces, scene.face_building, s.crease_angle_deg)
+        p0, p1 = crease_segments(verts, scene.faces, scene.face_building, s.crease_angle_deg)
         pc = (pieces.a + pieces.b + pieces.c) / 3
         pr = np.max(np.stack([np.linalg.norm(x - pc, axis=1) for x in (pieces.a, pieces.b, pieces.c)]), axis=0)
-        summary.smoothed_points = _smooth(pts, p0, p1, s.smoothing_radius_m, pc, pr, g)
+        summary.smoothed_points = smooth(pts, p0, p1, s.smoothing_radius_m, pc, pr, g)
     pts += disp
     face = pieces.face[g]
     summary.points = len(pts)
