@@ -176,9 +176,11 @@ def fit_default_model(table, plan, config: dict, scores, *, seed: int = 0, comma
     provenance = {
         "created": datetime.date.today().isoformat(),
         "command": command,
+        # "quakescan.trainset" is the module's name when the shipped model was made: model files
+        # and their reports keep it, byte for byte (the module is now quakescan.learning.trainset)
         "dataset": (f"transfer training set '{plan.name}' (seed {plan.seed}): {len(plan.cities)} cities, "
                     f"{len(plan.pairs)} pairs, {len(table.y)} building rows; random acquisitions, "
-                    "cross-source pairs, mixed post-event cities (quakescan.learning.trainset)"),
+                    "cross-source pairs, mixed post-event cities (quakescan.trainset)"),
         "cities": [c.name for c in plan.cities],
         "rows_per_sensor_pair": sensors,
         "grades_train": {str(g): int(n) for g, n in zip(*np.unique(table.y, return_counts=True))},

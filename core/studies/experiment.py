@@ -397,8 +397,10 @@ def shipped_text(ev: Evaluation | None) -> str:
     if ev is None:
         return "The shipped default model was not found; no comparison with it."
     f1 = ", ".join(f"{GRADE_NAMES[g]} {metric_text(ev.per_grade[g], 'f1', unit='')}" for g in TARGET_GRADES)
+    # "quakescan.trainset" as in the reports of record (now quakescan.learning.trainset): the
+    # report's text stays the same bytes
     return (f"The shipped default model (`core/data/default_model.skops`: the transfer training set of "
-            f"`quakescan.learning.trainset`, nothing of this experiment's data), applied as it is to the same test pair: "
+            f"`quakescan.trainset`, nothing of this experiment's data), applied as it is to the same test pair: "
             f"overall accuracy {100 * ev.overall_accuracy:.1f} % on {ev.n} buildings ({ev.not_assessable} not "
             f"assessable); F1 {f1}; damaged vs undamaged F1 {metric_text(ev.damaged, 'f1')}.")
 
