@@ -40,8 +40,8 @@ SHARED = ROOT.parent / "shared" / "data"
 HALF_SEED = 5
 TOLERANCE = 0.30
 ZERO = 0.005
-ALS_RANGE_NOISE_M = 0.03  # mid-range of quakescan.acquisition.acquire.ALS_RANGE_NOISE_M
-ALS_MISALIGNMENT_M = 0.05  # mid-range of quakescan.acquisition.acquire.ALS_MISALIGNMENT_M
+ALS_RANGE_NOISE_M = 0.03  # mid-range of quakescan.acquisition.sensor_lidar.ALS_RANGE_NOISE_M
+ALS_MISALIGNMENT_M = 0.05  # mid-range of quakescan.acquisition.sensor_lidar.ALS_MISALIGNMENT_M
 CITIES = (("generic", 64, 81_001), ("region", 64, 81_002), ("rotterdam", None, 81_003))
 
 

@@ -7,7 +7,8 @@ import re
 import numpy as np
 import pytest
 
-from quakescan.change.align import Alignment, AlignmentError, align_epochs, format_alignment, rotation_angle_deg, stable_mask
+from quakescan.change.align import (Alignment, AlignmentError, align_epochs, format_alignment, rotation_angle_deg,
+                                    stable_mask)
 from quakescan.errors import QuakeScanError
 
 NOISE_M = 0.01

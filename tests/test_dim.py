@@ -9,7 +9,8 @@ import pytest
 
 from quakescan.acquisition.dim import simulate_dim
 from quakescan.acquisition.dim_cameras import plan_cameras
-from quakescan.acquisition.dim_settings import FIELD_DOC, PhotoSurvey, load_photo_survey, preset_dim, write_photo_survey_template
+from quakescan.acquisition.dim_settings import (FIELD_DOC, PhotoSurvey, load_photo_survey, preset_dim,
+                                                write_photo_survey_template)
 from quakescan.errors import SceneError, SurveyError
 from quakescan.acquisition.raycast import RayCaster, ground_level
 from quakescan.formats.scene import GROUND, ROOF, WALL, Building, Scene

@@ -2,7 +2,8 @@
 import numpy as np
 import pytest
 
-from quakescan.results.evaluation import EvaluationError, binary_metrics, evaluate_files, evaluate_grades, plot_confusion
+from quakescan.results.evaluation import (EvaluationError, binary_metrics, evaluate_files, evaluate_grades,
+                                          plot_confusion)
 
 
 def test_binary_metrics_by_hand():

@@ -11,7 +11,8 @@ import pytest
 from quakescan.acquisition import sensors
 from quakescan.acquisition.acquire import Acquisition, acquire, random_acquisition, sidecar_path
 from quakescan.errors import QuakeScanError, SurveyError
-from quakescan.formats.pointcloud import BUILDING_CLASS, GROUND_CLASS, UNCLASSIFIED, LasChunkWriter, PointChunk, read_epoch
+from quakescan.formats.pointcloud import (BUILDING_CLASS, GROUND_CLASS, UNCLASSIFIED, LasChunkWriter, PointChunk,
+                                          read_epoch)
 from quakescan.formats.scene import GROUND, Scene
 from quakescan.acquisition.survey import preset
 from quakescan.formats.synthetic import box_city

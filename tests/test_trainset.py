@@ -5,7 +5,8 @@ from dataclasses import asdict
 import numpy as np
 import pytest
 
-from quakescan.learning.default_model import TABLE_SETTINGS, TRANSFER_SETTINGS, data_limits, fit_default_model, model_columns, select_classifier, size_limit
+from quakescan.learning.default_model import (TABLE_SETTINGS, TRANSFER_SETTINGS, data_limits, fit_default_model,
+                                              model_columns, select_classifier, size_limit)
 from quakescan.learning.trainset import SENSOR_PAIRS, TrainingPlan, TrainingSetError, build, default_plan
 
 

@@ -1,1 +1,1 @@
-"""Acquisition: the sensor registry and the simulated sensors (ray caster, ULS/ALS scanner, DIM) that turn a scene into a point cloud."""
+"""Acquisition: the sensor registry and the simulated sensors (ray caster, ULS/ALS, DIM) that scan a scene."""

@@ -2,11 +2,12 @@
 training data varies the sensor the way real pre/post pairs do.
 
 An `Acquisition` is a sensor kind and the full settings that kind uses; the kinds and
-what each needs are those of the sensor registry `quakescan.acquisition.sensors` (built in: `uls` and
-`als`, a `quakescan.acquisition.survey.Survey`; `dim`, a `quakescan.acquisition.dim_settings.PhotoSurvey`). `acquire` runs
-one on a scene, resumably; `random_acquisition` draws one for the training set from the
-ranges its sensor documents (`quakescan.acquisition.sensor_lidar`, `quakescan.acquisition.sensor_dim`); the density of
-an epoch and a sparser copy of it are `quakescan.acquisition.density`'s.
+what each needs are those of the sensor registry `quakescan.acquisition.sensors` (built in:
+`uls` and `als`, a `quakescan.acquisition.survey.Survey`; `dim`, a
+`quakescan.acquisition.dim_settings.PhotoSurvey`). `acquire` runs one on a scene,
+resumably; `random_acquisition` draws one for the training set from the ranges its sensor
+documents (`quakescan.acquisition.sensor_lidar`, `quakescan.acquisition.sensor_dim`); the
+density of an epoch and a sparser copy of it are `quakescan.acquisition.density`'s.
 """
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """Laser scanning as registered sensors: `uls` (UAV laser scanning) and `als` (airborne
-laser scanning from an aircraft), both a `quakescan.acquisition.survey.Survey` flown by `quakescan.acquisition.scan.scan`,
-and the flight trajectory a scan's survey flies (`write_trajectory`).
+laser scanning from an aircraft), both a `quakescan.acquisition.survey.Survey` flown by
+`quakescan.acquisition.scan.scan`, and the flight trajectory a scan's survey flies (`write_trajectory`).
 
 Ranges of their random settings (`quakescan.acquisition.acquire.random_acquisition`; rates and
 densities log-uniformly, since their effects are multiplicative, everything else uniformly;

@@ -28,7 +28,8 @@ registers provides:
   makes the file appear only when complete. The same scene, settings and seed give the
   same bytes whatever `workers` (worker threads, -1: every core; a sensor that names it
   `threads`, the old name, gets it so); `progress` is None or a
-  `quakescan.runtime.progress.ProgressCallback`, called with (done, total); `source` names the scene in messages. It raises
+  `quakescan.runtime.progress.ProgressCallback`, called with (done, total); `source` names
+  the scene in messages. It raises
   `quakescan.errors.SceneError` or `SurveyError` when it cannot acquire the scene (nothing to
   see, no points) and returns a summary with `points` (int), `wall_time_s` (float) and
   `to_json()` (a JSON object, kept in the sidecar).

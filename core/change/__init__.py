@@ -1,1 +1,1 @@
-"""Change: from a pre/post pair of clouds to one descriptor row per building (features, split, levels of detection, surfaces)."""
+"""Change: from a pre/post pair to one descriptor row per building (features, split, LoD, M3C2, surfaces)."""

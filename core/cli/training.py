@@ -29,7 +29,8 @@ def _training_pairs(args) -> list:
 
 
 def _check_split_flags(args) -> None:
-    """The pipeline's flags in the ranges a model may hold (quakescan.change.pipeline, quakescan.change.split), named."""
+    """The pipeline's flags in the ranges a model may hold (quakescan.change.pipeline,
+    quakescan.change.split), named."""
     from ..change.pipeline import RADIUS_RANGE_M
     from ..change.split import LOD_CURVATURE_RANGE, LOD_HEIGHT_RANGE_M
 

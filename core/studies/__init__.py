@@ -1,1 +1,1 @@
-"""Studies: the experiments of record built on the stages (the paper's experiment, the robust-feature selection)."""
+"""Studies of record built on the stages: the paper's experiment and the robust-feature selection."""

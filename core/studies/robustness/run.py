@@ -10,7 +10,8 @@ from pathlib import Path
 
 from ...runtime.progress import ProgressCallback
 from .report import write_report
-from .selection import DEFAULT_SAMPLE, RADII, THRESHOLD_PCT, RobustnessError, RobustnessResult, check_spacing, robustness
+from .selection import (DEFAULT_SAMPLE, RADII, THRESHOLD_PCT, RobustnessError, RobustnessResult, check_spacing,
+                        robustness)
 
 log = logging.getLogger(__name__)
 
@@ -20,10 +21,10 @@ def run_experiment(pre_scene_dir: str | os.PathLike, post_scene_dir, out_dir: st
                    threshold_pct: float = THRESHOLD_PCT, sample: int | None = DEFAULT_SAMPLE,
                    spacing: float | None = None) -> RobustnessResult:
     """Scan the scenes with ULS (`survey`, default the paper preset) and DIM (`photo_survey`,
-    default the paper preset) into out_dir/clouds/ (`quakescan.acquisition.acquire.acquire`: a cloud made
-    from the same scene, survey and seed is kept, one of another run is made again), read
-    them all in the pre ULS cloud's frame, run `robustness` and write the report to out_dir. `post_scene_dir` is one post-event scene
-    folder (clouds {uls,dim}_post.las) or a sequence of them, the demolition stages in order
+    default the paper preset) into out_dir/clouds/ (`quakescan.acquisition.acquire.acquire`: a
+    cloud made from the same scene, survey and seed is kept, one of another run is made again),
+    read them all in the pre ULS cloud's frame, run `robustness` and write the report to
+    out_dir. `post_scene_dir` is one post-event scene folder (clouds {uls,dim}_post.las) or a sequence of them, the demolition stages in order
     (clouds {uls,dim}_post1.las, _post2.las, ...; stage k is scanned with seed + k).
     `spacing` thins every cloud before the features (module doc). `progress(done, total)`
     over the clouds and then the radii."""
