@@ -45,10 +45,10 @@ def city(work: Path, damage: str) -> tuple[Path, dict, float, list]:
     """The held-out city made with `damage`, its preset-acquired pairs, the generation seconds
     and the buildings whose collapse fell back to the patterns."""
     from quakescan.acquisition.acquire import Acquisition, acquire
-    from quakescan.demo import generate
     from quakescan.acquisition.dim_settings import preset_dim
-    from quakescan.formats.scene import read_scene
     from quakescan.acquisition.survey import preset
+    from quakescan.demo import generate
+    from quakescan.formats.scene import read_scene
 
     folder = work / f"city_{damage}"
     t0 = time.perf_counter()
@@ -150,13 +150,13 @@ def cross_generator(training_work: Path, model_path: str, tests: dict) -> dict:
     generator (and both), scored on the same described rows of every held-out pair."""
     import numpy as np
 
+    from quakescan.change.pipeline import descriptor_matrix
     from quakescan.learning.classification import model_settings
     from quakescan.learning.default_model import (CANDIDATES, TABLE_SETTINGS, cv_groups, model_columns, training_rows,
                                     transfer_training_table)
-    from quakescan.results.evaluation import evaluate_grades, read_truth
     from quakescan.learning.model import fit_classifier, load_model
-    from quakescan.change.pipeline import descriptor_matrix
     from quakescan.learning.trainset import PHYSICS_TWINS
+    from quakescan.results.evaluation import evaluate_grades, read_truth
 
     t0 = time.perf_counter()
     model = load_model(model_path)

@@ -44,9 +44,9 @@ def spacing(path: Path) -> tuple[float, float]:
 
 
 def main():
-    from quakescan.demo import generate
     from quakescan.acquisition.dim import simulate_dim
     from quakescan.acquisition.dim_settings import preset_dim
+    from quakescan.demo import generate
     from quakescan.formats.scene import read_scene
 
     if not (SCENE / "scene.json").is_file():

@@ -36,9 +36,9 @@ JAK = ("linearity", "planarity", "omnivariance", "surface_variation", "sphericit
 
 
 def cloud(min_points: int, seed: int = 1) -> np.ndarray:
-    from quakescan.formats.pointcloud import read_epoch
     from quakescan.acquisition.scan import scan
     from quakescan.acquisition.survey import preset
+    from quakescan.formats.pointcloud import read_epoch
     from quakescan.formats.synthetic import box_city
 
     rows = 4

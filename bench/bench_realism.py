@@ -66,8 +66,8 @@ def halves(las_path: Path, out: Path) -> tuple[Path, Path]:
 
 def describe(pre: Path, post: Path, footprints: Path, settings, limits) -> dict:
     """{descriptor: values over the assessable buildings} and the buildings' densities."""
-    from quakescan.learning.classification import load_pair
     from quakescan.change.pipeline import _quality_gate, describe_pair
+    from quakescan.learning.classification import load_pair
 
     data = load_pair(pre, post, footprints)
     rows = [_quality_gate(r, limits) for r in describe_pair(data.pre, data.post, settings)]

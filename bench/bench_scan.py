@@ -26,8 +26,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench._report import machine, peak_rss_mb, table, write_section  # noqa: E402
-from quakescan.formats.scene import read_scene, write_scene  # noqa: E402
 from quakescan.acquisition.survey import preset  # noqa: E402
+from quakescan.formats.scene import read_scene, write_scene  # noqa: E402
 from quakescan.formats.synthetic import box_city  # noqa: E402
 
 HELIOS_REFERENCE = "HELIOS++ 2.0.1 on this kind of machine (from the issue, not rerun here): " \
@@ -43,8 +43,8 @@ def paper_city():
 
 def worker(args) -> None:
     """One scan in this process; prints a JSON line with timings and peak memory."""
-    from quakescan.cli import tune_allocator
     from quakescan.acquisition.scan import scan
+    from quakescan.cli import tune_allocator
 
     if not args.default_allocator:
         tune_allocator()  # what the `quakescan` command does
@@ -90,9 +90,9 @@ def run_worker(scene_dir, mode, out, exact=False, one_line=False, extra=()) -> d
 
 def raw_embree(scene, max_rays=4_000_000) -> list:
     """Rays/s of embreex alone on the single-ray scan's rays, 1 and 2 threads."""
-    from quakescan.acquisition.raycast import RayCaster, ground_level
     from quakescan.acquisition.beams import Simulator
     from quakescan.acquisition.pulses import Pulses
+    from quakescan.acquisition.raycast import RayCaster, ground_level
     from quakescan.acquisition.scan import _batches
     from quakescan.acquisition.survey import plan_flight
 

@@ -174,8 +174,8 @@ class Study:
         key = (tag, part, radius, step)
         if key in self._desc:
             return self._desc[key]
-        from quakescan.learning.classification import load_pair
         from quakescan.change.pipeline import PipelineSettings, describe_pair, descriptor_matrix
+        from quakescan.learning.classification import load_pair
 
         settings = PipelineSettings(radius_m=radius, core_point_step=step)
         acq = self.acquisition(tag, part)
@@ -203,8 +203,8 @@ class Study:
     def row(self, knob: str, value, *, train_tags=("beam single",), test_tag="beam single", radius=1.5,
             step=1, trees=100) -> dict:
         from quakescan.learning.classification import predict_rows
-        from quakescan.results.evaluation import evaluate_grades
         from quakescan.learning.model import DamageModel, train_damage_forest
+        from quakescan.results.evaluation import evaluate_grades
 
         tables = [self.describe(t, "train", radius, step) for t in train_tags]
         test = self.describe(test_tag, "test", radius, step)
@@ -250,12 +250,12 @@ def warm_up(folder: Path, workers: int = -1) -> None:
     step, the forest) run once on a 2 × 2 box city, so no row pays for loading or compiling."""
     from quakescan.acquisition.dim import simulate_dim
     from quakescan.acquisition.dim_settings import preset_dim
-    from quakescan.learning.model import train_forest
-    from quakescan.change.pipeline import PipelineSettings, describe_pair
-    from quakescan.formats.pointcloud import read_epoch
     from quakescan.acquisition.scan import scan
     from quakescan.acquisition.survey import preset
+    from quakescan.change.pipeline import PipelineSettings, describe_pair
+    from quakescan.formats.pointcloud import read_epoch
     from quakescan.formats.synthetic import box_city
+    from quakescan.learning.model import train_forest
 
     folder.mkdir(parents=True, exist_ok=True)
     pre, post = box_city(rows=2, cols=2), box_city(rows=2, cols=2, height=(9.0, 3.0), epoch="post")

@@ -85,9 +85,9 @@ def test_city(work: Path, realistic: bool = False) -> tuple:
     `realistic`: the same city with roof and facade detail, trees, hedges, cars and street
     furniture (the generator's `typical`), to be labelled through its footprints."""
     from quakescan.acquisition.acquire import Acquisition, acquire
-    from quakescan.demo import generate
     from quakescan.acquisition.dim_settings import preset_dim
     from quakescan.acquisition.survey import preset
+    from quakescan.demo import generate
 
     city = work / ("test_city_realistic" if realistic else "test_city")
     look = {"details": "typical", "streetscape": "typical"} if realistic else {}
@@ -143,8 +143,8 @@ def flagged(csv_path: Path) -> tuple:
 
 def main(argv=None) -> int:
     from quakescan.learning.classification import DEFAULT_MODEL
-    from quakescan.results.evaluation import evaluate_files
     from quakescan.learning.model import load_model
+    from quakescan.results.evaluation import evaluate_files
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--work", default=str(ROOT / "out" / "bench_transfer"))
@@ -306,8 +306,8 @@ GROUPS = {
 def _describe_rows(pre, post, settings, footprints=None, limits=None):
     """Assessable rows of a pair; `limits`: the shipped model's pipeline settings, whose
     density and coverage limits decide what is assessable (as classify does)."""
-    from quakescan.learning.classification import load_pair
     from quakescan.change.pipeline import _quality_gate, describe_pair
+    from quakescan.learning.classification import load_pair
 
     data = load_pair(pre, post, footprints)
     rows = describe_pair(data.pre, data.post, settings)
@@ -319,11 +319,11 @@ def _describe_rows(pre, post, settings, footprints=None, limits=None):
 def ablation(work: Path, model, training_work: Path, city: Path, pairs: dict, real: list) -> dict:
     """Refit the shipped classifier without each descriptor group (and the other candidates)
     on the training set; score all on the same test rows."""
+    from quakescan.change.pipeline import descriptor_matrix
     from quakescan.learning.classification import model_settings
     from quakescan.learning.default_model import CANDIDATES, TABLE_SETTINGS, cv_groups, training_rows, transfer_training_table
-    from quakescan.results.evaluation import evaluate_grades, read_truth
     from quakescan.learning.model import fit_classifier
-    from quakescan.change.pipeline import descriptor_matrix
+    from quakescan.results.evaluation import evaluate_grades, read_truth
 
     print("ablation: training set and test descriptor tables", flush=True)
     t0 = time.perf_counter()

@@ -13,10 +13,7 @@ import quakescan.acquisition.scan
 from quakescan.acquisition.acquire import KINDS, Acquisition, acquire, random_acquisition, sidecar_path
 from quakescan.acquisition.density import measured_density, thin_to_density
 from quakescan.acquisition.dim_settings import preset_dim
-from quakescan.errors import PointCloudError, QuakeScanError, SurveyError
-from quakescan.formats.pointcloud import Epoch
 from quakescan.acquisition.scan import scan
-from quakescan.formats.scene import write_scene
 from quakescan.acquisition.sensor_dim import DIM_ALTITUDE_M, DIM_NOISE_PX, DIM_POINT_STEP_PX
 from quakescan.acquisition.sensor_lidar import (
     ALS_DENSITY_PTS_M2,
@@ -29,6 +26,9 @@ from quakescan.acquisition.sensor_lidar import (
     ULS_RANGE_NOISE_M,
 )
 from quakescan.acquisition.survey import als_for_density, preset
+from quakescan.errors import PointCloudError, QuakeScanError, SurveyError
+from quakescan.formats.pointcloud import Epoch
+from quakescan.formats.scene import write_scene
 from quakescan.formats.synthetic import box_city
 
 UTM = (500000.0, 5000000.0, 0.0)

@@ -5,8 +5,8 @@ import json
 import numpy as np
 import pytest
 
-from quakescan.runtime.atomic import commit, open_replacing, replacing, temp_path, write_bytes, write_json, write_text
 from quakescan.errors import PointCloudError, ResultsError
+from quakescan.runtime.atomic import commit, open_replacing, replacing, temp_path, write_bytes, write_json, write_text
 
 
 class Boom(Exception):

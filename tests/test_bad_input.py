@@ -99,8 +99,8 @@ def tiny_model(path, radius_m=1.5, split_edit=None, estimator=None, grades=(0, 3
     """A model file for the default paper descriptors (a small forest on random rows)."""
     from sklearn.ensemble import RandomForestClassifier
 
-    from quakescan.learning.model import DamageModel, save_model
     from quakescan.change.pipeline import PipelineSettings
+    from quakescan.learning.model import DamageModel, save_model
 
     settings = PipelineSettings()
     names = settings.descriptor_names()
@@ -257,8 +257,8 @@ def _enospc(*_a, **_k):
 
 
 def test_atomic_writer_names_the_output_of_a_full_disk_and_leaves_nothing(tmp_path):
-    from quakescan.runtime.atomic import replacing as _atomic  # the one atomic writer (results._atomic before)
     from quakescan.results.writers import ResultsError
+    from quakescan.runtime.atomic import replacing as _atomic  # the one atomic writer (results._atomic before)
 
     target = tmp_path / "sub" / "x.json"
     with pytest.raises(ResultsError, match=r"x\.json: cannot write: no space left"):
@@ -631,8 +631,8 @@ def test_align_with_too_few_stable_points_names_both_epochs(tmp_path, capsys):
 # ------------------------------------------------------------------------- caches elsewhere
 
 def test_an_unreadable_experiment_cache_is_recomputed(pair, tmp_path, caplog):
-    from quakescan.studies.experiment import _table
     from quakescan.change.pipeline import PipelineSettings
+    from quakescan.studies.experiment import _table
 
     settings = PipelineSettings()
     cache = tmp_path / "table"

@@ -148,9 +148,9 @@ def test_a_plan_of_too_many_lines_is_refused_before_it_is_made(tmp_path, capsys)
 
 
 def test_library_scan_refuses_bad_seed_and_threads(tmp_path):
-    from quakescan.errors import QuakeScanError
     from quakescan.acquisition.scan import scan
     from quakescan.acquisition.survey import preset
+    from quakescan.errors import QuakeScanError
 
     for kw, text in (({"seed": -1}, "seed must be an integer >= 0"), ({"seed": True}, "seed must be"),
                      ({"threads": -4}, "threads must be an integer >= 1")):
@@ -241,9 +241,9 @@ def test_far_vertices_are_refused(tmp_path, capsys, survey_file):
 
 
 def test_scan_of_a_scene_object_with_a_bad_crs_names_its_source(tmp_path):
-    from quakescan.errors import SceneError
     from quakescan.acquisition.scan import scan
     from quakescan.acquisition.survey import preset
+    from quakescan.errors import SceneError
 
     scene = box_city(rows=1, cols=1)
     scene.crs = "EPSG:999999"

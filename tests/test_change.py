@@ -2,11 +2,11 @@
 import numpy as np
 import pytest
 
+from quakescan.acquisition.scan import scan
+from quakescan.acquisition.survey import preset
 from quakescan.change.split import (ChangeError, SplitSettings, building_changes, feature_changes, lod_from_noise,
                          morton_order, nearest_neighbours, nearest_neighbours_reference, split_changed)
 from quakescan.formats.pointcloud import read_epoch
-from quakescan.acquisition.scan import scan
-from quakescan.acquisition.survey import preset
 from quakescan.formats.synthetic import box_city
 
 

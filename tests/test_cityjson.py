@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from quakescan.formats.cityjson import import_cityjson, parse_reference_system
 from quakescan.errors import SceneError
+from quakescan.formats.cityjson import import_cityjson, parse_reference_system
 from quakescan.formats.scene import GROUND, ROOF, WALL, read_scene, triangle_areas, validate_scene, write_scene
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"

@@ -6,10 +6,10 @@ import laspy
 import numpy as np
 import pytest
 
-from quakescan.learning.classification import classify, model_settings
-from quakescan.cli import main
-from quakescan.learning.model import ModelError, load_model, save_model
 from quakescan.change.pipeline import PipelineSettings
+from quakescan.cli import main
+from quakescan.learning.classification import classify, model_settings
+from quakescan.learning.model import ModelError, load_model, save_model
 from quakescan.learning.training import (
     TrainingError,
     TrainingPair,

@@ -6,8 +6,8 @@ import laspy
 import numpy as np
 import pytest
 
-from quakescan.learning.classification import classify, load_pair
 from quakescan.cli import main
+from quakescan.learning.classification import classify, load_pair
 
 pytestmark = pytest.mark.realdata
 

@@ -5,10 +5,10 @@ import laspy
 import numpy as np
 import pytest
 
+from quakescan.acquisition.survey import Survey, load_survey, preset
 from quakescan.cli import main
 from quakescan.errors import SurveyError
 from quakescan.formats.scene import write_scene
-from quakescan.acquisition.survey import Survey, load_survey, preset
 from quakescan.formats.synthetic import box_city
 
 
@@ -131,9 +131,9 @@ def test_import_cityjson_then_scan(tmp_path, shared_data):
 
 
 def test_features_command_adds_readable_dimensions(tmp_path, capsys):
+    from quakescan.acquisition.scan import scan
     from quakescan.change.features import compute_features
     from quakescan.formats.pointcloud import read_epoch
-    from quakescan.acquisition.scan import scan
 
     scan(box_city(rows=1, cols=2, origin=(500000.0, 5000000.0, 0.0)), preset("paper").replace(pulse_rate_hz=50_000.0),
          tmp_path / "in.las", seed=1)

@@ -95,8 +95,8 @@ def pair(tmp_path_factory):
 @pytest.fixture(scope="module")
 def small_model(pair, tmp_path_factory):
     """A 10-tree model on the paper's descriptors: quicker to apply than the shipped one."""
-    from quakescan.learning.model import save_model
     from quakescan.change.pipeline import PipelineSettings
+    from quakescan.learning.model import save_model
     from quakescan.learning.training import TrainingPair, train
 
     model, _, _ = train([TrainingPair(str(pair[0]), str(pair[1]))], PipelineSettings(), n_estimators=10,

@@ -2,10 +2,10 @@
 import numpy as np
 import pytest
 
-from quakescan.errors import PointCloudError
-from quakescan.formats.pointcloud import check_pair, read_epoch
 from quakescan.acquisition.scan import scan
 from quakescan.acquisition.survey import preset
+from quakescan.errors import PointCloudError
+from quakescan.formats.pointcloud import check_pair, read_epoch
 from quakescan.formats.synthetic import box_city
 
 

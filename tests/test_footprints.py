@@ -127,10 +127,10 @@ def test_parts_that_simplifying_makes_overlap_give_one_valid_outline():
 def scanned_region_city(tmp_path_factory):
     """A generated L'Aquila-like block city (attached buildings, courtyards, pitched roofs)
     scanned with the airborne preset."""
-    from quakescan.demo import generate
     from quakescan.acquisition.scan import scan
-    from quakescan.formats.scene import read_scene
     from quakescan.acquisition.survey import preset
+    from quakescan.demo import generate
+    from quakescan.formats.scene import read_scene
 
     folder = tmp_path_factory.mktemp("region_city")
     generate("region", "mixed", 12, 4, folder / "city")

@@ -5,12 +5,12 @@ import laspy
 import numpy as np
 import pytest
 
-from quakescan.errors import SceneError
-from quakescan.acquisition.reflectance import MATERIAL_REFLECTANCE, SURFACE_REFLECTANCE, intensity
 from quakescan.acquisition.raycast import ground_level
+from quakescan.acquisition.reflectance import MATERIAL_REFLECTANCE, SURFACE_REFLECTANCE, intensity
 from quakescan.acquisition.scan import scan
-from quakescan.formats.scene import GROUND, ROOF, read_scene, write_scene
 from quakescan.acquisition.survey import FlightLine, preset
+from quakescan.errors import SceneError
+from quakescan.formats.scene import GROUND, ROOF, read_scene, write_scene
 from quakescan.formats.synthetic import box_city, flat_ground
 
 R_REF = 40.0

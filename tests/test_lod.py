@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from quakescan.change.split import SplitSettings
 from quakescan.change.lod import CalibrationError, calibrate
+from quakescan.change.split import SplitSettings
 from quakescan.formats.pointcloud import Epoch, read_epoch
 from tests.scenes import HEIGHTS, scan_box_pair
 

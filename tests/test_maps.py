@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import shapely.geometry
 
-from quakescan.results import writers as R
 from quakescan.grades import GRADE_NAMES, long_label
+from quakescan.results import writers as R
 from quakescan.results.qgis_style import GRADE_FIELD, write_qml
 from quakescan.results.webmap import write_map_html
 

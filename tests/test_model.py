@@ -110,9 +110,9 @@ def test_the_forest_learns_only_from_buildings_with_changed_points():
 def test_a_forest_that_never_saw_grade_0_still_reports_it_by_rule():
     """Only destroyed buildings changed in training: the forest knows one grade; a building
     without changes is still "no damage" with p_0 = 1 in the results."""
+    from quakescan.change.pipeline import BuildingRow
     from quakescan.learning.classification import predict_rows
     from quakescan.learning.model import train_damage_forest
-    from quakescan.change.pipeline import BuildingRow
 
     names = ["share_changed", "height_median"]
     x = np.array([[0.0, 0.0], [0.0, 0.0], [0.6, -4.0], [0.7, -5.0]])
@@ -272,8 +272,8 @@ def test_a_model_file_of_the_first_format_loads_and_predicts_as_before(tmp_path)
     predict_proba give."""
     import skops.io as sio
 
-    from quakescan.learning.classification import predict_rows
     from quakescan.change.pipeline import BuildingRow, PipelineSettings
+    from quakescan.learning.classification import predict_rows
 
     settings = PipelineSettings()
     names = settings.descriptor_names()
@@ -385,9 +385,9 @@ def test_rule_off_keeps_calibration_groups_row_for_row():
 def test_a_model_without_the_rule_is_asked_about_unchanged_buildings(tmp_path):
     import skops.io as sio
 
+    from quakescan.change.pipeline import BuildingRow
     from quakescan.learning.classification import predict_rows
     from quakescan.learning.model import TRUSTED_TYPES, VERSION_ALL_ROWS, train_damage_forest
-    from quakescan.change.pipeline import BuildingRow
 
     names = ["share_changed", "height_median"]
     x, y = _rows_with_unchanged_heavy()
@@ -435,8 +435,8 @@ def test_confidence_is_the_predicted_class_probability_and_margin_its_lead():
 
 
 def test_predict_rows_puts_the_confidence_on_each_building(model):
-    from quakescan.learning.classification import predict_rows
     from quakescan.change.pipeline import BuildingRow
+    from quakescan.learning.classification import predict_rows
 
     m, x = model
     names = ["share_changed", "b", "c"]

@@ -2,7 +2,6 @@
 import numpy as np
 import pytest
 
-from quakescan.change.split import SplitSettings, nearest_neighbours
 from quakescan.change.pipeline import (
     PAPER_FEATURES,
     GridIndex,
@@ -12,6 +11,7 @@ from quakescan.change.pipeline import (
     describe_pair,
     settings_for_descriptors,
 )
+from quakescan.change.split import SplitSettings, nearest_neighbours
 from quakescan.formats.pointcloud import Epoch, read_epoch
 from tests.scenes import UTM, scan_box_pair
 

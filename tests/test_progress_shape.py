@@ -75,9 +75,9 @@ def test_every_parallel_function_takes_workers_defaulting_to_every_core():
 
 
 def test_the_api_takes_workers_and_still_its_old_name(tmp_path):
-    from quakescan.errors import QuakeScanError
     from quakescan.acquisition.scan import scan
     from quakescan.acquisition.survey import preset
+    from quakescan.errors import QuakeScanError
     from tests.scenes import box_city
 
     for fn in (quakescan.acquire, quakescan.describe, quakescan.train, quakescan.classify):

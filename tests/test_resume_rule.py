@@ -11,12 +11,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from quakescan.runtime import fingerprint
 from quakescan.acquisition.acquire import Acquisition, acquire
+from quakescan.acquisition.survey import als_for_density
 from quakescan.cli import main
 from quakescan.formats.scene import write_scene
-from quakescan.acquisition.survey import als_for_density
 from quakescan.formats.synthetic import box_city
+from quakescan.runtime import fingerprint
 
 REPO = Path(__file__).resolve().parents[1]
 SMALL_SURVEY = {"format": "quakescan-survey", "version": 1, "pulse_rate_hz": 50_000.0}
@@ -170,9 +170,9 @@ def test_experiment_tables_and_levels_of_detection_follow_their_inputs_and_setti
     import quakescan.learning.classification
     import quakescan.change.lod
     import quakescan.change.pipeline
-    from quakescan.studies.experiment import ExperimentSettings, _levels_of_detection, _table
     from quakescan.change.lod import LevelsOfDetection
     from quakescan.change.pipeline import BuildingRow, PipelineSettings
+    from quakescan.studies.experiment import ExperimentSettings, _levels_of_detection, _table
 
     for name in ("pre.las", "post.las", "rescan.las"):
         (tmp_path / name).write_bytes(b"a cloud")

@@ -9,9 +9,12 @@ import shutil
 import numpy as np
 import pytest
 
-from quakescan.cli import main
 from quakescan.acquisition.dim_settings import preset_dim
+from quakescan.acquisition.survey import preset
+from quakescan.cli import main
 from quakescan.formats.pointcloud import Epoch
+from quakescan.formats.scene import write_scene
+from quakescan.formats.synthetic import box_city
 from quakescan.studies.robustness.report import write_report
 from quakescan.studies.robustness.run import run_experiment
 from quakescan.studies.robustness.selection import (
@@ -30,9 +33,6 @@ from quakescan.studies.robustness.selection import (
     thin,
     thin_index,
 )
-from quakescan.formats.scene import write_scene
-from quakescan.acquisition.survey import preset
-from quakescan.formats.synthetic import box_city
 
 PNG = b"\x89PNG\r\n\x1a\n"
 

@@ -5,11 +5,11 @@ import laspy
 import numpy as np
 import pytest
 
-from quakescan.errors import SceneError, SurveyError
 from quakescan.acquisition.raycast import RayCaster, ground_level
 from quakescan.acquisition.scan import scan
-from quakescan.formats.scene import GROUND, ROOF, WALL, Scene
 from quakescan.acquisition.survey import FlightLine, plan_flight, preset
+from quakescan.errors import SceneError, SurveyError
+from quakescan.formats.scene import GROUND, ROOF, WALL, Scene
 from quakescan.formats.synthetic import box_city, flat_ground
 from tests.las_contract import CONTRACT_ORIGIN, read_checked
 from tests.spacing import nearest_neighbour_spacing
@@ -464,10 +464,10 @@ def test_als_over_a_300_m_scene_with_one_line_or_the_plan(tmp_path):
 
 
 def test_the_flight_plan_is_estimated_before_scanning_and_dry_run_scans_nothing(tmp_path, capsys):
-    from quakescan.cli import main
     from quakescan.acquisition.scan import estimate_scan, scan
-    from quakescan.formats.scene import write_scene
     from quakescan.acquisition.survey import preset
+    from quakescan.cli import main
+    from quakescan.formats.scene import write_scene
     from quakescan.formats.synthetic import box_city
 
     scene = box_city(rows=1, cols=2)

@@ -3,11 +3,11 @@ import json
 
 import pytest
 
-from quakescan.acquisition.raycast import ground_level
 from quakescan.acquisition.pulses import pulse_count
+from quakescan.acquisition.raycast import ground_level
 from quakescan.acquisition.scan import scan
-from quakescan.formats.scene import write_scene
 from quakescan.acquisition.survey import plan_flight, preset
+from quakescan.formats.scene import write_scene
 from quakescan.formats.synthetic import box_city
 
 # 60° FOV at 50 m: 23 m between lines, five lines over a 3 × 2 box city

@@ -10,11 +10,11 @@ import pytest
 
 from quakescan.acquisition import sensors
 from quakescan.acquisition.acquire import Acquisition, acquire, random_acquisition, sidecar_path
+from quakescan.acquisition.survey import preset
 from quakescan.errors import QuakeScanError, SurveyError
 from quakescan.formats.pointcloud import (BUILDING_CLASS, GROUND_CLASS, UNCLASSIFIED, LasChunkWriter, PointChunk,
                                           read_epoch)
 from quakescan.formats.scene import GROUND, Scene
-from quakescan.acquisition.survey import preset
 from quakescan.formats.synthetic import box_city
 
 UTM = (500000.0, 5000000.0, 0.0)

@@ -4,7 +4,6 @@ import numpy as np
 import pytest
 
 from quakescan.change.pipeline import PipelineSettings, describe_pair
-from quakescan.formats.pointcloud import Epoch
 from quakescan.change.surface import (
     SURFACE_DESCRIPTORS,
     SurfaceError,
@@ -13,6 +12,7 @@ from quakescan.change.surface import (
     describe_surfaces,
     planimetric_density,
 )
+from quakescan.formats.pointcloud import Epoch
 
 
 def sample_box(rng, density, x0, y0, x1, y1, top, noise=0.01, base=0.0, walls=True):

@@ -5,13 +5,13 @@ import laspy
 import numpy as np
 import pytest
 
-from quakescan.errors import SceneError
 from quakescan.acquisition.raycast import RayCaster
 from quakescan.acquisition.scan import scan
-from quakescan.formats.scene import OBJECT, VEGETATION, read_scene, write_scene
 from quakescan.acquisition.survey import preset
-from quakescan.formats.synthetic import box_city, box_mesh, flat_ground, with_trees
 from quakescan.acquisition.vegetation import RayIds
+from quakescan.errors import SceneError
+from quakescan.formats.scene import OBJECT, VEGETATION, read_scene, write_scene
+from quakescan.formats.synthetic import box_city, box_mesh, flat_ground, with_trees
 
 
 def _nadir_rays_over_disc(caster, radius, n_side=120, z=30.0):
