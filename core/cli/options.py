@@ -11,16 +11,11 @@ from ..errors import QuakeScanError
 from ..runtime.workers import EVERY_CORE
 from .reporting import note
 
-
 # One knob with one default in every command: -1, every core, as the library's `workers`
 # (`quakescan.runtime.workers`); outputs are the same bytes whatever it is, so the fastest is the default.
 THREADS_HELP = "worker threads, >= 1, or -1 for every core (default: -1); the results do not depend on it"
-
-
 PROGRESS_HELP = ("show progress (done/total, %%, elapsed, ETA) even when stderr is not a terminal; "
                  "on a terminal it is shown unless -q")
-
-
 QUIET_HELP = "no progress, stage messages or notes on stderr (warnings and errors stay)"
 
 

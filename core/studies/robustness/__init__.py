@@ -1,2 +1,1 @@
-"""The ULS-vs-DIM robust-feature selection (Zahs et al.): the maths (`selection`), its report
-(`report`, `plots`) and the run from scene bundles (`run`)."""
+"""The ULS-vs-DIM robust-feature selection (Zahs et al.): its maths, report, figures and run from scenes."""
