@@ -272,7 +272,7 @@ def test_survey_that_misses_the_scene(tmp_path):
     ("single", "rotating_polygon", 0.05), ("adaptive", "oscillating_mirror", 0.05)])
 def test_compiled_loops_match_the_numpy_reference(tmp_path, beam, deflector, misalignment):
     """The numba kernels (pulses, rays, hit refinement, LAS packing) give the same bytes as
-    the plain numpy implementation kept beside them, strip misalignment included."""
+    their numpy references (`_scan_reference`), strip misalignment included."""
     scene = box_city(rows=1, cols=2, origin=(500000.0, 5000000.0, 0.0))
     s = preset("paper").replace(beam=beam, deflector=deflector, pulse_rate_hz=60_000.0,
                                 strip_misalignment_m=misalignment)

@@ -2,8 +2,8 @@
 
 Each loop is one pass over a batch that numpy would do in ten: building rays, refining
 Embree's hits in float64 and packing LAS records. They are plain loops with the same
-arithmetic as the numpy references in `quakescan.acquisition.pulses` and
-`quakescan.acquisition.beams` (tests compare the two).
+arithmetic as their numpy references of the same names in `_scan_reference` (tests compare
+each pair, and whole scans of both byte for byte).
 """
 from __future__ import annotations
 
@@ -157,7 +157,7 @@ def fov_pulses(lo, hi, t_start, prr, rate, g0, half_sweep, half_fov, oscillating
     aimed window [aim_lo, aim_hi]: index, time, angle, sweep direction, edge-of-line flag
     (the next pulse starts a new scan line or leaves the FOV) and the pulse's rank among
     all pulses inside the FOV. Also returns that count. Same arithmetic as
-    `pulses.deflection`."""
+    `_scan_reference.deflect`."""
     n_max = 0
     for i in range(lo.shape[0]):
         n_max += max(hi[i] - lo[i] + 1, 0)
@@ -196,36 +196,10 @@ def fov_pulses(lo, hi, t_start, prr, rate, g0, half_sweep, half_fov, oscillating
 
 
 @njit(**_JIT)
-def flag_discontinuities(origins, directions, t, face, normals, offsets, tau):
-    """Pulses whose footprint may straddle a depth discontinuity: for every pair (i, i+s),
-    s in `offsets`, flag both when exactly one of them hits, or when either hit point lies
-    farther than `tau` from the plane of the other's hit face."""
-    n = face.shape[0]
-    flag = np.zeros(n, np.bool_)
-    for s in offsets:
-        for i in range(n - s):
-            j = i + s
-            fi, fj = face[i], face[j]
-            if fi < 0 and fj < 0:
-                continue
-            edge = (fi < 0) != (fj < 0)
-            if not edge:
-                off_i = 0.0
-                off_j = 0.0
-                for k in range(3):
-                    diff = (origins[j, k] + directions[j, k] * t[j]) - (origins[i, k] + directions[i, k] * t[i])
-                    off_i += normals[fi, k] * diff
-                    off_j += normals[fj, k] * diff
-                edge = abs(off_i) > tau or abs(off_j) > tau
-            if edge:
-                flag[i] = True
-                flag[j] = True
-    return flag
-
-
-@njit(**_JIT)
 def flag_discontinuities_rows(n_ext, segments, offsets, normals, tau):
-    """`flag_discontinuities` over pulses given as rows of several segments.
+    """Pulses whose footprint may straddle a depth discontinuity: for every pair (i, i+s) of
+    n_ext consecutive pulses, s in `offsets`, flag both when exactly one of them hits, or
+    when either hit point lies farther than `tau` from the plane of the other's hit face.
 
     `segments` is a tuple of (pos, origins, directions, t, face) for the pulses that were
     cast, pos being each row's index among all n_ext consecutive pulses; a pulse that was

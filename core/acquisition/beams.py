@@ -1,7 +1,7 @@
 """From pulses to points: how the scanner's rays become returns, noisy ranges, intensities
 and packed LAS records, one batch of pulses at a time (`Simulator.run_batch`, run on the
 worker threads of `quakescan.acquisition.scan`; compiled loops in `_scan_kernels`, their
-numpy reference beside them here, `fast=False`).
+numpy references in `_scan_reference`, `fast=False`).
 
 Numerics: rays are cast by `quakescan.acquisition.raycast.RayCaster` (local origin, float32 only at the
 Embree boundary, hits refined in float64), so a scene at UTM coordinates gives the same
@@ -44,6 +44,7 @@ import numpy as np
 from ..errors import PointCloudError
 from ..formats.pointcloud import SCALE, PointChunk
 from .pulses import Batch, Pulses, pulse_count
+from ._scan_reference import loops
 from .raycast import RayCaster
 from .survey import FlightLine, Survey
 
@@ -254,13 +255,8 @@ class Simulator:
             stats["rays_cast"] += len(part)
             segments.append((offset + part.rank, rays[0], rays[1], np.where(f_ >= 0, t_, 0.0), f_))
         offsets = np.array(self.neighbour_offsets, np.int64)
-        if self.fast:
-            from ._scan_kernels import flag_discontinuities_rows
-
-            flag = flag_discontinuities_rows(n_ext, tuple(segments), offsets, self.caster.normals,
-                                             s.adaptive_edge_m)[1]
-        else:
-            flag = self._flag_reference(n_ext, segments, offsets)[1]
+        flag = loops(self.fast).flag_discontinuities_rows(n_ext, tuple(segments), offsets, self.caster.normals,
+                                                          s.adaptive_edge_m)[1]
         face, t = segments[1][4], np.where(segments[1][4] >= 0, segments[1][3], np.inf)
         flagged = np.flatnonzero(flag)
         stats["pulses_with_sub_rays"] += len(flagged)
@@ -274,29 +270,6 @@ class Simulator:
                 np.concatenate([t[plain], f_rng])[order], np.concatenate([ones, f_ret])[order],
                 np.concatenate([ones, f_nret])[order])
 
-    def _flag_reference(self, n_ext, segments, offsets):
-        """Numpy reference of `_scan_kernels.flag_discontinuities_rows`."""
-        s = self.survey
-        face = np.full(n_ext, -1, np.int64)
-        p = np.zeros((n_ext, 3))
-        for pos, o, d, t, f in segments:
-            face[pos] = f
-            p[pos] = o + d * t[:, None]
-        hit = face >= 0
-        nrm = self.caster.normals[np.where(hit, face, 0)]
-        flag = np.zeros(n_ext, bool)
-        for step in offsets:
-            a = np.arange(n_ext - step)
-            b = a + step
-            diff = p[b] - p[a]
-            off_a = np.abs(np.einsum("ij,ij->i", nrm[a], diff))
-            off_b = np.abs(np.einsum("ij,ij->i", nrm[b], diff))
-            both = hit[a] & hit[b]
-            edge = (hit[a] != hit[b]) | (both & ((off_a > s.adaptive_edge_m) | (off_b > s.adaptive_edge_m)))
-            flag[a] |= edge
-            flag[b] |= edge
-        return [flag[pos] for pos, *_ in segments]
-
     def _full_beam(self, origins, dirs, plane_normal, stats, count=True, ids=None):
         """Sub-rays over the footprints of the given pulses; returns formed per pulse.
         `ids` = (flight line, pulse index j per given pulse) for the crowns' transmission draws.
@@ -308,12 +281,8 @@ class Simulator:
         if n == 0:
             return (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros(0, np.uint8),
                     np.zeros(0, np.uint8))
-        if self.fast:
-            from ._scan_kernels import form_returns, sub_rays
-
-            sub = sub_rays(dirs, plane_normal, self.sub_offsets)
-        else:
-            sub = self._sub_rays_reference(dirs, plane_normal)
+        loop = loops(self.fast)
+        sub = loop.sub_rays(dirs, plane_normal, self.sub_offsets)
         org = np.repeat(origins, k, axis=0)
         face, t = self.caster.cast(org, sub, s.max_range_m, fast=self.fast,
                                    ray_ids=self.ray_ids(ids[0], ids[1], k) if ids is not None else None)
@@ -321,58 +290,7 @@ class Simulator:
         if count:
             stats["pulses_with_sub_rays"] += n
         face, t = face.reshape(n, k), t.reshape(n, k)
-        if self.fast:
-            return form_returns(t, face, self.sub_weights, s.echo_separation_m, s.min_echo_energy, s.max_returns)
-        return self._returns_reference(t, face)
-
-    def _sub_rays_reference(self, dirs, plane_normal):
-        e1 = np.broadcast_to(plane_normal, dirs.shape)
-        e2 = np.cross(dirs, e1)
-        sub = (dirs[:, None, :] + self.sub_offsets[None, :, 0, None] * e1[:, None, :]
-               + self.sub_offsets[None, :, 1, None] * e2[:, None, :])
-        sub /= np.sqrt((sub * sub).sum(axis=2, keepdims=True))
-        return sub.reshape(-1, 3)
-
-    def _returns_reference(self, t, face):
-        """Numpy reference of `_scan_kernels.form_returns`."""
-        s = self.survey
-        n = len(t)
-        order = np.argsort(t, axis=1, kind="stable")
-        t = np.take_along_axis(t, order, 1)
-        face = np.take_along_axis(face, order, 1)
-        w = self.sub_weights[order]
-        finite = np.isfinite(t)
-        with np.errstate(invalid="ignore"):
-            gap = np.diff(t, axis=1) > s.echo_separation_m
-        echo = np.concatenate([np.zeros((n, 1), np.int64), np.cumsum(gap, axis=1)], axis=1)
-        rows_i, rows_ret, rows_face, rows_rng = [], [], [], []
-        det_count = np.zeros(n, np.int64)
-        kmax = int(echo[finite].max()) + 1 if finite.any() else 0
-        for e in range(kmax):
-            m = finite & (echo == e)
-            energy = np.zeros(n)
-            weighted = np.zeros(n)
-            for j in range(m.shape[1]):  # sequential sums, in the kernel's order
-                energy += np.where(m[:, j], w[:, j], 0.0)
-                weighted += np.where(m[:, j], w[:, j] * np.where(m[:, j], t[:, j], 0.0), 0.0)
-            ok = (energy >= s.min_echo_energy) & (energy > 0) & (det_count < s.max_returns)
-            if not ok.any():
-                continue
-            okr = np.flatnonzero(ok)
-            rows_i.append(okr)
-            rows_ret.append(det_count[okr] + 1)
-            rows_face.append(face[okr, np.argmax(np.where(m, w, -1.0), axis=1)[ok]])
-            rows_rng.append(weighted[ok] / energy[ok])
-            det_count[okr] += 1
-        if not rows_i:
-            return (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros(0, np.uint8),
-                    np.zeros(0, np.uint8))
-        pi = np.concatenate(rows_i)
-        ret = np.concatenate(rows_ret)
-        order = np.lexsort((ret, pi))  # pulse-major, return-minor: scan order
-        pi, ret = pi[order], ret[order]
-        return (pi, np.concatenate(rows_face)[order], np.concatenate(rows_rng)[order],
-                ret.astype(np.uint8), det_count[pi].astype(np.uint8))
+        return loop.form_returns(t, face, self.sub_weights, s.echo_separation_m, s.min_echo_energy, s.max_returns)
 
 
 # Spawn key of the strip-misalignment stream: keeps it apart from the range-noise stream,

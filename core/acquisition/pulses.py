@@ -8,6 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ._scan_reference import loops
 from .survey import FlightLine, Survey
 
 
@@ -24,18 +25,6 @@ class Batch:
 def pulse_count(survey: Survey, line: FlightLine) -> int:
     """Pulses the scanner fires along `line` (all of the sweep, inside the FOV or not)."""
     return int(math.floor(line.duration_s * survey.pulse_rate_hz)) + 1
-
-
-def deflection(survey: Survey, t: np.ndarray):
-    """Scan angle (rad, 0 = nadir, + = right), scan-line number and sweep direction at GPS times t."""
-    phase = (t - survey.gps_start_s) * survey.scan_rate_hz
-    scan_line = np.floor(phase)
-    frac = phase - scan_line
-    half = survey.sweep_rad / 2
-    if survey.deflector == "rotating_polygon":
-        return -half + 2 * half * frac, scan_line, np.ones(len(t), bool)
-    forward = (scan_line.astype(np.int64) % 2) == 0
-    return np.where(forward, -half + 2 * half * frac, half - 2 * half * frac), scan_line, forward
 
 
 def fov_runs(survey: Survey, line: FlightLine, j0: int, j1: int):
@@ -76,14 +65,9 @@ class Pulses:
         half_fov = math.radians(survey.fov_deg) / 2 + 1e-12
         aim_lo, aim_hi = self._angle_window(box, line.t_start + j0 / survey.pulse_rate_hz,
                                             line.t_start + (j1 - 1) / survey.pulse_rate_hz) if j1 > j0 else (0, 0)
-        if fast:
-            from ._scan_kernels import fov_pulses
-
-            self.j, self.t, self.theta, self.forward, self.edge, self.rank, self.n_fov = fov_pulses(
-                lo, hi, line.t_start, survey.pulse_rate_hz, survey.scan_rate_hz, survey.gps_start_s,
-                survey.sweep_rad / 2, half_fov, survey.deflector == "oscillating_mirror", aim_lo, aim_hi)
-        else:
-            self._numpy_pulses(survey, line, lo, hi, half_fov, aim_lo, aim_hi)
+        self.j, self.t, self.theta, self.forward, self.edge, self.rank, self.n_fov = loops(fast).fov_pulses(
+            lo, hi, line.t_start, survey.pulse_rate_hz, survey.scan_rate_hz, survey.gps_start_s,
+            survey.sweep_rad / 2, half_fov, survey.deflector == "oscillating_mirror", aim_lo, aim_hi)
 
     def _angle_window(self, box: np.ndarray, t_first: float, t_last: float) -> tuple[float, float]:
         """Scan angles that can reach the box from anywhere between two times (conservative).
@@ -102,35 +86,10 @@ class Pulses:
         angles = np.concatenate(angles)
         return float(angles.min()), float(angles.max())
 
-    def _numpy_pulses(self, survey, line, lo, hi, half_fov, aim_lo, aim_hi):
-        """Numpy reference of `_scan_kernels.fov_pulses`."""
-        counts = np.maximum(hi - lo + 1, 0)
-        j = np.repeat(lo, counts) + np.arange(int(counts.sum())) - np.repeat(np.cumsum(counts) - counts, counts)
-        t = line.t_start + j / survey.pulse_rate_hz
-        theta, scan_line, forward = deflection(survey, t)
-        inside = np.abs(theta) <= half_fov
-        next_theta, next_line, _ = deflection(survey, t + 1.0 / survey.pulse_rate_hz)
-        edge = (next_line != scan_line) | (np.abs(next_theta) > half_fov)
-        rank = np.cumsum(inside) - 1
-        keep = inside & (theta >= aim_lo) & (theta <= aim_hi)
-        self.j, self.t, self.theta, self.forward = j[keep], t[keep], theta[keep], forward[keep]
-        self.edge, self.rank, self.n_fov = edge[keep], rank[keep], int(inside.sum())
-
     def __len__(self):
         return len(self.j)
 
     def rays(self, fast: bool = True):
         """(origins, directions, origins32, directions32) of the pulses, local frame."""
-        if fast:
-            from ._scan_kernels import pulse_rays
-
-            return pulse_rays(self.t, self.theta, self.line.t_start, self.start_local,
-                              self.velocity, self.down, self.right)
-        dt = self.t - self.line.t_start
-        c, s = np.cos(self.theta), np.sin(self.theta)
-        o = np.empty((len(dt), 3))
-        d = np.empty((len(dt), 3))
-        for k in range(3):
-            o[:, k] = self.start_local[k] + dt * self.velocity[k]
-            d[:, k] = c * self.down[k] + s * self.right[k]
-        return o, d, o.astype(np.float32), d.astype(np.float32)
+        return loops(fast).pulse_rays(self.t, self.theta, self.line.t_start, self.start_local, self.velocity,
+                                      self.down, self.right)

@@ -14,6 +14,7 @@ import numpy as np
 from ..errors import SceneError
 from ..formats.pointcloud import BUILDING_CLASS, GRADE_UNKNOWN, GROUND_CLASS, UNCLASSIFIED
 from ..formats.scene import GROUND, VEGETATION, Scene
+from ._scan_reference import loops
 
 
 class RayCaster:
@@ -82,37 +83,13 @@ class RayCaster:
             from .vegetation import pass_porous
 
             face = pass_porous(self, origins, directions, face, max_range, ray_ids)
-        if fast:
-            from ._scan_kernels import refine_hits
-
-            return face, refine_hits(origins, directions, face, self.normals, self.plane_d, float(max_range))
-        return face, self._refine_reference(origins, directions, face, max_range)
+        return face, loops(fast).refine_hits(origins, directions, face, self.normals, self.plane_d, float(max_range))
 
     def embree_faces(self, origins32: np.ndarray, directions32: np.ndarray, max_range: float) -> np.ndarray:
         """Face hit by each float32 ray (int32, -1 = none); Embree alone, GIL released.
         `max_range`: one distance, or one per ray (float32 array)."""
         dists = max_range if isinstance(max_range, np.ndarray) else float(max_range)
         return self._embree.run(origins32, directions32, dists=dists, output=0)
-
-    def _refine_reference(self, origins, directions, face, max_range):
-        """Numpy reference of `_scan_kernels.refine_hits` (same results, more passes)."""
-        t = np.full(len(face), np.inf)
-        hit = face >= 0
-        if hit.any():
-            fh = face[hit]
-            nrm = self.normals[fh]
-            num = self.plane_d[fh] - np.einsum("ij,ij->i", nrm, origins[hit])
-            den = np.einsum("ij,ij->i", nrm, directions[hit])
-            with np.errstate(divide="ignore", invalid="ignore"):
-                th = num / den
-            # A ray that Embree reports on a face but that is exactly parallel to its plane in
-            # float64 (grazing) has no defined hit point: drop it instead of inventing one.
-            bad = ~np.isfinite(th) | (th < 0) | (th > max_range)
-            if bad.any():
-                face[np.flatnonzero(hit)[bad]] = -1
-                th[bad] = np.inf
-            t[hit] = th
-        return t
 
 
 def ground_level(scene: Scene) -> float:
