@@ -33,7 +33,7 @@ GROUND, ROOF, WALL, DEBRIS, INTERIOR = 0, 1, 2, 3, 4
 VEGETATION, OBJECT = 5, 6
 SURFACE_CODES = "ground, roof, wall, debris, interior, vegetation, object"
 POROUS_ATTR = "qs_porous"
-# Share of a laser ray passing one porous crown face (quakescan.scene.DEFAULT_TRANSMISSION).
+# Share of a laser ray passing one porous crown face (quakescan.formats.scene.DEFAULT_TRANSMISSION).
 DEFAULT_TRANSMISSION = 0.5
 # The contract rejects faces with area <= 1e-10 m²; drop anything near that.
 MIN_AREA = 1e-9

@@ -14,7 +14,7 @@ preset sensors (paper ULS, paper DIM) and seeds: any difference between the two 
 damage procedure. Overall accuracy, F1 per grade and damaged vs undamaged for each.
 
 Then the cross-generator table: the shipped classifier configuration refitted on (a) four
-mixed training cities made with the patterns, (b) their physics twins (`quakescan.trainset`
+mixed training cities made with the patterns, (b) their physics twins (`quakescan.learning.trainset`
 PHYSICS_TWINS: the same buildings, grades and acquisitions, grades 4-5 collapsed by
 simulation), (c) both, (d) the shipped model's whole training set and (e) that set with the
 physics twins added, each scored on the same described rows of the four held-out pairs
@@ -44,11 +44,11 @@ SENSORS = {"ULS pair": ("uls", 11), "DIM pair": ("dim", 12)}
 def city(work: Path, damage: str) -> tuple[Path, dict, float, list]:
     """The held-out city made with `damage`, its preset-acquired pairs, the generation seconds
     and the buildings whose collapse fell back to the patterns."""
-    from quakescan.acquisition import Acquisition, acquire
+    from quakescan.acquisition.acquire import Acquisition, acquire
+    from quakescan.acquisition.dim_settings import preset_dim
+    from quakescan.acquisition.survey import preset
     from quakescan.demo import generate
-    from quakescan.dim_settings import preset_dim
-    from quakescan.scene import read_scene
-    from quakescan.survey import preset
+    from quakescan.formats.scene import read_scene
 
     folder = work / f"city_{damage}"
     t0 = time.perf_counter()
@@ -73,8 +73,8 @@ def city(work: Path, damage: str) -> tuple[Path, dict, float, list]:
 
 
 def main(argv=None) -> int:
-    from quakescan.classification import DEFAULT_MODEL
-    from quakescan.evaluation import evaluate_files
+    from quakescan.learning.classification import DEFAULT_MODEL
+    from quakescan.results.evaluation import evaluate_files
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--work", default=str(ROOT / "out" / "bench_damage_transfer"))
@@ -119,7 +119,7 @@ def main(argv=None) -> int:
     results["seconds"] = round(time.perf_counter() - t_start, 1)
     results["peak_mib"] = round(peak_rss_mb())
     (work / "results.json").write_text(json.dumps(results, indent=1, default=str))
-    from quakescan.model import load_model
+    from quakescan.learning.model import load_model
 
     trained_on = ("trained on the add-on's patterns and four physics twins"
                   if load_model(a.model).provenance.get("damage") == "both"
@@ -150,13 +150,13 @@ def cross_generator(training_work: Path, model_path: str, tests: dict) -> dict:
     generator (and both), scored on the same described rows of every held-out pair."""
     import numpy as np
 
-    from quakescan.classification import model_settings
-    from quakescan.default_model import (CANDIDATES, TABLE_SETTINGS, cv_groups, model_columns, training_rows,
+    from quakescan.change.pipeline import descriptor_matrix
+    from quakescan.learning.classification import model_settings
+    from quakescan.learning.default_model import (CANDIDATES, TABLE_SETTINGS, cv_groups, model_columns, training_rows,
                                     transfer_training_table)
-    from quakescan.evaluation import evaluate_grades, read_truth
-    from quakescan.model import fit_classifier, load_model
-    from quakescan.pipeline import descriptor_matrix
-    from quakescan.trainset import PHYSICS_TWINS
+    from quakescan.learning.model import fit_classifier, load_model
+    from quakescan.learning.trainset import PHYSICS_TWINS
+    from quakescan.results.evaluation import evaluate_grades, read_truth
 
     t0 = time.perf_counter()
     model = load_model(model_path)

@@ -44,10 +44,10 @@ def spacing(path: Path) -> tuple[float, float]:
 
 
 def main():
+    from quakescan.acquisition.dim import simulate_dim
+    from quakescan.acquisition.dim_settings import preset_dim
     from quakescan.demo import generate
-    from quakescan.dim import simulate_dim
-    from quakescan.dim_settings import preset_dim
-    from quakescan.scene import read_scene
+    from quakescan.formats.scene import read_scene
 
     if not (SCENE / "scene.json").is_file():
         generate("generic", "paper", 112, 1, SCENE.parent)

@@ -8,9 +8,9 @@ LAS (>= 1 M points). Exact features at r = 1.5 m: the set jakteristics also has 
 normal, verticality, number of neighbours) for ours and jakteristics on the same points, the damage
 pipeline's default set (`DEFAULT_PIPELINE_FEATURES`), all 24 of ours, densities + z only.
 Core-point subsampling (features at every k-th point, mapped to all points by nearest core point)
-with its error against exact. Nearest-neighbour mapping (`quakescan.change.nearest_neighbours`, index
+with its error against exact. Nearest-neighbour mapping (`quakescan.change.split.nearest_neighbours`, index
 build + queries) of the cloud onto a second scan of the same city (new noise); the row says which
-core/change.py it measured (committed or not).
+core/change/split.py it measured (committed or not).
 """
 from __future__ import annotations
 
@@ -25,7 +25,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench._report import machine, peak_rss_mb, table, write_section
-from quakescan.features import DEFAULT_PIPELINE_FEATURES, compute_features
+from quakescan.change.features import DEFAULT_PIPELINE_FEATURES, compute_features
 
 COMMON = ("linearity", "planarity", "omnivariance", "surface_variation", "sphericity", "verticality",
           "eigenentropy", "anisotropy", "eigenvalue1", "eigenvalue2", "eigenvalue3", "eigenvalue_sum",
@@ -36,10 +36,10 @@ JAK = ("linearity", "planarity", "omnivariance", "surface_variation", "sphericit
 
 
 def cloud(min_points: int, seed: int = 1) -> np.ndarray:
-    from quakescan.pointcloud import read_epoch
-    from quakescan.scan import scan
-    from quakescan.survey import preset
-    from quakescan.synthetic import box_city
+    from quakescan.acquisition.scan import scan
+    from quakescan.acquisition.survey import preset
+    from quakescan.formats.pointcloud import read_epoch
+    from quakescan.formats.synthetic import box_city
 
     rows = 4
     while True:
@@ -117,7 +117,7 @@ def main():
     # approximate mode: core points every k-th point (Morton order), nearest core point's values
     from scipy.spatial import cKDTree
 
-    from quakescan.change import morton_order
+    from quakescan.change.split import morton_order
 
     order = morton_order(xyz - xyz.min(axis=0))
     for k in (4, 16):
@@ -134,7 +134,7 @@ def main():
         rows.append([f"ours, core points every {k}th + NN", f"{t_a:.2f}", f"{n / t_a / 1e3:.0f}",
                      "median |err|: " + ", ".join(errs)])
     # nearest-neighbour mapping onto a second scan of the same city (kd-tree build + queries)
-    from quakescan.change import nearest_neighbours
+    from quakescan.change.split import nearest_neighbours
 
     post = cloud(args.points, seed=2)
     o = np.minimum(xyz.min(axis=0), post.min(axis=0))
@@ -143,9 +143,9 @@ def main():
     t_nn, (_, dist) = timed(lambda: nearest_neighbours(pre_l, post_l), repeat=2)
     import subprocess
 
-    dirty = subprocess.run(["git", "diff", "--quiet", "HEAD", "--", "core/change.py"],
+    dirty = subprocess.run(["git", "diff", "--quiet", "HEAD", "--", "core/change/split.py"],
                            cwd=Path(__file__).resolve().parents[1], check=False).returncode != 0
-    what = "uncommitted core/change.py" if dirty else f"core/change.py at {_head()}"
+    what = "uncommitted core/change/split.py" if dirty else f"core/change/split.py at {_head()}"
     rows.append([f"NN mapping onto a second scan ({len(post):,} points), index build + queries ({what})",
                  f"{t_nn:.2f}", f"{n / t_nn / 1e3:.0f}", f"exact; distance median {np.median(dist):.3f} m"])
     nn = exact["num_neighbours"]

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""QuakeScan's M3C2 (core/m3c2.py) beside py4dgeo's on the same real pair, in one run.
+"""QuakeScan's M3C2 (core/change/m3c2.py) beside py4dgeo's on the same real pair, in one run.
 
     .venv/bin/python bench/bench_m3c2.py [--py4dgeo-python PY]
 
@@ -57,9 +57,9 @@ np.savez(sys.argv[2], distance=dist, lod=unc["lodetection"], n1=unc["num_samples
 def main(argv=None) -> int:
     from bench_transfer import real_pairs
 
-    from quakescan.classification import load_pair
-    from quakescan.features import compute_features
-    from quakescan.m3c2 import ColumnGrid, M3C2Settings, m3c2
+    from quakescan.change.features import compute_features
+    from quakescan.change.m3c2 import ColumnGrid, M3C2Settings, m3c2
+    from quakescan.learning.classification import load_pair
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--work", default=str(ROOT / "out" / "bench_m3c2"))

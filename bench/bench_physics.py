@@ -30,7 +30,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench._report import machine, run_child, table, write_section  # noqa: E402
-from quakescan.scene import read_scene  # noqa: E402
+from quakescan.formats.scene import read_scene  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "blender_scripts" / "generate_scenes.py"

@@ -97,8 +97,8 @@ def classify_run(pre: Path, post: Path, out: Path, model: Path | None = None) ->
 
 def nn_rates(pre: Path, others: dict) -> list:
     """M points/s of the NN mapping (build + queries): the grid search and the kd-tree alone."""
-    from quakescan.change import nearest_neighbours, nearest_neighbours_reference
-    from quakescan.pointcloud import read_epoch
+    from quakescan.change.split import nearest_neighbours, nearest_neighbours_reference
+    from quakescan.formats.pointcloud import read_epoch
 
     a = read_epoch(pre)
     nearest_neighbours(a.xyz[:1000], a.xyz[:1000])  # compile outside the timing

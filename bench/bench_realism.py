@@ -40,8 +40,8 @@ SHARED = ROOT.parent / "shared" / "data"
 HALF_SEED = 5
 TOLERANCE = 0.30
 ZERO = 0.005
-ALS_RANGE_NOISE_M = 0.03  # mid-range of quakescan.acquisition.ALS_RANGE_NOISE_M
-ALS_MISALIGNMENT_M = 0.05  # mid-range of quakescan.acquisition.ALS_MISALIGNMENT_M
+ALS_RANGE_NOISE_M = 0.03  # mid-range of quakescan.acquisition.sensor_lidar.ALS_RANGE_NOISE_M
+ALS_MISALIGNMENT_M = 0.05  # mid-range of quakescan.acquisition.sensor_lidar.ALS_MISALIGNMENT_M
 CITIES = (("generic", 64, 81_001), ("region", 64, 81_002), ("rotterdam", None, 81_003))
 
 
@@ -66,8 +66,8 @@ def halves(las_path: Path, out: Path) -> tuple[Path, Path]:
 
 def describe(pre: Path, post: Path, footprints: Path, settings, limits) -> dict:
     """{descriptor: values over the assessable buildings} and the buildings' densities."""
-    from quakescan.classification import load_pair
-    from quakescan.pipeline import _quality_gate, describe_pair
+    from quakescan.change.pipeline import _quality_gate, describe_pair
+    from quakescan.learning.classification import load_pair
 
     data = load_pair(pre, post, footprints)
     rows = [_quality_gate(r, limits) for r in describe_pair(data.pre, data.post, settings)]
@@ -79,7 +79,7 @@ def describe(pre: Path, post: Path, footprints: Path, settings, limits) -> dict:
 
 
 def real_values(work: Path, settings, limits) -> tuple[dict, float]:
-    from quakescan.acquisition import measured_density
+    from quakescan.acquisition.acquire import measured_density
 
     parts, densities = [], []
     for tile in (1, 2):
@@ -100,9 +100,9 @@ def simulated_values(work: Path, variant: str, density: float, settings, limits)
     """Undamaged buildings of the simulated cities, scanned once at `density` and halved."""
     from dataclasses import replace
 
-    from quakescan.acquisition import Acquisition, acquire
-    from quakescan.survey import als_for_density
-    from quakescan.trainset import CitySpec, generate_city, scene_footprints
+    from quakescan.acquisition.acquire import Acquisition, acquire
+    from quakescan.acquisition.survey import als_for_density
+    from quakescan.learning.trainset import CitySpec, generate_city, scene_footprints
 
     look = "typical" if variant == "realistic" else "none"
     survey = replace(als_for_density(density), range_noise_sigma_m=ALS_RANGE_NOISE_M,
@@ -176,8 +176,8 @@ def main(argv=None) -> int:
     p.add_argument("--variants", default="clean,realistic")
     p.add_argument("--no-write", action="store_true")
     a = p.parse_args(argv)
-    from quakescan.classification import default_model_path, model_settings
-    from quakescan.model import load_model
+    from quakescan.learning.classification import default_model_path, model_settings
+    from quakescan.learning.model import load_model
 
     t0 = time.perf_counter()
     work = Path(a.work)

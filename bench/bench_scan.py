@@ -26,9 +26,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench._report import machine, peak_rss_mb, table, write_section  # noqa: E402
-from quakescan.scene import read_scene, write_scene  # noqa: E402
-from quakescan.survey import preset  # noqa: E402
-from quakescan.synthetic import box_city  # noqa: E402
+from quakescan.acquisition.survey import preset  # noqa: E402
+from quakescan.formats.scene import read_scene, write_scene  # noqa: E402
+from quakescan.formats.synthetic import box_city  # noqa: E402
 
 HELIOS_REFERENCE = "HELIOS++ 2.0.1 on this kind of machine (from the issue, not rerun here): " \
                    "0.8 M pulses/s single ray, 0.3 M pulses/s with its 19-sub-ray beam"
@@ -43,8 +43,8 @@ def paper_city():
 
 def worker(args) -> None:
     """One scan in this process; prints a JSON line with timings and peak memory."""
+    from quakescan.acquisition.scan import scan
     from quakescan.cli import tune_allocator
-    from quakescan.scan import scan
 
     if not args.default_allocator:
         tune_allocator()  # what the `quakescan` command does
@@ -59,8 +59,8 @@ def worker(args) -> None:
         survey = survey.replace(range_noise_sigma_m=0.0)
     lines = None
     if args.one_line:
-        from quakescan.raycast import ground_level
-        from quakescan.survey import plan_flight
+        from quakescan.acquisition.raycast import ground_level
+        from quakescan.acquisition.survey import plan_flight
 
         plan = plan_flight(survey, scene.bounds(), ground_level(scene))
         lines = plan.lines[len(plan.lines) // 2: len(plan.lines) // 2 + 1]
@@ -90,17 +90,19 @@ def run_worker(scene_dir, mode, out, exact=False, one_line=False, extra=()) -> d
 
 def raw_embree(scene, max_rays=4_000_000) -> list:
     """Rays/s of embreex alone on the single-ray scan's rays, 1 and 2 threads."""
-    from quakescan.raycast import RayCaster, ground_level
-    from quakescan.scan import _batches, _Pulses, _Simulator
-    from quakescan.survey import plan_flight
+    from quakescan.acquisition.beams import Simulator
+    from quakescan.acquisition.pulses import Pulses
+    from quakescan.acquisition.raycast import RayCaster, ground_level
+    from quakescan.acquisition.scan import _batches
+    from quakescan.acquisition.survey import plan_flight
 
     survey = preset("paper")
     caster = RayCaster(scene)
-    sim = _Simulator(caster, survey, 0)
+    sim = Simulator(caster, survey, 0)
     plan = plan_flight(survey, scene.bounds(), ground_level(scene))
     o_parts, d_parts, n = [], [], 0
     for b in _batches(survey, plan, 1 << 20):
-        p = _Pulses(survey, b.line, b.j0, b.j1, caster.local_origin, sim.box)
+        p = Pulses(survey, b.line, b.j0, b.j1, caster.local_origin, sim.box)
         _, _, o, d = p.rays()
         o_parts.append(o)
         d_parts.append(d)

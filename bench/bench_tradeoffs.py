@@ -6,7 +6,7 @@
 Data (generated once into out/bench_tradeoffs/scenes, reused when present): training set
 = the generic dataset of 40 buildings (generate_scenes.py --set generic --dataset paper
 --seed 11): pre-event and every building heavy, extreme and destroyed; the undamaged class
-is the pre-event scene acquired a second time with another seed, as `quakescan.experiment`
+is the pre-event scene acquired a second time with another seed, as `quakescan.studies.experiment`
 does. Test city = a region-specific mixed city (--seed 12) of 12 undamaged, 8 heavy,
 10 extreme and 12 destroyed buildings; truth from its scene.json.
 
@@ -109,7 +109,7 @@ class Study:
     def __init__(self, cfg: dict, workers: int = -1):
         self.cfg, self.workers = cfg, workers
         self.train_dir, self.test_dir = ensure_scenes(cfg)
-        from quakescan.evaluation import read_truth
+        from quakescan.results.evaluation import read_truth
 
         self.truth = read_truth(self.test_dir / "post")
         self.clouds = cfg["work"] / "clouds"
@@ -119,7 +119,7 @@ class Study:
 
     # acquisition ------------------------------------------------------------
     def _scene(self, folder: Path):
-        from quakescan.scene import read_scene
+        from quakescan.formats.scene import read_scene
 
         if folder not in self._scenes:
             self._scenes[folder] = read_scene(folder)
@@ -130,9 +130,9 @@ class Study:
         key = (tag, part)
         if key in self._acq:
             return self._acq[key]
-        from quakescan.dim import simulate_dim
-        from quakescan.dim_settings import preset_dim
-        from quakescan.scan import scan
+        from quakescan.acquisition.dim import simulate_dim
+        from quakescan.acquisition.dim_settings import preset_dim
+        from quakescan.acquisition.scan import scan
 
         folder, clouds = (self.train_dir, TRAIN_CLOUDS) if part == "train" else (self.test_dir, TEST_CLOUDS)
         out = self.clouds / _slug(tag)
@@ -159,7 +159,7 @@ class Study:
     @staticmethod
     def survey(tag: str):
         """'beam single' / 'beam full' / a survey label of cfg['survey'] → a Survey."""
-        from quakescan.survey import preset
+        from quakescan.acquisition.survey import preset
 
         if tag.startswith("beam "):
             return preset("paper").replace(beam=tag.split()[1])
@@ -174,8 +174,8 @@ class Study:
         key = (tag, part, radius, step)
         if key in self._desc:
             return self._desc[key]
-        from quakescan.classification import load_pair
-        from quakescan.pipeline import PipelineSettings, describe_pair, descriptor_matrix
+        from quakescan.change.pipeline import PipelineSettings, describe_pair, descriptor_matrix
+        from quakescan.learning.classification import load_pair
 
         settings = PipelineSettings(radius_m=radius, core_point_step=step)
         acq = self.acquisition(tag, part)
@@ -202,9 +202,9 @@ class Study:
     # one row -------------------------------------------------------------------
     def row(self, knob: str, value, *, train_tags=("beam single",), test_tag="beam single", radius=1.5,
             step=1, trees=100) -> dict:
-        from quakescan.classification import predict_rows
-        from quakescan.evaluation import evaluate_grades
-        from quakescan.model import DamageModel, train_damage_forest
+        from quakescan.learning.classification import predict_rows
+        from quakescan.learning.model import DamageModel, train_damage_forest
+        from quakescan.results.evaluation import evaluate_grades
 
         tables = [self.describe(t, "train", radius, step) for t in train_tags]
         test = self.describe(test_tag, "test", radius, step)
@@ -248,14 +248,14 @@ def _slug(tag: str) -> str:
 def warm_up(folder: Path, workers: int = -1) -> None:
     """Every compiled kernel the study times (three beams, DIM, features at every radius and
     step, the forest) run once on a 2 × 2 box city, so no row pays for loading or compiling."""
-    from quakescan.dim import simulate_dim
-    from quakescan.dim_settings import preset_dim
-    from quakescan.model import train_forest
-    from quakescan.pipeline import PipelineSettings, describe_pair
-    from quakescan.pointcloud import read_epoch
-    from quakescan.scan import scan
-    from quakescan.survey import preset
-    from quakescan.synthetic import box_city
+    from quakescan.acquisition.dim import simulate_dim
+    from quakescan.acquisition.dim_settings import preset_dim
+    from quakescan.acquisition.scan import scan
+    from quakescan.acquisition.survey import preset
+    from quakescan.change.pipeline import PipelineSettings, describe_pair
+    from quakescan.formats.pointcloud import read_epoch
+    from quakescan.formats.synthetic import box_city
+    from quakescan.learning.model import train_forest
 
     folder.mkdir(parents=True, exist_ok=True)
     pre, post = box_city(rows=2, cols=2), box_city(rows=2, cols=2, height=(9.0, 3.0), epoch="post")

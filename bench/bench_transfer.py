@@ -17,7 +17,7 @@ Rows (the shipped model only, nothing trained on the test data):
 
 Every row also runs the previous shipped model (the paper's generic-ULS forest, from git)
 on the same clouds in the same run ("before"). Each classification goes through
-`quakescan classify` (`quakescan.classification.classify`) and reports its describe and total seconds.
+`quakescan classify` (`quakescan.learning.classification.classify`) and reports its describe and total seconds.
 
 Ablation (same run, same test rows): the model's classifier refitted on the training set's
 tables without each descriptor group, and the other classifier candidates, scored on the
@@ -84,10 +84,10 @@ def test_city(work: Path, realistic: bool = False) -> tuple:
     """The held-out city's scenes and its preset-acquired clouds: {name: (pre, post)}.
     `realistic`: the same city with roof and facade detail, trees, hedges, cars and street
     furniture (the generator's `typical`), to be labelled through its footprints."""
-    from quakescan.acquisition import Acquisition, acquire
+    from quakescan.acquisition.acquire import Acquisition, acquire
+    from quakescan.acquisition.dim_settings import preset_dim
+    from quakescan.acquisition.survey import preset
     from quakescan.demo import generate
-    from quakescan.dim_settings import preset_dim
-    from quakescan.survey import preset
 
     city = work / ("test_city_realistic" if realistic else "test_city")
     look = {"details": "typical", "streetscape": "typical"} if realistic else {}
@@ -124,7 +124,7 @@ def previous_model(work: Path) -> Path | None:
 
 
 def run_classify(pre, post, out_dir, model, footprints=None):
-    from quakescan.classification import classify
+    from quakescan.learning.classification import classify
 
     t0 = time.perf_counter()
     summary = classify(pre, post, out_dir, model_path=model, footprints_path=footprints, write_las=False,
@@ -142,9 +142,9 @@ def flagged(csv_path: Path) -> tuple:
 
 
 def main(argv=None) -> int:
-    from quakescan.classification import DEFAULT_MODEL
-    from quakescan.evaluation import evaluate_files
-    from quakescan.model import load_model
+    from quakescan.learning.classification import DEFAULT_MODEL
+    from quakescan.learning.model import load_model
+    from quakescan.results.evaluation import evaluate_files
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--work", default=str(ROOT / "out" / "bench_transfer"))
@@ -194,7 +194,7 @@ def main(argv=None) -> int:
     city, pairs = test_city(work)
     cases = [(name, pre, post, city, None) for name, (pre, post) in pairs.items()]
     if not a.no_realistic:
-        from quakescan.trainset import scene_footprints
+        from quakescan.learning.trainset import scene_footprints
 
         real_city, real_city_pairs = test_city(work, realistic=True)
         cases += [(f"realistic city: {name}", pre, post, real_city, scene_footprints(real_city))
@@ -306,8 +306,8 @@ GROUPS = {
 def _describe_rows(pre, post, settings, footprints=None, limits=None):
     """Assessable rows of a pair; `limits`: the shipped model's pipeline settings, whose
     density and coverage limits decide what is assessable (as classify does)."""
-    from quakescan.classification import load_pair
-    from quakescan.pipeline import _quality_gate, describe_pair
+    from quakescan.change.pipeline import _quality_gate, describe_pair
+    from quakescan.learning.classification import load_pair
 
     data = load_pair(pre, post, footprints)
     rows = describe_pair(data.pre, data.post, settings)
@@ -319,11 +319,11 @@ def _describe_rows(pre, post, settings, footprints=None, limits=None):
 def ablation(work: Path, model, training_work: Path, city: Path, pairs: dict, real: list) -> dict:
     """Refit the shipped classifier without each descriptor group (and the other candidates)
     on the training set; score all on the same test rows."""
-    from quakescan.classification import model_settings
-    from quakescan.default_model import CANDIDATES, TABLE_SETTINGS, cv_groups, training_rows, transfer_training_table
-    from quakescan.evaluation import evaluate_grades, read_truth
-    from quakescan.model import fit_classifier
-    from quakescan.pipeline import descriptor_matrix
+    from quakescan.change.pipeline import descriptor_matrix
+    from quakescan.learning.classification import model_settings
+    from quakescan.learning.default_model import CANDIDATES, TABLE_SETTINGS, cv_groups, training_rows, transfer_training_table
+    from quakescan.learning.model import fit_classifier
+    from quakescan.results.evaluation import evaluate_grades, read_truth
 
     print("ablation: training set and test descriptor tables", flush=True)
     t0 = time.perf_counter()

@@ -92,7 +92,7 @@ def addon_module(name: str = ""):
 
 
 def library_module(name: str):
-    """The library's standard-library-only module `name` ("fingerprint") for Blender's own
+    """The library's standard-library-only module `name` ("runtime.fingerprint") for Blender's own
     Python, which has no QuakeScan installed: the installed package `quakescan` (a venv's
     bpy module, or this script shipped in a wheel), else the core/ folder beside
     blender_scripts/ in a checkout, loaded under its import name."""
@@ -264,12 +264,12 @@ def generator_info(args, scene_name):
 def bundle_state(folder: Path, info: dict) -> str:
     """'missing', 'done' (same settings) or 'different'.
 
-    The resume rule of quakescan.fingerprint, with the bundle's own record as the fingerprint: the
+    The resume rule of quakescan.runtime.fingerprint, with the bundle's own record as the fingerprint: the
     generator record in scene.json (settings, GENERATOR_VERSION, the source bundle's digest)
     must be the one this run would write. The add-on's code is versioned by
     GENERATOR_VERSION, not by QuakeScan's version, so that bundles made by an earlier
     QuakeScan with the same generator stay reusable."""
-    fingerprint = library_module("fingerprint")
+    fingerprint = library_module("runtime.fingerprint")
 
     manifest = folder / "scene.json"
     if not manifest.is_file():

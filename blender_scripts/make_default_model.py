@@ -3,8 +3,8 @@
 
     .venv/bin/python blender_scripts/make_default_model.py [--work out/default_model] [--seed 0] [--size full]
 
-One command from nothing (`quakescan.default_model`): the transfer training set
-(`quakescan.trainset.default_plan`: generic, region-specific and Rotterdam cities, mixed and
+One command from nothing (`quakescan.learning.default_model`): the transfer training set
+(`quakescan.learning.trainset.default_plan`: generic, region-specific and Rotterdam cities, mixed and
 paper-design post-event scenes, every ULS/ALS/DIM acquisition randomised, cross-source
 pairs), the density-invariant surface descriptors, random forest against gradient
 boosting with and without calibrated probabilities compared by cross-validation that holds
@@ -24,8 +24,8 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
-from quakescan.classification import DEFAULT_MODEL  # noqa: E402
-from quakescan.default_model import make_default_model  # noqa: E402
+from quakescan.learning.classification import DEFAULT_MODEL  # noqa: E402
+from quakescan.learning.default_model import make_default_model  # noqa: E402
 
 
 def main(argv=None) -> int:
@@ -40,7 +40,7 @@ def main(argv=None) -> int:
     p.add_argument("--damage", choices=("patterns", "both"), default="both",
                    help="both (default, the shipped model's): the bare training set also holds physics twins of "
                    "four mixed cities (grade-4/5 buildings collapsed by rigid-body simulation; "
-                   "quakescan.trainset.PHYSICS_TWINS); patterns: the add-on's patterns only")
+                   "quakescan.learning.trainset.PHYSICS_TWINS); patterns: the add-on's patterns only")
     p.add_argument("--small", action="store_true",
                    help="also the plan's two cities of small buildings (sheds, garages, row houses)")
     p.add_argument("--threads", type=int, default=-1, help="worker threads, or -1 for every core (default)")

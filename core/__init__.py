@@ -14,7 +14,7 @@ _warnings.filterwarnings("ignore", message=r"The TBB threading layer requires TB
 
 # The public API (`quakescan.api`), reached from the package top. Loaded on first use: the
 # package itself stays standard-library only, because Blender's own Python imports one of its
-# modules (`quakescan.fingerprint`, the resume rule of the scene generator) without numpy's
+# modules (`quakescan.runtime.fingerprint`, the resume rule of the scene generator) without numpy's
 # stack; and `import quakescan` stays instant for the command line.
 _API = ("acquire", "read_scene", "write_scene", "read_epoch", "read_pair", "describe", "train", "load_model",
         "save_model", "classify", "evaluate", "sensor_kinds", "Acquired", "BuildingRow", "DamageModel", "Epoch",

@@ -22,16 +22,16 @@ from __future__ import annotations
 import os
 from collections.abc import Sequence
 
-from . import acquisition as _acquisition
-from .acquisition import Acquired, Acquisition
-from .classification import PairData, default_model_path, load_pair, model_settings
+from .acquisition import acquire as _acquisition
+from .acquisition.acquire import Acquired, Acquisition
+from .change.pipeline import BuildingRow, describe_pair, training_settings
 from .errors import QuakeScanError
-from .evaluation import Evaluation, evaluate_files
-from .model import DamageModel, load_model as _load_model, save_model
-from .pipeline import BuildingRow, describe_pair, training_settings
-from .pointcloud import Epoch, read_epoch
-from .scene import Scene, read_scene, write_scene
-from .workers import accepts_old_threads
+from .formats.pointcloud import Epoch, read_epoch
+from .formats.scene import Scene, read_scene, write_scene
+from .learning.classification import PairData, default_model_path, load_pair, model_settings
+from .learning.model import DamageModel, load_model as _load_model, save_model
+from .results.evaluation import Evaluation, evaluate_files
+from .runtime.workers import accepts_old_threads
 
 __all__ = ["acquire", "read_scene", "write_scene", "read_epoch", "read_pair", "describe", "train",
            "load_model", "save_model", "classify", "evaluate", "sensor_kinds",
@@ -41,9 +41,9 @@ PathLike = str | os.PathLike
 
 
 def sensor_kinds() -> tuple[str, ...]:
-    """Names of the registered sensors (`quakescan.sensors`): 'uls', 'als', 'dim', and any
+    """Names of the registered sensors (`quakescan.acquisition.sensors`): 'uls', 'als', 'dim', and any
     a user module registered."""
-    from . import sensors
+    from .acquisition import sensors
 
     return tuple(sensors.kinds())
 
@@ -51,7 +51,7 @@ def sensor_kinds() -> tuple[str, ...]:
 @accepts_old_threads
 def acquire(scene: PathLike | Scene, out: PathLike, kind: str = "uls", settings=None, *, seed: int = 0,
             workers: int = -1) -> Acquired:
-    """Acquire a scene with a simulated sensor into a LAS/LAZ epoch (`quakescan.acquisition`).
+    """Acquire a scene with a simulated sensor into a LAS/LAZ epoch (`quakescan.acquisition.acquire`).
 
     Parameters
     ----------
@@ -66,8 +66,8 @@ def acquire(scene: PathLike | Scene, out: PathLike, kind: str = "uls", settings=
     settings : None, str, path or the sensor's settings object
         None: the sensor's default preset (the paper's survey); a preset name ('paper',
         'als'), a settings file written by `quakescan survey-template` /
-        `dim-survey-template`, or a settings object (`quakescan.survey.Survey`,
-        `quakescan.dim_settings.PhotoSurvey`).
+        `dim-survey-template`, or a settings object (`quakescan.acquisition.survey.Survey`,
+        `quakescan.acquisition.dim_settings.PhotoSurvey`).
     seed : int
         Seeds the sensor's noise: the same scene, settings and seed give the same bytes.
     workers : int
@@ -80,7 +80,7 @@ def acquire(scene: PathLike | Scene, out: PathLike, kind: str = "uls", settings=
         `path`, the sidecar's `record` and `resumed` (True when an up-to-date cloud of the
         same acquisition was already there and nothing was simulated).
     """
-    from . import sensors
+    from .acquisition import sensors
 
     sensor = sensors.get(kind)
     if settings is None:
@@ -93,7 +93,7 @@ def acquire(scene: PathLike | Scene, out: PathLike, kind: str = "uls", settings=
 def read_pair(pre: PathLike, post: PathLike, footprints: PathLike | None = None,
               id_field: str | None = None) -> PairData:
     """Both epochs in the pre-event epoch's local frame, with building IDs
-    (`quakescan.classification.load_pair`).
+    (`quakescan.learning.classification.load_pair`).
 
     Parameters
     ----------
@@ -112,7 +112,7 @@ def read_pair(pre: PathLike, post: PathLike, footprints: PathLike | None = None,
 def describe(pre: PathLike | PairData, post: PathLike | None = None, *, footprints: PathLike | None = None,
              model: PathLike | DamageModel | None = None, workers: int = -1) -> list[BuildingRow]:
     """Change descriptors of every building of a pair, as `model` reads them
-    (`quakescan.pipeline.describe_pair`).
+    (`quakescan.change.pipeline.describe_pair`).
 
     Parameters
     ----------
@@ -139,7 +139,7 @@ def describe(pre: PathLike | PairData, post: PathLike | None = None, *, footprin
 @accepts_old_threads
 def train(pairs: Sequence[tuple], *, descriptors: str = "surface", test_size: float = 0.3, seed: int = 0,
           classifier: dict | None = None, workers: int = -1):
-    """Train a damage model on described pairs with known grades (`quakescan.training.train`).
+    """Train a damage model on described pairs with known grades (`quakescan.learning.training.train`).
 
     Parameters
     ----------
@@ -153,7 +153,7 @@ def train(pairs: Sequence[tuple], *, descriptors: str = "surface", test_size: fl
         Share of the buildings held out for the returned evaluation (0: fit on all).
     seed : int
     classifier : dict, optional
-        `quakescan.model.fit_classifier` arguments, e.g. {"kind": "hgb"} or
+        `quakescan.learning.model.fit_classifier` arguments, e.g. {"kind": "hgb"} or
         {"kind": "rf", "n_estimators": 300, "max_depth": None, "calibration": "sigmoid"}.
     workers : int
         Worker threads (-1: every core; `threads`, its old name, still works).
@@ -164,8 +164,8 @@ def train(pairs: Sequence[tuple], *, descriptors: str = "surface", test_size: fl
         The model (save it with `save_model`), its evaluation on the held-out buildings and
         the described rows (`x`: (n, k) descriptors named `names`, `y`: grades).
     """
-    from .training import TrainingPair
-    from .training import train as run
+    from .learning.training import TrainingPair
+    from .learning.training import train as run
 
     items = []
     for i, p in enumerate(pairs):
@@ -179,7 +179,7 @@ def train(pairs: Sequence[tuple], *, descriptors: str = "surface", test_size: fl
 
 
 def load_model(path: PathLike | None = None) -> DamageModel:
-    """A model file (`quakescan.model.load_model`; default: the model QuakeScan ships). Files
+    """A model file (`quakescan.learning.model.load_model`; default: the model QuakeScan ships). Files
     are checked before anything in them runs; a file of another QuakeScan says what differs."""
     return _load_model(default_model_path() if path is None else path)
 
@@ -187,7 +187,7 @@ def load_model(path: PathLike | None = None) -> DamageModel:
 @accepts_old_threads
 def classify(pre: PathLike, post: PathLike, out_dir: PathLike, *, footprints: PathLike | None = None,
              model: PathLike | None = None, workers: int = -1, **options) -> dict:
-    """Grade every building of a pair and write the results (`quakescan.classification.classify`).
+    """Grade every building of a pair and write the results (`quakescan.learning.classification.classify`).
 
     Parameters
     ----------
@@ -204,20 +204,20 @@ def classify(pre: PathLike, post: PathLike, out_dir: PathLike, *, footprints: Pa
         Worker threads (-1: every core; `threads`, its old name, still works).
     **options
         `align` (None: check registration, align when needed), `write_las`, `laz`, `force`,
-        `id_field`, `progress` (a `quakescan.progress.ProgressCallback`: called with (done, total)).
+        `id_field`, `progress` (a `quakescan.runtime.progress.ProgressCallback`: called with (done, total)).
 
     Returns
     -------
     dict
         The run's summary (also in summary.json): counts per grade, timings, alignment.
     """
-    from .classification import classify as run
+    from .learning.classification import classify as run
 
     return run(pre, post, out_dir, model_path=model, footprints_path=footprints, workers=workers, **options)
 
 
 def evaluate(result_csv: PathLike, truth: PathLike) -> Evaluation:
-    """Compare graded buildings with known grades (`quakescan.evaluation.evaluate_files`).
+    """Compare graded buildings with known grades (`quakescan.results.evaluation.evaluate_files`).
 
     Parameters
     ----------

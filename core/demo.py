@@ -4,7 +4,7 @@ generate (the add-on's headless generator: a mixed city, a grade drawn per build
 in L'Aquila, EPSG:32633)
 → scan both epochs with the paper's survey → classify with the shipped model → evaluate
 against the generator's grades → map. Every step writes atomically and is skipped when its
-output is there and current (`quakescan.fingerprint`), so an interrupted demo continues where it
+output is there and current (`quakescan.runtime.fingerprint`), so an interrupted demo continues where it
 stopped.
 
 The generator needs Blender's Python: the `bpy` module in this environment (set-up
@@ -22,7 +22,7 @@ import warnings
 from pathlib import Path
 
 from .errors import QuakeScanError
-from .progress import ProgressCallback, accepts_old_say, in_stage, stage_log
+from .runtime.progress import ProgressCallback, accepts_old_say, in_stage, stage_log
 
 PACKAGE = Path(__file__).resolve().parent
 # An installed wheel carries the generator inside this package; a checkout has it only in
@@ -96,11 +96,12 @@ def generate(set_name: str, dataset: str, buildings: int | None, seed: int, out:
 
 
 def scan_scene(scene_dir: Path, out: Path, seed: int, progress: ProgressCallback | None = None) -> None:
-    """Scan with the paper's survey unless `out` is current (`quakescan.fingerprint`): the scene's
+    """Scan with the paper's survey unless `out` is current (`quakescan.runtime.fingerprint`): the scene's
     files by path, size and time, so that a city regenerated in place is scanned again even
     where its bytes came out the same (the demo always did), the survey and the seed."""
-    from . import fingerprint, sensors
-    from .scene import read_scene
+    from .acquisition import sensors
+    from .formats.scene import read_scene
+    from .runtime import fingerprint
 
     survey = sensors.get("uls").default()
     scene_dir = Path(scene_dir)
@@ -162,16 +163,16 @@ def run_demo(out_dir, seed: int = 0, buildings: int = 30, progress: ProgressCall
     scan_scene(city / "pre", out / "pre.las", seed=seed * 2 + 1, progress=in_stage(progress, "scan pre"))
     scan_scene(city / "post", out / "post.las", seed=seed * 2 + 2, progress=in_stage(progress, "scan post"))
     stage_log.info("demo 3/5: classifying every building with the shipped model")
-    from .classification import classify
+    from .learning.classification import classify
 
     result = out / "result"
     summary = classify(out / "pre.las", out / "post.las", result, progress=in_stage(progress, "classify"))
     stage_log.info("demo 4/5: evaluating against the grades the generator assigned")
-    from .evaluation import evaluate_files, plot_confusion
+    from .results.evaluation import evaluate_files, plot_confusion
 
     ev = evaluate_files(result / "buildings.csv", city / "post")
     plot_confusion(ev, result / "confusion.png", title="Demo city: truth vs prediction")
-    from .atomic import write_text
+    from .runtime.atomic import write_text
 
     write_text(result / "evaluation.json", json.dumps(ev.to_json(), indent=1))
     stage_log.info(f"demo 5/5: maps -> {result / 'damage_map.png'}, {result / 'damage_map.html'} (opens offline)")

@@ -1,7 +1,7 @@
 """Scanned pre/post pairs of a small box city with known collapses, shared by the pipeline tests."""
-from quakescan.scan import scan
-from quakescan.survey import preset
-from quakescan.synthetic import box_city
+from quakescan.acquisition.scan import scan
+from quakescan.acquisition.survey import preset
+from quakescan.formats.synthetic import box_city
 
 UTM = (500000.0, 5000000.0, 0.0)
 HEIGHTS = (9.0, 12.0, 9.0, 12.0, 9.0, 12.0)

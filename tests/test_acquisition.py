@@ -1,4 +1,4 @@
-"""Acquisitions (core/acquisition.py): ALS density, random acquisitions in their ranges,
+"""Acquisitions (core/acquisition/acquire.py): ALS density, random acquisitions in their ranges,
 JSON round trip, resumable atomic acquire, roof density measure and thinning."""
 import dataclasses
 import json
@@ -8,24 +8,14 @@ import laspy
 import numpy as np
 import pytest
 
-import quakescan.dim
-import quakescan.scan
-from quakescan.acquisition import (
-    KINDS,
-    Acquisition,
-    acquire,
-    measured_density,
-    random_acquisition,
-    sidecar_path,
-    thin_to_density,
-)
-from quakescan.dim_settings import preset_dim
-from quakescan.errors import PointCloudError, QuakeScanError, SurveyError
-from quakescan.pointcloud import Epoch
-from quakescan.scan import scan
-from quakescan.scene import write_scene
-from quakescan.sensor_dim import DIM_ALTITUDE_M, DIM_NOISE_PX, DIM_POINT_STEP_PX
-from quakescan.sensor_lidar import (
+import quakescan.acquisition.dim
+import quakescan.acquisition.scan
+from quakescan.acquisition.acquire import KINDS, Acquisition, acquire, random_acquisition, sidecar_path
+from quakescan.acquisition.density import measured_density, thin_to_density
+from quakescan.acquisition.dim_settings import preset_dim
+from quakescan.acquisition.scan import scan
+from quakescan.acquisition.sensor_dim import DIM_ALTITUDE_M, DIM_NOISE_PX, DIM_POINT_STEP_PX
+from quakescan.acquisition.sensor_lidar import (
     ALS_DENSITY_PTS_M2,
     ALS_MISALIGNMENT_M,
     ALS_RANGE_NOISE_M,
@@ -35,8 +25,11 @@ from quakescan.sensor_lidar import (
     ULS_PULSE_RATE_HZ,
     ULS_RANGE_NOISE_M,
 )
-from quakescan.survey import als_for_density, preset
-from quakescan.synthetic import box_city
+from quakescan.acquisition.survey import als_for_density, preset
+from quakescan.errors import PointCloudError, QuakeScanError, SurveyError
+from quakescan.formats.pointcloud import Epoch
+from quakescan.formats.scene import write_scene
+from quakescan.formats.synthetic import box_city
 
 UTM = (500000.0, 5000000.0, 0.0)
 
@@ -163,8 +156,8 @@ def test_acquire_writes_a_sidecar_and_resumes_without_simulating(tmp_path, monke
     def no_simulation(*args, **kwargs):
         raise AssertionError("resumed acquisition simulated again")
 
-    monkeypatch.setattr(quakescan.scan, "scan", no_simulation)
-    monkeypatch.setattr(quakescan.dim, "simulate_dim", no_simulation)
+    monkeypatch.setattr(quakescan.acquisition.scan, "scan", no_simulation)
+    monkeypatch.setattr(quakescan.acquisition.dim, "simulate_dim", no_simulation)
     again = acquire(scene_dir, acq, out, seed=4)
     assert again.resumed and out.read_bytes() == data
     # another seed or other settings are another acquisition

@@ -7,7 +7,8 @@ import re
 import numpy as np
 import pytest
 
-from quakescan.align import Alignment, AlignmentError, align_epochs, format_alignment, rotation_angle_deg, stable_mask
+from quakescan.change.align import (Alignment, AlignmentError, align_epochs, format_alignment, rotation_angle_deg,
+                                    stable_mask)
 from quakescan.errors import QuakeScanError
 
 NOISE_M = 0.01
@@ -143,7 +144,7 @@ def test_no_overlap(scene):
 def test_large_transform_warns(scene, caplog):
     truth, pre, _ = scene
     post = transform(rigid(0.0, [0.0, 0.0, 6.0]), pre)
-    with caplog.at_level(logging.WARNING, logger="quakescan.align"):
+    with caplog.at_level(logging.WARNING, logger="quakescan.change.align"):
         a = align_epochs(pre, post, everything(pre), everything(post), max_distance_m=8.0)
     assert a.translation_m[2] == pytest.approx(-6.0, abs=0.01)
     assert "likely a wrong match" in caplog.text

@@ -13,7 +13,7 @@ ROOT = Path(__file__).resolve().parent.parent
 
 
 def test_importing_the_package_loads_no_scientific_stack():
-    # Blender's own Python imports quakescan.fingerprint through the package
+    # Blender's own Python imports quakescan.runtime.fingerprint through the package
     code = "import sys, quakescan; print(sorted(m for m in ('numpy', 'scipy', 'sklearn') if m in sys.modules))"
     assert subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                           check=True).stdout.strip() == "[]"
@@ -22,7 +22,7 @@ def test_importing_the_package_loads_no_scientific_stack():
 def test_the_api_names_the_functions_and_every_one_is_documented():
     from quakescan import api
 
-    importlib.import_module("quakescan.classification")  # the modules behind them, imported after
+    importlib.import_module("quakescan.learning.classification")  # the modules behind them, imported after
     assert qs.classify is api.classify and qs.evaluate is api.evaluate and qs.acquire is api.acquire
     assert set(qs.__all__) >= {"acquire", "describe", "train", "load_model", "classify", "evaluate", "read_epoch",
                                "read_scene", "write_scene", "read_pair"}

@@ -1,12 +1,12 @@
-"""quakescan.atomic: a file appears under its name complete or not at all; a failed write leaves
+"""quakescan.runtime.atomic: a file appears under its name complete or not at all; a failed write leaves
 the previous file as it was and no temporary file."""
 import json
 
 import numpy as np
 import pytest
 
-from quakescan.atomic import commit, open_replacing, replacing, temp_path, write_bytes, write_json, write_text
 from quakescan.errors import PointCloudError, ResultsError
+from quakescan.runtime.atomic import commit, open_replacing, replacing, temp_path, write_bytes, write_json, write_text
 
 
 class Boom(Exception):

@@ -99,8 +99,8 @@ def tiny_model(path, radius_m=1.5, split_edit=None, estimator=None, grades=(0, 3
     """A model file for the default paper descriptors (a small forest on random rows)."""
     from sklearn.ensemble import RandomForestClassifier
 
-    from quakescan.model import DamageModel, save_model
-    from quakescan.pipeline import PipelineSettings
+    from quakescan.change.pipeline import PipelineSettings
+    from quakescan.learning.model import DamageModel, save_model
 
     settings = PipelineSettings()
     names = settings.descriptor_names()
@@ -257,8 +257,8 @@ def _enospc(*_a, **_k):
 
 
 def test_atomic_writer_names_the_output_of_a_full_disk_and_leaves_nothing(tmp_path):
-    from quakescan.atomic import replacing as _atomic  # the one atomic writer (results._atomic before)
-    from quakescan.results import ResultsError
+    from quakescan.results.writers import ResultsError
+    from quakescan.runtime.atomic import replacing as _atomic  # the one atomic writer (results._atomic before)
 
     target = tmp_path / "sub" / "x.json"
     with pytest.raises(ResultsError, match=r"x\.json: cannot write: no space left"):
@@ -309,7 +309,7 @@ def test_features_on_a_full_disk(pair, tmp_path, capsys, monkeypatch):
 def test_model_save_on_a_full_disk(tmp_path, monkeypatch):
     import skops.io
 
-    from quakescan.results import ResultsError
+    from quakescan.results.writers import ResultsError
 
     monkeypatch.setattr(skops.io, "dump", lambda obj, file: (open(file, "wb").write(b"PK"), _enospc()))
     with pytest.raises(ResultsError, match=r"m\.skops: cannot write: no space left"):
@@ -321,7 +321,7 @@ def test_model_save_on_a_full_disk(tmp_path, monkeypatch):
 def test_the_streaming_las_writer_on_a_full_disk_leaves_no_file(tmp_path, monkeypatch, where):
     """Scan, dim and acquisitions stream through LasChunkWriter: a failure while writing, or
     only when the last chunk is flushed on closing, must not leave a cut file under the name."""
-    from quakescan.pointcloud import LasChunkWriter, PointCloudError
+    from quakescan.formats.pointcloud import LasChunkWriter, PointCloudError
 
     xyz, _ = town()
     out = tmp_path / "c.laz"
@@ -332,7 +332,7 @@ def test_the_streaming_las_writer_on_a_full_disk_leaves_no_file(tmp_path, monkey
         with w:
             if where == "close":
                 monkeypatch.setattr(w._writer, "close", lambda: (_ for _ in ()).throw(OSError(errno.ENOSPC, "full")))
-            from quakescan.pointcloud import PointChunk
+            from quakescan.formats.pointcloud import PointChunk
 
             n = len(xyz)
             z = np.zeros(n, np.uint8)
@@ -357,7 +357,7 @@ def test_a_corrupt_checkpoint_is_discarded_and_recomputed(pair, tmp_path, capsys
 
 
 def test_a_checkpoint_line_with_missing_keys_redoes_its_tile(pair, tmp_path, capsys):
-    from quakescan.classification import _Checkpoint
+    from quakescan.learning.classification import _Checkpoint
 
     path = tmp_path / ".checkpoint.jsonl"
     path.write_text('{"fingerprint": "abc"}\n{"building_id": 1, "n_pre": 5}\n')
@@ -413,7 +413,7 @@ def test_one_epoch_without_crs_is_warned_naming_both_files(pair, tmp_path, capsy
 def test_edited_or_foreign_models_are_refused(pair, tmp_path, capsys, edit, match):
     from sklearn.dummy import DummyClassifier
 
-    from quakescan.model import ModelError, load_model
+    from quakescan.learning.model import ModelError, load_model
 
     path = tmp_path / "m.skops"
     if "radius_m" in edit:
@@ -436,7 +436,7 @@ def test_edited_or_foreign_models_are_refused(pair, tmp_path, capsys, edit, matc
 def test_model_metadata_of_the_wrong_type_is_refused(tmp_path, key, value):
     import skops.io
 
-    from quakescan.model import ModelError, load_model
+    from quakescan.learning.model import ModelError, load_model
 
     path = tiny_model(tmp_path / "m.skops")
     doc = skops.io.load(path, trusted=skops.io.get_untrusted_types(file=path))
@@ -449,7 +449,7 @@ def test_model_metadata_of_the_wrong_type_is_refused(tmp_path, key, value):
 
 
 def test_a_model_with_settings_in_range_still_loads(tmp_path):
-    from quakescan.model import load_model
+    from quakescan.learning.model import load_model
 
     assert load_model(tiny_model(tmp_path / "m.skops", radius_m=4.0, split_edit={"lod_height_m": 0.5})).radius_m == 4.0
 
@@ -545,7 +545,7 @@ def test_evaluate_output_that_is_a_file_is_refused(tmp_path, capsys):
 # ---------------------------------------------------------------------------------- hangs
 
 def test_identical_points_do_not_make_features_quadratic(tmp_path, capsys):
-    from quakescan.features import compute_features
+    from quakescan.change.features import compute_features
 
     xyz = np.tile(ORIGIN + [10.0, 10.0, 5.0], (200_000, 1))
     t0 = time.perf_counter()
@@ -561,8 +561,8 @@ def test_identical_points_do_not_make_features_quadratic(tmp_path, capsys):
 
 
 def test_duplicates_give_the_reference_features():
-    from quakescan._feature_reference import reference_features
-    from quakescan.features import compute_features
+    from quakescan.change._feature_reference import reference_features
+    from quakescan.change.features import compute_features
 
     rng = np.random.default_rng(3)
     xyz = np.round(rng.random((1500, 3)) * [8.0, 8.0, 2.0], 3)
@@ -575,7 +575,7 @@ def test_duplicates_give_the_reference_features():
 
 
 def test_identical_queries_do_not_make_nearest_neighbours_quadratic():
-    from quakescan.change import nearest_neighbours
+    from quakescan.change.split import nearest_neighbours
 
     pre = np.tile([5.0, 5.0, 5.0], (200_000, 1))
     post = np.tile([5.0, 5.0, 5.01], (200_000, 1))
@@ -601,7 +601,7 @@ def _inflating_zip(path, declared=2 << 30):
 def test_a_model_that_would_inflate_to_gigabytes_is_refused_before_reading(tmp_path, capsys, monkeypatch):
     import skops.io
 
-    from quakescan.model import ModelError, load_model
+    from quakescan.learning.model import ModelError, load_model
 
     bomb = _inflating_zip(tmp_path / "bomb.skops")
     assert sum(i.file_size for i in zipfile.ZipFile(bomb).infolist()) > 1 << 30
@@ -631,8 +631,8 @@ def test_align_with_too_few_stable_points_names_both_epochs(tmp_path, capsys):
 # ------------------------------------------------------------------------- caches elsewhere
 
 def test_an_unreadable_experiment_cache_is_recomputed(pair, tmp_path, caplog):
-    from quakescan.experiment import _table
-    from quakescan.pipeline import PipelineSettings
+    from quakescan.change.pipeline import PipelineSettings
+    from quakescan.studies.experiment import _table
 
     settings = PipelineSettings()
     cache = tmp_path / "table"

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from quakescan.cli import main
-from quakescan.scene import write_scene
-from quakescan.synthetic import box_city
+from quakescan.formats.scene import write_scene
+from quakescan.formats.synthetic import box_city
 
 REPO = Path(__file__).resolve().parents[1]
 # a small, quick survey (50 kHz): the demo's paper survey at a sixth of its pulse rate
@@ -127,9 +127,9 @@ def test_survey_fields_are_range_checked(tmp_path, capsys, scene_dir, field, val
 
 
 def test_a_plan_beyond_the_size_limit_needs_force(tmp_path, capsys, scene_dir, survey_file, monkeypatch):
-    import quakescan.scan
+    import quakescan.acquisition.scan
 
-    monkeypatch.setattr(quakescan.scan, "MAX_SCAN_POINTS", 1000)
+    monkeypatch.setattr(quakescan.acquisition.scan, "MAX_SCAN_POINTS", 1000)
     err = _error(capsys, _scan(scene_dir, survey_file, tmp_path / "a.las"))
     assert f"{survey_file} over {scene_dir}: the plan reaches" in err and "--force" in err
     assert not (tmp_path / "a.las").exists()
@@ -148,9 +148,9 @@ def test_a_plan_of_too_many_lines_is_refused_before_it_is_made(tmp_path, capsys)
 
 
 def test_library_scan_refuses_bad_seed_and_threads(tmp_path):
+    from quakescan.acquisition.scan import scan
+    from quakescan.acquisition.survey import preset
     from quakescan.errors import QuakeScanError
-    from quakescan.scan import scan
-    from quakescan.survey import preset
 
     for kw, text in (({"seed": -1}, "seed must be an integer >= 0"), ({"seed": True}, "seed must be"),
                      ({"threads": -4}, "threads must be an integer >= 1")):
@@ -232,7 +232,7 @@ def test_a_valid_crs_passes_validate(tmp_path, capsys, scene_dir):
 
 def test_far_vertices_are_refused(tmp_path, capsys, survey_file):
     from quakescan.errors import SceneError
-    from quakescan.scene import validate_scene
+    from quakescan.formats.scene import validate_scene
 
     scene = box_city(rows=1, cols=1)
     scene.vertices[0] = [1e300, 0.0, 0.0]
@@ -241,9 +241,9 @@ def test_far_vertices_are_refused(tmp_path, capsys, survey_file):
 
 
 def test_scan_of_a_scene_object_with_a_bad_crs_names_its_source(tmp_path):
+    from quakescan.acquisition.scan import scan
+    from quakescan.acquisition.survey import preset
     from quakescan.errors import SceneError
-    from quakescan.scan import scan
-    from quakescan.survey import preset
 
     scene = box_city(rows=1, cols=1)
     scene.crs = "EPSG:999999"
@@ -306,7 +306,7 @@ def test_import_cityjson_crs_errors(tmp_path, capsys, crs, given, text):
 
 
 def test_import_cityjson_crs_and_material_give_the_scene(tmp_path, capsys):
-    from quakescan.scene import read_scene
+    from quakescan.formats.scene import read_scene
 
     argv = ["import-cityjson", str(_cityjson(tmp_path / "c.json")), "-o", str(tmp_path / "s"), "--crs", "EPSG:2056",
             "--material", "reinforced_concrete"]

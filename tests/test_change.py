@@ -2,12 +2,12 @@
 import numpy as np
 import pytest
 
-from quakescan.change import (ChangeError, SplitSettings, building_changes, feature_changes, lod_from_noise,
+from quakescan.acquisition.scan import scan
+from quakescan.acquisition.survey import preset
+from quakescan.change.split import (ChangeError, SplitSettings, building_changes, feature_changes, lod_from_noise,
                          morton_order, nearest_neighbours, nearest_neighbours_reference, split_changed)
-from quakescan.pointcloud import read_epoch
-from quakescan.scan import scan
-from quakescan.survey import preset
-from quakescan.synthetic import box_city
+from quakescan.formats.pointcloud import read_epoch
+from quakescan.formats.synthetic import box_city
 
 
 def test_nearest_neighbours_match_brute_force():
@@ -56,10 +56,10 @@ def test_grid_nearest_neighbours_are_exact(case):
 
 @pytest.mark.parametrize("case", ["uniform", "mm grid with ties", "one column", "duplicates"])
 def test_nn_kernels_match_their_numpy_reference(case):
-    """Each compiled step of the grid search against `quakescan._nn_reference`, exactly: the same
+    """Each compiled step of the grid search against `quakescan.change._nn_reference`, exactly: the same
     grid, the same column and z order, the same nearest point (lower index on ties)."""
-    from quakescan import _nn_kernels as K
-    from quakescan import _nn_reference as R
+    from quakescan.change import _nn_kernels as K
+    from quakescan.change import _nn_reference as R
 
     rng = np.random.default_rng(8)
     pre = rng.uniform(-1, 11, (700, 3))

@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from quakescan.cityjson import import_cityjson, parse_reference_system
 from quakescan.errors import SceneError
-from quakescan.scene import GROUND, ROOF, WALL, read_scene, triangle_areas, validate_scene, write_scene
+from quakescan.formats.cityjson import import_cityjson, parse_reference_system
+from quakescan.formats.scene import GROUND, ROOF, WALL, read_scene, triangle_areas, validate_scene, write_scene
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 ZURICH = DATA / "zurich_subset_lod2.json"
@@ -374,7 +374,7 @@ def test_buildings_lacking_the_requested_lod_are_left_out(tmp_path, caplog):
     m.add("A", "Building", [m.box_geometry(0, 0, 10, 10, 0, 3, lod="1")])
     m.add("B", "Building", [m.box_geometry(20, 0, 30, 10, 0, 3, lod="1"),
                             m.box_geometry(20, 0, 30, 10, 0, 6, lod="2")])
-    with caplog.at_level(logging.WARNING, logger="quakescan.cityjson"):
+    with caplog.at_level(logging.WARNING, logger="quakescan.formats.cityjson"):
         scene = import_cityjson(m.write(tmp_path / "c.json"), lod="2")
     assert [(b.id, b.extra["source_id"]) for b in scene.buildings] == [(1, "B")]
     assert "1 buildings have no surface geometry at LoD '2'" in caplog.text
@@ -390,7 +390,7 @@ def test_degenerate_and_closure_polygons_are_dropped(tmp_path, caplog):
     g["semantics"]["surfaces"].append({"type": "ClosureSurface"})
     g["semantics"]["values"] += [2, 2, 3]
     m.add("B", "Building", [g])
-    with caplog.at_level(logging.INFO, logger="quakescan.cityjson"):
+    with caplog.at_level(logging.INFO, logger="quakescan.formats.cityjson"):
         scene = import_cityjson(m.write(tmp_path / "c.json"))
     validate_scene(scene)
     assert (scene.face_building == 1).sum() == 12  # the box only
@@ -473,7 +473,7 @@ def test_import_keeps_the_buildings_of_a_box_and_warns_about_wide_scenes(tmp_pat
     keeps the 15 and the terrain around them only. Zurich's 49 buildings span kilometres:
     the import says so before anyone flies a survey over it."""
     from quakescan.cli import main
-    from quakescan.scene import read_scene
+    from quakescan.formats.scene import read_scene
 
     if not ROTTERDAM.is_file() or not ZURICH.is_file():
         pytest.skip("real city models absent")
@@ -511,7 +511,7 @@ def test_terrain_only_around_each_cluster_of_buildings(tmp_path):
 
 
 def test_clusters_whose_grown_boxes_overlap_share_one_patch():
-    from quakescan.cityjson import building_clusters
+    from quakescan.formats.cityjson import building_clusters
 
     boxes = np.array([[0, 0, 10, 10], [55, 0, 65, 10], [200, 0, 210, 10], [30, 60, 40, 70.0]])
     # 0 and 1 are 45 m apart (< 2 × 25): one cluster; its grown box [-25, 90] × [-25, 35] and

@@ -6,11 +6,11 @@ import laspy
 import numpy as np
 import pytest
 
-from quakescan.classification import classify, model_settings
+from quakescan.change.pipeline import PipelineSettings
 from quakescan.cli import main
-from quakescan.model import ModelError, load_model, save_model
-from quakescan.pipeline import PipelineSettings
-from quakescan.training import (
+from quakescan.learning.classification import classify, model_settings
+from quakescan.learning.model import ModelError, load_model, save_model
+from quakescan.learning.training import (
     TrainingError,
     TrainingPair,
     grades_from_epoch,
@@ -34,7 +34,7 @@ def city(tmp_path_factory):
 
 
 def test_grades_come_from_the_post_epoch(city):
-    from quakescan.pointcloud import read_epoch
+    from quakescan.formats.pointcloud import read_epoch
 
     d, grades = city
     assert grades_from_epoch(read_epoch(d / "post.las")) == {i + 1: g for i, g in enumerate(grades)}
@@ -111,7 +111,7 @@ def test_identical_epochs_flag_no_building(city, tmp_path):
 
 
 def test_interrupted_classification_resumes(city, tmp_path, monkeypatch):
-    import quakescan.classification as C
+    import quakescan.learning.classification as C
 
     d, _ = city
     out = tmp_path / "res"
@@ -252,12 +252,12 @@ def test_a_rerun_into_a_finished_folder_is_up_to_date(city, tmp_path, capsys):
 
 
 def test_a_finished_folder_of_another_model_or_cloud_is_classified_again(city, tmp_path, capsys):
-    """quakescan.fingerprint's rule: the model by content, the clouds by path, size and time."""
+    """quakescan.runtime.fingerprint's rule: the model by content, the clouds by path, size and time."""
     import os
     import shutil
 
     from quakescan.cli import main
-    from quakescan.model import load_model
+    from quakescan.learning.model import load_model
 
     d, _ = city
     for name in ("pre.las", "post.las", "model.skops"):

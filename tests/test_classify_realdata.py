@@ -6,8 +6,8 @@ import laspy
 import numpy as np
 import pytest
 
-from quakescan.classification import classify, load_pair
 from quakescan.cli import main
+from quakescan.learning.classification import classify, load_pair
 
 pytestmark = pytest.mark.realdata
 
@@ -65,7 +65,7 @@ def test_shifted_post_epoch_is_aligned_and_a_real_collapse_is_found(ahn3, tmp_pa
     removes the shift, the collapsed building is found damaged, the rest stay undamaged."""
     import shapely
 
-    from quakescan.footprints import read_footprints
+    from quakescan.formats.footprints import read_footprints
 
     las_path, fp = ahn3
     las = laspy.read(las_path)
@@ -221,8 +221,8 @@ def test_a_sparse_rescan_of_a_real_tile_shows_no_displaced_surface_by_chance(ahn
     1.2 m sag)."""
     import dataclasses
 
-    from quakescan.pipeline import describe_pair, settings_for_descriptors
-    from quakescan.surface import SURFACE_DESCRIPTORS
+    from quakescan.change.pipeline import describe_pair, settings_for_descriptors
+    from quakescan.change.surface import SURFACE_DESCRIPTORS
 
     las, fp = ahn3
     pre, post = _split(las, tmp_path, lambda n: np.ones(n, bool),

@@ -5,11 +5,11 @@ import laspy
 import numpy as np
 import pytest
 
+from quakescan.acquisition.survey import Survey, load_survey, preset
 from quakescan.cli import main
 from quakescan.errors import SurveyError
-from quakescan.scene import write_scene
-from quakescan.survey import Survey, load_survey, preset
-from quakescan.synthetic import box_city
+from quakescan.formats.scene import write_scene
+from quakescan.formats.synthetic import box_city
 
 
 @pytest.mark.slow
@@ -131,9 +131,9 @@ def test_import_cityjson_then_scan(tmp_path, shared_data):
 
 
 def test_features_command_adds_readable_dimensions(tmp_path, capsys):
-    from quakescan.features import compute_features
-    from quakescan.pointcloud import read_epoch
-    from quakescan.scan import scan
+    from quakescan.acquisition.scan import scan
+    from quakescan.change.features import compute_features
+    from quakescan.formats.pointcloud import read_epoch
 
     scan(box_city(rows=1, cols=2, origin=(500000.0, 5000000.0, 0.0)), preset("paper").replace(pulse_rate_hz=50_000.0),
          tmp_path / "in.las", seed=1)
@@ -185,8 +185,8 @@ def test_robustness_command_writes_the_report(tmp_path, capsys):
 def test_trajectory_lines_are_the_points_source_ids(tmp_path):
     import laspy
 
-    from quakescan.scene import write_scene
-    from quakescan.synthetic import box_city
+    from quakescan.formats.scene import write_scene
+    from quakescan.formats.synthetic import box_city
 
     write_scene(box_city(rows=1, cols=2), tmp_path / "scene")
     out = tmp_path / "a.las"

@@ -6,7 +6,8 @@ import re
 import numpy as np
 import pytest
 
-from quakescan.cli import Progress, main
+from quakescan.cli import main
+from quakescan.cli.reporting import Progress
 from tests.scenes import HEIGHTS, scan_box_pair
 
 LINE = re.compile(r"^(?P<label>.+?)  (?P<done>[\d,]+)/(?P<total>[\d,]+)  +(?P<pct>\d+) %  (?P<elapsed>[\d:]+)  "
@@ -94,9 +95,9 @@ def pair(tmp_path_factory):
 @pytest.fixture(scope="module")
 def small_model(pair, tmp_path_factory):
     """A 10-tree model on the paper's descriptors: quicker to apply than the shipped one."""
-    from quakescan.model import save_model
-    from quakescan.pipeline import PipelineSettings
-    from quakescan.training import TrainingPair, train
+    from quakescan.change.pipeline import PipelineSettings
+    from quakescan.learning.model import save_model
+    from quakescan.learning.training import TrainingPair, train
 
     model, _, _ = train([TrainingPair(str(pair[0]), str(pair[1]))], PipelineSettings(), n_estimators=10,
                         test_size=0.0)
@@ -158,8 +159,8 @@ def test_classify_reports_once_per_building(pair, small_model, tmp_path, capsys)
 
 def test_features_report_progress_with_the_same_results(pair):
     """The kernel run in 50 calls for progress gives the bytes of one call; the last report is all points."""
-    from quakescan.features import compute_features
-    from quakescan.pointcloud import read_epoch
+    from quakescan.change.features import compute_features
+    from quakescan.formats.pointcloud import read_epoch
 
     xyz = read_epoch(pair[0]).xyz[::7]
     calls = []

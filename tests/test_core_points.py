@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from quakescan.pipeline import PipelineError, PipelineSettings, describe_pair
-from quakescan.pointcloud import read_epoch
+from quakescan.change.pipeline import PipelineError, PipelineSettings, describe_pair
+from quakescan.formats.pointcloud import read_epoch
 from tests.scenes import scan_box_pair
 
 
@@ -84,8 +84,8 @@ def test_settings_json_round_trip_with_and_without_the_step():
 
 def test_a_model_trained_with_a_step_classifies_with_it():
     """The step is part of what a model stores; classification rebuilds it from the model."""
-    from quakescan.classification import model_settings
-    from quakescan.model import DamageModel
+    from quakescan.learning.classification import model_settings
+    from quakescan.learning.model import DamageModel
 
     settings = PipelineSettings(core_point_step=4)
     model = DamageModel(estimator=None, feature_names=settings.descriptor_names(), radius_m=settings.radius_m,

@@ -7,13 +7,14 @@ import laspy
 import numpy as np
 import pytest
 
-from quakescan.dim import simulate_dim
-from quakescan.dim_cameras import plan_cameras
-from quakescan.dim_settings import FIELD_DOC, PhotoSurvey, load_photo_survey, preset_dim, write_photo_survey_template
+from quakescan.acquisition.dim import simulate_dim
+from quakescan.acquisition.dim_cameras import plan_cameras
+from quakescan.acquisition.dim_settings import (FIELD_DOC, PhotoSurvey, load_photo_survey, preset_dim,
+                                                write_photo_survey_template)
+from quakescan.acquisition.raycast import RayCaster, ground_level
 from quakescan.errors import SceneError, SurveyError
-from quakescan.raycast import RayCaster, ground_level
-from quakescan.scene import GROUND, ROOF, WALL, Building, Scene
-from quakescan.synthetic import _MeshBuilder, box_city, box_mesh, ground_mesh
+from quakescan.formats.scene import GROUND, ROOF, WALL, Building, Scene
+from quakescan.formats.synthetic import _MeshBuilder, box_city, box_mesh, ground_mesh
 from tests.las_contract import CONTRACT_ORIGIN, read_checked
 from tests.spacing import nearest_neighbour_spacing
 

@@ -2,11 +2,11 @@
 import numpy as np
 import pytest
 
+from quakescan.acquisition.scan import scan
+from quakescan.acquisition.survey import preset
 from quakescan.errors import PointCloudError
-from quakescan.pointcloud import check_pair, read_epoch
-from quakescan.scan import scan
-from quakescan.survey import preset
-from quakescan.synthetic import box_city
+from quakescan.formats.pointcloud import check_pair, read_epoch
+from quakescan.formats.synthetic import box_city
 
 
 @pytest.mark.realdata

@@ -2,7 +2,8 @@
 import numpy as np
 import pytest
 
-from quakescan.evaluation import EvaluationError, binary_metrics, evaluate_files, evaluate_grades, plot_confusion
+from quakescan.results.evaluation import (EvaluationError, binary_metrics, evaluate_files, evaluate_grades,
+                                          plot_confusion)
 
 
 def test_binary_metrics_by_hand():
@@ -54,7 +55,7 @@ def test_metrics_of_a_class_absent_from_the_truth_are_na_not_zero():
     neither in the truth nor predicted: precision, recall and F1 are all "n/a"."""
     import json
 
-    from quakescan.evaluation import evaluate_grades, metric_text
+    from quakescan.results.evaluation import evaluate_grades, metric_text
 
     ev = evaluate_grades(np.array([0, 0, 3, 3]), np.array([0, 4, 3, 3]))
     lines = {line.split(" | ")[0].strip("| "): line for line in ev.table().splitlines()[2:]}

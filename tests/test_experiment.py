@@ -4,7 +4,7 @@ import json
 import pytest
 
 from quakescan.cli import main
-from quakescan.experiment import CLASSIFIERS, PAPER_TABLE
+from quakescan.studies.experiment import CLASSIFIERS, PAPER_TABLE
 
 
 @pytest.mark.slow

@@ -4,12 +4,12 @@ import math
 import numpy as np
 import pytest
 
-from quakescan import _feature_kernels as K
-from quakescan import _feature_reference as R
-from quakescan import features as F
-from quakescan._feature_reference import reference_features
+from quakescan.change import _feature_kernels as K
+from quakescan.change import _feature_reference as R
+from quakescan.change import features as F
+from quakescan.change._feature_reference import reference_features
+from quakescan.change.features import FEATURES, compute_features
 from quakescan.errors import QuakeScanError
-from quakescan.features import FEATURES, compute_features
 
 
 def grid_plane(h=0.05, half=3.0):

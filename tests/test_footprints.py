@@ -5,7 +5,7 @@ import laspy
 import numpy as np
 import pytest
 
-from quakescan.footprints import FootprintError, assign_buildings, assign_buildings_reference, read_footprints
+from quakescan.formats.footprints import FootprintError, assign_buildings, assign_buildings_reference, read_footprints
 
 
 def _write(tmp_path, features, crs="EPSG:28992"):
@@ -82,8 +82,8 @@ def test_ahn3_points_fall_in_bgt_footprints(shared_data):
 
 
 def test_footprints_of_a_box_scene_are_its_rectangles_in_world_coordinates(tmp_path):
-    from quakescan.footprints import footprints_from_scene, write_footprints
-    from quakescan.synthetic import box_city
+    from quakescan.formats.footprints import footprints_from_scene, write_footprints
+    from quakescan.formats.synthetic import box_city
 
     scene = box_city(rows=1, cols=2, height=(9.0, 12.0), origin=(500000.0, 5000000.0, 0.0))
     fp = footprints_from_scene(scene)
@@ -106,7 +106,7 @@ def test_parts_that_simplifying_makes_overlap_give_one_valid_outline():
     the invalid polygon. The outline must stay valid and keep the parts' area."""
     import shapely
 
-    from quakescan.footprints import _clean_outline
+    from quakescan.formats.footprints import _clean_outline
 
     a = [(11.311999365340567, 37.841000776148036), (17.20599941874633, 37.84100129141788),
          (17.825999304305412, 37.84100134561999), (17.82599952054565, 35.36750133226855),
@@ -127,10 +127,10 @@ def test_parts_that_simplifying_makes_overlap_give_one_valid_outline():
 def scanned_region_city(tmp_path_factory):
     """A generated L'Aquila-like block city (attached buildings, courtyards, pitched roofs)
     scanned with the airborne preset."""
+    from quakescan.acquisition.scan import scan
+    from quakescan.acquisition.survey import preset
     from quakescan.demo import generate
-    from quakescan.scan import scan
-    from quakescan.scene import read_scene
-    from quakescan.survey import preset
+    from quakescan.formats.scene import read_scene
 
     folder = tmp_path_factory.mktemp("region_city")
     generate("region", "mixed", 12, 4, folder / "city")
@@ -140,7 +140,7 @@ def scanned_region_city(tmp_path_factory):
 
 
 def test_footprint_labels_of_a_simulated_cloud_agree_with_the_simulator_on_roofs(scanned_region_city):
-    from quakescan.footprints import footprints_from_scene
+    from quakescan.formats.footprints import footprints_from_scene
 
     scene, las_path = scanned_region_city
     fp = footprints_from_scene(scene)

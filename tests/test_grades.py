@@ -3,8 +3,8 @@ import sys
 from pathlib import Path
 
 from quakescan import grades
-from quakescan.evaluation import GRADE_NAMES as EVALUATION_NAMES
-from quakescan.model import GRADE_LABELS
+from quakescan.learning.model import GRADE_LABELS
+from quakescan.results.evaluation import GRADE_NAMES as EVALUATION_NAMES
 
 REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:

@@ -5,13 +5,13 @@ import laspy
 import numpy as np
 import pytest
 
+from quakescan.acquisition.raycast import ground_level
+from quakescan.acquisition.reflectance import MATERIAL_REFLECTANCE, SURFACE_REFLECTANCE, intensity
+from quakescan.acquisition.scan import scan
+from quakescan.acquisition.survey import FlightLine, preset
 from quakescan.errors import SceneError
-from quakescan.reflectance import MATERIAL_REFLECTANCE, SURFACE_REFLECTANCE, intensity
-from quakescan.raycast import ground_level
-from quakescan.scan import scan
-from quakescan.scene import GROUND, ROOF, read_scene, write_scene
-from quakescan.survey import FlightLine, preset
-from quakescan.synthetic import box_city, flat_ground
+from quakescan.formats.scene import GROUND, ROOF, read_scene, write_scene
+from quakescan.formats.synthetic import box_city, flat_ground
 
 R_REF = 40.0
 EXACT = preset("paper").replace(range_noise_sigma_m=0.0, intensity_reference_range_m=R_REF)

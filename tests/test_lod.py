@@ -2,9 +2,9 @@
 import numpy as np
 import pytest
 
-from quakescan.change import SplitSettings
-from quakescan.lod import CalibrationError, calibrate
-from quakescan.pointcloud import Epoch, read_epoch
+from quakescan.change.lod import CalibrationError, calibrate
+from quakescan.change.split import SplitSettings
+from quakescan.formats.pointcloud import Epoch, read_epoch
 from tests.scenes import HEIGHTS, scan_box_pair
 
 UTM = np.array([500000.0, 5000000.0, 100.0])

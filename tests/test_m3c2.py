@@ -1,11 +1,11 @@
-"""M3C2 distances and levels of detection against closed-form answers (core/m3c2.py)."""
+"""M3C2 distances and levels of detection against closed-form answers (core/change/m3c2.py)."""
 import math
 
 import numpy as np
 import pytest
 
-from quakescan.features import compute_features
-from quakescan.m3c2 import (
+from quakescan.change.features import compute_features
+from quakescan.change.m3c2 import (
     ColumnGrid,
     M3C2Error,
     M3C2Result,
@@ -224,7 +224,7 @@ def test_settings_stored_before_the_chance_test_keep_the_share_rule():
     assert M3C2Settings().displaced_alpha == 0.01
     assert M3C2Settings.from_json({}).displaced_alpha == 0.0
     assert M3C2Settings.from_json(M3C2Settings().to_json()) == M3C2Settings()
-    from quakescan.surface import SurfaceSettings
+    from quakescan.change.surface import SurfaceSettings
 
     stored = SurfaceSettings().to_json()
     del stored["m3c2"]["displaced_alpha"]
@@ -235,11 +235,11 @@ def test_settings_stored_before_the_chance_test_keep_the_share_rule():
 
 @pytest.mark.parametrize("sample", [8, 32])
 def test_cylinder_kernel_matches_the_numpy_reference(sample):
-    """`_m3c2_kernels.cylinder_robust` against `quakescan._m3c2_reference` on a roof, a wall and
+    """`_m3c2_kernels.cylinder_robust` against `quakescan.change._m3c2_reference` on a roof, a wall and
     scattered points, cylinders of every orientation: the kernel's grid and z runs skip only
     points no cylinder can hold, so counts, the reservoir sample (median, spread) and the
     running sums are the reference's to the bit."""
-    from quakescan import _m3c2_reference as R
+    from quakescan.change import _m3c2_reference as R
 
     rng = np.random.default_rng(14)
     roof = noisy_plane(rng, 60, 0.03, size=10.0, z0=5.0)

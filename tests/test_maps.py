@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 import shapely.geometry
 
-from quakescan import results as R
 from quakescan.grades import GRADE_NAMES, long_label
-from quakescan.qgis_style import GRADE_FIELD, write_qml
-from quakescan.webmap import write_map_html
+from quakescan.results import writers as R
+from quakescan.results.qgis_style import GRADE_FIELD, write_qml
+from quakescan.results.webmap import write_map_html
 
 CLASSES = [0, 3, 4, 5]
 E0, N0 = 367000.0, 4690000.0

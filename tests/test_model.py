@@ -5,7 +5,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from quakescan.model import DamageModel, ModelError, grouped_split, load_model, save_model, train_forest
+from quakescan.learning.model import DamageModel, ModelError, grouped_split, load_model, save_model, train_forest
 
 pytestmark = pytest.mark.usefixtures("one_native_thread")  # tiny fits (tests/conftest.py)
 
@@ -90,7 +90,7 @@ def _descriptor_rows():
 
 def test_the_forest_learns_only_from_buildings_with_changed_points():
     """Rows without changed points are decided by rule: adding 500 of them changes nothing."""
-    from quakescan.model import decided_by_rule, predict_grades, train_damage_forest
+    from quakescan.learning.model import decided_by_rule, predict_grades, train_damage_forest
 
     names = ["share_changed", "height_median"]
     x, y = _descriptor_rows()
@@ -110,9 +110,9 @@ def test_the_forest_learns_only_from_buildings_with_changed_points():
 def test_a_forest_that_never_saw_grade_0_still_reports_it_by_rule():
     """Only destroyed buildings changed in training: the forest knows one grade; a building
     without changes is still "no damage" with p_0 = 1 in the results."""
-    from quakescan.classification import predict_rows
-    from quakescan.model import train_damage_forest
-    from quakescan.pipeline import BuildingRow
+    from quakescan.change.pipeline import BuildingRow
+    from quakescan.learning.classification import predict_rows
+    from quakescan.learning.model import train_damage_forest
 
     names = ["share_changed", "height_median"]
     x = np.array([[0.0, 0.0], [0.0, 0.0], [0.6, -4.0], [0.7, -5.0]])
@@ -127,7 +127,7 @@ def test_a_forest_that_never_saw_grade_0_still_reports_it_by_rule():
 
 
 def test_training_rows_without_any_change_are_refused():
-    from quakescan.model import train_damage_forest
+    from quakescan.learning.model import train_damage_forest
 
     with pytest.raises(ModelError, match="none of the 3 training buildings has changed points"):
         train_damage_forest(np.zeros((3, 2)), np.array([0, 3, 5]), ["share_changed", "h"])
@@ -151,7 +151,7 @@ def test_train_forest_is_the_rf_kind_and_the_forest_it_always_was():
     """train_forest goes through fit_classifier("rf") and still fits the same forest."""
     from sklearn.ensemble import RandomForestClassifier
 
-    from quakescan.model import fit_classifier
+    from quakescan.learning.model import fit_classifier
 
     x, y = _grades_data()
     old = RandomForestClassifier(n_estimators=20, max_depth=5, random_state=3, n_jobs=None,
@@ -163,7 +163,7 @@ def test_train_forest_is_the_rf_kind_and_the_forest_it_always_was():
 
 @pytest.mark.parametrize("kind,calibration", KINDS)
 def test_same_rows_same_seed_same_predictions(kind, calibration):
-    from quakescan.model import fit_classifier
+    from quakescan.learning.model import fit_classifier
 
     x, y = _grades_data()
     a = fit_classifier(x, y, kind, calibration=calibration, seed=4, **SMALL[kind])
@@ -174,7 +174,7 @@ def test_same_rows_same_seed_same_predictions(kind, calibration):
 
 
 def test_hgb_defaults_and_arguments():
-    from quakescan.model import HGB_DEFAULTS, fit_classifier
+    from quakescan.learning.model import HGB_DEFAULTS, fit_classifier
 
     x, y = _grades_data()
     h = fit_classifier(x, y, "hgb", seed=2, learning_rate=0.2)
@@ -193,7 +193,7 @@ def test_hgb_defaults_and_arguments():
 
 
 def test_calibration_folds_keep_groups_apart_and_are_fixed():
-    from quakescan.model import calibration_folds, fit_classifier
+    from quakescan.learning.model import calibration_folds, fit_classifier
 
     x, y = _grades_data(120)
     groups = np.arange(120) // 4  # 30 buildings, 4 rows each
@@ -216,7 +216,7 @@ def test_calibration_folds_keep_groups_apart_and_are_fixed():
 def test_every_kind_round_trips_through_a_file_of_trusted_types(tmp_path, kind, calibration):
     import skops.io as sio
 
-    from quakescan.model import TRUSTED_TYPES, fit_classifier
+    from quakescan.learning.model import TRUSTED_TYPES, fit_classifier
 
     x, y = _grades_data()
     est = fit_classifier(x, y, kind, calibration=calibration, groups=np.arange(len(y)) // 3, seed=1,
@@ -240,7 +240,7 @@ def test_trusted_types_are_exactly_what_the_kinds_need(tmp_path):
     """No type on the allow-list that no classifier kind needs (and none missing)."""
     import skops.io as sio
 
-    from quakescan.model import TRUSTED_TYPES, fit_classifier
+    from quakescan.learning.model import TRUSTED_TYPES, fit_classifier
 
     x, y = _grades_data(60)
     needed = set()
@@ -272,8 +272,8 @@ def test_a_model_file_of_the_first_format_loads_and_predicts_as_before(tmp_path)
     predict_proba give."""
     import skops.io as sio
 
-    from quakescan.classification import predict_rows
-    from quakescan.pipeline import BuildingRow, PipelineSettings
+    from quakescan.change.pipeline import BuildingRow, PipelineSettings
+    from quakescan.learning.classification import predict_rows
 
     settings = PipelineSettings()
     names = settings.descriptor_names()
@@ -315,7 +315,7 @@ def test_a_model_file_saved_before_the_rename_to_quakescan_loads_and_predicts(tm
     (commit 1dc0058 and before). skops records only numpy, sklearn and builtins types, never
     the library's, so such a file loads without any `core` package; a file saved now records
     the same kinds of types, which is what keeps every older file loadable."""
-    from quakescan.classification import DEFAULT_MODEL
+    from quakescan.learning.classification import DEFAULT_MODEL
 
     m = load_model(DEFAULT_MODEL)
     probe = np.random.default_rng(0).random((3, len(m.feature_names)))
@@ -328,8 +328,8 @@ def test_a_model_file_saved_before_the_rename_to_quakescan_loads_and_predicts(tm
 
 
 def test_the_shipped_model_is_the_transfer_model_with_its_limits_and_provenance():
-    from quakescan.classification import DEFAULT_MODEL, model_settings
-    from quakescan.default_model import MODEL_DESCRIPTORS
+    from quakescan.learning.classification import DEFAULT_MODEL, model_settings
+    from quakescan.learning.default_model import MODEL_DESCRIPTORS
 
     m = load_model(DEFAULT_MODEL)
     assert m.no_change_rule is False and m.grades == [0, 3, 4, 5]
@@ -354,7 +354,7 @@ def _rows_with_unchanged_heavy():
 
 
 def test_rule_off_fits_and_asks_every_row():
-    from quakescan.model import fit_classifier, predict_grades, train_damage_forest
+    from quakescan.learning.model import fit_classifier, predict_grades, train_damage_forest
 
     names = ["share_changed", "height_median"]
     x, y = _rows_with_unchanged_heavy()
@@ -370,7 +370,7 @@ def test_rule_off_fits_and_asks_every_row():
 
 
 def test_rule_off_keeps_calibration_groups_row_for_row():
-    from quakescan.model import train_damage_forest
+    from quakescan.learning.model import train_damage_forest
 
     names = ["share_changed", "height_median"]
     x, y = _rows_with_unchanged_heavy()
@@ -385,9 +385,9 @@ def test_rule_off_keeps_calibration_groups_row_for_row():
 def test_a_model_without_the_rule_is_asked_about_unchanged_buildings(tmp_path):
     import skops.io as sio
 
-    from quakescan.classification import predict_rows
-    from quakescan.model import TRUSTED_TYPES, VERSION_ALL_ROWS, train_damage_forest
-    from quakescan.pipeline import BuildingRow
+    from quakescan.change.pipeline import BuildingRow
+    from quakescan.learning.classification import predict_rows
+    from quakescan.learning.model import TRUSTED_TYPES, VERSION_ALL_ROWS, train_damage_forest
 
     names = ["share_changed", "height_median"]
     x, y = _rows_with_unchanged_heavy()
@@ -412,7 +412,7 @@ def test_a_model_without_the_rule_is_asked_about_unchanged_buildings(tmp_path):
 
 
 def test_grades_of_a_model_without_the_rule_are_its_classes():
-    from quakescan.model import train_damage_forest
+    from quakescan.learning.model import train_damage_forest
 
     names = ["share_changed", "height_median"]
     x = np.array([[0.0, 0.0], [0.1, -1.0], [0.6, -4.0], [0.7, -5.0]])
@@ -435,8 +435,8 @@ def test_confidence_is_the_predicted_class_probability_and_margin_its_lead():
 
 
 def test_predict_rows_puts_the_confidence_on_each_building(model):
-    from quakescan.classification import predict_rows
-    from quakescan.pipeline import BuildingRow
+    from quakescan.change.pipeline import BuildingRow
+    from quakescan.learning.classification import predict_rows
 
     m, x = model
     names = ["share_changed", "b", "c"]

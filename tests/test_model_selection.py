@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from quakescan.model import ModelError
-from quakescan.model_selection import candidate_name, compare_classifiers, comparison_table, grouped_folds
+from quakescan.learning.model import ModelError
+from quakescan.learning.model_selection import candidate_name, compare_classifiers, comparison_table, grouped_folds
 
 NAMES = ["share_changed", "height_median", "noise"]
 GRADES = (0, 3, 4, 5)

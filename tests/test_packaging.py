@@ -54,7 +54,7 @@ def test_the_wheel_installs_into_a_fresh_venv_and_runs_the_demo(tmp_path):
           src], cwd=tmp_path)
     (wheel,) = (tmp_path / "dist").glob("quakescan-*.whl")
     names = set(zipfile.ZipFile(wheel).namelist())
-    for member in ("quakescan/cli.py", "quakescan/data/default_model.skops", "quakescan/web/leaflet.js",
+    for member in ("quakescan/cli/__init__.py", "quakescan/acquisition/scan.py", "quakescan/data/default_model.skops", "quakescan/web/leaflet.js",
                    "quakescan/blender_scripts/generate_scenes.py", "quakescan_damage/__init__.py",
                    "quakescan_damage/geometry/shell.py", "quakescan_damage/blender_manifest.toml"):
         assert member in names, member

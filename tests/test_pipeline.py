@@ -2,8 +2,7 @@
 import numpy as np
 import pytest
 
-from quakescan.change import SplitSettings, nearest_neighbours
-from quakescan.pipeline import (
+from quakescan.change.pipeline import (
     PAPER_FEATURES,
     GridIndex,
     PipelineError,
@@ -12,7 +11,8 @@ from quakescan.pipeline import (
     describe_pair,
     settings_for_descriptors,
 )
-from quakescan.pointcloud import Epoch, read_epoch
+from quakescan.change.split import SplitSettings, nearest_neighbours
+from quakescan.formats.pointcloud import Epoch, read_epoch
 from tests.scenes import UTM, scan_box_pair
 
 

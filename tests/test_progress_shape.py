@@ -14,18 +14,22 @@ import numpy as np
 import pytest
 
 import quakescan
-from quakescan.cli import THREADS_HELP, Progress, build_parser
+from quakescan.cli import build_parser
+from quakescan.cli.options import THREADS_HELP
+from quakescan.cli.reporting import Progress
 from tests.test_cli_progress import LINE, _Clock, _Stream
 
 
 def _library_functions():
     """(module.qualname, function) of every public function and method defined in the library's
-    public modules (the command line, which renders progress, and quakescan.progress, which
+    public modules (the command line, which renders progress, and quakescan.runtime.progress, which
     defines it, left out)."""
-    for info in pkgutil.iter_modules(quakescan.__path__):
-        if info.ispkg or info.name in ("cli", "progress") or info.name.startswith("_"):
+    for info in pkgutil.walk_packages(quakescan.__path__, "quakescan."):
+        last = info.name.rpartition(".")[2]
+        if (info.ispkg or info.name.startswith("quakescan.cli.") or info.name == "quakescan.runtime.progress"
+                or last.startswith("_")):
             continue
-        module = importlib.import_module(f"quakescan.{info.name}")
+        module = importlib.import_module(info.name)
         for _, obj in vars(module).items():
             candidates = [obj] + ([v for v in vars(obj).values() if inspect.isfunction(v)] if inspect.isclass(obj)
                                   else [])
@@ -43,11 +47,11 @@ def test_every_progress_parameter_has_the_one_shape():
     with_progress = {name: inspect.signature(fn).parameters["progress"] for name, fn in FUNCTIONS.items()
                      if "progress" in inspect.signature(fn).parameters}
     # the long functions of every kind: scanning, DIM, features, description, training, experiments
-    for expected in ("quakescan.scan.scan", "quakescan.dim.simulate_dim", "quakescan.features.compute_features",
-                     "quakescan.pipeline.describe_pair", "quakescan.training.training_table",
-                     "quakescan.trainset.build", "quakescan.demo.run_demo", "quakescan.classification.classify",
-                     "quakescan.lod.calibrate", "quakescan.robustness.run_experiment",
-                     "quakescan.experiment.run_paper_experiment", "quakescan.acquisition.acquire"):
+    for expected in ("quakescan.acquisition.scan.scan", "quakescan.acquisition.dim.simulate_dim", "quakescan.change.features.compute_features",
+                     "quakescan.change.pipeline.describe_pair", "quakescan.learning.training.training_table",
+                     "quakescan.learning.trainset.build", "quakescan.demo.run_demo", "quakescan.learning.classification.classify",
+                     "quakescan.change.lod.calibrate", "quakescan.studies.robustness.run.run_experiment",
+                     "quakescan.studies.experiment.run_paper_experiment", "quakescan.acquisition.acquire.acquire"):
         assert expected in with_progress
     wrong = {name: (str(p.annotation), p.default) for name, p in with_progress.items()
              if p.annotation != "ProgressCallback | None" or p.default is not None}
@@ -71,9 +75,9 @@ def test_every_parallel_function_takes_workers_defaulting_to_every_core():
 
 
 def test_the_api_takes_workers_and_still_its_old_name(tmp_path):
+    from quakescan.acquisition.scan import scan
+    from quakescan.acquisition.survey import preset
     from quakescan.errors import QuakeScanError
-    from quakescan.scan import scan
-    from quakescan.survey import preset
     from tests.scenes import box_city
 
     for fn in (quakescan.acquire, quakescan.describe, quakescan.train, quakescan.classify):
@@ -102,14 +106,14 @@ def test_a_multi_stage_function_names_its_stages(pair):
     """training_table counts each pair's buildings as a stage named after its post-event file
     (it took progress(name, done, total) before); a single-stage callee inside it reports
     (done, total) only and gets the stage filled in."""
-    from quakescan.pipeline import PipelineSettings
-    from quakescan.training import TrainingPair, training_table
+    from quakescan.change.pipeline import PipelineSettings
+    from quakescan.learning.training import TrainingPair, training_table
 
     calls = []
     table = training_table([TrainingPair(str(pair[0]), str(pair[1]))], PipelineSettings(),
                            progress=lambda done, total, stage="": calls.append((stage, done, total)))
     assert calls == [("post.las", k, 6) for k in range(1, 7)] and len(table.y) == 6
-    from quakescan.progress import in_stage
+    from quakescan.runtime.progress import in_stage
 
     got = []
     in_stage(in_stage(lambda done, total, stage="": got.append((done, total, stage)), "demo"), "classify")(1, 2)
@@ -150,15 +154,15 @@ def test_every_threads_flag_has_one_default_and_one_meaning():
 
 def _stage_plan(tmp_path, monkeypatch):
     """A quick plan whose every table is finished on disk: build only reads them."""
-    import quakescan.trainset as ts
-    from quakescan.default_model import TABLE_SETTINGS
+    import quakescan.learning.trainset as ts
+    from quakescan.learning.default_model import TABLE_SETTINGS
     from tests.trainset_fakes import finished_tables
 
     return finished_tables(tmp_path, monkeypatch, ts.default_plan(0, "quick"), TABLE_SETTINGS), TABLE_SETTINGS
 
 
 def test_stage_messages_are_log_records_and_the_old_say_still_gets_them(tmp_path, monkeypatch, capsys, caplog):
-    from quakescan.trainset import build
+    from quakescan.learning.trainset import build
 
     plan, settings = _stage_plan(tmp_path, monkeypatch)
     steps = []
@@ -180,7 +184,7 @@ def test_the_cli_shows_stage_messages_on_stderr_unless_quiet(tmp_path, monkeypat
     from quakescan.cli import main
 
     plan, _ = _stage_plan(tmp_path / "ts", monkeypatch)
-    monkeypatch.setattr("quakescan.trainset.default_plan", lambda *a, **k: plan)
+    monkeypatch.setattr("quakescan.learning.trainset.default_plan", lambda *a, **k: plan)
     assert main(["training-set", "-o", str(tmp_path / "ts"), "--size", "quick"]) == 0
     out, err = capsys.readouterr()
     assert err.splitlines()[0].startswith("training set 1/3: ") and "training set 1/3" not in out

@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 import shapely.geometry
 
-from quakescan import results as R
-from quakescan.evaluation import evaluate_files
-from quakescan.footprints import Footprints, read_footprints
-from quakescan.model import GRADE_LABELS
+from quakescan.formats.footprints import Footprints, read_footprints
+from quakescan.learning.model import GRADE_LABELS
+from quakescan.results import writers as R
+from quakescan.results.evaluation import evaluate_files
 
 CLASSES = [0, 3, 4, 5]
 ORIGIN = np.array([500000.0, 5000000.0, 40.0])

@@ -1,4 +1,4 @@
-"""The one resume rule (quakescan.fingerprint) in every resumable command: an output made with the
+"""The one resume rule (quakescan.runtime.fingerprint) in every resumable command: an output made with the
 same inputs and settings is reused, one made with other settings is made again, never reused.
 (classify: tests/test_classify.py; robustness: tests/test_robustness.py; the scan checkpoint:
 tests/test_scan_resume.py; generation end to end: tests/addon/test_addon_generate.py.)"""
@@ -11,12 +11,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from quakescan import fingerprint
-from quakescan.acquisition import Acquisition, acquire
+from quakescan.acquisition.acquire import Acquisition, acquire
+from quakescan.acquisition.survey import als_for_density
 from quakescan.cli import main
-from quakescan.scene import write_scene
-from quakescan.survey import als_for_density
-from quakescan.synthetic import box_city
+from quakescan.formats.scene import write_scene
+from quakescan.formats.synthetic import box_city
+from quakescan.runtime import fingerprint
 
 REPO = Path(__file__).resolve().parents[1]
 SMALL_SURVEY = {"format": "quakescan-survey", "version": 1, "pulse_rate_hz": 50_000.0}
@@ -149,7 +149,7 @@ def test_an_acquisition_record_of_before_output_bytes_is_still_reused(tmp_path):
 # experiment ---------------------------------------------------------------------------------
 
 def test_experiment_clouds_are_reacquired_when_their_scene_changed(tmp_path, caplog):
-    from quakescan.experiment import _acquire
+    from quakescan.studies.experiment import _acquire
 
     scene = tmp_path / "scene"
     write_scene(box_city(rows=1, cols=1), scene)
@@ -167,12 +167,12 @@ def test_experiment_clouds_are_reacquired_when_their_scene_changed(tmp_path, cap
 
 
 def test_experiment_tables_and_levels_of_detection_follow_their_inputs_and_settings(tmp_path, monkeypatch):
-    import quakescan.classification
-    import quakescan.lod
-    import quakescan.pipeline
-    from quakescan.experiment import ExperimentSettings, _levels_of_detection, _table
-    from quakescan.lod import LevelsOfDetection
-    from quakescan.pipeline import BuildingRow, PipelineSettings
+    import quakescan.learning.classification
+    import quakescan.change.lod
+    import quakescan.change.pipeline
+    from quakescan.change.lod import LevelsOfDetection
+    from quakescan.change.pipeline import BuildingRow, PipelineSettings
+    from quakescan.studies.experiment import ExperimentSettings, _levels_of_detection, _table
 
     for name in ("pre.las", "post.las", "rescan.las"):
         (tmp_path / name).write_bytes(b"a cloud")
@@ -188,10 +188,10 @@ def test_experiment_tables_and_levels_of_detection_follow_their_inputs_and_setti
         return LevelsOfDetection(lod_height_m=0.3, lod_curvature=0.2, height_at_quantile_m=0.1,
                                  curvature_at_quantile=0.1, quantile=0.999, points=5000, radius_m=1.0)
 
-    monkeypatch.setattr(quakescan.classification, "load_pair", lambda pre, post: type("P", (), {"pre": pre, "post": post}))
-    monkeypatch.setattr(quakescan.pipeline, "describe_pair", describe_pair)
-    monkeypatch.setattr(quakescan.lod, "calibrate", calibrate)
-    monkeypatch.setattr("quakescan.pointcloud.read_epoch", lambda p, origin=None: type("E", (), {"origin": None}))
+    monkeypatch.setattr(quakescan.learning.classification, "load_pair", lambda pre, post: type("P", (), {"pre": pre, "post": post}))
+    monkeypatch.setattr(quakescan.change.pipeline, "describe_pair", describe_pair)
+    monkeypatch.setattr(quakescan.change.lod, "calibrate", calibrate)
+    monkeypatch.setattr("quakescan.formats.pointcloud.read_epoch", lambda p, origin=None: type("E", (), {"origin": None}))
     posts = [(tmp_path / "post.las", 5)]
     cache = tmp_path / "table"
     _table(tmp_path / "pre.las", posts, cache, PipelineSettings(), 1)
@@ -212,10 +212,10 @@ def test_experiment_tables_and_levels_of_detection_follow_their_inputs_and_setti
 # training set -------------------------------------------------------------------------------
 
 def test_training_set_tables_of_another_pair_are_described_again(tmp_path, monkeypatch):
-    import quakescan.acquisition
-    import quakescan.trainset as ts
-    from quakescan.default_model import TABLE_SETTINGS
-    from quakescan.trainset import build, default_plan
+    import quakescan.acquisition.acquire
+    import quakescan.learning.trainset as ts
+    from quakescan.learning.default_model import TABLE_SETTINGS
+    from quakescan.learning.trainset import build, default_plan
 
     plan = default_plan(0, "quick")
     monkeypatch.setattr(ts, "generate_city", lambda city, folder: None)
@@ -233,7 +233,7 @@ def test_training_set_tables_of_another_pair_are_described_again(tmp_path, monke
         acquired.append(Path(path).name)
         raise Boom
 
-    monkeypatch.setattr(quakescan.acquisition, "acquire", no_acquire)
+    monkeypatch.setattr(quakescan.acquisition.acquire, "acquire", no_acquire)
     with pytest.raises(Boom):  # no table yet: the first pair is acquired
         build(tmp_path, plan, TABLE_SETTINGS, say=lambda s: None)
     for p in plan.pairs:  # finished tables, as build records them

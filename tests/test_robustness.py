@@ -9,10 +9,15 @@ import shutil
 import numpy as np
 import pytest
 
+from quakescan.acquisition.dim_settings import preset_dim
+from quakescan.acquisition.survey import preset
 from quakescan.cli import main
-from quakescan.dim_settings import preset_dim
-from quakescan.pointcloud import Epoch
-from quakescan.robustness import (
+from quakescan.formats.pointcloud import Epoch
+from quakescan.formats.scene import write_scene
+from quakescan.formats.synthetic import box_city
+from quakescan.studies.robustness.report import write_report
+from quakescan.studies.robustness.run import run_experiment
+from quakescan.studies.robustness.selection import (
     NORMAL,
     PAPER_SET,
     REPORT_FEATURES,
@@ -25,14 +30,9 @@ from quakescan.robustness import (
     relative_change,
     relative_changes,
     robustness,
-    run_experiment,
     thin,
     thin_index,
-    write_report,
 )
-from quakescan.scene import write_scene
-from quakescan.survey import preset
-from quakescan.synthetic import box_city
 
 PNG = b"\x89PNG\r\n\x1a\n"
 
@@ -143,10 +143,10 @@ def test_best_radius_rule():
     d = {1.0: {"a": 1.0, "b": 20.0, "c": 30.0},   # 1 robust
          2.0: {"a": 5.0, "b": 9.0, "c": 40.0},    # 2 robust, mean 18
          3.0: {"a": 2.0, "b": 8.0, "c": 35.0}}    # 2 robust, mean 15 -> best
-    from quakescan import robustness as R
+    from quakescan.studies.robustness import selection as R
 
     def key(r):
-        n = sum(R._le(d[r][f], 10.0) for f in feats)
+        n = sum(R.within(d[r][f], 10.0) for f in feats)
         return (-n, float(np.mean(list(d[r].values()))), r)
     assert min(d, key=key) == 3.0
 
@@ -192,20 +192,20 @@ def test_simulated_experiment(experiment):
     assert not list(out.rglob("*.part*"))
     assert sorted(p.name for p in (out / "clouds").glob("*.las")) == ["dim_post.las", "dim_pre.las",
                                                                        "uls_post.las", "uls_pre.las"]
-    # each beside the record of what made it (quakescan.acquisition): what a rerun compares against
+    # each beside the record of what made it (quakescan.acquisition.acquire): what a rerun compares against
     assert sorted(p.name for p in (out / "clouds").iterdir() if not p.name.endswith(".las")) == sorted(
         f"{c}.las.acquisition.json" for c in ("dim_post", "dim_pre", "uls_post", "uls_pre"))
 
 
 def test_experiment_resumes_from_existing_clouds(experiment, monkeypatch):
     root, res, _, (uls, dim) = experiment
-    import quakescan.dim
-    import quakescan.scan
+    import quakescan.acquisition.dim
+    import quakescan.acquisition.scan
 
     def boom(*a, **k):
         raise AssertionError("rescanned although the cloud exists")
-    monkeypatch.setattr(quakescan.scan, "scan", boom)
-    monkeypatch.setattr(quakescan.dim, "simulate_dim", boom)
+    monkeypatch.setattr(quakescan.acquisition.scan, "scan", boom)
+    monkeypatch.setattr(quakescan.acquisition.dim, "simulate_dim", boom)
     stamps = {p: p.stat().st_mtime_ns for p in (root / "out" / "clouds").glob("*.las")}
     # same out_dir: every cloud is kept, the numbers are reproduced
     again = run_experiment(root / "pre", root / "post", root / "out", radii=(1.0, 2.0), seed=1, workers=2,

@@ -5,12 +5,12 @@ import laspy
 import numpy as np
 import pytest
 
+from quakescan.acquisition.raycast import RayCaster, ground_level
+from quakescan.acquisition.scan import scan
+from quakescan.acquisition.survey import FlightLine, plan_flight, preset
 from quakescan.errors import SceneError, SurveyError
-from quakescan.raycast import RayCaster, ground_level
-from quakescan.scan import scan
-from quakescan.scene import GROUND, ROOF, WALL, Scene
-from quakescan.survey import FlightLine, plan_flight, preset
-from quakescan.synthetic import box_city, flat_ground
+from quakescan.formats.scene import GROUND, ROOF, WALL, Scene
+from quakescan.formats.synthetic import box_city, flat_ground
 from tests.las_contract import CONTRACT_ORIGIN, read_checked
 from tests.spacing import nearest_neighbour_spacing
 
@@ -272,7 +272,7 @@ def test_survey_that_misses_the_scene(tmp_path):
     ("single", "rotating_polygon", 0.05), ("adaptive", "oscillating_mirror", 0.05)])
 def test_compiled_loops_match_the_numpy_reference(tmp_path, beam, deflector, misalignment):
     """The numba kernels (pulses, rays, hit refinement, LAS packing) give the same bytes as
-    the plain numpy implementation kept beside them, strip misalignment included."""
+    their numpy references (`_scan_reference`), strip misalignment included."""
     scene = box_city(rows=1, cols=2, origin=(500000.0, 5000000.0, 0.0))
     s = preset("paper").replace(beam=beam, deflector=deflector, pulse_rate_hz=60_000.0,
                                 strip_misalignment_m=misalignment)
@@ -329,7 +329,7 @@ def _roof_lines(survey, offsets_y, length=30.0):
 def test_strip_misalignment_moves_every_point_of_a_line_by_its_offset(tmp_path):
     """Same seed with and without misalignment: the same pulses and noise, every point of line k
     moved by strip_offset(k) (to the LAS millimetre); the paper preset has none."""
-    from quakescan.scan import strip_offset
+    from quakescan.acquisition.beams import strip_offset
 
     assert preset("paper").strip_misalignment_m == 0
     scene = box_city(rows=1, cols=1)
@@ -402,14 +402,14 @@ def test_als_preset_is_an_aircraft_scan_of_about_10_points_per_m2():
     assert s.max_range_m >= s.altitude_agl_m / math.cos(math.radians(s.fov_deg / 2))
     assert s.nominal_density_pts_m2 == pytest.approx(10.0, rel=0.01)
     assert s.strip_misalignment_m == 0
-    from quakescan.survey import load_survey
+    from quakescan.acquisition.survey import load_survey
 
     assert load_survey("als") == s  # --survey als
 
 
 @pytest.mark.parametrize("density", [4.0, 10.0, 17.5, 30.0])
 def test_als_for_density_turns_pulse_rate_and_speed_within_realistic_ranges(density):
-    from quakescan.survey import ALS_PULSE_RATE_HZ, ALS_SCAN_RATE_HZ, ALS_SPEED_M_S, als_for_density
+    from quakescan.acquisition.survey import ALS_PULSE_RATE_HZ, ALS_SCAN_RATE_HZ, ALS_SPEED_M_S, als_for_density
 
     s = als_for_density(density)
     assert s.nominal_density_pts_m2 == pytest.approx(density, rel=1e-9)
@@ -422,7 +422,7 @@ def test_als_for_density_turns_pulse_rate_and_speed_within_realistic_ranges(dens
 
 
 def test_als_for_density_beyond_the_pulse_rates_moves_the_speed_or_says_why():
-    from quakescan.survey import ALS_SPEED_M_S, als_for_density
+    from quakescan.acquisition.survey import ALS_SPEED_M_S, als_for_density
 
     slow = als_for_density(1.5)  # 1.5 pts/m² at the lowest pulse rate (25 kHz) needs a faster aircraft
     assert slow.pulse_rate_hz == 25_000.0 and ALS_SPEED_M_S[0] <= slow.speed_m_s <= ALS_SPEED_M_S[1]
@@ -447,7 +447,7 @@ def test_a_short_max_range_narrows_the_strips_instead_of_leaving_gaps():
 def test_als_over_a_300_m_scene_with_one_line_or_the_plan(tmp_path):
     """500 m above a 284 m × 284 m city: the box culling and the 2 km range let one flight
     line (swath 466 m) record every building; the plan flies three lines, two strips everywhere."""
-    from quakescan.survey import als_for_density
+    from quakescan.acquisition.survey import als_for_density
 
     scene = box_city(rows=10, cols=10, footprint=12.0, street=16.0, margin=10.0)
     s = als_for_density(4.0)
@@ -464,11 +464,11 @@ def test_als_over_a_300_m_scene_with_one_line_or_the_plan(tmp_path):
 
 
 def test_the_flight_plan_is_estimated_before_scanning_and_dry_run_scans_nothing(tmp_path, capsys):
+    from quakescan.acquisition.scan import estimate_scan, scan
+    from quakescan.acquisition.survey import preset
     from quakescan.cli import main
-    from quakescan.scan import estimate_scan, scan
-    from quakescan.scene import write_scene
-    from quakescan.survey import preset
-    from quakescan.synthetic import box_city
+    from quakescan.formats.scene import write_scene
+    from quakescan.formats.synthetic import box_city
 
     scene = box_city(rows=1, cols=2)
     survey = preset("paper").replace(pulse_rate_hz=100_000.0)

@@ -3,11 +3,12 @@ import json
 
 import pytest
 
-from quakescan.raycast import ground_level
-from quakescan.scan import _pulse_count, scan
-from quakescan.scene import write_scene
-from quakescan.survey import plan_flight, preset
-from quakescan.synthetic import box_city
+from quakescan.acquisition.pulses import pulse_count
+from quakescan.acquisition.raycast import ground_level
+from quakescan.acquisition.scan import scan
+from quakescan.acquisition.survey import plan_flight, preset
+from quakescan.formats.scene import write_scene
+from quakescan.formats.synthetic import box_city
 
 # 60° FOV at 50 m: 23 m between lines, five lines over a 3 × 2 box city
 SURVEY = preset("paper").replace(pulse_rate_hz=50_000.0, altitude_agl_m=50.0, fov_deg=60.0, sweep_deg=180.0)
@@ -30,7 +31,7 @@ def _line_ends(scene):
     plan = plan_flight(SURVEY, scene.bounds(), ground_level(scene))
     ends, total = [], 0
     for ln in plan.lines:
-        total += _pulse_count(SURVEY, ln)
+        total += pulse_count(SURVEY, ln)
         ends.append(total)
     return ends
 
@@ -129,7 +130,7 @@ def test_a_cut_laz_line_is_scanned_again(tmp_path):
 
 def test_the_command_resumes_an_interrupted_scan(tmp_path, capsys, monkeypatch):
     from quakescan import cli
-    import quakescan.scan
+    import quakescan.acquisition.scan
 
     scene = box_city(rows=3, cols=2)
     ends = _line_ends(scene)
@@ -140,16 +141,16 @@ def test_the_command_resumes_an_interrupted_scan(tmp_path, capsys, monkeypatch):
     args = ["scan", str(tmp_path / "scene"), "-o", str(tmp_path / "a.las"), "--survey", str(tmp_path / "survey.json"),
             "--seed", "3"]
     assert cli.main(args[:3] + [str(tmp_path / "ref.las")] + args[4:]) == 0
-    real_scan = quakescan.scan.scan
+    real_scan = quakescan.acquisition.scan.scan
 
     def interrupted(*a, **kw):
         kw["progress"] = _stop_after(ends[2])
         return real_scan(*a, **kw)
 
-    monkeypatch.setattr(quakescan.scan, "scan", interrupted)
+    monkeypatch.setattr(quakescan.acquisition.scan, "scan", interrupted)
     with pytest.raises(Stop):
         cli.main(args)
-    monkeypatch.setattr(quakescan.scan, "scan", real_scan)
+    monkeypatch.setattr(quakescan.acquisition.scan, "scan", real_scan)
     assert (tmp_path / "a.las.lines").is_dir() and not (tmp_path / "a.las").exists()
     capsys.readouterr()
     assert cli.main(args) == 0

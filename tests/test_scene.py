@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from quakescan.errors import SceneError
-from quakescan.ply import read_ply, write_ply
-from quakescan.scene import Building, read_scene, write_scene
-from quakescan.synthetic import box_city
+from quakescan.formats.ply import read_ply, write_ply
+from quakescan.formats.scene import Building, read_scene, write_scene
+from quakescan.formats.synthetic import box_city
 
 
 @pytest.fixture

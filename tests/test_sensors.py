@@ -1,4 +1,4 @@
-"""The sensor registry (core/sensors.py): a sensor defined here, registered like a built-in
+"""The sensor registry (core/acquisition/sensors.py): a sensor defined here, registered like a built-in
 one, runs through `acquire` to a LAS epoch that reads back as what it sampled."""
 import dataclasses
 import json
@@ -8,13 +8,14 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from quakescan import sensors
-from quakescan.acquisition import Acquisition, acquire, random_acquisition, sidecar_path
+from quakescan.acquisition import sensors
+from quakescan.acquisition.acquire import Acquisition, acquire, random_acquisition, sidecar_path
+from quakescan.acquisition.survey import preset
 from quakescan.errors import QuakeScanError, SurveyError
-from quakescan.pointcloud import BUILDING_CLASS, GROUND_CLASS, UNCLASSIFIED, LasChunkWriter, PointChunk, read_epoch
-from quakescan.scene import GROUND, Scene
-from quakescan.survey import preset
-from quakescan.synthetic import box_city
+from quakescan.formats.pointcloud import (BUILDING_CLASS, GROUND_CLASS, UNCLASSIFIED, LasChunkWriter, PointChunk,
+                                          read_epoch)
+from quakescan.formats.scene import GROUND, Scene
+from quakescan.formats.synthetic import box_city
 
 UTM = (500000.0, 5000000.0, 0.0)
 
@@ -78,10 +79,10 @@ def centres_sensor():
 
 
 def test_a_registered_sensor_acquires_a_readable_epoch_and_resumes(tmp_path, centres_sensor):
-    import quakescan.acquisition
+    import quakescan.acquisition.acquire
 
     scene = box_city(rows=1, cols=2, origin=UTM)
-    assert "centres" in sensors.kinds() and "centres" in quakescan.acquisition.KINDS
+    assert "centres" in sensors.kinds() and "centres" in quakescan.acquisition.acquire.KINDS
     acq = Acquisition("centres", FaceCentres(step=3))
     out = tmp_path / "toy" / "centres.las"
     first = acquire(scene, acq, out, seed=2)

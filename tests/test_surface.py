@@ -1,11 +1,10 @@
-"""2.5-D and core-point building descriptors (core/surface.py): closed-form answers on sampled
+"""2.5-D and core-point building descriptors (core/change/surface.py): closed-form answers on sampled
 box buildings, the same answers at very different densities, and the quality gate."""
 import numpy as np
 import pytest
 
-from quakescan.pipeline import PipelineSettings, describe_pair
-from quakescan.pointcloud import Epoch
-from quakescan.surface import (
+from quakescan.change.pipeline import PipelineSettings, describe_pair
+from quakescan.change.surface import (
     SURFACE_DESCRIPTORS,
     SurfaceError,
     SurfaceGeometry,
@@ -13,6 +12,7 @@ from quakescan.surface import (
     describe_surfaces,
     planimetric_density,
 )
+from quakescan.formats.pointcloud import Epoch
 
 
 def sample_box(rng, density, x0, y0, x1, y1, top, noise=0.01, base=0.0, walls=True):

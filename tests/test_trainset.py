@@ -1,12 +1,13 @@
-"""The transfer training set (core/trainset.py) and the shipped model's recipe (core/default_model.py)."""
+"""The transfer training set (core/learning/trainset.py) and the shipped model's recipe (core/learning/default_model.py)."""
 import json
 from dataclasses import asdict
 
 import numpy as np
 import pytest
 
-from quakescan.default_model import TABLE_SETTINGS, TRANSFER_SETTINGS, data_limits, fit_default_model, model_columns, select_classifier, size_limit
-from quakescan.trainset import SENSOR_PAIRS, TrainingPlan, TrainingSetError, build, default_plan
+from quakescan.learning.default_model import (TABLE_SETTINGS, TRANSFER_SETTINGS, data_limits, fit_default_model,
+                                              model_columns, select_classifier, size_limit)
+from quakescan.learning.trainset import SENSOR_PAIRS, TrainingPlan, TrainingSetError, build, default_plan
 
 
 def test_the_full_plan_varies_buildings_sensors_and_damage_context():
@@ -55,7 +56,7 @@ def test_small_building_cities_are_added_after_the_others_and_acquired_from_the_
 
 
 def test_physics_twins_copy_their_cities_and_acquisitions_and_change_nothing_else():
-    from quakescan.trainset import PHYSICS_TWINS, _scene_look
+    from quakescan.learning.trainset import PHYSICS_TWINS, _scene_look
 
     full, both = default_plan(0, "full"), default_plan(0, "full", damage="both")
     # the patterns plan is what it was (no damage key in its records: old manifests read the same)
@@ -94,8 +95,8 @@ def test_a_physics_twin_is_held_out_with_its_city(tmp_path, monkeypatch):
 def test_data_limits_count_a_physics_twin_s_acquisitions_once():
     """A twin repeats its city's acquisitions: the density limit is that of the table without
     them (here the twins' dense rows would move the 1st percentile)."""
-    from quakescan.default_model import without_twins
-    from quakescan.trainset import TransferTable
+    from quakescan.learning.default_model import without_twins
+    from quakescan.learning.trainset import TransferTable
 
     n = 200
     density = np.column_stack([np.linspace(1.0, 50.0, n), np.full(n, 60.0)])
@@ -124,8 +125,8 @@ def test_a_plan_naming_a_city_it_lacks_is_refused(tmp_path):
 
 @pytest.mark.slow
 def test_quick_training_set_builds_resumes_and_trains_a_model_that_classifies_cross_source_pairs(tmp_path):
-    from quakescan.classification import classify
-    from quakescan.model import load_model, save_model
+    from quakescan.learning.classification import classify
+    from quakescan.learning.model import load_model, save_model
 
     from quakescan.cli import main
 
@@ -177,8 +178,8 @@ def test_quick_training_set_builds_resumes_and_trains_a_model_that_classifies_cr
 
 
 def test_densest_cluster_drops_the_outlier_and_the_empty_terrain_between():
-    from quakescan.cityjson import import_cityjson
-    from quakescan.trainset import ROTTERDAM, densest_cluster
+    from quakescan.formats.cityjson import import_cityjson
+    from quakescan.learning.trainset import ROTTERDAM, densest_cluster
 
     if not ROTTERDAM.is_file():
         pytest.skip(f"{ROTTERDAM} not available")
@@ -191,8 +192,8 @@ def test_densest_cluster_drops_the_outlier_and_the_empty_terrain_between():
 
 
 def test_damage_the_acquisition_did_not_see_is_left_out_of_training():
-    from quakescan.default_model import EVIDENCE, training_rows, visible_damage
-    from quakescan.trainset import TransferTable
+    from quakescan.learning.default_model import EVIDENCE, training_rows, visible_damage
+    from quakescan.learning.trainset import TransferTable
 
     names = list(EVIDENCE) + ["s_post_gap"]
     x = np.zeros((4, len(names)))
@@ -222,7 +223,7 @@ def test_the_realistic_plan_is_the_clean_plan_with_scene_detail_and_footprint_la
 
 
 def test_combined_tables_keep_both_versions_of_a_city_in_one_cross_validation_group():
-    from quakescan.trainset import TransferTable, combine_tables
+    from quakescan.learning.trainset import TransferTable, combine_tables
 
     def tab(cities, city, pairs):
         n = len(city)

@@ -5,13 +5,13 @@ import laspy
 import numpy as np
 import pytest
 
+from quakescan.acquisition.raycast import RayCaster
+from quakescan.acquisition.scan import scan
+from quakescan.acquisition.survey import preset
+from quakescan.acquisition.vegetation import RayIds
 from quakescan.errors import SceneError
-from quakescan.raycast import RayCaster
-from quakescan.scan import scan
-from quakescan.scene import OBJECT, VEGETATION, read_scene, write_scene
-from quakescan.survey import preset
-from quakescan.synthetic import box_city, box_mesh, flat_ground, with_trees
-from quakescan.vegetation import RayIds
+from quakescan.formats.scene import OBJECT, VEGETATION, read_scene, write_scene
+from quakescan.formats.synthetic import box_city, box_mesh, flat_ground, with_trees
 
 
 def _nadir_rays_over_disc(caster, radius, n_side=120, z=30.0):
@@ -102,7 +102,7 @@ def test_hedges_are_low_vegetation_and_objects_unclassified():
     f = np.concatenate([scene.faces, hf + n, cf + n + len(hv)])
     surf = np.concatenate([scene.face_surface, np.full(len(hf), VEGETATION, np.uint8),
                            np.full(len(cf), OBJECT, np.uint8)])
-    from quakescan.scene import Scene
+    from quakescan.formats.scene import Scene
     sc = Scene(v, f, np.zeros(len(f), np.int32), surf, [])
     caster = RayCaster(sc)
     assert set(caster.face_class[surf == VEGETATION]) == {3}
@@ -148,8 +148,8 @@ def test_dim_sees_crowns_as_opaque_surfaces(tmp_path):
     """Photogrammetry reconstructs a crown's outer surface: class 5 points on it, no ground
     matched beside the trunk under a crown reaching down to 0.5 m, where no camera sees the
     ground past the crown's surface (the laser scan, seeing through, has some there)."""
-    from quakescan.dim import simulate_dim
-    from quakescan.dim_settings import preset_dim
+    from quakescan.acquisition.dim import simulate_dim
+    from quakescan.acquisition.dim_settings import preset_dim
     scene = with_trees(box_city(rows=1, cols=1, height=6.0), [(30.0, 6.0, 3.5, 3.0)])
     simulate_dim(scene, preset_dim("paper").replace(margin_m=60.0), tmp_path / "dim.las", seed=1)
     las = laspy.read(tmp_path / "dim.las")
@@ -166,7 +166,7 @@ def test_dim_sees_crowns_as_opaque_surfaces(tmp_path):
 
 
 def test_scene_fingerprint_sees_the_porous_faces_and_transmission():
-    from quakescan.acquisition import scene_fingerprint
+    from quakescan.acquisition.acquire import scene_fingerprint
     plain = box_city(rows=1, cols=1)
     a = with_trees(plain, [(20.0, 5.0, 5.0, 3.0)])
     b = with_trees(plain, [(20.0, 5.0, 5.0, 3.0)], transmission=0.2)

@@ -6,8 +6,8 @@ import numpy as np
 def finished_tables(tmp_path, monkeypatch, plan, settings):
     """Write a two-row table (grades 0 and 5) for every pair of `plan` under tmp_path, each with
     the fingerprint build would give it; scene generation is switched off."""
-    import quakescan.trainset as ts
-    from quakescan import fingerprint
+    import quakescan.learning.trainset as ts
+    from quakescan.runtime import fingerprint
 
     fake = {"x": np.zeros((2, len(settings.descriptor_names()))), "y": np.array([0, 5]),
             "building_id": np.array([1, 2]), "density": np.ones((2, 2)), "cells": np.array([50, 60]),

@@ -4,7 +4,7 @@ street furniture as low-poly closed shapes.
 Labels: building ID 0 everywhere; surface VEGETATION for trees and hedges, OBJECT for cars
 and furniture. Tree crowns (closed ellipsoids, one to three merged blobs) get the
 ``qs_porous`` face layer = 1: the scanner lets a ray pass such a face with the scene's
-transmission probability (core/vegetation.py). Trunks and hedges are opaque vegetation
+transmission probability (core/acquisition/vegetation.py). Trunks and hedges are opaque vegetation
 (layer 0): trunks are thin and solid, hedges dense.
 """
 from __future__ import annotations

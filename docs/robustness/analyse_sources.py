@@ -31,18 +31,18 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from quakescan.features import compute_features
-from quakescan.pointcloud import read_epoch
-from quakescan.robustness import (
+from quakescan.change.features import compute_features
+from quakescan.formats.pointcloud import read_epoch
+from quakescan.studies.robustness.selection import (
     _compare,
     _compute_names,
-    _le,
     _pair,
     _post_values,
     _subset,
     report_features,
     robustness,
     thin,
+    within,
 )
 
 SURF = {1: "roof", 2: "wall", 3: "debris", 4: "interior"}
@@ -83,7 +83,7 @@ def analyse(run: Path) -> dict:
            "dim": [read_epoch(clouds / f"{'dim'}_{s}.las", origin=origin) for s in ["pre"] + stages]}
     k = 0
     eps = {}
-    for src in ("uls", "dim"):  # same thinning seeds as quakescan.robustness.robustness
+    for src in ("uls", "dim"):  # same thinning seeds as quakescan.studies.robustness.selection.robustness
         eps[src] = []
         for e in raw[src]:
             eps[src].append(thin(e, spacing, seed + k) if spacing else e)
@@ -151,7 +151,7 @@ def analyse(run: Path) -> dict:
                                 {k2: v[mm] for k2, v in fpost[src][i].items()}, names) for i in range(len(stages))]
         diff = {f: max(abs(ch["uls"][i][f] - ch["dim"][i][f]) for i in range(len(stages))) for f in names}
         diff = {f: (d if math.isfinite(d) else None) for f, d in diff.items()}
-        robust = [f for f in names if diff[f] is not None and _le(diff[f], js["threshold_pct"])]
+        robust = [f for f in names if diff[f] is not None and within(diff[f], js["threshold_pct"])]
         out["subsets"][name] = {
             "points": {src: int(m[src].sum()) for src in ("uls", "dim")},
             "robust": robust,
@@ -170,7 +170,7 @@ def analyse(run: Path) -> dict:
 
 
 def _noisy(e, rng):
-    from quakescan.pointcloud import Epoch
+    from quakescan.formats.pointcloud import Epoch
 
     return Epoch(xyz=e.xyz + rng.normal(0.0, NOISE_M, e.xyz.shape), origin=e.origin,
                  classification=e.classification, building_id=e.building_id, grade=e.grade, surface=e.surface,

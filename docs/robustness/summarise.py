@@ -13,7 +13,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from quakescan.robustness import PAPER_SET, REPORT_FEATURES
+from quakescan.studies.robustness.selection import PAPER_SET, REPORT_FEATURES
 
 
 def summarise(runs: list[Path]) -> dict:

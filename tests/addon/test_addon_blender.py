@@ -132,7 +132,7 @@ print("QS_RESULT " + json.dumps(out))
 @needs_blender
 def test_addon_registers_and_operators_run_in_blender(tmp_path):
     from addon import ems98
-    from quakescan.scene import read_scene
+    from quakescan.formats.scene import read_scene
     expr = f"REPO = {str(REPO)!r}; OUT = {str(tmp_path)!r}\n" + WORKFLOW
     out = _result(_blender(["--python-expr", expr], tmp_path))
     assert set(out["operators"]) >= {"add_building", "assign_ids", "add_interior", "reset_building",
@@ -223,7 +223,7 @@ def test_blender_generator_output_reads_back_and_matches_bpy_module(tmp_path):
     """`blender -b -P generate_scenes.py` and `python generate_scenes.py` give the same
     scenes: same manifests and vertices; only Blender's triangulation of n-gons may differ
     between versions (same area per building and surface)."""
-    from quakescan.scene import read_scene
+    from quakescan.formats.scene import read_scene
     args = ["--set", "generic", "--dataset", "paper", "--buildings", "6", "--seed", "1"]
     _blender(["-P", str(GENERATE), "--", *args, "--out", str(tmp_path / "bl")], tmp_path)
     r = subprocess.run([sys.executable, str(GENERATE), *args, "--out", str(tmp_path / "py")],

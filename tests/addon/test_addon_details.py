@@ -426,7 +426,7 @@ def test_generator_details_flag(tmp_path, bpy_registered, capsys):
     import importlib.util
 
     from conftest import REPO
-    from quakescan.scene import read_scene
+    from quakescan.formats.scene import read_scene
     sp = importlib.util.spec_from_file_location("generate_scenes", REPO / "blender_scripts" / "generate_scenes.py")
     gen = importlib.util.module_from_spec(sp)
     sp.loader.exec_module(gen)

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from addon import io_export
-from quakescan.scene import read_scene
+from quakescan.formats.scene import read_scene
 
 
 def _box_city():

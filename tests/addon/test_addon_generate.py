@@ -55,7 +55,7 @@ def test_out_is_a_file(gen, tmp_path):
 
 @needs_bpy
 def test_paper_dataset_reads_back_and_resumes(gen, bpy_registered, tmp_path, capsys):
-    from quakescan.scene import read_scene
+    from quakescan.formats.scene import read_scene
     out = tmp_path / "paper"
     assert gen.main(["--set", "generic", "--dataset", "paper", "--buildings", "8", "--seed", "3",
                      "--out", str(out)]) == 0
@@ -98,7 +98,7 @@ def test_paper_dataset_reads_back_and_resumes(gen, bpy_registered, tmp_path, cap
 
 @needs_bpy
 def test_same_seed_same_bytes_mixed_region(gen, bpy_registered, tmp_path):
-    from quakescan.scene import read_scene
+    from quakescan.formats.scene import read_scene
     a, b, c = tmp_path / "a", tmp_path / "b", tmp_path / "c"
     for out, seed in ((a, 5), (b, 5), (c, 6)):
         assert gen.main(["--set", "region", "--dataset", "mixed", "--buildings", "12", "--seed", str(seed),
@@ -258,7 +258,7 @@ def test_origin_and_crs_arguments(gen, capsys):
 
 @needs_bpy
 def test_origin_and_crs_reach_the_bundles(gen, bpy_registered, tmp_path):
-    from quakescan.scene import read_scene
+    from quakescan.formats.scene import read_scene
     base = ["--set", "generic", "--dataset", "mixed", "--buildings", "2", "--seed", "4"]
     assert gen.main([*base, "--out", str(tmp_path / "local")]) == 0
     assert gen.main([*base, "--origin", "367000,4690000,12.5", "--crs", "EPSG:32633",

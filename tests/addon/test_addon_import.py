@@ -41,7 +41,7 @@ def _canon(s):
 
 def _roundtrip(bpy, src_scene, tmp_path):
     from addon import io_import, scene_tools
-    from quakescan.scene import read_scene, write_scene
+    from quakescan.formats.scene import read_scene, write_scene
     write_scene(src_scene, tmp_path / "src")
     coll = bpy.data.collections.new("imported")
     bpy.context.scene.collection.children.link(coll)
@@ -71,7 +71,7 @@ def _roundtrip(bpy, src_scene, tmp_path):
 
 
 def test_roundtrip_box_city_at_utm(blank, tmp_path):
-    from quakescan.synthetic import box_city
+    from quakescan.formats.synthetic import box_city
     s = box_city(2, 3, height=(6.0, 9.5, 13.7), origin=UTM)
     s.crs = "EPSG:32633"
     # irregular float64 offsets that float32 cannot hold
@@ -82,7 +82,7 @@ def test_roundtrip_box_city_at_utm(blank, tmp_path):
 def test_roundtrip_rotterdam_cityjson(blank, tmp_path):
     if not ROTTERDAM.is_file():
         pytest.skip(f"{ROTTERDAM} not available (shared data folder absent)")
-    from quakescan.cityjson import import_cityjson
+    from quakescan.formats.cityjson import import_cityjson
     s = import_cityjson(ROTTERDAM)
     back = _roundtrip(blank, s, tmp_path)
     assert [b.extra.get("source_id") for b in back.buildings] == [b.extra.get("source_id") for b in s.buildings]
@@ -108,7 +108,7 @@ def _manifest(folder, ids, **kw):
 
 def test_polygons_import_and_export_as_triangles(blank, tmp_path):
     from addon import io_import, scene_tools
-    from quakescan.scene import read_scene
+    from quakescan.formats.scene import read_scene
     src = tmp_path / "poly"
     src.mkdir()
     v = [(0, 0, 0), (4, 0, 0), (4, 3, 0), (0, 3, 0), (0, 0, 3), (4, 0, 3), (4, 3, 3), (0, 3, 3),
@@ -164,13 +164,13 @@ def _digest(folder):
 @pytest.fixture(scope="module")
 def source(tmp_path_factory):
     """A source bundle: the Rotterdam CityJSON subset when available, else a box city at UTM."""
-    from quakescan.scene import write_scene
+    from quakescan.formats.scene import write_scene
     folder = tmp_path_factory.mktemp("src") / "bundle"
     if ROTTERDAM.is_file():
-        from quakescan.cityjson import import_cityjson
+        from quakescan.formats.cityjson import import_cityjson
         s = import_cityjson(ROTTERDAM)
     else:
-        from quakescan.synthetic import box_city
+        from quakescan.formats.synthetic import box_city
         s = box_city(3, 3, height=(6.0, 9.0, 15.0), origin=UTM)
     s.crs = s.crs or "EPSG:28992"
     write_scene(s, folder)
@@ -178,7 +178,7 @@ def source(tmp_path_factory):
 
 
 def test_generate_bundle_paper(bpy_registered, source, tmp_path, capsys):
-    from quakescan.scene import read_scene
+    from quakescan.formats.scene import read_scene
     gen = _gen()
     src, s = source
     argv = ["--set", "bundle", "--source", str(src), "--dataset", "paper", "--buildings", "4", "--seed", "5"]
@@ -215,13 +215,13 @@ def test_generate_bundle_paper(bpy_registered, source, tmp_path, capsys):
 
 
 def _subset(s, ids, surface):
-    from quakescan.scene import Scene
+    from quakescan.formats.scene import Scene
     keep = np.isin(s.face_building, ids) & (s.face_surface == surface)
     return Scene(s.vertices, s.faces[keep], s.face_building[keep], s.face_surface[keep], [], origin=s.origin)
 
 
 def test_generate_bundle_mixed_all_buildings(bpy_registered, source, tmp_path):
-    from quakescan.scene import read_scene
+    from quakescan.formats.scene import read_scene
     src, s = source
     assert _gen().main(["--set", "bundle", "--source", str(src), "--dataset", "mixed", "--seed", "2",
                         "--out", str(tmp_path / "m")]) == 0
@@ -259,7 +259,7 @@ def test_generate_bundle_malformed_ply_as_script(tmp_path):
 
 def test_generate_bundle_from_an_addon_scene_with_interiors(bpy_registered, tmp_path):
     """A pre scene written by the generator itself (slabs and inner walls present) as source."""
-    from quakescan.scene import INTERIOR, read_scene
+    from quakescan.formats.scene import INTERIOR, read_scene
     gen = _gen()
     assert gen.main(["--set", "generic", "--dataset", "mixed", "--buildings", "3", "--seed", "1",
                      "--out", str(tmp_path / "g")]) == 0
@@ -275,8 +275,8 @@ def test_generate_bundle_from_an_addon_scene_with_interiors(bpy_registered, tmp_
 def test_unreadable_extra_keys_refuse_export(blank, tmp_path):
     """An imported building's extra keys that no longer parse are not dropped silently."""
     from addon import io_export, io_import, scene_tools
-    from quakescan.scene import write_scene
-    from quakescan.synthetic import box_city
+    from quakescan.formats.scene import write_scene
+    from quakescan.formats.synthetic import box_city
     write_scene(box_city(1, 1), tmp_path / "src")
     coll = blank.data.collections.new("imported")
     blank.context.scene.collection.children.link(coll)

@@ -7,7 +7,7 @@ import pytest
 
 bpy = pytest.importorskip("bpy")
 
-from quakescan.scene import read_scene  # noqa: E402
+from quakescan.formats.scene import read_scene  # noqa: E402
 
 
 def _active(bpy, obj):

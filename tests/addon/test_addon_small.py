@@ -186,7 +186,7 @@ needs_bpy = pytest.mark.skipif(not HAVE_BPY, reason="bpy module not installed")
 
 
 def _check_city(folder, n):
-    from quakescan.scene import read_scene
+    from quakescan.formats.scene import read_scene
     doc = json.loads((folder / "scene.json").read_text())
     sc = read_scene(folder)
     assert [b.id for b in sc.buildings] == list(range(1, n + 1))

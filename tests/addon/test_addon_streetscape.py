@@ -121,8 +121,8 @@ def _faces_of(scene, surface):
 def test_generator_streetscape_keeps_trees_changes_cars_and_none_is_unchanged(bpy_registered, tmp_path, capsys):
     import json
 
-    from quakescan.raycast import RayCaster
-    from quakescan.scene import OBJECT, VEGETATION, read_scene
+    from quakescan.acquisition.raycast import RayCaster
+    from quakescan.formats.scene import OBJECT, VEGETATION, read_scene
     gen = _gen()
     argv = ["--set", "generic", "--dataset", "paper", "--buildings", "10", "--seed", "2"]
     assert gen.main(argv + ["--out", str(tmp_path / "plain")]) == 0
@@ -155,7 +155,7 @@ def test_generator_streetscape_keeps_trees_changes_cars_and_none_is_unchanged(bp
 @needs_bpy
 def test_streetscape_objects_round_trip_through_both_exporters(blank, tmp_path):
     from addon import io_export, io_import, scene_tools, street_objects
-    from quakescan.scene import OBJECT, VEGETATION, read_scene
+    from quakescan.formats.scene import OBJECT, VEGETATION, read_scene
     bpy = blank
     coll = bpy.data.collections.new("city")
     bpy.context.scene.collection.children.link(coll)
@@ -185,8 +185,8 @@ def test_streetscape_objects_round_trip_through_both_exporters(blank, tmp_path):
 
 @needs_bpy
 def test_generator_streetscape_around_an_imported_bundle(bpy_registered, tmp_path):
-    from quakescan.scene import VEGETATION, read_scene, write_scene
-    from quakescan.synthetic import box_city
+    from quakescan.formats.scene import VEGETATION, read_scene, write_scene
+    from quakescan.formats.synthetic import box_city
     src = box_city(3, 3, height=(6.0, 9.0, 15.0), origin=(500000.0, 5000000.0, 0.0), margin=25.0)
     src.crs = "EPSG:32633"
     src.vertices = src.vertices + [0.0, 0.0, 40.0]  # terrain at 40 m: objects stand on it

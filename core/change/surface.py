@@ -1,0 +1,736 @@
+"""Building descriptors that mean the same at any point density and from any sensor.
+
+The paper's descriptors are statistics over points, and several of its point features
+(densities, neighbour counts) scale with the density of the cloud: a sparse airborne
+archive before and a dense drone cloud after differ everywhere. What a structural
+engineer reads from two surveys is geometric: how much of the footprint came down and by
+how much, which surfaces disappeared, what lies around the building. This module measures
+that on grids and core points whose spacing is set by the *sparser* epoch, so that every
+descriptor is a share of area or a length, never a count of points:
+
+**2.5-D upper surfaces** (`cell_m` = sqrt(points_per_cell / density of the sparser epoch),
+clipped to [cell_min_m, cell_max_m]). The building's cells are those holding its pre-event
+points; before the event the top of a cell is the building's own surface (its points:
+vegetation over a roof included, as on real data where points belong to buildings through
+footprints), after it whatever is there (every point: rubble, a neighbour's debris). Lowering = pre top − post top. At the building's outline and at steps of the roof
+(where one sampling may catch an eave that the other misses) a cell is compared with the
+highest post-event cell of its 3 × 3 neighbourhood instead; interior roof cells are
+compared directly, so a hole of one or two cells is not smoothed away.
+
+- `s_lowered_1m`, `s_lowered_storey`, `s_lowered_half`: share of the footprint lowered by
+  more than 1 m, more than one storey (`storey_m`), more than half its height above ground;
+- `s_raised`: share raised by more than `raised_m` (tilted or displaced parts, debris);
+- `s_volume_loss`, `s_volume_gain`: lost / gained volume relative to the pre-event volume
+  above ground; `s_height_ratio_mean`, `s_height_ratio_p10`: post/pre height above ground over the
+  footprint (mean and 10th percentile);
+- `s_post_gap`: share of the footprint with no post-event point (not covered or occluded);
+- `s_debris_ring`, `s_debris_volume`: cells in a ring of `debris_ring_m` around the building
+  (not other buildings' cells) that rose by more than `debris_rise_m`, as a share of the ring
+  and as a volume relative to the building's.
+
+**Surface change on core points** (`quakescan.change.m3c2`): core points one per `cell_m` voxel of the
+building's pre-event points (so shares are shares of surface area), normals from the
+pre-event points, walls oriented outwards. A core point is *changed* when its M3C2 distance
+exceeds both its own level of detection and `lod_floor_m` and its old surface is no longer
+there (`M3C2Result.displaced`), or when its surface is lost: no post-event point within
+`max_depth_m` along the normal where an unchanged surface would have had some (`_lost`).
+
+- `m_changed`, `m_lost`: share of core points changed / lost; `m_roof_changed`,
+  `m_wall_changed`: the same over roof (|n_z| >= 0.5) and wall core points;
+- `m_holes`, `m_wall_holes`: share of (wall) core points lost *and seen through*: the
+  post-event epoch has points behind where the surface was (the interior through a hole in
+  a wall, a blown-out infill panel, the attic through a roof hole): an intact surface hides
+  what is behind it, so this is the most specific sign of an opening;
+- `m_upper_changed`, `m_lower_changed`: share changed above and below one storey
+  (`storey_m`) over the ground: a neighbour's debris piles against the ground storey,
+  damage to roofs, gables and parapets is higher up;
+- `m_inward`, `m_outward`: share significantly moved against / along the normal (walls
+  point outwards, roofs up): a roof that sagged, a wall that bulged or was buried;
+- `m_largest_patch`: the largest patch of changed core points (joined up to two voxels
+  apart), as a share;
+- `m_coherent`: share of core points that are changed *and* have at least half of their
+  (at least three) adjacent core points changed: a 95 % test flags ~5 % of an unchanged
+  surface at random, real damage is spatially coherent;
+- `m_distance_p10`, `m_distance_median`, `m_distance_p90`: signed distance over the changed
+  comparable core points (0 when none); `m_lod_median`: the typical level of detection
+  (how noisy the pair is, so the classifier can discount noise it has seen in training).
+
+The building's ground is the 10th percentile of the pre-event ground points (ASPRS 2)
+within `ground_search_m` of it, or the 2nd percentile of all pre-event points there when
+the cloud has no ground class.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from ..errors import QuakeScanError
+from .m3c2 import ColumnGrid, M3C2Settings, cylinder_radius, m3c2, orient_normals, voxel_core_points
+
+GROUND_CLASS = 2
+# cells are numbered apart by this many metres of height when their points are ordered by cell
+# and height in one array (no building is 10 km tall)
+_BAND_STRIDE_M = 1.0e4
+# share of a cell's pre-event points at the post-event height that makes it a surface seen before
+LOWER_SURFACE_SHARE = 0.2
+# Bumped whenever a descriptor's computation changes: cached training tables made with another
+# version are not reused (quakescan.learning.trainset), and a model records the version it was trained on.
+DESCRIPTOR_VERSION = 13
+RASTER_DESCRIPTORS = ("s_lowered_1m", "s_lowered_storey", "s_lowered_half", "s_raised", "s_volume_loss",
+                      "s_volume_gain", "s_height_ratio_mean", "s_height_ratio_p10", "s_post_gap",
+                      "s_debris_ring", "s_debris_volume")
+CORE_DESCRIPTORS = ("m_changed", "m_lost", "m_roof_changed", "m_wall_changed", "m_holes", "m_wall_holes",
+                    "m_upper_changed",
+                    "m_lower_changed", "m_inward", "m_outward", "m_coherent", "m_largest_patch", "m_distance_p10",
+                    "m_distance_median", "m_distance_p90", "m_lod_median")
+SURFACE_DESCRIPTORS = RASTER_DESCRIPTORS + CORE_DESCRIPTORS
+
+
+class SurfaceError(QuakeScanError):
+    """Surface descriptors cannot be computed as asked."""
+
+
+@dataclass(frozen=True)
+class SurfaceSettings:
+    points_per_cell: float = 4.0  # expected points of the sparser epoch per raster cell
+    cell_min_m: float = 0.5
+    cell_max_m: float = 2.0
+    storey_m: float = 3.0
+    raised_m: float = 0.5
+    debris_ring_m: float = 5.0
+    debris_rise_m: float = 0.3
+    ground_search_m: float = 10.0
+    lod_floor_m: float = 0.2  # a surface change smaller than this is not damage, however precise
+    # top layer of a cell: within top_layer_cells * cell + top_layer_m of its highest point
+    # (1.5 cells spans a 45 degree roof across the cell's diagonal)
+    top_layer_cells: float = 1.5
+    top_layer_m: float = 0.3
+    # changes count only in patches of at least this many core points / raster cells
+    min_patch_cores: int = 3
+    min_patch_cells: int = 3
+    # a share of the footprint (or relative volume) below this is no structural damage at any
+    # EMS-98 grade >= 3 (the catalogue's smallest heavy patterns: roof holes over 5-30 % of the
+    # roof): it counts as 0, as it does for every simulated undamaged building
+    min_share: float = 0.005
+    m3c2: M3C2Settings = field(default_factory=M3C2Settings)
+
+    def __post_init__(self):
+        for name in ("points_per_cell", "cell_min_m", "cell_max_m", "storey_m", "raised_m", "debris_ring_m",
+                     "debris_rise_m", "ground_search_m", "top_layer_cells", "top_layer_m"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise SurfaceError(f"surface setting {name} must be a positive number, got {v!r}")
+        if self.cell_max_m < self.cell_min_m:
+            raise SurfaceError(f"cell_max_m {self.cell_max_m} < cell_min_m {self.cell_min_m}")
+        if isinstance(self.m3c2, dict):
+            object.__setattr__(self, "m3c2", M3C2Settings.from_json(self.m3c2))
+
+    def cell_for(self, sparser_density_pts_m2: float) -> float:
+        """Raster cell side (m) for a pair whose sparser epoch has this planimetric density."""
+        if not (math.isfinite(sparser_density_pts_m2) and sparser_density_pts_m2 > 0):
+            return self.cell_max_m
+        return float(np.clip(math.sqrt(self.points_per_cell / sparser_density_pts_m2), self.cell_min_m,
+                             self.cell_max_m))
+
+    def to_json(self) -> dict:
+        d = asdict(self)
+        d["m3c2"] = self.m3c2.to_json()
+        return d
+
+    @classmethod
+    def from_json(cls, d: dict) -> SurfaceSettings:
+        d = dict(d)
+        d["m3c2"] = M3C2Settings.from_json(d.get("m3c2", {}))
+        return cls(**d)
+
+
+DENSITY_CELL_M = 1.0
+ROOF_BAND_M = 1.0
+
+
+def roof_cell_density(cells: np.ndarray, z: np.ndarray) -> tuple[float, int]:
+    """(density [pts/m²], interior cells) of building points given their integer 1 m cells
+    (n, 2) and heights: in each cell the points within ROOF_BAND_M of its highest point (roofs
+    up to 45° whole, walls below the eaves not), over the cells whose eight neighbours are
+    occupied too (a cell cut by an outline does not count), the interquartile mean of those
+    counts per m² (robust to chimneys and leftover walls). NaN, 0 without an interior cell."""
+    from scipy.stats import trim_mean
+
+    if len(cells) == 0:
+        return math.nan, 0
+    ij = cells - cells.min(axis=0) + 1  # >= 1: every neighbour index stays >= 0
+    span = int(ij[:, 1].max()) + 2
+    keys, inverse = np.unique(ij[:, 0] * span + ij[:, 1], return_inverse=True)
+    top = np.full(len(keys), -np.inf)
+    np.maximum.at(top, inverse, z)
+    counts = np.bincount(inverse[z >= top[inverse] - ROOF_BAND_M], minlength=len(keys))
+    interior = np.ones(len(keys), bool)
+    for dx in (-1, 0, 1):
+        for dy in (-1, 0, 1):
+            if dx or dy:
+                nb = keys + dx * span + dy
+                interior &= keys[np.minimum(np.searchsorted(keys, nb), len(keys) - 1)] == nb
+    if not interior.any():
+        return math.nan, 0
+    return float(trim_mean(counts[interior], 0.25)) / DENSITY_CELL_M ** 2, int(interior.sum())
+
+
+def planimetric_density(xyz: np.ndarray) -> float:
+    """Points per m² of roof seen from above (`roof_cell_density` on 1 m cells of the given
+    frame; the same measure as `quakescan.acquisition.density.measured_density`). A building too small for
+    an interior cell takes the mean top-band count of all its cells; no point gives 0."""
+    xyz = np.asarray(xyz, dtype=np.float64)
+    if len(xyz) == 0:
+        return 0.0
+    cells = np.floor(xyz[:, :2] / DENSITY_CELL_M).astype(np.int64)
+    d, n = roof_cell_density(cells, xyz[:, 2])
+    if n:
+        return d
+    keys, inverse = np.unique(cells[:, 0] * (int(cells[:, 1].max() - cells[:, 1].min()) + 2)
+                              + (cells[:, 1] - cells[:, 1].min()), return_inverse=True)
+    top = np.full(len(keys), -np.inf)
+    np.maximum.at(top, inverse, xyz[:, 2])
+    counts = np.bincount(inverse[xyz[:, 2] >= top[inverse] - ROOF_BAND_M], minlength=len(keys))
+    return float(counts.mean()) / DENSITY_CELL_M ** 2
+
+
+@dataclass
+class SurfaceGeometry:
+    """Grid and cylinder sizes of one pair (set by its sparser epoch)."""
+
+    cell_m: float
+    cylinder_radius_m: float
+    density_pre: float
+    density_post: float
+
+    @classmethod
+    def for_pair(cls, settings: SurfaceSettings, density_pre: float, density_post: float) -> SurfaceGeometry:
+        sparser = min(density_pre, density_post)
+        return cls(settings.cell_for(sparser), cylinder_radius(settings.m3c2, sparser), density_pre, density_post)
+
+
+
+def region_margin(settings: SurfaceSettings, geom: SurfaceGeometry) -> float:
+    """How far beyond a building's points its descriptors read the clouds (m)."""
+    return max(settings.debris_ring_m + 2 * geom.cell_m, settings.ground_search_m,
+               settings.m3c2.max_depth_m + geom.cylinder_radius_m, settings.m3c2.normal_radius_m) + 1.0
+
+
+class _CellTops:
+    """Upper surface per cell of one epoch (keys on one integer grid): height, how many points
+    define it and how much they scatter.
+
+    The top of a cell is the mean height of its *top layer*: the points within `layer_m`
+    of its highest point. The highest point alone is biased by the density (on a sloped
+    roof the highest of 20 samples lies nearer the cell's upper edge than the highest of 2);
+    the mean of the top layer of a plane is its height at the centroid whatever the
+    density, and walls or ground below the layer do not pull it down. Its standard
+    deviation and count give the cell's level of detection as M3C2 does for a cylinder: a
+    roof is a thin layer, a tree crown a thick one whose top moves by metres between two
+    samplings of the same leaves."""
+
+    def __init__(self, xyz: np.ndarray, lo: np.ndarray, cell: float, width: int, layer_m: float):
+        ij = np.floor((xyz[:, :2] - lo) / cell).astype(np.int64)
+        key = ij[:, 0] * width + ij[:, 1]
+        order = np.argsort(key, kind="stable")
+        k = key[order]
+        # the spread of a single point is unknown: take a uniform spread over the layer
+        self.unknown_std = layer_m / math.sqrt(12.0)
+        if len(k):
+            starts = np.flatnonzero(np.r_[True, k[1:] != k[:-1]])
+            z = xyz[order, 2]
+            top = np.maximum.reduceat(z, starts)
+            cell_of = np.repeat(np.arange(len(starts)), np.diff(np.r_[starts, len(k)]))
+            # every point's height, ordered by cell then height, for counts within a height band
+            self._z0 = -float(z.min())
+            self._band_key = cell_of * _BAND_STRIDE_M + (z + self._z0)
+            self._band_key.sort()
+            self._start = starts
+            layer = z >= top[cell_of] - layer_m
+            n = np.bincount(cell_of[layer], minlength=len(starts))
+            mean = np.bincount(cell_of[layer], weights=z[layer], minlength=len(starts)) / n
+            dev = z[layer] - mean[cell_of[layer]]
+            var = np.bincount(cell_of[layer], weights=dev * dev, minlength=len(starts)) / np.maximum(n - 1, 1)
+            self.keys = k[starts]
+            self.top = mean
+            self.n = n
+            self.std = np.where(n >= 2, np.sqrt(var), self.unknown_std)
+            self.count = np.diff(np.r_[starts, len(k)])
+        else:
+            self.keys = np.zeros(0, np.int64)
+            self.top = self.std = np.zeros(0)
+            self._band_key = np.zeros(0)
+            self._z0 = 0.0
+            self._start = np.zeros(0, np.int64)
+            self.n = self.count = np.zeros(0, np.int64)
+
+    def index(self, keys: np.ndarray) -> np.ndarray:
+        """Position of each key's cell, -1 where the cell holds no point."""
+        if len(self.keys) == 0:
+            return np.full(keys.shape, -1, np.int64)
+        pos = np.minimum(np.searchsorted(self.keys, keys), len(self.keys) - 1)
+        return np.where(self.keys[pos] == keys, pos, -1)
+
+    def lookup(self, keys: np.ndarray) -> np.ndarray:
+        """Top height per key, NaN where the cell holds no point."""
+        i = self.index(keys)
+        return np.where(i >= 0, self.top[np.maximum(i, 0)] if len(self.top) else np.nan, np.nan)
+
+    def share_within(self, i: np.ndarray, height: np.ndarray, tol: np.ndarray) -> np.ndarray:
+        """Share of the points of the cells at positions `i` within `tol` of `height` (0 where
+        there is no cell or no height)."""
+        out = np.zeros(i.shape)
+        ok = (i >= 0) & np.isfinite(height) & np.isfinite(tol)
+        if not ok.any() or len(self._band_key) == 0:
+            return out
+        j = i[ok]
+        base = j * _BAND_STRIDE_M + self._z0
+        lo = np.searchsorted(self._band_key, base + height[ok] - tol[ok], side="left")
+        hi = np.searchsorted(self._band_key, base + height[ok] + tol[ok], side="right")
+        # the band never reaches a neighbouring cell: heights are clipped to the cell's own range
+        first, last = self._start[j], np.r_[self._start[1:], len(self._band_key)][j]
+        lo, hi = np.clip(lo, first, last), np.clip(hi, first, last)
+        out[ok] = (hi - lo) / np.maximum(self.count[j], 1)
+        return out
+
+    def variance_of_mean(self, i: np.ndarray) -> np.ndarray:
+        """Squared standard error of the top at cell positions `i` (-1: no cell, NaN)."""
+        if len(self.top) == 0:
+            return np.full(i.shape, np.nan)
+        j = np.maximum(i, 0)
+        return np.where(i >= 0, self.std[j] ** 2 / self.n[j], np.nan)
+
+
+def _row_argmax(values: np.ndarray):
+    """Row-wise max ignoring NaN and its column (NaN, 0 for all-NaN rows)."""
+    filled = np.where(np.isnan(values), -np.inf, values)
+    j = np.argmax(filled, axis=1)
+    m = filled[np.arange(len(values)), j]
+    return np.where(np.isinf(m), np.nan, m), j
+
+
+@dataclass
+class CoreChange:
+    """Per core point of one building: where, how far the surface moved, and whether it counts."""
+
+    xyz: np.ndarray
+    distance: np.ndarray
+    lod: np.ndarray
+    comparable: np.ndarray
+    changed: np.ndarray
+
+
+def _neighbour_offsets(width: int, radius_cells: int, disc_m: float | None = None, cell: float = 1.0):
+    """Key offsets of the cells within a square of `radius_cells` (or within `disc_m` of the cell)."""
+    d = np.arange(-radius_cells, radius_cells + 1)
+    di, dj = np.meshgrid(d, d, indexing="ij")
+    keep = np.ones(di.shape, bool) if disc_m is None else (di * di + dj * dj) * cell * cell <= disc_m ** 2 + 1e-9
+    return (di * width + dj)[keep].ravel()
+
+
+def describe_surfaces(pre_xyz: np.ndarray, pre_bid: np.ndarray, pre_ground: np.ndarray, post_xyz: np.ndarray,
+                      bids, settings: SurfaceSettings, geom: SurfaceGeometry, *, workers: int = -1,
+                      quality: bool = False):
+    """Surface descriptors of the buildings `bids` from the points of a region around them.
+
+    pre_xyz/post_xyz: (n, 3) local-frame points of the region (every kind of point);
+    pre_bid: building ID per pre-event point (0 = none); pre_ground: ground mask (ASPRS 2)
+    or None. Returns ({building ID: {descriptor: value}}, {building ID: CoreChange}) and,
+    with `quality`, {building ID: {density_pre, density_post, coverage}}: planimetric
+    densities (pts/m²) of the building's own pre-event points and of the post-event points
+    over its cells, and the share of its cells with post-event points."""
+    from .features import compute_features
+
+    bids = [int(b) for b in bids]
+    c = geom.cell_m
+    both = np.vstack([pre_xyz[:, :2], post_xyz[:, :2]]) if len(post_xyz) else pre_xyz[:, :2]
+    pad = int(math.ceil(settings.debris_ring_m / c)) + 3
+    lo = np.floor(both.min(axis=0) / c) * c - pad * c
+    width = int(math.ceil((both.max(axis=0)[1] - lo[1]) / c)) + 2 * pad + 2
+    layer = settings.top_layer_cells * c + settings.top_layer_m
+    pre_tops = _CellTops(pre_xyz, lo, c, width, layer)
+    post_tops = _CellTops(post_xyz, lo, c, width, layer)
+    pre_key = (np.floor((pre_xyz[:, 0] - lo[0]) / c).astype(np.int64) * width
+               + np.floor((pre_xyz[:, 1] - lo[1]) / c).astype(np.int64))
+    building_keys = np.unique(pre_key[pre_bid > 0])
+    post_key = (np.floor((post_xyz[:, 0] - lo[0]) / c).astype(np.int64) * width
+                + np.floor((post_xyz[:, 1] - lo[1]) / c).astype(np.int64))
+    n3 = _neighbour_offsets(width, 1)
+    ring_offsets = _neighbour_offsets(width, int(math.ceil(settings.debris_ring_m / c)), settings.debris_ring_m, c)
+
+    order = np.argsort(pre_bid, kind="stable")
+    sorted_bid = pre_bid[order]
+    ground_finder = _GroundFinder(pre_xyz, pre_ground, settings.ground_search_m)
+    descriptors, members, core_of, qual, grounds, outline_core = {}, {}, {}, {}, {}, {}
+    for bid in bids:
+        a, b = np.searchsorted(sorted_bid, [bid, bid + 1])
+        idx = order[a:b]
+        if len(idx) == 0:
+            raise SurfaceError(f"building {bid} has no pre-event points in its region")
+        ground = grounds[bid] = ground_finder.height(pre_xyz[idx])
+        own_tops = _CellTops(pre_xyz[idx], lo, c, width, layer)
+        descriptors[bid], edge_keys = _raster(pre_key[idx], own_tops, pre_tops, post_tops, building_keys, ground,
+                                              n3, ring_offsets, settings, c, width)
+        if quality:
+            cells = np.unique(pre_key[idx])
+            inside = np.isin(post_key, cells)
+            qual[bid] = {"density_pre": round(planimetric_density(pre_xyz[idx]), 3),
+                         "density_post": round(planimetric_density(post_xyz[inside]), 3),
+                         "coverage": round(1.0 - descriptors[bid]["s_post_gap"], 4),
+                         "cells": int(len(cells))}
+        members[bid] = idx
+        core_of[bid] = idx[voxel_core_points(pre_xyz[idx], c)]
+        outline_core[bid] = np.isin(pre_key[core_of[bid]], edge_keys)
+    # one normal and one M3C2 pass over every building's core points
+    all_core = np.concatenate([core_of[b] for b in bids]) if bids else np.zeros(0, np.int64)
+    f = compute_features(pre_xyz, settings.m3c2.normal_radius_m, ("normal_x", "normal_y", "normal_z"),
+                         query_index=np.sort(all_core), workers=workers)
+    sorted_core = np.sort(all_core)
+    normals_all = np.column_stack([f["normal_x"], f["normal_y"], f["normal_z"]])
+    normals = {}
+    for bid in bids:
+        pos = np.searchsorted(sorted_core, core_of[bid])
+        normals[bid] = orient_normals(normals_all[pos], pre_xyz[core_of[bid], :2],
+                                      pre_xyz[members[bid], :2].mean(axis=0))
+    pre_grid = ColumnGrid(pre_xyz, max(geom.cylinder_radius_m, 0.5))
+    post_grid = ColumnGrid(post_xyz, max(geom.cylinder_radius_m, 0.5))
+    nrm = np.vstack([normals[b] for b in bids]) if bids else np.zeros((0, 3))
+    res = m3c2(pre_xyz[all_core], nrm, pre_grid, post_grid, settings.m3c2, geom.cylinder_radius_m)
+    lost_all = _lost(res, nrm, np.concatenate([outline_core[b] for b in bids]) if bids else np.zeros(0, bool))
+    cores, start = {}, 0
+    for bid in bids:
+        k = len(core_of[bid])
+        sl = slice(start, start + k)
+        start += k
+        cc, dm = _core_change(pre_xyz[core_of[bid]], normals[bid], res, lost_all[sl], res.seen_through[sl], sl,
+                              settings, c, grounds[bid])
+        descriptors[bid].update(dm)
+        _dead_zone(descriptors[bid], settings.min_share)
+        cores[bid] = cc
+    if quality:
+        return descriptors, cores, qual
+    return descriptors, cores
+
+
+class _GroundFinder:
+    """Ground height near a building: the 10th percentile of the ground points (ASPRS 2) within
+    `search_m` of its points, or the 2nd percentile of every point there when the cloud has no
+    ground class (or too few ground points nearby). Points sorted by x once per region."""
+
+    def __init__(self, xyz: np.ndarray, ground: np.ndarray | None, search_m: float):
+        self.search = search_m
+        self.sets = []
+        for mask in ((ground,) if ground is not None and ground.any() else ()) + (None,):
+            pts = xyz if mask is None else xyz[mask]
+            order = np.argsort(pts[:, 0], kind="stable")
+            self.sets.append((pts[order], mask is None))
+
+    def height(self, pts: np.ndarray) -> float:
+        lo, hi = pts[:, :2].min(axis=0) - self.search, pts[:, :2].max(axis=0) + self.search
+        for sorted_pts, is_all in self.sets:
+            a, b = np.searchsorted(sorted_pts[:, 0], [lo[0], hi[0]])
+            cand = sorted_pts[a:b]
+            cand = cand[(cand[:, 1] >= lo[1]) & (cand[:, 1] <= hi[1])]
+            if is_all:
+                return float(np.percentile(cand[:, 2], 2))
+            if len(cand) >= 3:
+                return float(np.percentile(cand[:, 2], 10))
+        raise AssertionError("unreachable: the last set holds every point")
+
+
+def _raster(keys_b, own_tops, pre_tops, post_tops, building_keys, ground, n3, ring_offsets, s: SurfaceSettings, c,
+            width):
+    """Raster descriptors of one building (its cells: `keys_b`) and the cells around it, and
+    the keys of its outline and step cells.
+
+    Lowering is measured from the building's *own* pre-event surface (`own_tops`: its points,
+    by footprint on real data) to whatever is there after (`post_tops`, every point): a cell at
+    a party wall also holds the neighbour's roof, and the neighbour's collapse is not this
+    building's. Rises compare with every pre-event point, so that a taller intact neighbour
+    does not read as a rise."""
+    z, reg = s.m3c2.z, s.m3c2.registration_error_m
+    cells = np.unique(keys_b)
+    nb = cells[:, None] + n3[None, :]
+    i_pre, i_post = own_tops.index(cells), post_tops.index(cells)
+    pre_top, post_top = own_tops.lookup(cells), post_tops.lookup(cells)
+    h_pre = np.maximum(pre_top - ground, 0.0)
+    pre_nb = own_tops.lookup(nb)
+    post_nb_max, j_post = _row_argmax(post_tops.lookup(nb))
+    pre_nb_max, _ = _row_argmax(pre_nb)
+    all_nb_max, j_all = _row_argmax(pre_tops.lookup(nb))
+    # outline cells (a neighbour outside the building) and steps of the roof are compared with
+    # the highest cell of the other epoch's 3x3 neighbourhood: one sampling may catch an eave
+    # or a dormer wall that the other misses by a few centimetres
+    in_building = np.isin(nb, cells)
+    with np.errstate(invalid="ignore"):
+        step = (pre_nb_max + _row_max(-pre_nb)) > 3 * c  # max - min of the 3x3 pre-event tops
+    edge = ~in_building.all(axis=1) | step
+    rows = np.arange(len(cells))
+    i_post_cmp = np.where(edge, post_tops.index(nb[rows, j_post]), i_post)
+    i_all_cmp = np.where(edge, pre_tops.index(nb[rows, j_all]), pre_tops.index(cells))
+    post_cmp = np.where(edge, post_nb_max, post_top)
+    all_cmp = np.where(edge, all_nb_max, pre_tops.lookup(cells))
+    covered = ~np.isnan(post_top)
+    with np.errstate(invalid="ignore"):
+        # levels of detection of the two differences (M3C2's form on the cells' top layers)
+        lod_low = z * (np.sqrt(own_tops.variance_of_mean(i_pre) + post_tops.variance_of_mean(i_post_cmp)) + reg)
+        lod_raise = z * (np.sqrt(pre_tops.variance_of_mean(i_all_cmp) + post_tops.variance_of_mean(i_post)) + reg)
+        lowered = pre_top - post_cmp
+        # an inner cell where a good share of its own pre-event points already lay at the
+        # post-event top held two surfaces (a roof step, a light well): a sparser post-event
+        # sampling that caught only the lower one is no lowering (AHN3 tile vs its 25 % thinning:
+        # a 2.7 m roof step read as a 3-cell collapse). A wall through the cell spreads its
+        # points over every height and stays below the share; outline cells compare with their
+        # 3 x 3 neighbourhood instead.
+        lowered = np.where(~edge & (own_tops.share_within(i_pre, post_cmp, s.top_layer_m + np.nan_to_num(lod_low))
+                                    >= LOWER_SURFACE_SHARE), 0.0, lowered)
+        raised = post_top - all_cmp
+        low = np.where(lowered > lod_low, lowered, 0.0)
+        rise = np.where(raised > lod_raise, raised, 0.0)
+    low, rise = np.nan_to_num(low, nan=0.0), np.nan_to_num(rise, nan=0.0)
+    # a 95 % test flags single cells of an unchanged roof at random; damage is areal
+    low = np.where(_in_patches(cells, low > 0, width, s.min_patch_cells), low, 0.0)
+    rise = np.where(_in_patches(cells, rise > 0, width, s.min_patch_cells), rise, 0.0)
+    out = {
+        "s_lowered_1m": float(np.mean(low > 1.0)),
+        "s_lowered_storey": float(np.mean(low > s.storey_m)),
+        "s_lowered_half": float(np.mean((low > 0.5 * h_pre) & (h_pre > 1.0))),
+        "s_raised": float(np.mean(rise > s.raised_m)),
+        # sampling leaves single empty cells in a sparse epoch; an unobserved area is a patch
+        "s_post_gap": float(_in_patches(cells, ~covered, width, s.min_patch_cells).mean()),
+    }
+    vol = float(np.sum(h_pre)) * c * c
+    out["s_volume_loss"] = float(np.sum(np.clip(low, 0.0, h_pre)) * c * c / vol) if vol > 0 else 0.0
+    out["s_volume_gain"] = float(np.sum(rise) * c * c / vol) if vol > 0 else 0.0
+    tall = covered & (h_pre > 1.0)
+    # divided by the cell's own height: `tall` keeps it above 1 m (a building lower than one
+    # sparse raster cell kept its height at ratio 1, not h / cell)
+    ratio = np.clip((h_pre[tall] - low[tall] + rise[tall]) / h_pre[tall], 0.0, 1.5)
+    out["s_height_ratio_mean"] = float(np.mean(ratio)) if len(ratio) else 1.0
+    out["s_height_ratio_p10"] = float(np.percentile(ratio, 10)) if len(ratio) else 1.0
+    edge_keys = cells[edge]
+    # debris: a ring around the outline, other buildings' cells excluded, compared with the
+    # highest pre-event cell around (vegetation and cars are sampled differently each time)
+    outline = cells[~in_building.all(axis=1)]
+    ring = np.unique((outline[:, None] + ring_offsets[None, :]).ravel())
+    ring = ring[~np.isin(ring, building_keys)]
+    pre_ring, j_ring = _row_argmax(pre_tops.lookup(ring[:, None] + n3[None, :]))
+    i_ring_pre = pre_tops.index(ring + n3[j_ring])
+    i_ring_post = post_tops.index(ring)
+    with np.errstate(invalid="ignore"):
+        up = post_tops.lookup(ring) - np.where(np.isnan(pre_ring), ground, pre_ring)
+        var = np.nan_to_num(pre_tops.variance_of_mean(i_ring_pre), nan=0.0) + post_tops.variance_of_mean(i_ring_post)
+        up = np.where(up > z * (np.sqrt(var) + reg), up, 0.0)
+    up = np.where(_in_patches(ring, np.nan_to_num(up) > 0, width, s.min_patch_cells), up, 0.0)
+    seen = i_ring_post >= 0
+    out["s_debris_ring"] = float(np.mean(up[seen] > s.debris_rise_m)) if seen.any() else 0.0
+    out["s_debris_volume"] = (float(np.sum(np.clip(up[seen], 0, None)) * c * c / vol)
+                              if vol > 0 and seen.any() else 0.0)
+    return out, edge_keys
+
+
+FACING_BINS = 8  # walls by the direction they face (45 degree sectors); roofs one more bin
+
+
+def _facing(normals: np.ndarray) -> np.ndarray:
+    """Bin of each core point: 0..7 walls by azimuth, 8 roofs (|n_z| >= 0.5), -1 undefined."""
+    out = np.full(len(normals), -1, np.int64)
+    ok = np.all(np.isfinite(normals), axis=1)
+    roof = ok & (np.abs(normals[:, 2]) >= 0.5)
+    wall = ok & ~roof
+    az = np.arctan2(normals[wall, 1], normals[wall, 0])
+    out[wall] = np.floor((az + np.pi) / (2 * np.pi) * FACING_BINS).astype(np.int64) % FACING_BINS
+    out[roof] = FACING_BINS
+    return out
+
+
+LOST_ALPHA = 0.01  # an empty post-event cylinder counts only where chance gives it < 1 %
+
+
+def _lost(res, normals: np.ndarray, outline: np.ndarray) -> np.ndarray:
+    """Core points whose surface is gone, not just unobserved.
+
+    Roofs: lost with the post-event epoch seeing through (points below them: the floor
+    through a hole, the rubble of a collapse). Walls: an airborne sensor seldom sees behind a
+    wall, so a lost wall point must instead be unlikely to be empty by chance given how well
+    the post-event flight saw walls facing the same way in this region (the ratio of post- to
+    pre-event points over all such cylinders): a facade the flight hardly saw is not lost.
+    Either way an empty cylinder must be unlikely by chance (`LOST_ALPHA`)."""
+    facing = _facing(normals)
+    ratio = np.zeros(len(facing))
+    for b in range(FACING_BINS + 1):
+        sel = facing == b
+        if sel.any():
+            ratio[sel] = res.n_post[sel].sum() / max(res.n_pre[sel].sum(), 1)
+    roof = facing == FACING_BINS
+    by_chance = res.lost_beyond_chance(ratio, LOST_ALPHA)
+    # at the outline a roof cylinder's "behind" reaches past the eave to the ground beside the
+    # building: there seeing through proves nothing, so only interior roof points can be lost
+    return np.where(roof, by_chance & res.seen_through & ~outline, by_chance)
+
+
+def _row_max(a):
+    """Row-wise maximum ignoring NaN; NaN for an all-NaN row (without numpy's warning)."""
+    m = np.max(np.where(np.isnan(a), -np.inf, a), axis=1)
+    return np.where(np.isinf(m), np.nan, m)
+
+
+def _core_change(cxyz, normals, res, lost, seen_through, sl, s: SurfaceSettings, spacing, ground: float):
+    """Core-point descriptors of one building from its slice `sl` of the M3C2 result."""
+    distance, lod_raw = res.distance[sl], res.lod[sl]
+    comparable = res.comparable[sl]
+    lod = np.maximum(np.nan_to_num(lod_raw, nan=np.inf), s.lod_floor_m)
+    d = np.nan_to_num(distance)
+    sig = comparable & (np.abs(d) > lod) & res.displaced[sl]
+    changed = sig | lost
+    # a 95 % test flags single core points of an unchanged surface at random (on real airborne
+    # halves of one scan, isolated points: 33 of 40 buildings with any); damage is areal
+    changed = changed & (_patch_sizes(cxyz, changed, spacing) >= s.min_patch_cores)
+    sig, lost = sig & changed, lost & changed
+    valid = comparable | lost  # the rest was not observed after the event: unknown
+    roof = np.abs(normals[:, 2]) >= 0.5
+    wall = np.isfinite(normals[:, 2]) & ~roof
+    upper = (cxyz[:, 2] - ground) > s.storey_m
+
+    def share(mask, among):
+        k = among.sum()
+        return float((mask & among).sum() / k) if k else 0.0
+
+    coherent, largest = _coherence(cxyz, changed, valid, spacing)
+    dist = distance[sig]
+    out = {
+        "m_changed": share(changed, valid),
+        "m_lost": share(lost, valid),
+        "m_roof_changed": share(changed, valid & roof),
+        "m_wall_changed": share(changed, valid & wall),
+        "m_holes": share(lost & seen_through, valid),
+        "m_wall_holes": share(lost & seen_through, valid & wall),
+        "m_upper_changed": share(changed, valid & upper),
+        "m_lower_changed": share(changed, valid & ~upper),
+        "m_inward": share(sig & (d < 0), valid),
+        "m_outward": share(sig & (d > 0), valid),
+        "m_coherent": share(coherent, valid),
+        "m_largest_patch": float(largest / valid.sum()) if valid.any() else 0.0,
+        "m_distance_p10": float(np.percentile(dist, 10)) if len(dist) else 0.0,
+        "m_distance_median": float(np.median(dist)) if len(dist) else 0.0,
+        "m_distance_p90": float(np.percentile(dist, 90)) if len(dist) else 0.0,
+        "m_lod_median": float(np.median(lod_raw[comparable])) if comparable.any() else 0.0,
+    }
+    return CoreChange(cxyz, distance, lod_raw, comparable, changed), out
+
+
+# shares of the footprint (or volumes relative to the building's): the dead zone applies. Not to
+# the core-point shares: those are over roofs and walls together, where a 2 x 2 m roof hole in
+# a 10 x 10 x 6 m box is 0.5 % of the surface but 4 % of its roof
+SHARES = ("s_lowered_1m", "s_lowered_storey", "s_lowered_half", "s_raised", "s_volume_loss", "s_volume_gain",
+          "s_post_gap", "s_debris_ring", "s_debris_volume")
+
+
+def _dead_zone(d: dict, min_share: float) -> None:
+    for k in SHARES:
+        if k in d and abs(d[k]) < min_share:
+            d[k] = 0.0
+
+
+def _in_patches(cells: np.ndarray, mask: np.ndarray, width: int, min_cells: int) -> np.ndarray:
+    """`mask` where its cell belongs to an 8-connected group of at least `min_cells` masked cells
+    (cells: integer keys i * width + j)."""
+    if min_cells <= 1 or not mask.any():
+        return mask
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    keys = cells[mask]
+    a, b = [], []
+    for di in (-1, 0, 1):
+        for dj in (-1, 0, 1):
+            if di == dj == 0:
+                continue
+            nk = keys + di * width + dj
+            pos = np.minimum(np.searchsorted(keys, nk), len(keys) - 1)
+            hit = keys[pos] == nk
+            a.append(np.flatnonzero(hit))
+            b.append(pos[hit])
+    a, b = np.concatenate(a), np.concatenate(b)
+    _, labels = connected_components(coo_matrix((np.ones(len(a)), (a, b)), shape=(len(keys), len(keys))),
+                                     directed=False)
+    out = mask.copy()
+    out[mask] = np.bincount(labels)[labels] >= min_cells
+    return out
+
+
+def _patch_sizes(xyz, changed, spacing) -> np.ndarray:
+    """Size of the patch (points joined up to two voxels apart) each changed point belongs to;
+    0 for unchanged points."""
+    sizes = np.zeros(len(xyz), np.int64)
+    if not changed.any():
+        return sizes
+    labels, _ = _patches(xyz, changed, spacing)
+    sizes[changed] = np.bincount(labels)[labels]
+    return sizes
+
+
+def _patches(xyz, changed, spacing):
+    """Connected-component label of every changed point (joined up to two voxels apart)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    neighbour = _voxel_lookup(xyz, spacing)
+    idx = np.flatnonzero(changed)
+    remap = np.full(len(xyz), -1)
+    remap[idx] = np.arange(len(idx))
+    a, b = [], []
+    for dx in range(-2, 3):
+        for dy in range(-2, 3):
+            for dz in range(-2, 3):
+                if dx == dy == dz == 0:
+                    continue
+                hit, j = neighbour(dx, dy, dz)
+                link = hit & changed & changed[j]
+                a.append(remap[np.flatnonzero(link)])
+                b.append(remap[j[link]])
+    a, b = np.concatenate(a), np.concatenate(b)
+    _, labels = connected_components(coo_matrix((np.ones(len(a)), (a, b)), shape=(len(idx), len(idx))),
+                                     directed=False)
+    return labels, len(idx)
+
+
+def _voxel_lookup(xyz, spacing):
+    """Keys of the core points' voxels and a lookup from a key offset to neighbour indices."""
+    ijk = np.floor((xyz - xyz.min(axis=0)) / spacing).astype(np.int64)
+    dims = ijk.max(axis=0) + 5
+    key = ((ijk[:, 0] + 2) * dims[1] + ijk[:, 1] + 2) * dims[2] + ijk[:, 2] + 2
+    order = np.argsort(key)
+    skey = key[order]
+
+    def neighbour(dx, dy, dz):
+        nk = key + (dx * dims[1] + dy) * dims[2] + dz
+        pos = np.minimum(np.searchsorted(skey, nk), len(skey) - 1)
+        return skey[pos] == nk, order[pos]
+
+    return neighbour
+
+
+def _coherence(xyz, changed, valid, spacing):
+    """(changed core points with at least half of their (>= 3) valid adjacent core points
+    changed, the size of the largest patch of changed core points). A patch joins changed
+    points up to two voxels apart, so that a core point left unobserved in the middle of a
+    hole does not cut it in two (sparse epochs leave more such gaps)."""
+    if not changed.any():
+        return np.zeros(len(xyz), bool), 0
+    neighbour = _voxel_lookup(xyz, spacing)
+    n_valid = np.zeros(len(xyz), np.int64)
+    n_changed = np.zeros(len(xyz), np.int64)
+    for dx in (-1, 0, 1):
+        for dy in (-1, 0, 1):
+            for dz in (-1, 0, 1):
+                if dx == dy == dz == 0:
+                    continue
+                hit, j = neighbour(dx, dy, dz)
+                n_valid += hit & valid[j]
+                n_changed += hit & changed[j]
+    coherent = changed & (n_valid >= 3) & (2 * n_changed >= n_valid)
+    labels, _ = _patches(xyz, changed, spacing)
+    return coherent, int(np.bincount(labels).max())

@@ -1,0 +1,1 @@
+"""Scenes and files: scene bundles, CityJSON import, synthetic cities, LAS/LAZ epochs, footprints."""

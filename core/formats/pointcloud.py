@@ -1,0 +1,350 @@
+"""Epoch point clouds as LAS 1.4 / LAZ (laspy + lazrs), per the contract in docs/DESIGN.md.
+
+Point format 6 (gps_time, scan angle, up to 15 returns) with extra dimensions
+`building_id` (uint32), `grade` (uint8, 255 = unknown) and `surface` (uint8).
+Coordinates are stored with scale 0.001 m and offset = scene origin.
+"""
+from __future__ import annotations
+
+import datetime
+import logging
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import laspy
+import numpy as np
+
+from ..errors import PointCloudError
+from ..runtime.atomic import commit, is_write_failure, replacing, temp_path, write_failure_message
+
+log = logging.getLogger(__name__)
+
+SCALE = 0.001
+POINT_FORMAT = 6
+GRADE_UNKNOWN = 255
+# ASPRS classes
+UNCLASSIFIED, GROUND_CLASS, BUILDING_CLASS = 1, 2, 6
+LOW_VEGETATION_CLASS, HIGH_VEGETATION_CLASS = 3, 5
+VEGETATION_CLASSES = (3, 4, 5)  # low, medium, high vegetation
+EXTRA_DIMS = (("building_id", np.uint32, "building ID, 0 = none"),
+              ("grade", np.uint8, "EMS-98 grade, 255 = unknown"),
+              ("surface", np.uint8, "0grd1roof2wall3deb4int5veg6obj"))
+_INT32 = np.iinfo(np.int32)
+
+
+@dataclass
+class PointChunk:
+    """Columns of a batch of points; xyz in the world frame minus `offset` (float64)."""
+
+    xyz: np.ndarray  # (n, 3) float64, relative to the writer's offset
+    gps_time: np.ndarray
+    scan_angle_deg: np.ndarray
+    return_number: np.ndarray
+    number_of_returns: np.ndarray
+    classification: np.ndarray
+    building_id: np.ndarray
+    grade: np.ndarray
+    surface: np.ndarray
+    point_source_id: np.ndarray
+    scan_direction: np.ndarray | None = None
+    edge_of_flight_line: np.ndarray | None = None
+    intensity: np.ndarray | None = None  # uint16; None = 0 (photogrammetry has none)
+
+    def __len__(self):
+        return len(self.xyz)
+
+
+def make_header(offset, crs: str | None, date: str = "2020-01-01",
+                software: str = "QuakeScan") -> laspy.LasHeader:
+    header = laspy.LasHeader(point_format=POINT_FORMAT, version="1.4")
+    header.add_extra_dims([laspy.ExtraBytesParams(name=n, type=t, description=d) for n, t, d in EXTRA_DIMS])
+    header.offsets = np.asarray(offset, dtype=np.float64)
+    header.scales = np.array([SCALE] * 3)
+    header.creation_date = datetime.date.fromisoformat(date)
+    header.generating_software = software[:32]
+    header.system_identifier = "QuakeScan virtual ULS"
+    # adjusted standard GPS time
+    header.global_encoding.gps_time_type = laspy.header.GpsTimeType.STANDARD
+    if crs:
+        try:
+            import pyproj
+
+            header.add_crs(pyproj.CRS.from_user_input(crs))
+        except Exception as e:  # an unknown CRS is the input's problem, not a crash
+            raise PointCloudError(f"cannot write CRS {crs!r} to LAS: {e}") from None
+    return header
+
+
+class LasChunkWriter:
+    """Streams chunks into a LAS/LAZ file; the file appears under its name only on success."""
+
+    def __init__(self, path: str | os.PathLike, offset, crs: str | None = None, date: str = "2020-01-01",
+                 software: str = "QuakeScan"):
+        self.path = Path(path)
+        suffix = self.path.suffix.lower()
+        if suffix not in (".las", ".laz"):
+            raise PointCloudError(f"{self.path}: output must end in .las or .laz")
+        self.header = make_header(offset, crs, date, software)
+        self.offset = np.asarray(offset, dtype=np.float64)
+        self.tmp = temp_path(self.path)
+        self._writer = None
+        self._compress = suffix == ".laz"
+        self.count = 0
+        # Where the temporary file goes when writing stops with an error (None: it is removed);
+        # a resumable scan keeps its points this way (quakescan.acquisition.scan_checkpoint).
+        self.keep_partial_as: Path | None = None
+
+    @property
+    def compressed(self) -> bool:
+        return self._compress
+
+    def __enter__(self):
+        kwargs = {}
+        if self._compress:
+            kwargs["laz_backend"] = laspy.LazBackend.LazrsParallel
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._writer = laspy.open(self.tmp, mode="w", header=self.header, do_compress=self._compress, **kwargs)
+        except Exception as e:
+            self.tmp.unlink(missing_ok=True)
+            if is_write_failure(e):
+                raise PointCloudError(write_failure_message(self.path, e)) from e
+            raise
+        return self
+
+    def write(self, chunk: PointChunk) -> None:
+        """Pack and write a chunk of points (xyz relative to the offset)."""
+        rec = pack_points(self.header, chunk, self.path)
+        if rec is not None:
+            self.write_record(rec, record_bounds(rec))
+
+    def write_record(self, rec, bounds) -> None:
+        """Write a packed record whose `record_bounds` the caller computed (a worker can).
+
+        laspy's write_points would recompute them here, on the one thread that writes;
+        this updates the header with the given bounds and hands the bytes to its writer."""
+        if rec is None or len(rec) == 0:
+            return
+        w = self._writer
+        point_writer = getattr(w, "point_writer", None)
+        if point_writer is None or bounds is None:  # another laspy: take the documented path
+            w.write_points(rec)
+            self.count += len(rec)
+            return
+        mins, maxs, by_return = bounds
+        h = w.header
+        h.mins = np.minimum(h.mins, mins)
+        h.maxs = np.maximum(h.maxs, maxs)
+        h.number_of_points_by_return[: len(by_return)] += by_return.astype(np.uint64)
+        h.point_count += len(rec)
+        point_writer.write_points(rec)
+        self.count += len(rec)
+
+    def __exit__(self, exc_type, exc, tb):
+        try:
+            if self.count == 0 and exc_type is None:
+                # laspy leaves inf/-inf bounds in an empty file's header
+                self._writer.header.mins = self.offset
+                self._writer.header.maxs = self.offset
+            self._writer.close()  # flushes the last chunk: a full disk may show only here
+        except BaseException as e:
+            exc = exc or e
+        if exc is None:
+            try:
+                commit(self.tmp, self.path)
+                return False
+            except OSError as e:
+                exc = e
+        # never a cut file under the final name; a resumable scan keeps it under its own
+        if self.keep_partial_as is not None and self.tmp.is_file():
+            os.replace(self.tmp, self.keep_partial_as)
+        else:
+            self.tmp.unlink(missing_ok=True)
+        if is_write_failure(exc) and not isinstance(exc, PointCloudError):
+            raise PointCloudError(write_failure_message(self.path, exc)) from exc
+        if exc_type is None:
+            raise exc
+        return False
+
+
+def record_bounds(rec):
+    """(mins, maxs, points by return 1..15) of a packed record, in world units."""
+    a = rec.array
+    scales, offsets = np.asarray(rec.scales), np.asarray(rec.offsets)
+    mins = np.array([a[c].min() for c in "XYZ"]) * scales + offsets
+    maxs = np.array([a[c].max() for c in "XYZ"]) * scales + offsets
+    by_return = np.bincount(a["bit_fields"] & 15, minlength=16)[1:16]
+    return mins, maxs, by_return
+
+
+def pack_points(header, chunk: PointChunk, name="point cloud"):
+    """Fill a format-6 record straight through its numpy fields (bit fields packed here:
+    an order of magnitude faster than laspy's per-dimension setters)."""
+    n = len(chunk)
+    if n == 0:
+        return None
+    rec = laspy.ScaleAwarePointRecord.zeros(n, header=header)
+    a = rec.array
+    ints = np.rint(chunk.xyz / SCALE)
+    if ints.min() < _INT32.min or ints.max() > _INT32.max:
+        raise PointCloudError(f"{name}: coordinates lie more than 2 147 km from the LAS offset "
+                              f"{list(header.offsets)} at scale {SCALE} m")
+    a["X"], a["Y"], a["Z"] = ints[:, 0], ints[:, 1], ints[:, 2]
+    a["gps_time"] = chunk.gps_time
+    if chunk.intensity is not None:
+        a["intensity"] = chunk.intensity
+    # LAS 1.4 scan angle: int16 in units of 0.006°
+    a["scan_angle"] = np.rint(chunk.scan_angle_deg / 0.006)
+    # bit_fields: return number (bits 0-3), number of returns (bits 4-7)
+    a["bit_fields"] = (chunk.return_number & 15) | ((chunk.number_of_returns & 15) << 4)
+    flags = np.zeros(n, np.uint8)
+    if chunk.scan_direction is not None:  # bit 6
+        flags |= (chunk.scan_direction.astype(np.uint8) & 1) << 6
+    if chunk.edge_of_flight_line is not None:  # bit 7
+        flags |= (chunk.edge_of_flight_line.astype(np.uint8) & 1) << 7
+    a["classification_flags"] = flags
+    a["classification"] = chunk.classification
+    a["point_source_id"] = chunk.point_source_id
+    a["building_id"] = chunk.building_id
+    a["grade"] = chunk.grade
+    a["surface"] = chunk.surface
+    return rec
+
+
+def read_las(path: str | os.PathLike) -> laspy.LasData:
+    path = Path(path)
+    if path.is_dir():
+        raise PointCloudError(f"{path}: is a folder, not a LAS/LAZ point cloud file")
+    if not path.is_file():
+        raise PointCloudError(f"{path}: point cloud file does not exist")
+    try:
+        return laspy.read(path)
+    except Exception as e:
+        raise PointCloudError(f"{path}: cannot read as LAS/LAZ ({e})") from None
+
+
+def write_with_float_dims(las: laspy.LasData, out: str | os.PathLike, columns: dict, descriptions: dict) -> None:
+    """Write `las` with every array of `columns` (name → one value per point) added as a
+    float32 extra dimension (what CloudCompare shows as scalar fields) to `out`, LAZ when its
+    suffix is .laz; the file appears only when complete. A description is cut to the 32 bytes
+    LAS gives it."""
+    out = Path(out)
+    clash = [n for n in columns if n in set(las.point_format.dimension_names)]
+    if clash:
+        raise PointCloudError(f"{out}: the point cloud already has dimensions {clash}")
+    las.add_extra_dims([laspy.ExtraBytesParams(name=n, type=np.float32, description=descriptions.get(n, n)[:31])
+                        for n in columns])
+    for n, values in columns.items():
+        las[n] = np.asarray(values).astype(np.float32)
+    with replacing(out) as tmp:
+        las.write(tmp, do_compress=out.suffix.lower() == ".laz")
+
+
+@dataclass
+class Epoch:
+    """One epoch's points in a local frame: world = origin + xyz (float64 throughout)."""
+
+    xyz: np.ndarray  # (n, 3) float64, relative to origin
+    origin: np.ndarray  # (3,) float64
+    classification: np.ndarray  # (n,) uint8
+    building_id: np.ndarray | None = None  # (n,) int64, from the file or from footprints
+    grade: np.ndarray | None = None  # (n,) uint8, simulated data only
+    surface: np.ndarray | None = None
+    crs: str | None = None
+    source: str = "epoch"
+
+    def __len__(self):
+        return len(self.xyz)
+
+    def bounds_xy(self) -> np.ndarray:
+        """(2, 2) world min/max of x and y."""
+        if len(self.xyz) == 0:
+            return np.full((2, 2), np.nan)
+        return np.array([self.xyz[:, :2].min(axis=0), self.xyz[:, :2].max(axis=0)]) + self.origin[:2]
+
+
+def _crs_of(header, path) -> str | None:
+    try:
+        crs = header.parse_crs()
+    except Exception as e:
+        log.warning("%s: CRS in the header cannot be read (%s)", path, e)
+        return None
+    if crs is None:
+        return None
+    epsg = crs.to_epsg()
+    return f"EPSG:{epsg}" if epsg else crs.to_wkt()
+
+
+def check_coordinates_fit_crs(crs: str | None, mins, maxs, what: str, error=PointCloudError) -> None:
+    """Refuse coordinates that cannot be in `crs`: beyond ±180 / ±90 in a geographic CRS
+    (projected metres labelled as degrees: EPSG:4326 on Dutch RD coordinates)."""
+    if not crs:
+        return
+    try:
+        import pyproj
+
+        geographic = pyproj.CRS.from_user_input(crs).is_geographic
+    except Exception:
+        return  # a CRS pyproj does not know: the pair's CRS comparison still applies
+    if not geographic:
+        return
+    (x0, y0), (x1, y1) = np.asarray(mins, dtype=np.float64)[:2], np.asarray(maxs, dtype=np.float64)[:2]
+    if max(abs(x0), abs(x1)) > 180 or max(abs(y0), abs(y1)) > 90:
+        raise error(f"{what}: labelled {crs} (longitude/latitude in degrees) but its coordinates span x "
+                    f"{x0:.1f}..{x1:.1f}, y {y0:.1f}..{y1:.1f}: projected coordinates with a wrong CRS? "
+                    "Give the file its real CRS")
+
+
+def read_epoch(path: str | os.PathLike, origin=None) -> Epoch:
+    """Read a LAS/LAZ epoch of any point format. Coordinates go from the file's integers to
+    float64 relative to `origin` (default: the file's offset, or its minimum corner when
+    the offset is zero) without passing through large absolute values in float32."""
+    path = Path(path)
+    las = read_las(path)
+    h = las.header
+    if origin is None:
+        origin = np.asarray(h.offsets, dtype=np.float64)
+        if not np.any(origin) and len(las.points):
+            origin = np.floor(np.asarray(h.mins, dtype=np.float64))
+    origin = np.asarray(origin, dtype=np.float64)
+    pts = las.points
+    xyz = np.empty((len(pts), 3))
+    for k, c in enumerate("XYZ"):
+        # integers × scale + (offset − origin): the large terms cancel before any rounding
+        xyz[:, k] = np.asarray(pts[c], dtype=np.float64) * h.scales[k] + (h.offsets[k] - origin[k])
+    names = set(las.point_format.dimension_names)
+
+    def extra(name, dtype):
+        return np.asarray(las[name], dtype=dtype) if name in names else None
+
+    crs = _crs_of(h, path)
+    if len(xyz):
+        check_coordinates_fit_crs(crs, xyz.min(axis=0) + origin, xyz.max(axis=0) + origin, str(path))
+    return Epoch(xyz, origin, np.asarray(las.classification, dtype=np.uint8),
+                 building_id=extra("building_id", np.int64), grade=extra("grade", np.uint8),
+                 surface=extra("surface", np.uint8), crs=crs, source=str(path))
+
+
+def check_pair(pre: Epoch, post: Epoch) -> None:
+    """Refuse a pre/post pair that cannot be compared: CRS differ, or no overlap in x/y.
+
+    One epoch with a CRS and one without (common: a photogrammetry export without CRS
+    metadata) is taken as one CRS, with a warning naming both files: the overlap check
+    below still refuses clouds in frames kilometres apart, and a responder should not be
+    stopped by missing metadata. Both epochs then carry the known CRS (the outputs' CRS)."""
+    if pre.crs and post.crs and pre.crs != post.crs:
+        raise PointCloudError(f"{post.source}: CRS {post.crs} differs from the pre-event epoch's {pre.crs} "
+                              f"({pre.source}); reproject one of them first")
+    if bool(pre.crs) != bool(post.crs):
+        known, unknown = (pre, post) if pre.crs else (post, pre)
+        log.warning("%s names no CRS but %s is in %s: taking both as %s (their x/y extents overlap); "
+                    "if they are not, reproject one of them", unknown.source, known.source, known.crs, known.crs)
+        unknown.crs = known.crs
+    for e in (pre, post):
+        if len(e) == 0:
+            raise PointCloudError(f"{e.source}: the point cloud is empty")
+    a, b = pre.bounds_xy(), post.bounds_xy()
+    if a[1, 0] < b[0, 0] or b[1, 0] < a[0, 0] or a[1, 1] < b[0, 1] or b[1, 1] < a[0, 1]:
+        raise PointCloudError(f"{post.source}: no overlap with the pre-event epoch {pre.source} "
+                              f"(x/y extents {b.round(2).tolist()} vs {a.round(2).tolist()})")

@@ -1,0 +1,1 @@
+"""Learning: damage models, their training and training sets, and classifying a pair with a model."""

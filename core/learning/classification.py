@@ -1,0 +1,436 @@
+"""Damage grades for the buildings of a real or simulated pre-/post-event pair (`quakescan classify`).
+
+Reads both epochs into one float64 local frame, takes building IDs from the clouds'
+`building_id` dimension or from footprints, optionally aligns the post epoch to the pre
+epoch by ICP on stable areas, describes every building's change (`quakescan.change.pipeline`, tile by
+tile) and applies a model: the shipped default unless one is given. A building with too
+few points is reported as not assessable, never guessed; a building without changed
+points is "no damage" by the paper's rule, without asking the model, unless the model was
+trained on every row (`DamageModel.no_change_rule` False) and is asked about all of them.
+
+Long runs checkpoint every finished tile to OUT/.checkpoint.jsonl; a rerun with the same
+inputs, model and options (`quakescan.runtime.fingerprint`'s rule) continues from there. Every output is
+written under a temporary name and renamed.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..change.pipeline import (
+    BuildingRow,
+    PipelineSettings,
+    describe_pair,
+    settings_for_descriptors,
+)
+from ..errors import QuakeScanError, ResultsError
+from ..formats.pointcloud import Epoch, PointCloudError, check_pair, read_epoch
+from ..runtime import fingerprint
+from ..runtime.atomic import is_write_failure, write_failure_message, write_json, write_text
+from ..runtime.progress import ProgressCallback
+from .model import DamageModel, ModelError, load_model
+
+log = logging.getLogger(__name__)
+
+DEFAULT_MODEL = Path(__file__).resolve().parents[1] / "data" / "default_model.skops"
+
+
+class ClassifyError(QuakeScanError):
+    """Classification cannot run as asked."""
+
+
+def default_model_path() -> Path:
+    if not DEFAULT_MODEL.is_file():
+        raise ModelError(f"{DEFAULT_MODEL}: the shipped default model is missing; rebuild it with "
+                         "`python blender_scripts/make_default_model.py` or pass --model")
+    return DEFAULT_MODEL
+
+
+def model_settings(model: DamageModel, source: str = "model") -> PipelineSettings:
+    """The pipeline settings the model was trained with; refuses a model for other features."""
+    stored = model.split if isinstance(model.split, dict) else {}
+    try:
+        settings = settings_for_descriptors(model.feature_names, model.radius_m, stored.get("split"), stored,
+                                            min_points_pre=int(stored.get("min_points_pre", 50)),
+                                            min_points_post=int(stored.get("min_points_post", 10)),
+                                            tile_m=float(stored.get("tile_m", 150.0)),
+                                            core_point_step=int(stored.get("core_point_step", 1)))
+    except (QuakeScanError, TypeError, ValueError, KeyError, AttributeError) as e:  # settings out of range or of the wrong type
+        raise ModelError(f"{source}: the model's settings are invalid ({e}): an edited or foreign file; "
+                         "retrain it with `quakescan train`") from None
+    version = (model.provenance or {}).get("descriptor_version")
+    if settings.surface is not None and version is not None:
+        from ..change.surface import DESCRIPTOR_VERSION
+
+        if version != DESCRIPTOR_VERSION:
+            log.warning("%s: trained on surface descriptors of version %s, this QuakeScan computes version %s: "
+                        "retrain it (blender_scripts/make_default_model.py) for results it was measured on",
+                        source, version, DESCRIPTOR_VERSION)
+    if settings.descriptor_names() != list(model.feature_names):
+        raise ModelError(f"{source}: the model's descriptor columns are not in the order this QuakeScan "
+                         f"computes them ({model.feature_names[:4]}...): retrain it with `quakescan train`")
+    return settings
+
+
+@dataclass
+class PairData:
+    pre: Epoch
+    post: Epoch
+    footprints: object = None  # quakescan.formats.footprints.Footprints
+    footprint_ids_without_points: list = field(default_factory=list)
+
+
+def load_pair(pre_path, post_path, footprints_path=None, id_field: str | None = None) -> PairData:
+    """Both epochs in the pre epoch's local frame, with building IDs."""
+    pre = read_epoch(pre_path)
+    post = read_epoch(post_path, origin=pre.origin)
+    check_pair(pre, post)
+    if footprints_path is None:
+        for e in (pre, post):
+            if e.building_id is None:
+                raise ClassifyError(f"{e.source}: no building_id dimension; give building footprints "
+                                    "(--footprints F.geojson in the clouds' CRS)")
+        return PairData(pre, post)
+    from ..formats.footprints import assign_buildings, read_footprints
+
+    fp = read_footprints(footprints_path, id_field)
+    if fp.crs and pre.crs and fp.crs != pre.crs:
+        raise ClassifyError(f"{footprints_path}: footprints are in {fp.crs} but the point clouds in {pre.crs}; "
+                            "reproject the footprints")
+    if fp.crs and not pre.crs and not post.crs:
+        log.info("%s: the point clouds name no CRS; taking the footprints' %s", pre.source, fp.crs)
+        pre.crs = post.crs = fp.crs  # footprints that hit the points share their CRS
+    for e in (pre, post):
+        e.building_id = assign_buildings(e.xyz[:, 0] + e.origin[0], e.xyz[:, 1] + e.origin[1], fp)
+    if not (pre.building_id > 0).any():
+        b = fp.bounds()
+        raise ClassifyError(f"{footprints_path}: no footprint contains a pre-event point (footprints span "
+                            f"x {b[:, 0].min():.1f}..{b[:, 2].max():.1f}, y {b[:, 1].min():.1f}..{b[:, 3].max():.1f}; "
+                            f"points x {pre.bounds_xy()[:, 0].round(1).tolist()}); wrong CRS?")
+    hit = set(np.unique(pre.building_id).tolist()) | set(np.unique(post.building_id).tolist())
+    empty = sorted(int(i) for i in fp.ids if int(i) not in hit)
+    return PairData(pre, post, fp, empty)
+
+
+def _fingerprint(pre_path, post_path, footprints_path, model_path, align: bool | None, options: dict):
+    """What a classification depends on (`quakescan.runtime.fingerprint`): the clouds by path, size and time
+    (gigabytes: hashing them would cost more than many reruns), the footprints and the model
+    by content, the alignment mode and the output options."""
+    inputs = {"pre": fingerprint.stat(pre_path), "post": fingerprint.stat(post_path),
+              "footprints": fingerprint.content(footprints_path), "model": fingerprint.content(model_path)}
+    return fingerprint.make("classify", inputs=inputs, settings={"align": align, **options})
+
+
+class _Checkpoint:
+    """Rows of finished tiles, one JSON line each, valid for one fingerprint.
+
+    The first line (the fingerprint) is written under a temporary name and renamed, so an
+    interruption never leaves a file without it; a file that is unreadable anyway (cut,
+    edited, another program's) is discarded with a warning and its tiles are recomputed."""
+
+    def __init__(self, path: Path, digest: str):
+        self.path, self.fp = path, digest
+        self.rows: dict[int, BuildingRow] = {}
+        if path.is_file():
+            self._read(path, digest)
+        if not path.is_file():
+            write_json(path, {"fingerprint": digest}, indent=None)
+
+    def _read(self, path: Path, digest: str) -> None:
+        try:
+            lines = path.read_text().splitlines()
+            head = json.loads(lines[0]) if lines else None
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+            log.warning("%s: unreadable checkpoint (%s), discarded: every tile is recomputed", path, e)
+            head = None
+        if isinstance(head, dict) and head.get("fingerprint") == digest:
+            for line in lines[1:]:
+                try:
+                    d = json.loads(line)
+                    r = BuildingRow(int(d["building_id"]), int(d["n_pre"]), int(d["n_post"]), True, "",
+                                    dict(d["descriptors"]), tuple(d["centre_xy"]), d.get("quality", {}))
+                except (json.JSONDecodeError, KeyError, TypeError, ValueError):
+                    break  # a line cut by the interruption: that tile is redone
+                self.rows[r.building_id] = r
+        else:
+            path.unlink()
+
+    def add(self, rows):
+        try:
+            with open(self.path, "a") as f:
+                for r in rows:
+                    f.write(json.dumps({"building_id": r.building_id, "n_pre": r.n_pre, "n_post": r.n_post,
+                                        "descriptors": r.descriptors, "centre_xy": list(r.centre_xy),
+                                        "quality": r.quality}) + "\n")
+                f.flush()
+                os.fsync(f.fileno())
+        except OSError as e:  # a rerun reads the lines before the cut one and redoes the rest
+            if not is_write_failure(e):
+                raise
+            raise ResultsError(write_failure_message(self.path, e)) from e
+
+
+def predict_rows(rows, model: DamageModel, rule: bool | None = None) -> list:
+    """BuildingResults: not assessable stays so; no changed points → no damage by rule;
+    else the model. `confidence`: the model's probability of the grade it gives, 1.0 for a
+    grade given by rule, None when not assessable.
+
+    rule: decide buildings without changed points without asking the model (the paper's
+    rule); None: as the model was trained (`model.no_change_rule`; True for every model
+    file written before the switch existed)."""
+    from ..results.writers import BuildingResult
+
+    rule = model.no_change_rule if rule is None else bool(rule)
+    classes = model.classes
+    grades = sorted(set(classes) | ({0} if rule else set()))
+    out, ask = [], []
+    for r in rows:
+        if not r.assessable:
+            out.append(BuildingResult(r.building_id, r.n_pre, r.n_post, False, r.reason))
+            continue
+        # the paper's share of changed points, or for a surface model its share of changed surface
+        share = float(r.descriptors.get("share_changed", r.descriptors.get("m_changed", 0.0)))
+        res = BuildingResult(r.building_id, r.n_pre, r.n_post, True, "", share_changed=share)
+        if rule and share == 0.0:
+            res.grade = 0
+            res.probabilities = {c: float(c == 0) for c in grades}
+            res.decided_by = "no change"
+            res.confidence = 1.0
+        else:
+            ask.append((res, r))
+        out.append(res)
+    if ask:
+        table = {n: np.array([r.descriptors[n] for _, r in ask]) for n in model.feature_names}
+        proba = model.predict_proba(table)
+        for (res, _), p, conf in zip(ask, proba, model.confidence(proba)):
+            res.probabilities = {c: 0.0 for c in grades}
+            res.probabilities.update({c: float(v) for c, v in zip(classes, p)})
+            res.grade = int(classes[int(np.argmax(p))])
+            res.decided_by = "model"
+            res.confidence = float(conf)
+    return out
+
+
+def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=None, id_field=None,
+             align: bool | None = None, workers: int = -1, progress: ProgressCallback | None = None,
+             write_las: bool = True, laz: bool | None = None, force: bool = False) -> dict:
+    """Run the whole classification and write OUT/buildings.csv, .geojson, .qml (its QGIS
+    style), damage_map.png, damage_map.html (offline), post_grades.las and summary.json.
+    Returns the summary.
+
+    `align`: True aligns the post epoch to the pre epoch on stable ground (ICP) first; False
+    takes the epochs as they are; None (default) checks their registration and aligns when
+    they disagree beyond what the model tolerates, saying so (`_register`). The graded
+    post-event cloud keeps every attribute of the post-event file and is compressed
+    (post_grades.laz) when `laz`, or when `laz` is None and the post-event file is LAZ.
+    A folder that holds the finished results of the same inputs, model and options is up to
+    date: its summary is returned (with "up_to_date": True) and nothing is recomputed,
+    unless `force`."""
+    from ..results import writers as results
+    from ..results.qgis_style import write_qml
+    from ..results.webmap import write_map_html
+
+    t0 = time.perf_counter()
+    out = Path(out_dir)
+    model_path = Path(model_path) if model_path else default_model_path()
+    for p, what in ((pre_path, "pre-event point cloud"), (post_path, "post-event point cloud"),
+                    (footprints_path, "footprint file"), (model_path, "model file")):
+        if p is not None and not Path(p).is_file():  # before the fingerprint reads them
+            raise ClassifyError(f"{p}: {what} " + ("is a folder, not a file" if Path(p).is_dir() else "does not exist"))
+    _check_output_folder(out, [pre_path, post_path, footprints_path, model_path])
+    options = {"id_field": id_field, "write_las": bool(write_las), "laz": laz}
+    run_fp = _fingerprint(pre_path, post_path, footprints_path, model_path, align, options)
+    done = _finished(out, run_fp)
+    if done is not None and not force:
+        log.info("%s: up to date (same inputs, model and options); force=True recomputes", out)
+        return {**done, "up_to_date": True}
+    model = load_model(model_path)
+    settings = model_settings(model, str(model_path))
+    data = load_pair(pre_path, post_path, footprints_path, id_field)
+    pre, post = data.pre, data.post
+    summary: dict = {"pre": str(pre_path), "post": str(post_path), "model": str(model_path),
+                     "model_provenance": model.provenance, "settings": settings.to_json(),
+                     "points": {"pre": len(pre), "post": len(post)}, "crs": pre.crs}
+    summary["registration"] = _register(pre, post, settings, align, summary)
+    t_read = time.perf_counter()
+    ckpt = _Checkpoint(out / ".checkpoint.jsonl", run_fp.digest)
+    resumed = len(ckpt.rows)
+    if resumed:
+        log.warning("%s: resuming, %d buildings already described", out, resumed)
+    rows = describe_pair(pre, post, settings, workers=workers, progress=progress, done=ckpt.rows,
+                         on_tile=ckpt.add)
+    rows += [BuildingRow(int(b), 0, 0, False, "no point inside the footprint")
+             for b in data.footprint_ids_without_points]
+    if data.footprints is not None:  # footprints that cannot be used: the building stays, with the reason
+        described = {r.building_id for r in rows}
+        rows += [BuildingRow(int(b), 0, 0, False, why) for b, why, _ in data.footprints.rejected
+                 if int(b) not in described]
+    rows.sort(key=lambda r: r.building_id)
+    t_describe = time.perf_counter()
+    res = predict_rows(rows, model)
+    classes = model.grades
+    out.mkdir(parents=True, exist_ok=True)
+    fp = data.footprints
+    results.write_csv(res, out / "buildings.csv", classes, own_ids=fp.own_ids() if fp is not None else None)
+    xy_by = None
+    if data.footprints is None:
+        xy_by = _xy_by_building(pre)
+    outlines = results.building_outlines(res, data.footprints, xy_by, pre.origin)
+    attributes = (fp.attributes() or None) if fp is not None else None
+    results.write_geojson(res, outlines, out / "buildings.geojson", pre.crs, classes, attributes)
+    write_qml(out / "buildings.qml")
+    sub = pre.xyz[:: max(1, len(pre) // 200_000), :2] + pre.origin[:2]
+    title = f"Damage grades: {Path(post_path).name}"
+    results.write_map_png(res, outlines, out / "damage_map.png", title, points_xy=sub, crs=pre.crs)
+    write_map_html(res, outlines, out / "damage_map.html", title, pre.crs, classes,
+                   own_ids=fp.own_ids() if fp is not None else None)
+    if write_las:
+        compress = Path(post_path).suffix.lower() == ".laz" if laz is None else laz
+        graded = out / ("post_grades.laz" if compress else "post_grades.las")
+        results.write_grade_las(graded, post.xyz, post.origin, post.crs, post.building_id,
+                                {r.building_id: r.grade for r in res}, source=post_path)
+        summary["post_grades"] = str(graded)
+    counts: dict[str, int] = {}
+    for r in res:
+        counts[r.label] = counts.get(r.label, 0) + 1
+    summary.update({"buildings": len(res), "by_label": counts, "by_grade_name": counts_by_grade_name(res),
+                    "resumed_buildings": resumed,
+                    "seconds": {"read": round(t_read - t0, 2), "describe": round(t_describe - t_read, 2),
+                                "total": round(time.perf_counter() - t0, 2)}})
+    summary["fingerprint"] = run_fp.digest
+    summary["options"] = options
+    write_text(out / "summary.json", json.dumps(summary, indent=1, default=_json_default))
+    ckpt.path.unlink(missing_ok=True)
+    return summary
+
+
+def counts_by_grade_name(res) -> dict:
+    """{"0 no damage": n, "3 substantial to heavy (heavy)": n, ..., "not assessable": n} in
+    grade order: what the CLI prints (quakescan.grades)."""
+    from ..grades import long_label
+    from ..results.writers import NOT_ASSESSABLE
+
+    grades = sorted({int(r.grade) for r in res if r.assessable and r.grade is not None})
+    out = {long_label(g): sum(1 for r in res if r.assessable and r.grade == g) for g in grades}
+    missing = sum(1 for r in res if not r.assessable or r.grade is None)
+    if missing:
+        out[NOT_ASSESSABLE] = missing
+    return out
+
+
+# Epochs whose stable ground disagrees by more than this share of the model's level of
+# detection are aligned before describing: a georeferencing offset of a few decimetres
+# reads as change on every building (AHN3 shifted by 0.4 m: 134 of 134 called damaged).
+# Below it the level of detection absorbs the offset, and ICP between different sensors
+# finds spurious offsets of 2-8 cm on perfectly registered simulated pairs (bench_transfer's
+# held-out city): aligning those would move the data, not correct it.
+AUTO_ALIGN_SHARE_OF_LOD = 1.0
+CHECK_MAX_POINTS = 500_000  # stable points ICP sees for the check: a rigid transform needs few
+
+
+def registration_tolerance_m(settings: PipelineSettings) -> float:
+    """The largest offset between epochs left as it is: the model's level of detection."""
+    lod = settings.surface.lod_floor_m if settings.surface is not None else settings.split.lod_height_m
+    return AUTO_ALIGN_SHARE_OF_LOD * lod
+
+
+def _register(pre, post, settings: PipelineSettings, align: bool | None, summary: dict) -> dict:
+    """Check (and, when asked or needed, apply) the rigid alignment of post to pre; moves
+    post.xyz in place; returns what was done for the summary."""
+    from ..change.align import AlignmentError, align_epochs, format_alignment, stable_mask
+
+    if align is False:
+        return {"mode": "off", "checked": False}
+    mode = "on" if align else "auto"
+    tolerance = registration_tolerance_m(settings)
+    try:
+        a = align_epochs(pre.xyz, post.xyz, stable_mask(pre.classification, pre.building_id),
+                         stable_mask(post.classification, post.building_id),
+                         max_points=CHECK_MAX_POINTS if mode == "auto" else 2_000_000,
+                         pre_name=str(pre.source), post_name=str(post.source))
+    except AlignmentError as e:
+        if mode == "on":
+            raise AlignmentError(f"--align: cannot align {post.source} to {pre.source}: {e}") from None
+        log.warning("cannot check that the epochs are registered (%s); classifying them as they are: an offset "
+                    "between them would read as damage", e)
+        return {"mode": mode, "checked": False, "reason": str(e)}
+    offset = max_displacement_m(a, post.xyz)
+    record = {"mode": mode, "checked": True, "offset_m": round(offset, 4), "tolerance_m": tolerance,
+              "applied": False}
+    needed = offset > tolerance and a.rmse_after_m < a.rmse_before_m
+    if mode == "on" or needed:
+        post.xyz = a.apply(post.xyz)
+        summary["alignment"] = a.to_json()
+        record["applied"] = True
+        if mode == "auto":
+            log.warning("the epochs disagree on stable ground by up to %.2f m (more than the %.2f m the model "
+                        "tolerates): aligned the post-event epoch to the pre-event one (%s); --no-align keeps "
+                        "them as they are", offset, tolerance, format_alignment(a))
+        else:
+            log.info("alignment: %s", format_alignment(a))
+        if a.std_after_m * 1.96 > settings.split.lod_height_m:
+            log.warning("the alignment's noise (std %.3f m) exceeds what the model's level of detection "
+                        "(%.2f m) tolerates: expect undamaged buildings to look changed",
+                        a.std_after_m, settings.split.lod_height_m)
+    return record
+
+
+def max_displacement_m(a, xyz: np.ndarray) -> float:
+    """How far the alignment moves any corner of the cloud's bounding box (translation and
+    rotation together: a small rotation moves the far edge of a large tile the most)."""
+    lo, hi = xyz.min(axis=0), xyz.max(axis=0)
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    return float(np.linalg.norm(a.apply(corners) - corners, axis=1).max())
+
+
+def _check_output_folder(out: Path, inputs) -> None:
+    """Refuse an output folder that is a file, above all one of the inputs: classify writes
+    several files into it and would otherwise fail half-way or overwrite its own input."""
+    for p in inputs:
+        if p is not None and Path(p).exists() and out.exists() and os.path.samefile(p, out):
+            raise ClassifyError(f"{out}: the output folder (-o) is the input file {p}; give a folder for the results")
+    if out.exists() and not out.is_dir():
+        raise ClassifyError(f"{out}: the output (-o) is an existing file; classify writes a folder of results "
+                            "(buildings.csv, buildings.geojson, damage_map.png, ...): give a folder")
+
+
+def _finished(out: Path, fp) -> dict | None:
+    """The summary of a finished classification of the same inputs in `out`, else None."""
+    try:
+        summary = json.loads((out / "summary.json").read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return None
+    if not fingerprint.matches(summary, fp):
+        return None
+    wanted = ["buildings.csv", "buildings.geojson", "buildings.qml", "damage_map.png", "damage_map.html"]
+    if summary["options"]["write_las"]:
+        wanted.append(Path(summary.get("post_grades", "post_grades.las")).name)
+    return summary if all((out / name).is_file() for name in wanted) else None
+
+
+def _json_default(o):
+    if isinstance(o, (np.integer,)):
+        return int(o)
+    if isinstance(o, (np.floating,)):
+        return float(o)
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    raise TypeError(type(o))
+
+
+def _xy_by_building(e: Epoch) -> dict:
+    ids = e.building_id
+    order = np.argsort(ids, kind="stable")
+    u, s = np.unique(ids[order], return_index=True)
+    ends = np.append(s[1:], len(order))
+    return {int(b): e.xyz[order[a:z], :2] for b, a, z in zip(u, s, ends) if b > 0}
+
+
+__all__ = ["ClassifyError", "PointCloudError", "classify", "default_model_path", "load_pair", "model_settings",
+           "predict_rows"]

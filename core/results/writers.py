@@ -1,0 +1,571 @@
+"""The per-building result for responders: CSV, GeoJSON, a PNG map and a graded LAS.
+
+docs/DESIGN.md: "Result — one row per building: building_id, predicted grade, class
+probabilities, share of changed points, point counts per epoch, an assessable flag; written
+as CSV and as GeoJSON when footprints are known."
+
+A building that cannot be assessed (too few points in an epoch, no point in its footprint)
+has no grade: the files leave it empty, never a guess. Every writer goes through
+`quakescan.runtime.atomic`, so a file under its final name is always complete.
+"""
+from __future__ import annotations
+
+import csv
+import datetime
+import json
+import math
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import ResultsError
+from ..formats.pointcloud import SCALE
+from ..grades import grade_name, long_label
+from ..learning.model import GRADE_LABELS
+from ..runtime.atomic import open_replacing, replacing, write_text
+
+NOT_ASSESSABLE = "not assessable"
+# Map / LAS colours (hex RGB). Green → yellow → orange → red with the grade; grades 1 and 2
+# (geometrically "no damage" at UAV resolution) get the greens between, should a model predict them.
+GRADE_COLOURS = {0: "#1a9641", 1: "#a6d96a", 2: "#d9ef8b", 3: "#ffd700", 4: "#fd8d3c", 5: "#d7191c"}
+NOT_ASSESSABLE_COLOUR = "#8c8c8c"  # grey
+BACKGROUND_COLOUR = "#d9d9d9"  # light grey: points that belong to no building (map scatter, LAS)
+GRADE_NONE = 255  # `predicted_grade` in the LAS: not a building, or not assessable
+BUFFER_M = 0.5  # radius around the points of a building too small for a hull
+OUTLINE_FOOTPRINT = "footprint"
+OUTLINE_HULL = "convex hull of points"
+OUTLINE_BUFFER = "buffer around points"  # fewer than 3 distinct points, or all on a line
+_FIXED = ["building_id", "assessable", "predicted_grade", "label"]
+_TAIL = ["share_changed", "n_pre", "n_post", "decided_by", "reason"]
+# Columns added after the first files: written after all others, optional on reading, so
+# readers that look columns up by name (quakescan.results.evaluation, read_csv) take old and new files.
+_ADDED = ["confidence", "grade_name"]
+
+
+@dataclass
+class BuildingResult:
+    building_id: int
+    n_pre: int
+    n_post: int
+    assessable: bool
+    reason: str = ""  # why not assessable, e.g. "12 pre-event points < 50"
+    grade: int | None = None  # None when not assessable: never a guess
+    probabilities: dict[int, float] = field(default_factory=dict)  # class grade → p
+    share_changed: float | None = None
+    decided_by: str = ""  # "model" | "no change" (no changed points → no damage, per the paper) | ""
+    # probability of the predicted grade (DamageModel.confidence); 1.0 when decided by rule,
+    # None when not assessable
+    confidence: float | None = None
+
+    @property
+    def label(self) -> str:
+        if not self.assessable or self.grade is None:
+            return NOT_ASSESSABLE
+        return GRADE_LABELS.get(int(self.grade), f"grade {self.grade}")
+
+    @property
+    def grade_name(self) -> str:
+        """EMS-98 name of the grade ("substantial to heavy"); "not assessable" without one."""
+        if not self.assessable or self.grade is None:
+            return NOT_ASSESSABLE
+        return grade_name(self.grade)
+
+    @property
+    def colour(self) -> str:
+        return colour_of(self.grade if self.assessable else None)
+
+
+@dataclass(frozen=True)
+class Outline:
+    """A building's outline in world coordinates and where it came from."""
+
+    geometry: object  # shapely Polygon / MultiPolygon
+    source: str  # OUTLINE_FOOTPRINT | OUTLINE_HULL | OUTLINE_BUFFER
+
+
+def colour_of(grade: int | None) -> str:
+    """Hex colour of a grade; grey for None (not assessable)."""
+    if grade is None:
+        return NOT_ASSESSABLE_COLOUR
+    return GRADE_COLOURS.get(int(grade), NOT_ASSESSABLE_COLOUR)
+
+
+def _rgb8(hex_colour: str) -> tuple[int, int, int]:
+    h = hex_colour.lstrip("#")
+    return int(h[0:2], 16), int(h[2:4], 16), int(h[4:6], 16)
+
+
+def _fmt(v: float | None) -> str:
+    if v is None or (isinstance(v, float) and math.isnan(v)):
+        return ""
+    return format(float(v), ".6g")
+
+
+def _sorted(rows) -> list[BuildingResult]:
+    return sorted(rows, key=lambda r: int(r.building_id))
+
+
+# ---------------------------------------------------------------------------------------- CSV
+
+def csv_columns(classes) -> list[str]:
+    return _FIXED + [f"p_{int(c)}" for c in classes] + _TAIL + _ADDED
+
+
+def _record(r: BuildingResult, classes) -> dict:
+    """The CSV/GeoJSON fields of a row as Python values (None = empty)."""
+    ok = bool(r.assessable) and r.grade is not None
+    rec = {"building_id": int(r.building_id), "assessable": ok,
+           "predicted_grade": int(r.grade) if ok else None, "label": r.label}
+    for c in classes:
+        p = r.probabilities.get(int(c)) if ok else None
+        rec[f"p_{int(c)}"] = None if p is None else float(p)
+    rec.update({"share_changed": None if r.share_changed is None else float(r.share_changed),
+                "n_pre": int(r.n_pre), "n_post": int(r.n_post), "decided_by": r.decided_by if ok else "",
+                "reason": r.reason or "",
+                "confidence": float(r.confidence) if ok and r.confidence is not None else None,
+                "grade_name": r.grade_name})
+    return rec
+
+
+def write_csv(rows, path, classes, own_ids: dict | None = None) -> None:
+    """One line per building, sorted by building_id. Columns: building_id, assessable (1/0),
+    predicted_grade (empty when not assessable), label, p_<grade> per model class (empty when
+    not assessable), share_changed, n_pre, n_post, decided_by, reason, confidence (probability
+    of the predicted grade; empty when not assessable), grade_name (EMS-98 name, quakescan.grades;
+    "not assessable" without a grade). `quakescan.results.evaluation` reads it. `own_ids`
+    ({building_id: footprint ID}, for footprints whose IDs are text) adds a last column
+    `footprint_id`."""
+    classes = [int(c) for c in classes]
+    with open_replacing(path, "w", newline="") as f:
+        w = csv.writer(f, lineterminator="\n")
+        w.writerow(csv_columns(classes) + (["footprint_id"] if own_ids else []))
+        for r in _sorted(rows):
+            rec = _record(r, classes)
+            line = []
+            for col in csv_columns(classes):
+                v = rec[col]
+                if col == "assessable":
+                    line.append("1" if v else "0")
+                elif isinstance(v, float) or (col.startswith("p_") and v is None) or col == "share_changed":
+                    line.append(_fmt(v))
+                else:
+                    line.append("" if v is None else str(v))
+            if own_ids:
+                own = own_ids.get(int(r.building_id))
+                line.append("" if own is None else str(own))
+            w.writerow(line)
+
+
+def read_csv_rows(path, error=None, what: str = "file") -> tuple[list, list[dict]]:
+    """(column names, rows as dicts) of a CSV table; a missing or unreadable file raises
+    `error` (default ResultsError) naming the file as `what` ("result file", "truth file")."""
+    error = error or ResultsError
+    path = Path(path)
+    try:
+        with open(path, newline="") as f:
+            reader = csv.DictReader(f)
+            rows = list(reader)
+            return list(reader.fieldnames or []), rows
+    except FileNotFoundError:
+        raise error(f"{path}: {what} does not exist") from None
+    except (OSError, UnicodeDecodeError, csv.Error) as e:
+        raise error(f"{path}: cannot read as a CSV table ({e})") from None
+
+
+def read_csv(path) -> list[BuildingResult]:
+    """BuildingResults from a CSV that `write_csv` wrote (files without the later columns,
+    `_ADDED`, too: those fields stay empty)."""
+    path = Path(path)
+    cols, data = read_csv_rows(path, what="result file")
+    missing = [c for c in _FIXED + _TAIL if c not in cols]
+    if missing:
+        raise ResultsError(f"{path}: missing columns {missing} (has {cols})")
+    pcols = {c: int(c[2:]) for c in cols if re.fullmatch(r"p_\d+", c)}
+    out = []
+    for i, d in enumerate(data, start=2):
+        try:
+            ok = d["assessable"].strip() == "1"
+            g = d["predicted_grade"].strip()
+            probs = {k: float(d[c]) for c, k in pcols.items() if d[c].strip()} if ok else {}
+            share = d["share_changed"].strip()
+            conf = (d.get("confidence") or "").strip()
+            out.append(BuildingResult(int(d["building_id"]), int(d["n_pre"]), int(d["n_post"]), ok,
+                                      d["reason"], int(g) if ok and g else None, probs,
+                                      float(share) if share else None, d["decided_by"],
+                                      float(conf) if ok and conf else None))
+        except (ValueError, AttributeError) as e:
+            raise ResultsError(f"{path}: line {i}: {e}") from None
+    return out
+
+
+# ----------------------------------------------------------------------------------- outlines
+
+def building_outlines(rows, footprints=None, xy_by_building: dict | None = None, origin=(0.0, 0.0)
+                      ) -> dict[int, Outline]:
+    """{building_id: Outline} in world coordinates for the rows that have one.
+
+    The footprint polygon when the footprints know the building (parts with the same ID are
+    united); otherwise the convex hull of the building's points, given local in
+    `xy_by_building` and shifted by `origin[:2]`; a building with fewer than 3 distinct points
+    (or all on one line) gets a BUFFER_M buffer around them. No footprint and no points: no outline.
+    """
+    import shapely
+
+    origin = np.asarray(origin, dtype=np.float64)[:2]
+    by_fp: dict[int, list] = {}
+    if footprints is not None:
+        for bid, poly in zip(footprints.ids, footprints.polygons):
+            by_fp.setdefault(int(bid), []).append(poly)
+    out: dict[int, Outline] = {}
+    for r in rows:
+        bid = int(r.building_id)
+        if bid in by_fp:
+            polys = by_fp[bid]
+            geom = polys[0] if len(polys) == 1 else shapely.union_all(polys)
+            out[bid] = Outline(geom, OUTLINE_FOOTPRINT)
+            continue
+        xy = None if xy_by_building is None else xy_by_building.get(bid)
+        if xy is None or len(xy) == 0:
+            continue
+        world = np.asarray(xy, dtype=np.float64)[:, :2] + origin
+        hull = shapely.convex_hull(shapely.multipoints(world))
+        if hull.geom_type == "Polygon" and hull.area > 0:
+            out[bid] = Outline(hull, OUTLINE_HULL)
+        else:  # a point or a line
+            out[bid] = Outline(hull.buffer(BUFFER_M), OUTLINE_BUFFER)
+    return out
+
+
+# ------------------------------------------------------------------------------------ GeoJSON
+
+def _round_coords(c):
+    if isinstance(c, (list, tuple)) and c and isinstance(c[0], (int, float)):
+        return [round(float(v), 3) for v in c]
+    return [_round_coords(x) for x in c]
+
+
+def geojson_crs_member(crs: str | None) -> dict | None:
+    """GeoJSON (2008) named CRS for an EPSG code, None when the CRS has no EPSG code."""
+    if not crs:
+        return None
+    m = re.fullmatch(r"\s*EPSG:(\d+)\s*", str(crs), re.IGNORECASE)
+    code = m.group(1) if m else None
+    if code is None:
+        try:
+            import pyproj
+
+            code = pyproj.CRS.from_user_input(crs).to_epsg()
+        except Exception:
+            code = None
+    return {"type": "name", "properties": {"name": f"urn:ogc:def:crs:EPSG::{code}"}} if code else None
+
+
+def write_geojson(rows, outlines: dict, path, crs: str | None, classes, attributes: dict | None = None) -> None:
+    """A FeatureCollection, one Feature per building (sorted by ID) with the CSV's fields as
+    properties (JSON types: assessable true/false, empty → null) plus `outline` (where the
+    geometry comes from) and `colour` (the map's hex colour). A building without outline has
+    geometry null.
+
+    The coordinates are those of the point cloud, i.e. PROJECTED (metres in `crs`), not the
+    WGS 84 longitude/latitude that RFC 7946 assumes; hence the GeoJSON 2008 `crs` member
+    ("urn:ogc:def:crs:EPSG::n") when the CRS has an EPSG code, which QGIS/GDAL honour and
+    `quakescan.formats.footprints.read_footprints` reads back. Coordinates are rounded to 1 mm.
+    `attributes` ({building_id: the footprint's properties}) adds them as `footprint`: the
+    cadastre's own ID, address or use stay with the result whatever their types.
+    """
+    import shapely.geometry
+
+    classes = [int(c) for c in classes]
+    feats = []
+    for r in _sorted(rows):
+        props = _record(r, classes)
+        o = outlines.get(int(r.building_id))
+        geom = None
+        if o is not None:
+            g = shapely.geometry.mapping(o.geometry)
+            geom = {"type": g["type"], "coordinates": _round_coords(g["coordinates"])}
+        props["outline"] = o.source if o is not None else None
+        props["colour"] = r.colour
+        if attributes and int(r.building_id) in attributes:
+            props["footprint"] = attributes[int(r.building_id)]
+        feats.append({"type": "Feature", "id": int(r.building_id), "properties": props, "geometry": geom})
+    doc = {"type": "FeatureCollection"}
+    member = geojson_crs_member(crs)
+    if member:
+        doc["crs"] = member
+    doc["features"] = feats
+    write_text(path, json.dumps(doc, separators=(",", ":"), allow_nan=False) + "\n")
+
+
+# ---------------------------------------------------------------------------------------- map
+
+MAP_SIZE_IN = (10.0, 8.0)
+MAP_DPI = 120
+
+
+def _geometry_path(geom):
+    """A matplotlib Path of a (Multi)Polygon, holes included (even-odd via ring orientation)."""
+    from matplotlib.path import Path as MPath
+
+    parts = list(geom.geoms) if hasattr(geom, "geoms") else [geom]
+    paths = []
+    for p in parts:
+        if p.geom_type != "Polygon" or p.is_empty:
+            continue
+        for ring in [p.exterior, *p.interiors]:
+            xy = np.asarray(ring.coords)[:, :2]
+            codes = np.full(len(xy), MPath.LINETO, dtype=MPath.code_type)
+            codes[0], codes[-1] = MPath.MOVETO, MPath.CLOSEPOLY
+            paths.append(MPath(xy, codes))
+    return MPath.make_compound_path(*paths) if paths else None
+
+
+# Label every building with its ID up to this many; above, label only those with a grade > 0
+# (and those not assessable), which a responder looks for first.
+LABEL_ALL_MAX = 40
+MAP_MARGIN_SHARE = 0.08  # frame = the outlines' extent plus this share of its larger side...
+MAP_MARGIN_MIN_M = 10.0  # ...but at least this many metres
+
+
+def map_frame(outlines: dict, margin_share: float = MAP_MARGIN_SHARE, margin_min_m: float = MAP_MARGIN_MIN_M):
+    """(xmin, ymin, xmax, ymax) the maps show: the buildings' outlines plus a margin; None
+    without outlines."""
+    bounds = [o.geometry.bounds for o in outlines.values() if o is not None and not o.geometry.is_empty]
+    if not bounds:
+        return None
+    b = np.asarray(bounds, dtype=np.float64)
+    x0, y0, x1, y1 = b[:, 0].min(), b[:, 1].min(), b[:, 2].max(), b[:, 3].max()
+    m = max(margin_min_m, margin_share * max(x1 - x0, y1 - y0))
+    return x0 - m, y0 - m, x1 + m, y1 + m
+
+
+def nice_length(span: float) -> float:
+    """A round scale-bar length (1, 2 or 5 × 10^k m) near a fifth of `span` metres."""
+    target = max(float(span), 1e-9) / 5.0
+    k = math.floor(math.log10(target))
+    for f in (5.0, 2.0, 1.0):
+        if f * 10 ** k <= target:
+            return f * 10 ** k
+    return 10 ** k
+
+
+def crs_text(crs: str | None) -> str:
+    """"CRS: EPSG:32633 (WGS 84 / UTM zone 33N)" for the map; says so when the CRS is unknown."""
+    if not crs:
+        return "CRS: unknown (coordinates in metres as in the point clouds)"
+    text = str(crs).strip()
+    try:
+        import pyproj
+
+        c = pyproj.CRS.from_user_input(text)
+        code = c.to_epsg()
+        text = f"EPSG:{code} ({c.name})" if code else c.name
+    except Exception:
+        text = text if len(text) < 60 else text[:57] + "..."
+    return f"CRS: {text}"
+
+
+def labelled_ids(rows, outlines: dict) -> list[int]:
+    """IDs the maps write on the buildings: all when few, else the damaged and not assessable."""
+    drawn = [r for r in _sorted(rows) if int(r.building_id) in outlines]
+    if len(drawn) <= LABEL_ALL_MAX:
+        return [int(r.building_id) for r in drawn]
+    return [int(r.building_id) for r in drawn
+            if not r.assessable or r.grade is None or int(r.grade) > 0]
+
+
+def _draw_map(rows, outlines: dict, title: str, points_xy=None, crs: str | None = None):
+    """(figure, axes) of the damage map; `write_map_png` saves it (kept apart for tests)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.collections import PathCollection
+    from matplotlib.figure import Figure
+    from matplotlib.patches import Patch
+    from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
+
+    fig = Figure(figsize=MAP_SIZE_IN, dpi=MAP_DPI)
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot(1, 1, 1)
+    frame = map_frame(outlines)
+    if points_xy is not None and len(points_xy):
+        pts = np.asarray(points_xy, dtype=np.float64)
+        if frame is not None:  # only what the frame shows: a smaller file, same picture
+            x0, y0, x1, y1 = frame
+            pts = pts[(pts[:, 0] >= x0) & (pts[:, 0] <= x1) & (pts[:, 1] >= y0) & (pts[:, 1] <= y1)]
+        ax.scatter(pts[:, 0], pts[:, 1], s=2.0, c=BACKGROUND_COLOUR, marker=".", linewidths=0,
+                   rasterized=True, zorder=1)
+    paths, colours = [], []
+    counts: dict = {}
+    for r in _sorted(rows):
+        key = int(r.grade) if r.assessable and r.grade is not None else None
+        counts[key] = counts.get(key, 0) + 1
+        o = outlines.get(int(r.building_id))
+        p = None if o is None else _geometry_path(o.geometry)
+        if p is not None:
+            paths.append(p)
+            colours.append(colour_of(key))
+    if paths:
+        ax.add_collection(PathCollection(paths, facecolors=colours, edgecolors="#333333", linewidths=0.4,
+                                         zorder=2))
+    labels = labelled_ids(rows, outlines)
+    size = 7 if len(labels) <= LABEL_ALL_MAX else 5
+    for bid in labels:
+        at = outlines[bid].geometry.representative_point()
+        ax.text(at.x, at.y, str(bid), ha="center", va="center", fontsize=size, zorder=3, gid="building-id",
+                bbox={"boxstyle": "round,pad=0.15", "facecolor": "white", "edgecolor": "none", "alpha": 0.7})
+    if frame is not None:
+        ax.set_xlim(frame[0], frame[2])
+        ax.set_ylim(frame[1], frame[3])
+    else:
+        ax.autoscale_view()
+    # the frame stays as asked; the axes box takes its shape
+    ax.set_aspect("equal", adjustable="box")
+    ax.ticklabel_format(useOffset=False, style="plain")
+    ax.set_xlabel("easting (m)")
+    ax.set_ylabel("northing (m)")
+    ax.set_title(title)
+    x0, x1 = ax.get_xlim()
+    length = nice_length(x1 - x0)
+    bar = AnchoredSizeBar(ax.transData, length, f"{length:g} m", "lower right", pad=0.5, sep=4,
+                          borderpad=0.6, frameon=True, size_vertical=0, color="black", fontproperties={"size": 8})
+    bar.set_gid("scale-bar")
+    ax.add_artist(bar)
+    ax.text(0.01, 0.01, crs_text(crs), transform=ax.transAxes, fontsize=7, ha="left", va="bottom", zorder=4,
+            gid="crs", bbox={"boxstyle": "round,pad=0.2", "facecolor": "white", "edgecolor": "#999999",
+                             "alpha": 0.85})
+    shown = [0, 3, 4, 5] + sorted(k for k in counts if k is not None and k not in (0, 3, 4, 5))
+    handles = [Patch(facecolor=colour_of(g), edgecolor="#333333", label=f"{long_label(g)}: {counts.get(g, 0)}")
+               for g in shown]
+    if counts.get(None):
+        handles.append(Patch(facecolor=NOT_ASSESSABLE_COLOUR, edgecolor="#333333",
+                             label=f"{NOT_ASSESSABLE}: {counts[None]}"))
+    ax.legend(handles=handles, title=f"EMS-98 grade: {sum(counts.values())} buildings", loc="upper left",
+              bbox_to_anchor=(1.02, 1.0), borderaxespad=0.0, fontsize="small")
+    fig.subplots_adjust(left=0.1, right=0.66, bottom=0.08, top=0.93)
+    return fig, ax
+
+
+def write_map_png(rows, outlines: dict, path, title: str, points_xy=None, crs: str | None = None) -> None:
+    """A PNG map framed on the buildings (their outlines plus a margin, `map_frame`):
+    outlines filled by grade colour (green / yellow / orange / red; grey = not assessable),
+    building IDs on them (all when few, else the damaged and not assessable: `labelled_ids`),
+    a legend with the EMS-98 name and count per class, a scale bar, the CRS, equal aspect,
+    axes in metres of the CRS, `points_xy` (world x/y, subsample them) as a light-grey
+    scatter underneath. Drawn with the Agg canvas directly: no display, no pyplot state."""
+    fig, _ = _draw_map(rows, outlines, title, points_xy, crs)
+    with open_replacing(path, "wb") as f:
+        fig.savefig(f, format="png", dpi=MAP_DPI)
+
+
+# ---------------------------------------------------------------------------------------- LAS
+
+def write_grade_las(path, epoch_xyz, origin, crs: str | None, building_id,
+                    grade_by_building: dict, source=None) -> None:
+    """A LAS 1.4 (point format 7: RGB) of the given points for viewing, e.g. in CloudCompare.
+
+    Extra dimensions `building_id` (uint32, or uint64 when an ID needs it: a national
+    register's 15-digit IDs must not wrap) and `predicted_grade` (uint8; 255 = not a building
+    or not assessable); RGB as on the map (16-bit = 8-bit × 257): the grade's colour, grey
+    for a building not assessed, light grey for points of no building. `epoch_xyz` is float64
+    relative to `origin`; stored with scale 0.001 and offset = origin, CRS as WKT when known.
+    `source`: the LAS/LAZ file these points were read from, in the same order: every one of
+    its attributes (classification, intensity, returns, GPS time, scan angle, point source,
+    its extra dimensions) is kept, converted to format 7 as laspy converts formats. `.laz`
+    output is compressed."""
+    import laspy
+
+    path = Path(path)
+    if path.suffix.lower() not in (".las", ".laz"):
+        raise ResultsError(f"{path}: output must end in .las or .laz")
+    xyz = np.asarray(epoch_xyz, dtype=np.float64).reshape(-1, 3)
+    n = len(xyz)
+    origin = np.asarray(origin, dtype=np.float64)[:3]
+    ids = np.zeros(n, np.int64) if building_id is None else np.asarray(building_id, dtype=np.int64)
+    if len(ids) != n:
+        raise ResultsError(f"{path}: {len(ids)} building IDs for {n} points")
+
+    id_type = np.uint32 if not n or ids.max() <= np.iinfo(np.uint32).max else np.uint64
+    kept = _source_points(source, n, path)
+    header = laspy.LasHeader(point_format=7, version="1.4")
+    if kept is not None:
+        header.add_extra_dims([laspy.ExtraBytesParams(name=name, type=kept.array[name].dtype)
+                               for name in kept.point_format.extra_dimension_names
+                               if name not in ("building_id", "predicted_grade")])
+    header.add_extra_dims([
+        laspy.ExtraBytesParams(name="building_id", type=id_type, description="building ID, 0 = none"),
+        laspy.ExtraBytesParams(name="predicted_grade", type=np.uint8, description="EMS-98 grade, 255 = n.a.")])
+    header.offsets = origin
+    header.scales = np.array([SCALE] * 3)
+    header.creation_date = datetime.date.today()
+    header.generating_software = "QuakeScan"
+    if crs:
+        try:
+            import pyproj
+
+            header.add_crs(pyproj.CRS.from_user_input(crs))
+        except Exception as e:
+            raise ResultsError(f"{path}: cannot write CRS {crs!r} to LAS: {e}") from None
+
+    # grade and colour per point through a lookup over the unique IDs
+    uniq, inv = np.unique(ids, return_inverse=True)
+    g_u = np.full(len(uniq), GRADE_NONE, np.uint8)
+    rgb_u = np.tile(np.array(_rgb8(BACKGROUND_COLOUR), np.uint16), (len(uniq), 1))
+    for k, b in enumerate(uniq):
+        b = int(b)
+        if b <= 0 or b not in grade_by_building:
+            continue
+        g = grade_by_building[b]
+        if g is not None:
+            g_u[k] = int(g)
+        rgb_u[k] = _rgb8(colour_of(g))
+    rgb_u = rgb_u * 257
+
+    ints = np.rint(xyz / SCALE)
+    lim = np.iinfo(np.int32)
+    if n and (ints.min() < lim.min or ints.max() > lim.max):
+        raise ResultsError(f"{path}: coordinates lie more than 2 147 km from the offset {origin.tolist()}")
+    las = laspy.LasData(header)
+    las.points = laspy.ScaleAwarePointRecord.zeros(n, header=header)
+    a = las.points.array
+    if kept is not None:  # every attribute of the input first; coordinates, colours and ours below
+        for name in kept.array.dtype.names:
+            if name in a.dtype.names and name not in ("X", "Y", "Z", "building_id", "predicted_grade"):
+                a[name] = kept.array[name]
+    else:
+        a["bit_fields"] = 1 | (1 << 4)  # return 1 of 1
+    a["X"], a["Y"], a["Z"] = ints[:, 0], ints[:, 1], ints[:, 2]
+    a["red"], a["green"], a["blue"] = rgb_u[inv, 0], rgb_u[inv, 1], rgb_u[inv, 2]
+    a["building_id"] = np.maximum(ids, 0).astype(id_type)
+    a["predicted_grade"] = g_u[inv]
+    compress = path.suffix.lower() == ".laz"
+    with replacing(path) as tmp:
+        with laspy.open(tmp, mode="w", header=header, do_compress=compress) as w:
+            if n:
+                w.write_points(las.points)
+            else:  # laspy leaves an empty file's bounds at ±inf
+                w.header.mins = origin
+                w.header.maxs = origin
+
+
+def _source_points(source, n: int, path: Path):
+    """The source file's points converted to point format 7 (None without a source)."""
+    if source is None:
+        return None
+    import laspy
+
+    src = laspy.read(source)
+    if len(src.points) != n:
+        raise ResultsError(f"{path}: the source {source} has {len(src.points)} points, the epoch {n}")
+    if src.point_format.id != 7:
+        legacy = "scan_angle_rank" in src.point_format.dimension_names
+        rank = np.asarray(src.scan_angle_rank, dtype=np.float64) if legacy else None
+        src = laspy.convert(src, point_format_id=7, file_version="1.4")
+        if legacy:  # laspy copies fields by name: whole degrees become 0.006° steps (LAS 1.4)
+            src.points.array["scan_angle"] = np.rint(rank / 0.006).astype(np.int16)
+    return src.points
+
+
+__all__ = ["BACKGROUND_COLOUR", "BuildingResult", "GRADE_COLOURS", "GRADE_NONE", "NOT_ASSESSABLE",
+           "NOT_ASSESSABLE_COLOUR", "Outline", "ResultsError", "building_outlines", "colour_of", "read_csv",
+           "write_csv", "write_geojson", "write_grade_las", "write_map_png"]
