@@ -247,3 +247,13 @@ def test_the_height_ratio_of_an_unchanged_building_lower_than_a_cell_is_one():
     rng = np.random.default_rng(14)
     d, _ = describe(low_shed(rng, 100.0, top=1.8), low_shed(rng, 100.0, top=1.8, lowered_to=0.9), 100.0, 100.0)
     assert d["s_height_ratio_p10"] == pytest.approx(0.5, abs=0.03)
+
+
+def test_a_density_just_under_the_limit_never_reads_as_equal_to_it():
+    from quakescan.change.pipeline import BuildingRow, _quality_gate
+
+    settings = PipelineSettings(surface=SurfaceSettings(), paper_descriptors=False, min_density_pts_m2=1.9)
+    row = _quality_gate(BuildingRow(building_id=7, n_pre=400, n_post=100, assessable=True,
+                                    quality={"density_pre": 4.0, "density_post": 1.899, "coverage": 1.0}), settings)
+    assert not row.assessable and row.reason == "density 1.89 pts/m² < 1.9"
+

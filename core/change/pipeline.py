@@ -491,7 +491,8 @@ def _quality_gate(row: BuildingRow, settings: PipelineSettings) -> BuildingRow:
     coverage = row.quality.get("coverage", 1.0)
     if density < settings.min_density_pts_m2:
         row.assessable = False
-        row.reason = f"density {density:.1f} pts/m² < {settings.min_density_pts_m2:g}"
+        # rounded down: a density just under the limit never reads as equal to it ("1.9 < 1.9")
+        row.reason = f"density {math.floor(density * 100) / 100:.2f} pts/m² < {settings.min_density_pts_m2:g}"
     elif coverage < settings.min_coverage:
         row.assessable = False
         row.reason = f"post-event coverage {100 * coverage:.0f} % < {100 * settings.min_coverage:.0f} %"
