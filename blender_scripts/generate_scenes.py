@@ -67,7 +67,10 @@ import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parent.parent
-GENERATOR_VERSION = 1
+# Bumped whenever the add-on makes different bundles from the same settings, so that bundles
+# made before are regenerated, not reused (bundle_state). 2: walls another building covers are
+# party walls, pattern draws salted by name (6b9cfbd); physics records name their element source.
+GENERATOR_VERSION = 2
 PROG = "generate_scenes.py"
 # addon/citygen.py's SETS and "bundle" (spelt out: the arguments are parsed before the add-on is importable)
 SETS = ("generic", "region", "small", "bundle")

@@ -29,6 +29,26 @@ PLAN_DIGESTS = {"generic": "e53e798f15141ebd571fc8768307435ce420f5295567102af636
                 "region": "bb7dde2a1a40b7350d270c6cb6827aa6d211820b3764d9a0d9237da01e438aa1"}
 
 
+# the generator version these plans belong to: new digests mean the generator draws other
+# cities from the same settings, so GENERATOR_VERSION must change with them (else bundles
+# made before are reused as if current)
+PLAN_DIGESTS_GENERATOR_VERSION = 2
+
+
+def test_new_plans_come_with_a_new_generator_version():
+    import importlib.util
+
+    from conftest import REPO
+
+    spec = importlib.util.spec_from_file_location("generate_scenes_version",
+                                                  REPO / "blender_scripts" / "generate_scenes.py")
+    gen = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(gen)
+    assert gen.GENERATOR_VERSION == PLAN_DIGESTS_GENERATOR_VERSION, (
+        "the pinned plan digests belong to another generator version: bump GENERATOR_VERSION "
+        "and PLAN_DIGESTS_GENERATOR_VERSION together when the plans change")
+
+
 @pytest.mark.parametrize("set_name", citygen.SETS)
 def test_plans_without_details_are_unchanged(set_name):
     # sets made after details existed (small) are compared with their own plan without details
