@@ -52,7 +52,7 @@ def city(work: Path, damage: str) -> tuple[Path, dict, float, list]:
 
     folder = work / f"city_{damage}"
     t0 = time.perf_counter()
-    generate("region", "mixed", None, TEST_SEED, folder, grade_mix=TEST_MIX, damage=damage)
+    generate("region", "mixed", None, TEST_SEED, folder, grade_mix=TEST_MIX, damage=damage, force=True)
     seconds = time.perf_counter() - t0
     fallback = []
     if damage != "patterns":

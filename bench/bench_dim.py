@@ -50,7 +50,7 @@ def main():
     from quakescan.formats.scene import read_scene
 
     if not (SCENE / "scene.json").is_file():
-        generate("generic", "paper", 112, 1, SCENE.parent)
+        generate("generic", "paper", 112, 1, SCENE.parent, force=True)
     scene = read_scene(SCENE)
     simulate_dim(scene, preset_dim("paper").replace(oblique_cameras=0), Path(tempfile.gettempdir()) / "warm.las")
     rows = []

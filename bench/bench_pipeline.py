@@ -52,7 +52,7 @@ def ensure_big_pair() -> tuple[Path, Path]:
 
     big = WORK / "big"
     if not (big / "pre.las").is_file() or not (big / "post_destruction.las").is_file():
-        generate("generic", "paper", BIG_BUILDINGS, 2, big / "city")
+        generate("generic", "paper", BIG_BUILDINGS, 2, big / "city", force=True)
         scan_scene(big / "city" / "pre", big / "pre.las", seed=21)
         scan_scene(big / "city" / "post_destruction", big / "post_destruction.las", seed=25)
     return big / "pre.las", big / "post_destruction.las"
@@ -62,7 +62,7 @@ def ensure_pair() -> tuple[Path, Path]:
     from quakescan.demo import generate, scan_scene
 
     if not (WORK / "pre.las").is_file() or not (WORK / "post_destruction.las").is_file():
-        generate("generic", "paper", 112, 1, WORK / "generic")
+        generate("generic", "paper", 112, 1, WORK / "generic", force=True)
         scan_scene(WORK / "generic" / "pre", WORK / "pre.las", seed=11)
         scan_scene(WORK / "generic" / "post_destruction", WORK / "post_destruction.las", seed=15)
     return WORK / "pre.las", WORK / "post_destruction.las"

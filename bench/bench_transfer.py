@@ -91,7 +91,7 @@ def test_city(work: Path, realistic: bool = False) -> tuple:
 
     city = work / ("test_city_realistic" if realistic else "test_city")
     look = {"details": "typical", "streetscape": "typical"} if realistic else {}
-    generate("region", "mixed", None, TEST_SEED, city, grade_mix=TEST_MIX, **look)
+    generate("region", "mixed", None, TEST_SEED, city, grade_mix=TEST_MIX, force=True, **look)
     work = work / "realistic" if realistic else work
     acq = {"uls": Acquisition("uls", preset("paper")), "dim": Acquisition("dim", preset_dim("paper")),
            "als": Acquisition("als", preset("als"))}

@@ -325,7 +325,9 @@ def _table_fingerprint(pair: PairSpec, scenes: Path, settings, labels: str):
 
 
 def generate_city(city: CitySpec, folder: Path) -> None:
-    """The city's scene bundles under `folder` (skipped by the generator when up to date)."""
+    """The city's scene bundles under `folder`: skipped by the generator when up to date,
+    made again when another generator version or other settings made them (the folder is
+    this training set's own cache, `force`)."""
     from ..demo import generate
 
     if city.source == "rotterdam":
@@ -340,10 +342,10 @@ def generate_city(city: CitySpec, folder: Path) -> None:
             with replacing(source, TrainingSetError) as tmp:
                 write_scene(densest_cluster(import_cityjson(ROTTERDAM)), tmp)
         generate("bundle", city.dataset, city.buildings, city.seed, folder, grade_mix=city.grade_mix, source=source,
-                 **_scene_look(city))
+                 force=True, **_scene_look(city))
     else:
         generate(city.source, city.dataset, None if city.grade_mix else city.buildings, city.seed, folder,
-                 grade_mix=city.grade_mix, **_scene_look(city))
+                 grade_mix=city.grade_mix, force=True, **_scene_look(city))
 
 
 def _scene_look(city: CitySpec) -> dict:

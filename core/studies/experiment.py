@@ -245,12 +245,15 @@ def run_paper_experiment(out_dir, settings: ExperimentSettings | None = None, *,
     stage_log.info(f"experiment 1/5: generating the generic and region-specific datasets ({s.buildings} buildings "
                    "each" + (f", and a mixed city {s.mixed_training_mix} each" if mixed else "")
                    + f") and the test city {s.test_mix}")
-    advance(generate("generic", "paper", s.buildings, s.seed, data / "generic"))
-    advance(generate("region", "paper", s.buildings, s.seed + 1, data / "region"))
-    advance(generate("region", "mixed", None, s.seed + 2, data / "test", grade_mix=s.test_mix))
+    # the data folder is the experiment's own cache: bundles of another generator are made again
+    advance(generate("generic", "paper", s.buildings, s.seed, data / "generic", force=True))
+    advance(generate("region", "paper", s.buildings, s.seed + 1, data / "region", force=True))
+    advance(generate("region", "mixed", None, s.seed + 2, data / "test", grade_mix=s.test_mix, force=True))
     if mixed:
-        advance(generate("generic", "mixed", None, s.seed + 3, data / "generic_mixed", grade_mix=s.mixed_training_mix))
-        advance(generate("region", "mixed", None, s.seed + 4, data / "region_mixed", grade_mix=s.mixed_training_mix))
+        advance(generate("generic", "mixed", None, s.seed + 3, data / "generic_mixed", grade_mix=s.mixed_training_mix,
+                         force=True))
+        advance(generate("region", "mixed", None, s.seed + 4, data / "region_mixed", grade_mix=s.mixed_training_mix,
+                         force=True))
     step("generate")
 
     stage_log.info("experiment 2/5: acquiring the clouds (ULS: paper survey; DIM: paper photo flight)")
