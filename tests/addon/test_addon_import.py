@@ -15,7 +15,7 @@ from conftest import HAVE_BPY, REPO
 pytestmark = pytest.mark.skipif(not HAVE_BPY, reason="bpy module not installed")
 
 SCRIPT = REPO / "blender_scripts" / "generate_scenes.py"
-DATA = Path("/work/shared/data")
+DATA = REPO.parent / "shared" / "data"  # the shared data folder beside the repository
 ROTTERDAM = DATA / "rotterdam_subset.json"
 UTM = (500123.123456789, 5000456.987654321, 12.345678901)
 

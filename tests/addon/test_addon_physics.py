@@ -264,12 +264,11 @@ def test_user_l_mesh_with_a_gable_roof_collapses_as_itself(blank):
 
 
 def test_rotterdam_building_collapses_over_its_own_outline(blank, tmp_path):
-    from pathlib import Path
-    data = Path("/work/shared/data/rotterdam_subset.json")
+    data = REPO.parent / "shared" / "data" / "rotterdam_subset.json"
     if not data.is_file():
         pytest.skip(f"{data} not available (shared data folder absent)")
-    from quakescan.cityjson import import_cityjson
-    from quakescan.scene import write_scene
+    from quakescan.formats.cityjson import import_cityjson
+    from quakescan.formats.scene import write_scene
     from addon import io_import, physics
     from addon.geometry import mesh as gm
     s = import_cityjson(data)
