@@ -86,7 +86,7 @@ def test_a_physics_twin_is_held_out_with_its_city(tmp_path, monkeypatch):
     from tests.trainset_fakes import finished_tables
 
     plan = finished_tables(tmp_path, monkeypatch, default_plan(0, "quick", damage="both"), TABLE_SETTINGS)
-    table = build(tmp_path, plan, TABLE_SETTINGS, say=lambda s: None)
+    table = build(tmp_path, plan, TABLE_SETTINGS)
     names = [plan.cities[i].name for i in table.city]
     physics = np.array([table.pairs[i].startswith("generic_m0-physics.") for i in table.pair])
     assert physics.sum() == 4 and set(np.array(names)[physics]) == {"generic_m0"}
@@ -118,7 +118,7 @@ def test_a_plan_naming_a_city_it_lacks_is_refused(tmp_path):
     plan = default_plan(0, "quick")
     bad = TrainingPlan(plan.cities[:1], plan.pairs, 0, "broken")
     with pytest.raises(TrainingSetError, match="region_m0"):
-        build(tmp_path, bad, TRANSFER_SETTINGS, say=lambda s: None)
+        build(tmp_path, bad, TRANSFER_SETTINGS)
     with pytest.raises(TrainingSetError, match="'full', 'large' or 'quick'"):
         default_plan(0, "huge")
 
@@ -132,7 +132,7 @@ def test_quick_training_set_builds_resumes_and_trains_a_model_that_classifies_cr
 
     plan = default_plan(0, "quick")
     assert main(["training-set", "-o", str(tmp_path / "ts"), "--size", "quick", "--threads", "2"]) == 0
-    table = build(tmp_path / "ts", plan, TABLE_SETTINGS, workers=2, say=lambda s: None)
+    table = build(tmp_path / "ts", plan, TABLE_SETTINGS, workers=2)
     assert table.x.shape == (len(table.y), len(TABLE_SETTINGS.descriptor_names()))
     assert len(table.y) >= 40 and set(np.unique(table.y)) <= {0, 3, 4, 5}
     assert np.all(np.isfinite(table.x))
@@ -142,13 +142,13 @@ def test_quick_training_set_builds_resumes_and_trains_a_model_that_classifies_cr
     assert len(clouds) == 8  # two clouds per pair
     stamps = {p: p.stat().st_mtime_ns for p in clouds}
     tables = {p: p.stat().st_mtime_ns for p in (tmp_path / "ts" / "tables").glob("*.npz")}
-    again = build(tmp_path / "ts", plan, TABLE_SETTINGS, workers=2, say=lambda s: None)
+    again = build(tmp_path / "ts", plan, TABLE_SETTINGS, workers=2)
     np.testing.assert_array_equal(again.x, table.x)  # resumed: same rows, nothing acquired or described again
     assert {p: p.stat().st_mtime_ns for p in clouds} == stamps
     assert {p: p.stat().st_mtime_ns for p in (tmp_path / "ts" / "tables").glob("*.npz")} == tables
     cut = sorted(tables)[0]  # a table cut by a crash or a full disk: discarded and described again
     cut.write_bytes(cut.read_bytes()[:50])
-    again = build(tmp_path / "ts", plan, TABLE_SETTINGS, workers=2, say=lambda s: None)
+    again = build(tmp_path / "ts", plan, TABLE_SETTINGS, workers=2)
     np.testing.assert_array_equal(again.x, table.x)
 
     table = model_columns(table)

@@ -84,8 +84,8 @@ def test_roof_under_an_overhanging_crown_gets_returns_and_crowns_are_class_5(tmp
 def test_vegetation_scans_are_reproducible_and_the_numpy_reference_agrees(tmp_path, beam):
     s = preset("paper").replace(beam=beam, pulse_rate_hz=60_000.0)
     scene = _tree_beside_building()
-    scan(scene, s, tmp_path / "a.las", seed=3, batch_rays=100_000, threads=1)
-    scan(scene, s, tmp_path / "b.las", seed=3, batch_rays=100_000, threads=3)
+    scan(scene, s, tmp_path / "a.las", seed=3, batch_rays=100_000, workers=1)
+    scan(scene, s, tmp_path / "b.las", seed=3, batch_rays=100_000, workers=3)
     scan(scene, s, tmp_path / "ref.las", seed=3, batch_rays=100_000, fast=False)
     scan(scene, s, tmp_path / "c.las", seed=4, batch_rays=100_000)
     a = (tmp_path / "a.las").read_bytes()
