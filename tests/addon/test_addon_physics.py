@@ -263,10 +263,8 @@ def test_user_l_mesh_with_a_gable_roof_collapses_as_itself(blank):
     assert empty.mean() < 0.05
 
 
-def test_rotterdam_building_collapses_over_its_own_outline(blank, tmp_path):
-    data = REPO.parent / "shared" / "data" / "rotterdam_subset.json"
-    if not data.is_file():
-        pytest.skip(f"{data} not available (shared data folder absent)")
+def test_rotterdam_building_collapses_over_its_own_outline(blank, tmp_path, shared_data):
+    data = shared_data / "rotterdam_subset.json"
     from quakescan.formats.cityjson import import_cityjson
     from quakescan.formats.scene import write_scene
     from addon import io_import, physics
