@@ -294,6 +294,7 @@ GROUPS = {
     "raised share (s_raised)": lambda n: n == "s_raised",
     "debris ring (s_debris_*)": lambda n: n.startswith("s_debris"),
     "post-event gaps (s_post_gap)": lambda n: n == "s_post_gap",
+    "seen through the roof (s_see_through)": lambda n: n == "s_see_through",
     "M3C2 shares (m_changed, m_lost, m_roof/wall_changed)": lambda n: n in ("m_changed", "m_lost", "m_roof_changed",
                                                                              "m_wall_changed"),
     "upper/lower storeys (m_upper_changed, m_lower_changed)": lambda n: n in ("m_upper_changed", "m_lower_changed"),

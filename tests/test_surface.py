@@ -257,3 +257,39 @@ def test_a_density_just_under_the_limit_never_reads_as_equal_to_it():
                                     quality={"density_pre": 4.0, "density_post": 1.899, "coverage": 1.0}), settings)
     assert not row.assessable and row.reason == "density 1.89 pts/m² < 1.9"
 
+
+
+def test_points_seen_through_roof_holes_smaller_than_the_top_of_a_cell():
+    """Seven 0.9 x 0.9 m roof holes (a cell's top stays on the roof around each: no lowering)
+    with the floor 3 m below seen through them: the share of the footprint seen through is
+    the holes' cells (each hole touches 2 x 2 to 3 x 3 of the 0.5 m cells: 28-63 of the 484
+    cells of the footprint and its walls); an
+    unchanged rescan and a drone rescan that sees the walls lower down than before show none."""
+    rng = np.random.default_rng(13)
+    centres = [(-3.2, -3.2), (-3.2, 0.1), (-3.2, 3.1), (0.3, -3.0), (0.2, 3.3), (3.1, -0.4), (3.3, 3.0)]
+
+    def holed(density):
+        xyz, bid, cls = scene(rng, density, False)
+        keep = np.ones(len(xyz), bool)
+        floors = []
+        for cx, cy in centres:
+            keep &= ~((np.abs(xyz[:, 0] - cx) < 0.45) & (np.abs(xyz[:, 1] - cy) < 0.45) & (xyz[:, 2] > 5.5))
+            m = rng.poisson(density * 0.5)  # the floor is seen through the opening only in part
+            floors.append(np.column_stack([rng.uniform(cx - 0.4, cx + 0.4, m), rng.uniform(cy - 0.4, cy + 0.4, m),
+                                           np.full(m, 3.0)]))
+        floor = np.vstack(floors)
+        return (np.vstack([xyz[keep], floor]), np.concatenate([bid[keep], np.ones(len(floor), np.int64)]),
+                np.concatenate([cls[keep], np.full(len(floor), 6, np.uint8)]))
+
+    pre = scene(rng, 200, False)
+    d, geom = describe(pre, holed(200), 200, 200)
+    assert geom.cell_m == 0.5
+    assert d["s_lowered_1m"] == 0.0  # below the 2.5-D descriptors' scale
+    assert 28 / 484 <= d["s_see_through"] <= 63 / 484
+    same, _ = describe(pre, scene(rng, 200, False), 200, 200)
+    assert same["s_see_through"] == 0.0
+    for lowest_wall_point in (3.0, 5.9):  # archives that saw the walls' upper half, or no wall at all
+        xyz, bid, cls = scene(rng, 200, False)
+        keep = (xyz[:, 2] >= lowest_wall_point) | (cls == 2)
+        drone, _ = describe((xyz[keep], bid[keep], cls[keep]), scene(rng, 200, False), 200, 200)
+        assert drone["s_see_through"] == 0.0, lowest_wall_point

@@ -77,10 +77,14 @@ _BAND_STRIDE_M = 1.0e4
 LOWER_SURFACE_SHARE = 0.2
 # Bumped whenever a descriptor's computation changes: cached training tables made with another
 # version are not reused (quakescan.learning.trainset), and a model records the version it was trained on.
-DESCRIPTOR_VERSION = 13
+DESCRIPTOR_VERSION = 14
 RASTER_DESCRIPTORS = ("s_lowered_1m", "s_lowered_storey", "s_lowered_half", "s_raised", "s_volume_loss",
                       "s_volume_gain", "s_height_ratio_mean", "s_height_ratio_p10", "s_post_gap",
-                      "s_debris_ring", "s_debris_volume")
+                      "s_debris_ring", "s_debris_volume", "s_see_through")
+# a post-event point this far (or its level of detection, if larger) below every pre-event point of
+# its cell's 3 x 3 neighbourhood was seen through the roof: a floor under a hole, rubble inside
+SEE_THROUGH_M = 1.0
+SEE_THROUGH_INSET_M = 1.5
 CORE_DESCRIPTORS = ("m_changed", "m_lost", "m_roof_changed", "m_wall_changed", "m_holes", "m_wall_holes",
                     "m_upper_changed",
                     "m_lower_changed", "m_inward", "m_outward", "m_coherent", "m_largest_patch", "m_distance_p10",
@@ -242,6 +246,7 @@ class _CellTops:
             starts = np.flatnonzero(np.r_[True, k[1:] != k[:-1]])
             z = xyz[order, 2]
             top = np.maximum.reduceat(z, starts)
+            self.bottom = np.minimum.reduceat(z, starts)
             cell_of = np.repeat(np.arange(len(starts)), np.diff(np.r_[starts, len(k)]))
             # every point's height, ordered by cell then height, for counts within a height band
             self._z0 = -float(z.min())
@@ -260,7 +265,7 @@ class _CellTops:
             self.count = np.diff(np.r_[starts, len(k)])
         else:
             self.keys = np.zeros(0, np.int64)
-            self.top = self.std = np.zeros(0)
+            self.top = self.std = self.bottom = np.zeros(0)
             self._band_key = np.zeros(0)
             self._z0 = 0.0
             self._start = np.zeros(0, np.int64)
@@ -277,6 +282,11 @@ class _CellTops:
         """Top height per key, NaN where the cell holds no point."""
         i = self.index(keys)
         return np.where(i >= 0, self.top[np.maximum(i, 0)] if len(self.top) else np.nan, np.nan)
+
+    def lowest(self, keys: np.ndarray) -> np.ndarray:
+        """Lowest point's height per key, NaN where the cell holds no point."""
+        i = self.index(keys)
+        return np.where(i >= 0, self.bottom[np.maximum(i, 0)] if len(self.bottom) else np.nan, np.nan)
 
     def share_within(self, i: np.ndarray, height: np.ndarray, tol: np.ndarray) -> np.ndarray:
         """Share of the points of the cells at positions `i` within `tol` of `height` (0 where
@@ -490,9 +500,19 @@ def _raster(keys_b, own_tops, pre_tops, post_tops, building_keys, ground, n3, ri
         low = np.where(lowered > lod_low, lowered, 0.0)
         rise = np.where(raised > lod_raise, raised, 0.0)
     low, rise = np.nan_to_num(low, nan=0.0), np.nan_to_num(rise, nan=0.0)
+    # a roof hole smaller than a cell leaves the cell's top on the roof, but the post-event points
+    # seen through it lie below anything the pre-event epoch saw around the cell. Inner cells
+    # only, SEE_THROUGH_INSET_M from the outline: there a sensor that saw walls (or under
+    # the eaves) lower down after the event than before, a drone after an airborne archive,
+    # would read as holes
+    inner = ~step & _inset(cells, width, max(2, int(math.ceil(SEE_THROUGH_INSET_M / c))))
+    with np.errstate(invalid="ignore"):
+        depth = -_row_max(-own_tops.lowest(nb)) - post_tops.lowest(cells)
+        through = inner & (depth > np.maximum(SEE_THROUGH_M, np.nan_to_num(lod_low)))
     # a 95 % test flags single cells of an unchanged roof at random; damage is areal
     low = np.where(_in_patches(cells, low > 0, width, s.min_patch_cells), low, 0.0)
     rise = np.where(_in_patches(cells, rise > 0, width, s.min_patch_cells), rise, 0.0)
+    through = _in_patches(cells, through, width, s.min_patch_cells)
     out = {
         "s_lowered_1m": float(np.mean(low > 1.0)),
         "s_lowered_storey": float(np.mean(low > s.storey_m)),
@@ -500,6 +520,7 @@ def _raster(keys_b, own_tops, pre_tops, post_tops, building_keys, ground, n3, ri
         "s_raised": float(np.mean(rise > s.raised_m)),
         # sampling leaves single empty cells in a sparse epoch; an unobserved area is a patch
         "s_post_gap": float(_in_patches(cells, ~covered, width, s.min_patch_cells).mean()),
+        "s_see_through": float(np.mean(through)),
     }
     vol = float(np.sum(h_pre)) * c * c
     out["s_volume_loss"] = float(np.sum(np.clip(low, 0.0, h_pre)) * c * c / vol) if vol > 0 else 0.0
@@ -625,13 +646,31 @@ def _core_change(cxyz, normals, res, lost, seen_through, sl, s: SurfaceSettings,
 # the core-point shares: those are over roofs and walls together, where a 2 x 2 m roof hole in
 # a 10 x 10 x 6 m box is 0.5 % of the surface but 4 % of its roof
 SHARES = ("s_lowered_1m", "s_lowered_storey", "s_lowered_half", "s_raised", "s_volume_loss", "s_volume_gain",
-          "s_post_gap", "s_debris_ring", "s_debris_volume")
+          "s_post_gap", "s_debris_ring", "s_debris_volume", "s_see_through")
 
 
 def _dead_zone(d: dict, min_share: float) -> None:
     for k in SHARES:
         if k in d and abs(d[k]) < min_share:
             d[k] = 0.0
+
+
+def _inset(cells: np.ndarray, width: int, radius_cells: int) -> np.ndarray:
+    """Per cell (integer keys i * width + j): whether every cell within `radius_cells` (a
+    square) belongs to the building too, counting single empty cells that sampling leaves
+    inside a sparse epoch's footprint as the building's (a 3 x 3 closing; a courtyard is
+    wider and stays outside)."""
+    from scipy import ndimage
+
+    i, j = np.divmod(cells, width)
+    pad = radius_cells + 2
+    i, j = i - i.min() + pad, j - j.min() + pad
+    grid = np.zeros((i.max() + pad + 1, j.max() + pad + 1), bool)
+    grid[i, j] = True
+    square = np.ones((3, 3), bool)
+    closed = ndimage.binary_closing(grid, structure=square) | grid
+    inner = ndimage.binary_erosion(closed, structure=np.ones((2 * radius_cells + 1,) * 2, bool))
+    return inner[i, j]
 
 
 def _in_patches(cells: np.ndarray, mask: np.ndarray, width: int, min_cells: int) -> np.ndarray:
