@@ -26,7 +26,14 @@ compared directly, so a hole of one or two cells is not smoothed away.
 - `s_post_gap`: share of the footprint with no post-event point (not covered or occluded);
 - `s_debris_ring`, `s_debris_volume`: cells in a ring of `debris_ring_m` around the building
   (not other buildings' cells) that rose by more than `debris_rise_m`, as a share of the ring
-  and as a volume relative to the building's.
+  and as a volume relative to the building's;
+- `s_see_through`: share of the footprint whose lowest post-event point lies more than
+  `SEE_THROUGH_M` (or the cell's level of detection) below every pre-event point of its
+  3 x 3 neighbourhood: the floor through a roof hole, rubble inside. A hole smaller than a
+  cell's top layer leaves the top on the roof (no lowering); what was seen through it is
+  not. Inner cells only, `SEE_THROUGH_INSET_M` in from the outline (after closing the
+  single empty cells a sparse epoch leaves), so that a drone that sees walls or the space
+  under the eaves lower down than an airborne archive did reads as nothing.
 
 **Surface change on core points** (`quakescan.change.m3c2`): core points one per `cell_m` voxel of the
 building's pre-event points (so shares are shares of surface area), normals from the
