@@ -16,7 +16,8 @@ What happens to one building (``collapse_object``):
    objects (triangle meshes, as given: scene_tools.PhysicsColliders gives a scene's
    neighbours as they stand when its collapses start, see standing_part); the world is
    stepped frame by frame (``scene.frame_set``) until no shard moved more than 5 cm within the last second, or the
-   step limit;
+   step limit, or after 5 s once the shards that moved 0.5 m or more within the last second
+   hold at most 1 % of the volume (EARLY_STOP_STEPS);
 4. the post-event mesh: the building's faces outside the zone as they were, plus the shards
    where they came to rest. A shard that moved less than 10 cm keeps its element's labels
    (fracture faces between two such shards are dropped: nothing can see them); one that moved
@@ -24,7 +25,7 @@ What happens to one building (``collapse_object``):
    lands (on a neighbour too). Chimneys and roof or facade details inside the zone are not
    simulated: they are removed with the zone (recorded as ``details_dropped``).
 
-At the step limit, shards that still creep are written where they lie, faster ones are
+At the step limit (or an early stop), shards that still creep are written where they lie, faster ones are
 dropped, and when those hold more than MAX_UNSETTLED_SHARE of the volume (or fell through the
 ground) the simulation is not written: ``collapse_object`` raises DamageError and the object
 is left as it was.
@@ -60,6 +61,12 @@ SETTLE_DRIFT = 0.05  # m: a shard that moved less within the last second is at r
 # in Bullet keep creeping at 5-50 cm/s for many seconds (measured; not resolved here).
 CREEP_DRIFT = 0.5  # m
 MAX_UNSETTLED_SHARE = 0.1
+# Such piles are no closer to rest at the step limit than seconds earlier (shards faster than
+# CREEP_DRIFT come and go), so from EARLY_STOP_STEPS on the simulation also ends as soon as
+# the faster shards hold at most EARLY_STOP_SHARE of the volume: then as at the step limit
+# (creeping shards written, faster ones dropped), without the frames it would step in vain.
+EARLY_STOP_STEPS = 120  # frames: 5 s, when the falls of the grade-4/5 triggers are over
+EARLY_STOP_SHARE = 0.01
 DISPLACED = 0.1  # m: a shard that moved more is debris
 FPS = 24
 SUBSTEPS = 10  # per frame: 5 lets thin shards jitter forever; 20 settles a box pile no sooner in time
@@ -218,7 +225,9 @@ def _collider_mesh(name, objs):
 
 def simulate(shards_world, masses, passive_meshes, ground_z, steps: int):
     """Step a rigid-body world with the shards (polygons in world coordinates) as active
-    bodies until none moved more than SETTLE_DRIFT within the last second, or `steps` frames.
+    bodies until none moved more than SETTLE_DRIFT within the last second, or `steps` frames,
+    or from EARLY_STOP_STEPS on until those that moved CREEP_DRIFT or more hold at most
+    EARLY_STOP_SHARE of the mass.
     Returns (final 4x4 matrices of each shard relative to its start, each shard's drift over
     the last second (inf for one that fell through the ground), frames stepped, settled)."""
     world = _World(steps)
@@ -244,6 +253,8 @@ def simulate(shards_world, masses, passive_meshes, ground_z, steps: int):
             bodies.append(world.add(f"qs_shard_{k:05d}", me, tuple(map(float, cen)), active=True, mass=mass))
             radii.append(float(np.linalg.norm(np.concatenate(faces) - cen, axis=1).max()))
         radii = np.array(radii)
+        weight = np.asarray(masses, dtype=np.float64)
+        total = float(weight.sum())
         frame = 1
         world.scene.frame_set(1)  # evaluates the bodies' start transforms
         start = world.matrices(len(world.objects) - len(bodies))
@@ -262,6 +273,8 @@ def simulate(shards_world, masses, passive_meshes, ground_z, steps: int):
                     log.debug("frame %d: %d of %d shards moved more than %.2f m in the last second", frame,
                               int((drift >= SETTLE_DRIFT).sum()), len(bodies), SETTLE_DRIFT)
                 if drift.max() < SETTLE_DRIFT:
+                    break
+                if frame > EARLY_STOP_STEPS and weight[drift >= CREEP_DRIFT].sum() <= EARLY_STOP_SHARE * total:
                     break
         prev = history[-1]
         fell = prev[:, 2, 3] < ground_z - 1.0

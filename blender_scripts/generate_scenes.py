@@ -71,6 +71,10 @@ REPO = Path(__file__).resolve().parent.parent
 # made before are regenerated, not reused (bundle_state). 2: walls another building covers are
 # party walls, pattern draws salted by name (6b9cfbd); physics records name their element source.
 GENERATOR_VERSION = 2
+# Bumped whenever collapses by physics (--damage physics|both) differ from the same settings:
+# their bundles and part files are then remade, the patterns' bundles stay valid. Absent: 1;
+# 2: a collapse stops early once the shards still moving fast hold 1 % of the volume or less.
+PHYSICS_VERSION = 2
 PROG = "generate_scenes.py"
 # addon/citygen.py's SETS and "bundle" (spelt out: the arguments are parsed before the add-on is importable)
 SETS = ("generic", "region", "small", "bundle")
@@ -261,6 +265,7 @@ def generator_info(args, scene_name):
     if getattr(args, "damage", "patterns") != "patterns":  # absent with patterns: older bundles stay valid
         info["damage"] = args.damage
         info["settle_steps"] = args.settle_steps
+        info["physics_version"] = PHYSICS_VERSION
     return info
 
 

@@ -130,6 +130,24 @@ def test_unsettled_simulation_is_not_written(blank, monkeypatch):
     assert a.qs_building.patterns_json == "[]"
 
 
+def test_a_creeping_pile_stops_early_once_few_shards_move_fast(blank, monkeypatch):
+    """From EARLY_STOP_STEPS on, the simulation ends as soon as the shards that moved
+    CREEP_DRIFT or more within the last second hold at most EARLY_STOP_SHARE of the volume:
+    the same collapse stepped to the limit takes every frame and is no closer to rest."""
+    from addon import physics
+    early = physics.EARLY_STOP_STEPS
+    out = []
+    for stop in (early, 10 ** 6):  # the second: no early stop
+        blank.ops.wm.read_homefile(use_empty=True, use_factory_startup=True)
+        _, _, a, _ = _city(blank, neighbour=False)
+        monkeypatch.setattr(physics, "EARLY_STOP_STEPS", stop)
+        out.append(physics.collapse_object(a, 5, mode="everything")["params"])
+    p, q = out
+    assert not p["settled"] and early < p["frames"] < p["settle_steps"] + 1
+    assert p["unsettled_volume_share"] <= physics.EARLY_STOP_SHARE
+    assert not q["settled"] and q["frames"] == q["settle_steps"] + 1
+
+
 def test_operator_button_and_apply_grade_option(blank):
     from addon import physics
     bpy = blank
