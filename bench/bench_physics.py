@@ -70,30 +70,34 @@ def top_raster(verts, tris, origin, shape):
     return top
 
 
+def building_measures(pre_vertices, pre_tris, post_vertices, structure_tris, debris_tris, material):
+    """One building: (share of its footprint standing, debris volume, the catalogue's expected
+    debris volume) from its pre-event triangles and its post-event structure and debris triangles."""
+    v = pre_vertices[np.unique(pre_tris)]
+    lo = v[:, :2].min(axis=0) - 15.0
+    shape = tuple(np.ceil((v[:, :2].max(axis=0) + 15.0 - lo) / CELL).astype(int))
+    pre_top = top_raster(pre_vertices, pre_tris, lo, shape)
+    foot = pre_top > 0.5
+    post_top = top_raster(post_vertices, structure_tris, lo, shape)
+    standing = foot & (post_top >= 0.8 * pre_top)
+    collapsed_vol = float(pre_top[foot & ~standing].sum()) * CELL * CELL
+    deb_top = top_raster(post_vertices, debris_tris, lo, shape)
+    # a heap's height above whatever still stands under it (debris on a slab is not a column)
+    debris = float(np.maximum(deb_top - post_top, 0.0).sum()) * CELL * CELL
+    return float(standing.sum() / max(foot.sum(), 1)), debris, SOLID[material] * BULKING * collapsed_vol
+
+
 def measure(pre, post, grade):
     """Per building: share standing, debris volume, expected debris, made by physics."""
     out = []
     post_b = {b.id: b for b in post.buildings}
     for b in pre.buildings:
-        fp = pre.face_building == b.id
-        v = pre.vertices[np.unique(pre.faces[fp])]
-        lo = v[:, :2].min(axis=0) - 15.0
-        shape = tuple(np.ceil((v[:, :2].max(axis=0) + 15.0 - lo) / CELL).astype(int))
-        pre_top = top_raster(pre.vertices, pre.faces[fp], lo, shape)
-        foot = pre_top > 0.5
         mine = post.face_building == b.id
-        struct = mine & (post.face_surface != 3)
-        deb = mine & (post.face_surface == 3)
-        post_top = top_raster(post.vertices, post.faces[struct], lo, shape)
-        standing = foot & (post_top >= 0.8 * pre_top)
-        collapsed_vol = float(pre_top[foot & ~standing].sum()) * CELL * CELL
-        deb_top = top_raster(post.vertices, post.faces[deb], lo, shape)
-        # a heap's height above whatever still stands under it (debris on a slab is not a column)
-        debris = float(np.maximum(deb_top - post_top, 0.0).sum()) * CELL * CELL
-        expected = SOLID[b.material] * BULKING * collapsed_vol
+        standing, debris, expected = building_measures(
+            pre.vertices, pre.faces[pre.face_building == b.id], post.vertices,
+            post.faces[mine & (post.face_surface != 3)], post.faces[mine & (post.face_surface == 3)], b.material)
         phys = any(p["name"] == "physics_collapse" for p in post_b[b.id].patterns)
-        out.append({"standing": float(standing.sum() / max(foot.sum(), 1)), "debris": debris,
-                    "expected": expected, "physics": phys})
+        out.append({"standing": standing, "debris": debris, "expected": expected, "physics": phys})
     return out
 
 

@@ -26,7 +26,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from bench.bench_physics import BULKING, CELL, SOLID, top_raster  # noqa: E402
+from bench.bench_physics import building_measures  # noqa: E402
 
 
 def _world_arrays(physics, scene_tools, gm, obj):
@@ -42,19 +42,8 @@ def _world_arrays(physics, scene_tools, gm, obj):
 def measure(physics, scene_tools, gm, src, obj):
     """bench_physics.measure for one building: (share standing, debris, expected debris)."""
     pv, pt, _ = _world_arrays(physics, scene_tools, gm, src)
-    v = pv[np.unique(pt)]
-    lo = v[:, :2].min(axis=0) - 15.0
-    shape = tuple(np.ceil((v[:, :2].max(axis=0) + 15.0 - lo) / CELL).astype(int))
-    pre_top = top_raster(pv, pt, lo, shape)
-    foot = pre_top > 0.5
     qv, qt, qs = _world_arrays(physics, scene_tools, gm, obj)
-    post_top = top_raster(qv, qt[qs != 3], lo, shape)
-    standing = foot & (post_top >= 0.8 * pre_top)
-    collapsed = float(pre_top[foot & ~standing].sum()) * CELL * CELL
-    deb_top = top_raster(qv, qt[qs == 3], lo, shape)
-    debris = float(np.maximum(deb_top - post_top, 0.0).sum()) * CELL * CELL
-    return (float(standing.sum() / max(foot.sum(), 1)), debris,
-            SOLID[src.qs_building.material] * BULKING * collapsed)
+    return building_measures(pv, pt, qv, qt[qs != 3], qt[qs == 3], src.qs_building.material)
 
 
 def collapse_all(args, variants) -> list:

@@ -285,15 +285,17 @@ class _CellTops:
         pos = np.minimum(np.searchsorted(self.keys, keys), len(self.keys) - 1)
         return np.where(self.keys[pos] == keys, pos, -1)
 
+    def _at(self, values: np.ndarray, keys: np.ndarray) -> np.ndarray:
+        i = self.index(keys)
+        return np.where(i >= 0, values[np.maximum(i, 0)] if len(values) else np.nan, np.nan)
+
     def lookup(self, keys: np.ndarray) -> np.ndarray:
         """Top height per key, NaN where the cell holds no point."""
-        i = self.index(keys)
-        return np.where(i >= 0, self.top[np.maximum(i, 0)] if len(self.top) else np.nan, np.nan)
+        return self._at(self.top, keys)
 
     def lowest(self, keys: np.ndarray) -> np.ndarray:
         """Lowest point's height per key, NaN where the cell holds no point."""
-        i = self.index(keys)
-        return np.where(i >= 0, self.bottom[np.maximum(i, 0)] if len(self.bottom) else np.nan, np.nan)
+        return self._at(self.bottom, keys)
 
     def share_within(self, i: np.ndarray, height: np.ndarray, tol: np.ndarray) -> np.ndarray:
         """Share of the points of the cells at positions `i` within `tol` of `height` (0 where
@@ -674,8 +676,7 @@ def _inset(cells: np.ndarray, width: int, radius_cells: int) -> np.ndarray:
     i, j = i - i.min() + pad, j - j.min() + pad
     grid = np.zeros((i.max() + pad + 1, j.max() + pad + 1), bool)
     grid[i, j] = True
-    square = np.ones((3, 3), bool)
-    closed = ndimage.binary_closing(grid, structure=square) | grid
+    closed = ndimage.binary_closing(grid, structure=np.ones((3, 3), bool)) | grid
     inner = ndimage.binary_erosion(closed, structure=np.ones((2 * radius_cells + 1,) * 2, bool))
     return inner[i, j]
 
