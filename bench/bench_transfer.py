@@ -295,6 +295,7 @@ GROUPS = {
     "debris ring (s_debris_*)": lambda n: n.startswith("s_debris"),
     "post-event gaps (s_post_gap)": lambda n: n == "s_post_gap",
     "seen through the roof (s_see_through)": lambda n: n == "s_see_through",
+    "interior seen through openings (s_interior_seen)": lambda n: n == "s_interior_seen",
     "M3C2 shares (m_changed, m_lost, m_roof/wall_changed)": lambda n: n in ("m_changed", "m_lost", "m_roof_changed",
                                                                              "m_wall_changed"),
     "upper/lower storeys (m_upper_changed, m_lower_changed)": lambda n: n in ("m_upper_changed", "m_lower_changed"),

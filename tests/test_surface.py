@@ -293,3 +293,41 @@ def test_points_seen_through_roof_holes_smaller_than_the_top_of_a_cell():
         keep = (xyz[:, 2] >= lowest_wall_point) | (cls == 2)
         drone, _ = describe((xyz[keep], bid[keep], cls[keep]), scene(rng, 200, False), 200, 200)
         assert drone["s_see_through"] == 0.0, lowest_wall_point
+
+
+def test_the_interior_seen_through_a_wall_opening_is_the_share_of_its_inner_cells():
+    """An airborne archive saw the roof only (20 pts/m²); after the event a drone (100 pts/m²)
+    sees every wall, and through a 4 m wide opening in the east wall the floor inside. On the
+    0.5 m grid the footprint is 20 x 20 cells, of which those at least 1 m in from the outline
+    are x, y in [-4, 4). Floor seen 2.5 m deep (x 2.5-5 m, y -2-2 m) covers 3 x 8 of them:
+    24/400 exactly; seen 1.4 m deep, 1 x 8: 8/400, which s_see_through (1.5 m in) misses. The same drone rescan without the opening, and an opening that shows the floor
+    only 0.8 m deep (what an intact wall seen lower down also looks like), give 0."""
+    rng = np.random.default_rng(21)
+    ground = sample_ground(rng, 20.0, noise=0.0)
+    ground = ground[~((np.abs(ground[:, 0]) < 5.5) & (np.abs(ground[:, 1]) < 5.5))]
+    roof = sample_box(rng, 20.0, -5, -5, 5, 5, 6.0, noise=0.0, walls=False)
+    pre = (np.vstack([ground, roof]), np.r_[np.zeros(len(ground), np.int64), np.ones(len(roof), np.int64)],
+           np.r_[np.full(len(ground), 2, np.uint8), np.full(len(roof), 6, np.uint8)])
+
+    def drone(seen_depth):
+        g = sample_ground(rng, 100.0)
+        g = g[~((np.abs(g[:, 0]) < 5.5) & (np.abs(g[:, 1]) < 5.5))]
+        box = sample_box(rng, 100.0, -5, -5, 5, 5, 6.0)
+        floor = np.zeros((0, 3))
+        if seen_depth:
+            box = box[~((box[:, 0] > 4.9) & (np.abs(box[:, 1]) < 2) & (box[:, 2] > 2) & (box[:, 2] < 4))]
+            n = rng.poisson(100.0 * 4 * seen_depth)
+            floor = np.column_stack([rng.uniform(5 - seen_depth, 5, n), rng.uniform(-2, 2, n), np.zeros(n)])
+        b = np.vstack([box, floor])
+        return (np.vstack([g, b]), np.r_[np.zeros(len(g), np.int64), np.ones(len(b), np.int64)],
+                np.r_[np.full(len(g), 2, np.uint8), np.full(len(b), 6, np.uint8)])
+
+    d, geom = describe(pre, drone(2.5), 20.0, 100.0)
+    assert geom.cell_m == 0.5  # so the fine grid is 0.5 m too
+    assert d["s_interior_seen"] == pytest.approx(24 / 400)
+    shallow, _ = describe(pre, drone(1.4), 20.0, 100.0)
+    assert shallow["s_interior_seen"] == pytest.approx(8 / 400)
+    assert shallow["s_see_through"] == 0.0 and shallow["s_lowered_1m"] == 0.0
+    for depth in (0.0, 0.8):
+        intact, _ = describe(pre, drone(depth), 20.0, 100.0)
+        assert intact["s_interior_seen"] == 0.0, depth

@@ -34,6 +34,15 @@ compared directly, so a hole of one or two cells is not smoothed away.
   not. Inner cells only, `SEE_THROUGH_INSET_M` in from the outline (after closing the
   single empty cells a sparse epoch leaves), so that a drone that sees walls or the space
   under the eaves lower down than an airborne archive did reads as nothing.
+- `s_interior_seen`: share of the footprint where the post-event epoch saw *inside* the
+  building: points at least `INTERIOR_DEPTH_M` in from the outline and `SEE_THROUGH_M`
+  below every pre-event point within `INTERIOR_NEIGHBOURHOOD_M`, on a fine grid (0.5 m or
+  the sparser epoch's point spacing), in patches of at least `min_patch_cells`. A wall hole,
+  a blown-out infill panel or a toppled facade under an intact roof opens the floors behind
+  it to an oblique view only a metre or two deep: `s_see_through`'s inset on the coarse
+  raster misses that, and an airborne archive never saw the wall, so its core points
+  cannot be lost either. The outline is the pre-event footprint's (its points' cells,
+  closed), and a wall seen lower down lies on it, not inside.
 
 **Surface change on core points** (`quakescan.change.m3c2`): core points one per `cell_m` voxel of the
 building's pre-event points (so shares are shares of surface area), normals from the
@@ -84,14 +93,20 @@ _BAND_STRIDE_M = 1.0e4
 LOWER_SURFACE_SHARE = 0.2
 # Bumped whenever a descriptor's computation changes: cached training tables made with another
 # version are not reused (quakescan.learning.trainset), and a model records the version it was trained on.
-DESCRIPTOR_VERSION = 14
+DESCRIPTOR_VERSION = 15
 RASTER_DESCRIPTORS = ("s_lowered_1m", "s_lowered_storey", "s_lowered_half", "s_raised", "s_volume_loss",
                       "s_volume_gain", "s_height_ratio_mean", "s_height_ratio_p10", "s_post_gap",
-                      "s_debris_ring", "s_debris_volume", "s_see_through")
+                      "s_debris_ring", "s_debris_volume", "s_see_through", "s_interior_seen")
 # a post-event point this far (or its level of detection, if larger) below every pre-event point of
 # its cell's 3 x 3 neighbourhood was seen through the roof: a floor under a hole, rubble inside
 SEE_THROUGH_M = 1.0
 SEE_THROUGH_INSET_M = 1.5
+# the interior seen through an opening in a wall or roof: post-event points at least this far
+# inside the outline (on a grid of INTERIOR_CELL_M or the sparser epoch's point spacing) and
+# SEE_THROUGH_M below every pre-event point within INTERIOR_NEIGHBOURHOOD_M
+INTERIOR_DEPTH_M = 1.0
+INTERIOR_CELL_M = 0.5
+INTERIOR_NEIGHBOURHOOD_M = 1.0
 CORE_DESCRIPTORS = ("m_changed", "m_lost", "m_roof_changed", "m_wall_changed", "m_holes", "m_wall_holes",
                     "m_upper_changed",
                     "m_lower_changed", "m_inward", "m_outward", "m_coherent", "m_largest_patch", "m_distance_p10",
@@ -381,6 +396,7 @@ def describe_surfaces(pre_xyz: np.ndarray, pre_bid: np.ndarray, pre_ground: np.n
 
     order = np.argsort(pre_bid, kind="stable")
     sorted_bid = pre_bid[order]
+    interior = _InteriorView(pre_xyz, post_xyz, max(INTERIOR_CELL_M, 0.5 * c))
     ground_finder = _GroundFinder(pre_xyz, pre_ground, settings.ground_search_m)
     descriptors, members, core_of, qual, grounds, outline_core = {}, {}, {}, {}, {}, {}
     for bid in bids:
@@ -392,6 +408,7 @@ def describe_surfaces(pre_xyz: np.ndarray, pre_bid: np.ndarray, pre_ground: np.n
         own_tops = _CellTops(pre_xyz[idx], lo, c, width, layer)
         descriptors[bid], edge_keys = _raster(pre_key[idx], own_tops, pre_tops, post_tops, building_keys, ground,
                                               n3, ring_offsets, settings, c, width)
+        descriptors[bid]["s_interior_seen"] = interior.share(pre_xyz[idx], settings.min_patch_cells)
         if quality:
             cells = np.unique(pre_key[idx])
             inside = np.isin(post_key, cells)
@@ -431,6 +448,63 @@ def describe_surfaces(pre_xyz: np.ndarray, pre_bid: np.ndarray, pre_ground: np.n
     if quality:
         return descriptors, cores, qual
     return descriptors, cores
+
+
+class _XSorted:
+    """Points sorted by x once, so that the points in one building's box are a slice away."""
+
+    def __init__(self, xyz: np.ndarray):
+        self.xyz = xyz[np.argsort(xyz[:, 0], kind="stable")]
+
+    def in_box(self, lo, hi) -> np.ndarray:
+        a, b = np.searchsorted(self.xyz[:, 0], [lo[0], hi[0]])
+        cand = self.xyz[a:b]
+        return cand[(cand[:, 1] >= lo[1]) & (cand[:, 1] < hi[1])]
+
+
+class _InteriorView:
+    """`s_interior_seen` of one building at a time (see the module's docstring)."""
+
+    def __init__(self, pre_xyz: np.ndarray, post_xyz: np.ndarray, cell: float):
+        self.pre, self.post, self.cell = _XSorted(pre_xyz), _XSorted(post_xyz), cell
+
+    def share(self, own_xyz: np.ndarray, min_patch_cells: int) -> float:
+        from scipy import ndimage
+
+        f = self.cell
+        near = int(math.ceil(INTERIOR_NEIGHBOURHOOD_M / f))
+        pad = near + 3
+        lo = np.floor(own_xyz[:, :2].min(axis=0) / f) * f - pad * f
+        shape = tuple(np.floor((own_xyz[:, :2].max(axis=0) - lo) / f).astype(int) + pad + 1)
+        hi = lo + np.array(shape) * f
+
+        def cells(xyz):
+            return tuple(np.floor((xyz[:, :2] - lo) / f).astype(np.int64).T)
+
+        footprint = np.zeros(shape, bool)
+        footprint[cells(own_xyz)] = True
+        # single empty cells of a sparse sampling are the building's; a courtyard stays outside
+        footprint = ndimage.binary_closing(footprint, np.ones((3, 3), bool), iterations=2) | footprint
+        inner = ndimage.distance_transform_edt(footprint) * f - 0.5 * f >= INTERIOR_DEPTH_M
+        if not inner.any():
+            return 0.0
+        pre = self.pre.in_box(lo, hi)
+        lowest = np.full(shape, np.inf)
+        np.minimum.at(lowest, cells(pre), pre[:, 2])
+        # every pre-event point around the cell: a step of the roof or a wall seen before is no opening
+        lowest = ndimage.minimum_filter(lowest, size=2 * near + 1, mode="constant", cval=np.inf)
+        post = self.post.in_box(lo, hi)
+        ij = cells(post)
+        below = inner[ij] & np.isfinite(lowest[ij]) & (post[:, 2] < lowest[ij] - SEE_THROUGH_M)
+        seen = np.zeros(shape, bool)
+        seen[ij[0][below], ij[1][below]] = True
+        if not seen.any():
+            return 0.0
+        # a single stray point (a bird, multipath) is no opening; what is seen through one is areal
+        labels, n = ndimage.label(seen, np.ones((3, 3), bool))
+        sizes = np.bincount(labels.ravel())
+        kept = int(sizes[1:][sizes[1:] >= min_patch_cells].sum())
+        return kept / int(footprint.sum())
 
 
 class _GroundFinder:
@@ -655,7 +729,7 @@ def _core_change(cxyz, normals, res, lost, seen_through, sl, s: SurfaceSettings,
 # the core-point shares: those are over roofs and walls together, where a 2 x 2 m roof hole in
 # a 10 x 10 x 6 m box is 0.5 % of the surface but 4 % of its roof
 SHARES = ("s_lowered_1m", "s_lowered_storey", "s_lowered_half", "s_raised", "s_volume_loss", "s_volume_gain",
-          "s_post_gap", "s_debris_ring", "s_debris_volume", "s_see_through")
+          "s_post_gap", "s_debris_ring", "s_debris_volume", "s_see_through", "s_interior_seen")
 
 
 def _dead_zone(d: dict, min_share: float) -> None:

@@ -73,8 +73,8 @@ COVERAGE_QUANTILE = 0.001
 # 2-30 pts/m²: roof holes smaller than its cells). Teaching the classifier that such a building
 # is damaged teaches it to guess from the faintest noise; they are left out of training, and
 # on real data such a building can only be "no visible damage" anyway.
-EVIDENCE = ("s_lowered_1m", "s_volume_loss", "s_raised", "s_debris_ring", "s_see_through", "m_changed", "m_holes",
-            "m_largest_patch")
+EVIDENCE = ("s_lowered_1m", "s_volume_loss", "s_raised", "s_debris_ring", "s_see_through", "s_interior_seen",
+            "m_changed", "m_holes", "m_largest_patch")
 
 
 def visible_damage(table) -> np.ndarray:
