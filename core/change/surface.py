@@ -396,8 +396,10 @@ def describe_surfaces(pre_xyz: np.ndarray, pre_bid: np.ndarray, pre_ground: np.n
 
     order = np.argsort(pre_bid, kind="stable")
     sorted_bid = pre_bid[order]
-    interior = _InteriorView(pre_xyz, post_xyz, max(INTERIOR_CELL_M, 0.5 * c))
-    ground_finder = _GroundFinder(pre_xyz, pre_ground, settings.ground_search_m)
+    pre_sorted = _XSorted(pre_xyz)
+    interior = _InteriorView(pre_sorted, _XSorted(post_xyz), max(INTERIOR_CELL_M, 0.5 * c))
+    ground_finder = _GroundFinder(pre_sorted, pre_xyz[pre_ground] if pre_ground is not None else None,
+                                  settings.ground_search_m)
     descriptors, members, core_of, qual, grounds, outline_core = {}, {}, {}, {}, {}, {}
     for bid in bids:
         a, b = np.searchsorted(sorted_bid, [bid, bid + 1])
@@ -465,8 +467,8 @@ class _XSorted:
 class _InteriorView:
     """`s_interior_seen` of one building at a time (see the module's docstring)."""
 
-    def __init__(self, pre_xyz: np.ndarray, post_xyz: np.ndarray, cell: float):
-        self.pre, self.post, self.cell = _XSorted(pre_xyz), _XSorted(post_xyz), cell
+    def __init__(self, pre: _XSorted, post: _XSorted, cell: float):
+        self.pre, self.post, self.cell = pre, post, cell
 
     def share(self, own_xyz: np.ndarray, min_patch_cells: int) -> float:
         from scipy import ndimage
@@ -510,22 +512,17 @@ class _InteriorView:
 class _GroundFinder:
     """Ground height near a building: the 10th percentile of the ground points (ASPRS 2) within
     `search_m` of its points, or the 2nd percentile of every point there when the cloud has no
-    ground class (or too few ground points nearby). Points sorted by x once per region."""
+    ground class (or too few ground points nearby)."""
 
-    def __init__(self, xyz: np.ndarray, ground: np.ndarray | None, search_m: float):
+    def __init__(self, every: _XSorted, ground_xyz: np.ndarray | None, search_m: float):
         self.search = search_m
-        self.sets = []
-        for mask in ((ground,) if ground is not None and ground.any() else ()) + (None,):
-            pts = xyz if mask is None else xyz[mask]
-            order = np.argsort(pts[:, 0], kind="stable")
-            self.sets.append((pts[order], mask is None))
+        self.sets = ([(_XSorted(ground_xyz), False)] if ground_xyz is not None and len(ground_xyz) else []) \
+            + [(every, True)]
 
     def height(self, pts: np.ndarray) -> float:
         lo, hi = pts[:, :2].min(axis=0) - self.search, pts[:, :2].max(axis=0) + self.search
         for sorted_pts, is_all in self.sets:
-            a, b = np.searchsorted(sorted_pts[:, 0], [lo[0], hi[0]])
-            cand = sorted_pts[a:b]
-            cand = cand[(cand[:, 1] >= lo[1]) & (cand[:, 1] <= hi[1])]
+            cand = sorted_pts.in_box(lo, hi)
             if is_all:
                 return float(np.percentile(cand[:, 2], 2))
             if len(cand) >= 3:
