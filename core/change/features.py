@@ -435,17 +435,29 @@ def position_keys(xyz) -> np.ndarray:
     return h ^ (h >> np.uint64(31))
 
 
-def duplicate_groups(xyz):
-    """(first, inverse) when some points of `xyz` coincide exactly: `first` indexes one point
-    of each distinct position, xyz[first][inverse] == xyz. None when all are distinct (the
-    common case: one hash and one sort of the keys)."""
+# A few coincident points (34 among 8.6 M of a real-sized scan) cost nothing; a stack of
+# thousands makes the neighbour kernels quadratic in it. Grouping costs two sorts of every
+# point (5 s for 8.6 M), so the kernels group only when some position holds this many copies.
+STACK_COPIES = 64
+
+
+def duplicate_groups(xyz, min_copies: int = 2):
+    """(first, inverse) when some point of `xyz` has at least `min_copies` exact copies
+    (itself included): `first` indexes one point of each distinct position,
+    xyz[first][inverse] == xyz. None otherwise (the common case, all distinct: one hash and
+    one sort of the keys)."""
     xyz = np.asarray(xyz, dtype=np.float64)
     keys = position_keys(xyz)
-    order = np.argsort(keys, kind="stable")
-    ks = keys[order]
-    same = ks[1:] == ks[:-1]
+    same = np.sort(keys)
+    same = same[1:] == same[:-1]
     if not same.any():
         return None
+    if min_copies > 2:
+        edges = np.flatnonzero(np.diff(np.concatenate([[0], same.view(np.int8), [0]])))
+        if (edges[1::2] - edges[0::2]).max() + 1 < min_copies:  # runs of equal keys, + their first
+            return None
+    order = np.argsort(keys, kind="stable")
+    same = keys[order][1:] == keys[order][:-1]
     n = len(xyz)
     starts = np.concatenate([[True], ~same])
     run_first = order[np.maximum.accumulate(np.where(starts, np.arange(n), 0))]
@@ -500,7 +512,7 @@ def compute_features(xyz, radius: float, features: Sequence[str] | None = None, 
         # Coincident query points have one neighbourhood: computed once. Without this the
         # kernel is quadratic in the duplicates (200 000 copies of one point: hours).
         qpts = core_points if core_points is not None else (xyz if query_index is None else xyz[query_index])
-        groups = duplicate_groups(qpts)
+        groups = duplicate_groups(qpts, STACK_COPIES)
         if groups is not None:
             first, inverse = groups
             # progress in the caller's points: the distinct ones stand for all their copies

@@ -76,9 +76,9 @@ def nearest_neighbours(pre_xyz: np.ndarray, post_xyz: np.ndarray, workers: int =
         raise ChangeError("the post-event epoch has no points to map to")
     if len(pre_xyz) == 0:
         return np.zeros(0, np.int64), np.zeros(0)
-    from .features import duplicate_groups
+    from .features import STACK_COPIES, duplicate_groups
 
-    groups = duplicate_groups(pre_xyz) if len(pre_xyz) > 1 else None
+    groups = duplicate_groups(pre_xyz, STACK_COPIES) if len(pre_xyz) > 1 else None
     if groups is not None:  # coincident queries share their answer: duplicates must not cost n² scans
         first, inverse = groups
         i, d = nearest_neighbours(pre_xyz[first], post_xyz, workers)
