@@ -480,8 +480,8 @@ class _InteriorView:
         shape = tuple(np.floor((own_xyz[:, :2].max(axis=0) - lo) / f).astype(int) + pad + 1)
         hi = lo + np.array(shape) * f
 
-        def cells(xyz):
-            return tuple(np.floor((xyz[:, :2] - lo) / f).astype(np.int64).T)
+        def cells(xyz):  # clipped: a point a rounding error short of `hi` stays on the grid
+            return tuple(np.clip(np.floor((xyz[:, :2] - lo) / f).astype(np.int64), 0, np.array(shape) - 1).T)
 
         footprint = np.zeros(shape, bool)
         footprint[cells(own_xyz)] = True
