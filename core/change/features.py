@@ -448,16 +448,15 @@ def duplicate_groups(xyz, min_copies: int = 2):
     one sort of the keys)."""
     xyz = np.asarray(xyz, dtype=np.float64)
     keys = position_keys(xyz)
-    same = np.sort(keys)
-    same = same[1:] == same[:-1]
+    ks = np.sort(keys)  # a plain sort is 6x faster than the argsort below, which only duplicates need
+    same = ks[1:] == ks[:-1]
     if not same.any():
         return None
     if min_copies > 2:
         edges = np.flatnonzero(np.diff(np.concatenate([[0], same.view(np.int8), [0]])))
         if (edges[1::2] - edges[0::2]).max() + 1 < min_copies:  # runs of equal keys, + their first
             return None
-    order = np.argsort(keys, kind="stable")
-    same = keys[order][1:] == keys[order][:-1]
+    order = np.argsort(keys, kind="stable")  # the stable sort leaves `ks` (and so `same`) as they are
     n = len(xyz)
     starts = np.concatenate([[True], ~same])
     run_first = order[np.maximum.accumulate(np.where(starts, np.arange(n), 0))]
