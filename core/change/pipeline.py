@@ -2,9 +2,11 @@
 
 The steps of Zahs et al. in the order they run here:
 
-1. buildings are grouped into square tiles by the centre of their pre-event points, so a
-   city-size pair is processed a tile at a time: memory holds the two epochs' coordinates
-   and one tile's neighbourhoods, never a city's worth of features;
+1. buildings are grouped into square tiles by the centre of their pre-event points' x/y box,
+   so a city-size pair is processed a tile at a time: memory holds the two epochs'
+   coordinates and one tile's neighbourhoods, never a city's worth of features (a
+   distributed run, `quakescan.distributed`, gives each tile to a worker that holds only
+   the points the tile's descriptors read);
 2. per tile: features of the pre-event building points (neighbourhoods taken from *all*
    pre-event points near them, ground included, as CloudCompare does on a whole cloud),
    the nearest post-event point of each (exact: a point whose neighbour could lie outside
@@ -415,13 +417,12 @@ def describe_pair(pre: Epoch, post: Epoch, settings: PipelineSettings, *, worker
             continue
         ok.remove(bid)
     centres = {}
-    for bid in ok:
-        s, t = where[bid]
-        centres[bid] = pre.xyz[order[s:t], :2].mean(axis=0)
     tiles: dict[tuple, list[int]] = {}
     for bid in ok:
-        key = tuple(np.floor(centres[bid] / settings.tile_m).astype(np.int64).tolist())
-        tiles.setdefault(key, []).append(bid)
+        s, t = where[bid]
+        xy = pre.xyz[order[s:t], :2]
+        centres[bid] = xy.mean(axis=0)
+        tiles.setdefault(tile_key(xy.min(axis=0), xy.max(axis=0), settings.tile_m), []).append(bid)
 
     pre_index = GridIndex(pre.xyz[:, :2], settings.tile_m / 4)
     post_index = GridIndex(post.xyz[:, :2], settings.tile_m / 4)
@@ -448,6 +449,51 @@ def describe_pair(pre: Epoch, post: Epoch, settings: PipelineSettings, *, worker
     return [_quality_gate(rows[b], settings) for b in all_ids]
 
 
+def tile_key(lo_xy, hi_xy, tile_m: float) -> tuple[int, int]:
+    """The tile of a building: the square of side `tile_m` holding the centre of its
+    pre-event points' x/y box. Minimum and maximum are exact in whatever order or chunks the
+    points are read (a mean is not), so a streamed, distributed run groups the buildings
+    into the same tiles as this process does, and gives the same descriptors."""
+    centre = (np.asarray(lo_xy, dtype=np.float64) + np.asarray(hi_xy, dtype=np.float64)) / 2
+    return tuple(np.floor(centre / tile_m).astype(np.int64).tolist())
+
+
+def describe_tile(pre: Epoch, post: Epoch, bids: Sequence[int], settings: PipelineSettings, geometry, *,
+                  workers: int = -1) -> list[BuildingRow]:
+    """Rows of the buildings `bids` of one tile, from epochs that hold at least every point
+    their descriptors read: what a distributed worker runs on its tile's points
+    (`quakescan.distributed`). `geometry`: the whole pair's, which one tile cannot know.
+    The rows carry centres; counts and the quality gate are the caller's.
+
+    A building whose points coincide (fewer distinct positions than the minimum counts) is
+    not assessable, as in `describe_pair`; the others are described together."""
+    pre_ids, post_ids = pre.building_id, post.building_id
+    rows, ok, members = [], [], {}
+    pre_order, post_order = np.argsort(pre_ids, kind="stable"), np.argsort(post_ids, kind="stable")
+    pre_sorted, post_sorted = pre_ids[pre_order], post_ids[post_order]
+    for bid in sorted(int(b) for b in bids):
+        m = pre_order[np.searchsorted(pre_sorted, bid):np.searchsorted(pre_sorted, bid, side="right")]
+        p = post_order[np.searchsorted(post_sorted, bid):np.searchsorted(post_sorted, bid, side="right")]
+        a = _few_distinct(pre.xyz, m, settings.min_points_pre)
+        b = None if a is not None else _few_distinct(post.xyz, p, settings.min_points_post)
+        if a is not None:
+            rows.append(BuildingRow(bid, len(m), len(p), False, f"{a} distinct pre-event positions < "
+                                    f"{settings.min_points_pre} (of {len(m)} points, the others coincide)"))
+        elif b is not None:
+            rows.append(BuildingRow(bid, len(m), len(p), False, f"{b} distinct post-event positions < "
+                                    f"{settings.min_points_post} (of {len(p)} points, the others coincide)"))
+        else:
+            ok.append(bid)
+            members[bid] = m
+    if ok:
+        pre_index = GridIndex(pre.xyz[:, :2], settings.tile_m / 4)
+        post_index = GridIndex(post.xyz[:, :2], settings.tile_m / 4)
+        for r in _describe_tile(pre, post, pre_index, post_index, ok, members, settings, geometry, workers):
+            r.centre_xy = tuple(pre.xyz[members[r.building_id], :2].mean(axis=0).tolist())
+            rows.append(r)
+    return rows
+
+
 def _report_buildings(progress, finished: int, n: int, total: int) -> int:
     """Count the buildings of a finished tile one by one: progress is in buildings, whatever
     the tiling (a tile's buildings are described together, so they finish together)."""
@@ -471,7 +517,8 @@ def _few_distinct(xyz: np.ndarray, members: np.ndarray, minimum: int) -> int | N
 
 
 def _surface_geometry(pre: Epoch, post: Epoch, settings: PipelineSettings):
-    """Grid and cylinder sizes of the pair, from its epochs' building-point densities."""
+    """Grid and cylinder sizes of the pair, from its epochs' building-point densities
+    (`quakescan.distributed` finds the same densities block by block)."""
     if settings.surface is None:
         return None
     from .surface import SurfaceGeometry, planimetric_density
