@@ -66,11 +66,11 @@ def halves(las_path: Path, out: Path) -> tuple[Path, Path]:
 
 def describe(pre: Path, post: Path, footprints: Path, settings, limits) -> dict:
     """{descriptor: values over the assessable buildings} and the buildings' densities."""
-    from quakescan.change.pipeline import _quality_gate, describe_pair
+    from quakescan.change.pipeline import quality_gate, describe_pair
     from quakescan.learning.classification import load_pair
 
     data = load_pair(pre, post, footprints)
-    rows = [_quality_gate(r, limits) for r in describe_pair(data.pre, data.post, settings)]
+    rows = [quality_gate(r, limits) for r in describe_pair(data.pre, data.post, settings)]
     rows = [r for r in rows if r.assessable]
     out = {n: np.array([r.descriptors[n] for r in rows]) for n in settings.surface_descriptors}
     out["_density"] = np.array([min(r.quality.get("density_pre", np.nan), r.quality.get("density_post", np.nan))

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import subprocess
 import sys
 import time
@@ -308,14 +309,23 @@ GROUPS = {
 def _describe_rows(pre, post, settings, footprints=None, limits=None):
     """Assessable rows of a pair; `limits`: the shipped model's pipeline settings, whose
     density and coverage limits decide what is assessable (as classify does)."""
-    from quakescan.change.pipeline import _quality_gate, describe_pair
+    from quakescan.change.pipeline import quality_gate, describe_pair
     from quakescan.learning.classification import load_pair
 
     data = load_pair(pre, post, footprints)
     rows = describe_pair(data.pre, data.post, settings)
     if limits is not None:
-        rows = [_quality_gate(r, limits) for r in rows]
+        rows = [quality_gate(r, limits) for r in rows]
     return [r for r in rows if r.assessable]
+
+
+def plan_size(provenance: dict) -> str:
+    """The training plan's size a model was made with ("full" for files older than the key,
+    read from the plan's name "default-SIZE+..." where it is there)."""
+    if provenance.get("size"):
+        return str(provenance["size"])
+    m = re.match(r"transfer training set 'default-(\w+)", str(provenance.get("dataset", "")))
+    return m.group(1) if m else "full"
 
 
 def ablation(work: Path, model, training_work: Path, city: Path, pairs: dict, real: list) -> dict:
@@ -330,7 +340,8 @@ def ablation(work: Path, model, training_work: Path, city: Path, pairs: dict, re
     print("ablation: training set and test descriptor tables", flush=True)
     t0 = time.perf_counter()
     # the rows the shipped model was fitted on: damage its acquisition did not see left out
-    tab = training_rows(transfer_training_table(training_work, seed=model.provenance.get("seed", 0) or 0, size="full",
+    tab = training_rows(transfer_training_table(training_work, seed=model.provenance.get("seed", 0) or 0,
+                                                size=plan_size(model.provenance),
                                                 scenes=model.provenance.get("scenes", "clean"),
                                                 damage=model.provenance.get("damage", "patterns"),
                                                 small=model.provenance.get("small_buildings", False))[1])

@@ -311,7 +311,7 @@ def test_model_save_on_a_full_disk(tmp_path, monkeypatch):
 
     from quakescan.results.writers import ResultsError
 
-    monkeypatch.setattr(skops.io, "dump", lambda obj, file: (open(file, "wb").write(b"PK"), _enospc()))
+    monkeypatch.setattr(skops.io, "dump", lambda obj, file, **kw: (open(file, "wb").write(b"PK"), _enospc()))
     with pytest.raises(ResultsError, match=r"m\.skops: cannot write: no space left"):
         tiny_model(tmp_path / "m.skops")
     assert list(tmp_path.iterdir()) == []

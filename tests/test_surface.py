@@ -142,7 +142,7 @@ def epoch(pts, origin=(0.0, 0.0, 0.0)):
     return Epoch(xyz.copy(), np.asarray(origin, float), cls.copy(), building_id=bid.copy(), source="synthetic")
 
 
-def test_pipeline_quality_gate_names_the_density_and_surface_rows_match_at_utm():
+def test_pipelinequality_gate_names_the_density_and_surface_rows_match_at_utm():
     rng = np.random.default_rng(6)
     pre, post = scene(rng, 30, False), scene(rng, 30, True)
     s = PipelineSettings(surface=SurfaceSettings(), per_point_lod=True, min_density_pts_m2=50.0)
@@ -250,10 +250,10 @@ def test_the_height_ratio_of_an_unchanged_building_lower_than_a_cell_is_one():
 
 
 def test_a_density_just_under_the_limit_never_reads_as_equal_to_it():
-    from quakescan.change.pipeline import BuildingRow, _quality_gate
+    from quakescan.change.pipeline import BuildingRow, quality_gate
 
     settings = PipelineSettings(surface=SurfaceSettings(), paper_descriptors=False, min_density_pts_m2=1.9)
-    row = _quality_gate(BuildingRow(building_id=7, n_pre=400, n_post=100, assessable=True,
+    row = quality_gate(BuildingRow(building_id=7, n_pre=400, n_post=100, assessable=True,
                                     quality={"density_pre": 4.0, "density_post": 1.899, "coverage": 1.0}), settings)
     assert not row.assessable and row.reason == "density 1.89 pts/m² < 1.9"
 

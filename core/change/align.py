@@ -76,9 +76,7 @@ class Alignment:
 
     def apply(self, xyz: np.ndarray) -> np.ndarray:
         """Transform (n, 3) post-event local coordinates into the pre-event frame (float64)."""
-        xyz = np.asarray(xyz, dtype=np.float64)
-        r, t = self.transform[:3, :3], self.transform[:3, 3]
-        return xyz @ r.T + t
+        return apply_transform(self.transform, xyz)
 
     def to_json(self) -> dict:
         return {"transform": self.transform.tolist(),
@@ -89,6 +87,19 @@ class Alignment:
                 "std_after_m": self.std_after_m, "fitness": self.fitness,
                 "residuals": "point-to-plane",
                 "n_stable_pre": self.n_stable_pre, "n_stable_post": self.n_stable_post}
+
+
+def apply_transform(transform, xyz: np.ndarray) -> np.ndarray:
+    """(n, 3) float64 coordinates moved by a 4 × 4 rigid transform, element by element: a
+    matrix product (BLAS) may round a row differently by its place in the array, and a chunk
+    of a streamed cloud must move exactly as it does within the whole cloud."""
+    transform = np.asarray(transform, dtype=np.float64)
+    xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+    r, t = transform[:3, :3], transform[:3, 3]
+    out = np.empty_like(xyz)
+    for k in range(3):
+        out[:, k] = xyz[:, 0] * r[k, 0] + xyz[:, 1] * r[k, 1] + xyz[:, 2] * r[k, 2] + t[k]
+    return out
 
 
 def rotation_angle_deg(transform: np.ndarray) -> float:
@@ -102,6 +113,22 @@ def format_alignment(a: Alignment) -> str:
     return (f"translation ({tx:+.3f}, {ty:+.3f}, {tz:+.3f}) m, rotation {a.rotation_deg:.4f}°, "
             f"std {a.std_after_m:.3f} m (rmse {a.rmse_before_m:.3f} -> {a.rmse_after_m:.3f} m), "
             f"fitness {a.fitness:.2f}, stable points {a.n_stable_pre} pre / {a.n_stable_post} post")
+
+
+def sample_mask(index: np.ndarray, n_total: int, max_points: int) -> np.ndarray:
+    """About `max_points` of `n_total` points, chosen by their index in the file alone (a
+    splitmix64 hash of it below a threshold): the same points whether the cloud is read
+    whole or streamed in chunks, which a random draw over the stable points is not."""
+    index = np.asarray(index, dtype=np.int64)
+    share = min(1.0, max_points / max(int(n_total), 1))
+    if share >= 1.0:
+        return np.ones(len(index), bool)
+    with np.errstate(over="ignore"):
+        z = index.astype(np.uint64) + np.uint64(0x9E3779B97F4A7C15)
+        z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+        z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+        z = z ^ (z >> np.uint64(31))
+    return z < np.uint64(int(share * 0.98 * 2.0 ** 64))  # 2 % under: a sample rarely tops max_points
 
 
 def stable_mask(classification, building_id=None) -> np.ndarray:

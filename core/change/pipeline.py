@@ -380,18 +380,7 @@ def describe_pair(pre: Epoch, post: Epoch, settings: PipelineSettings, *, worker
     all_ids = sorted(i for i in set(n_pre_of) | set(n_post_of) if i > 0)
     if not all_ids:
         raise PipelineError(f"{pre.source}: no point belongs to a building (all building IDs are 0)")
-
-    rows: dict[int, BuildingRow] = {}
-    ok = []
-    for bid in all_ids:
-        a, b = n_pre_of.get(bid, 0), n_post_of.get(bid, 0)
-        if a < settings.min_points_pre:
-            rows[bid] = BuildingRow(bid, a, b, False, f"{a} pre-event points < {settings.min_points_pre}")
-        elif b < settings.min_points_post:
-            rows[bid] = BuildingRow(bid, a, b, False, f"{b} post-event points < {settings.min_points_post} "
-                                    "(not covered by the post-event cloud?)")
-        else:
-            ok.append(bid)
+    rows, ok = rows_by_counts(n_pre_of, n_post_of, settings)
     order = np.argsort(pre_ids, kind="stable")
     starts = np.searchsorted(pre_ids[order], uniq_pre)
     ends = starts + n_pre
@@ -446,7 +435,24 @@ def describe_pair(pre: Epoch, post: Epoch, settings: PipelineSettings, *, worker
         if on_tile:
             on_tile(tile_rows)
         finished = _report_buildings(progress, finished, len(bids), total)
-    return [_quality_gate(rows[b], settings) for b in all_ids]
+    return [quality_gate(rows[b], settings) for b in all_ids]
+
+
+def rows_by_counts(n_pre_of: dict, n_post_of: dict, settings: PipelineSettings) -> tuple[dict, list]:
+    """({building ID: row} of the buildings with too few points to describe, the IDs of the
+    others), from each epoch's {building ID: points}; IDs <= 0 are no building."""
+    rows: dict[int, BuildingRow] = {}
+    ok = []
+    for bid in sorted(i for i in set(n_pre_of) | set(n_post_of) if i > 0):
+        a, b = n_pre_of.get(bid, 0), n_post_of.get(bid, 0)
+        if a < settings.min_points_pre:
+            rows[bid] = BuildingRow(bid, a, b, False, f"{a} pre-event points < {settings.min_points_pre}")
+        elif b < settings.min_points_post:
+            rows[bid] = BuildingRow(bid, a, b, False, f"{b} post-event points < {settings.min_points_post} "
+                                    "(not covered by the post-event cloud?)")
+        else:
+            ok.append(bid)
+    return rows, ok
 
 
 def tile_key(lo_xy, hi_xy, tile_m: float) -> tuple[int, int]:
@@ -459,11 +465,14 @@ def tile_key(lo_xy, hi_xy, tile_m: float) -> tuple[int, int]:
 
 
 def describe_tile(pre: Epoch, post: Epoch, bids: Sequence[int], settings: PipelineSettings, geometry, *,
-                  workers: int = -1) -> list[BuildingRow]:
+                  workers: int = -1, reach: dict | None = None) -> list[BuildingRow]:
     """Rows of the buildings `bids` of one tile, from epochs that hold at least every point
     their descriptors read: what a distributed worker runs on its tile's points
     (`quakescan.distributed`). `geometry`: the whole pair's, which one tile cannot know.
-    The rows carry centres; counts and the quality gate are the caller's.
+    The rows carry centres; counts and the quality gate are the caller's. `reach`, when
+    given, receives how far the paper's descriptors read ("queries_box": the x/y box of their
+    query points; "max_distance_m": the farthest nearest post-event point), so a caller
+    holding only part of the epochs can check that it held enough.
 
     A building whose points coincide (fewer distinct positions than the minimum counts) is
     not assessable, as in `describe_pair`; the others are described together."""
@@ -488,7 +497,8 @@ def describe_tile(pre: Epoch, post: Epoch, bids: Sequence[int], settings: Pipeli
     if ok:
         pre_index = GridIndex(pre.xyz[:, :2], settings.tile_m / 4)
         post_index = GridIndex(post.xyz[:, :2], settings.tile_m / 4)
-        for r in _describe_tile(pre, post, pre_index, post_index, ok, members, settings, geometry, workers):
+        for r in _describe_tile(pre, post, pre_index, post_index, ok, members, settings, geometry, workers,
+                                reach):
             r.centre_xy = tuple(pre.xyz[members[r.building_id], :2].mean(axis=0).tolist())
             rows.append(r)
     return rows
@@ -530,7 +540,7 @@ def _surface_geometry(pre: Epoch, post: Epoch, settings: PipelineSettings):
     return SurfaceGeometry.for_pair(settings.surface, d_pre, d_post)
 
 
-def _quality_gate(row: BuildingRow, settings: PipelineSettings) -> BuildingRow:
+def quality_gate(row: BuildingRow, settings: PipelineSettings) -> BuildingRow:
     """Not assessable where the data are sparser or cover less than the model was made for."""
     if not row.assessable or not row.quality:
         return row
@@ -551,7 +561,7 @@ def _quality_gate(row: BuildingRow, settings: PipelineSettings) -> BuildingRow:
 
 
 def _describe_tile(pre, post, pre_index, post_index, bids, members, settings: PipelineSettings, geometry,
-                   workers) -> list[BuildingRow]:
+                   workers, reach: dict | None = None) -> list[BuildingRow]:
     """Descriptor rows of the buildings of one tile (counts and centres are the caller's)."""
     descriptors = {b: {} for b in bids}
     quality = {b: {} for b in bids}
@@ -572,13 +582,13 @@ def _describe_tile(pre, post, pre_index, post_index, bids, members, settings: Pi
             quality[b] = qual[b]
     if settings.paper_descriptors:
         for b, d in _paper_descriptors(pre, post, pre_index, post_index, bids, members, settings, cores,
-                                       workers).items():
+                                       workers, reach).items():
             descriptors[b].update(d)
     return [BuildingRow(b, 0, 0, True, "", descriptors[b], quality=quality[b]) for b in bids]
 
 
 def _paper_descriptors(pre, post, pre_index, post_index, bids, members, settings: PipelineSettings, cores,
-                       workers) -> dict:
+                       workers, reach: dict | None = None) -> dict:
     """The paper's descriptors: point features, nearest-neighbour changes, the LoD-gated split."""
     # every k-th point of each building (its indices ascend: `order` is a stable sort), so no
     # building is left without query points whatever k
@@ -587,6 +597,9 @@ def _paper_descriptors(pre, post, pre_index, post_index, bids, members, settings
     pre_f = _features_at(pre, pre_index, q, settings, workers)
     box = _box(pre.xyz[q, :2], settings.radius_m)
     nn, dist = _exact_nearest(pre.xyz[q], post, post_index, box, workers)
+    if reach is not None and len(q):
+        reach["queries_box"] = _box(pre.xyz[q, :2], 0.0).tolist()
+        reach["max_distance_m"] = float(dist.max())
     uniq_nn, inv = np.unique(nn, return_inverse=True)
     post_f = _features_at(post, post_index, uniq_nn, settings, workers)
     changes = {name: post_f[name][inv] - pre_f[name] for name in settings.computed_features}

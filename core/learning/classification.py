@@ -233,8 +233,6 @@ def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=N
     date: its summary is returned (with "up_to_date": True) and nothing is recomputed,
     unless `force`."""
     from ..results import writers as results
-    from ..results.qgis_style import write_qml
-    from ..results.webmap import write_map_html
 
     t0 = time.perf_counter()
     out = Path(out_dir)
@@ -274,22 +272,11 @@ def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=N
     rows.sort(key=lambda r: r.building_id)
     t_describe = time.perf_counter()
     res = predict_rows(rows, model)
-    classes = model.grades
     out.mkdir(parents=True, exist_ok=True)
     fp = data.footprints
-    results.write_csv(res, out / "buildings.csv", classes, own_ids=fp.own_ids() if fp is not None else None)
-    xy_by = None
-    if data.footprints is None:
-        xy_by = _xy_by_building(pre)
-    outlines = results.building_outlines(res, data.footprints, xy_by, pre.origin)
-    attributes = (fp.attributes() or None) if fp is not None else None
-    results.write_geojson(res, outlines, out / "buildings.geojson", pre.crs, classes, attributes)
-    write_qml(out / "buildings.qml")
-    sub = pre.xyz[:: max(1, len(pre) // 200_000), :2] + pre.origin[:2]
-    title = f"Damage grades: {Path(post_path).name}"
-    results.write_map_png(res, outlines, out / "damage_map.png", title, points_xy=sub, crs=pre.crs)
-    write_map_html(res, outlines, out / "damage_map.html", title, pre.crs, classes,
-                   own_ids=fp.own_ids() if fp is not None else None)
+    outlines = results.building_outlines(res, fp, _xy_by_building(pre) if fp is None else None, pre.origin)
+    write_building_results(out, res, model.grades, fp, outlines, pre.crs,
+                           pre.xyz[:: map_step(len(pre)), :2] + pre.origin[:2], f"Damage grades: {Path(post_path).name}")
     if write_las:
         compress = Path(post_path).suffix.lower() == ".laz" if laz is None else laz
         graded = out / ("post_grades.laz" if compress else "post_grades.las")
@@ -308,6 +295,30 @@ def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=N
     write_text(out / "summary.json", json.dumps(summary, indent=1, default=_json_default))
     ckpt.path.unlink(missing_ok=True)
     return summary
+
+
+MAP_POINTS = 200_000  # pre-event points drawn under the damage map
+
+
+def map_step(n: int) -> int:
+    """Every k-th pre-event point is drawn under the damage map."""
+    return max(1, n // MAP_POINTS)
+
+
+def write_building_results(out: Path, res, classes, fp, outlines, crs, map_xy, title: str) -> None:
+    """buildings.csv, .geojson, .qml, damage_map.png and .html of graded buildings (also a
+    distributed run's, `quakescan.distributed`): `map_xy` the world x/y drawn under the map."""
+    from ..results import writers as results
+    from ..results.qgis_style import write_qml
+    from ..results.webmap import write_map_html
+
+    own = fp.own_ids() if fp is not None else None
+    results.write_csv(res, out / "buildings.csv", classes, own_ids=own)
+    attributes = (fp.attributes() or None) if fp is not None else None
+    results.write_geojson(res, outlines, out / "buildings.geojson", crs, classes, attributes)
+    write_qml(out / "buildings.qml")
+    results.write_map_png(res, outlines, out / "damage_map.png", title, points_xy=map_xy, crs=crs)
+    write_map_html(res, outlines, out / "damage_map.html", title, crs, classes, own_ids=own)
 
 
 def counts_by_grade_name(res) -> dict:
@@ -332,6 +343,7 @@ def counts_by_grade_name(res) -> dict:
 # held-out city): aligning those would move the data, not correct it.
 AUTO_ALIGN_SHARE_OF_LOD = 1.0
 CHECK_MAX_POINTS = 500_000  # stable points ICP sees for the check: a rigid transform needs few
+ALIGN_MAX_POINTS = 2_000_000  # and when asked to align
 
 
 def registration_tolerance_m(settings: PipelineSettings) -> float:
@@ -343,29 +355,49 @@ def registration_tolerance_m(settings: PipelineSettings) -> float:
 def _register(pre, post, settings: PipelineSettings, align: bool | None, summary: dict) -> dict:
     """Check (and, when asked or needed, apply) the rigid alignment of post to pre; moves
     post.xyz in place; returns what was done for the summary."""
-    from ..change.align import AlignmentError, align_epochs, format_alignment, stable_mask
+    from ..change.align import sample_mask, stable_mask
 
     if align is False:
         return {"mode": "off", "checked": False}
+    max_points = check_max_points(align)
+    samples = []
+    for e in (pre, post):
+        keep = stable_mask(e.classification, e.building_id) & sample_mask(np.arange(len(e)), len(e), max_points)
+        samples.append(e.xyz[keep])
+    return register_samples(samples[0], samples[1], post, settings, align, summary)
+
+
+def check_max_points(align: bool | None) -> int:
+    """How many stable points of each epoch the registration check samples."""
+    return CHECK_MAX_POINTS if align is None else ALIGN_MAX_POINTS
+
+
+def register_samples(pre_sample, post_sample, post, settings: PipelineSettings, align: bool | None, summary: dict,
+                     post_bounds=None) -> dict:
+    """`_register` on the epochs' sampled stable points (`sample_mask`): a streamed run
+    (`quakescan.distributed`) samples the same points chunk by chunk. Moves post.xyz when
+    the alignment is applied and `post` is an Epoch; returns the record."""
+    from ..change.align import AlignmentError, align_epochs, format_alignment
+
     mode = "on" if align else "auto"
     tolerance = registration_tolerance_m(settings)
+    pre_name, post_name = str(summary.get("pre", "the pre-event epoch")), str(summary.get("post", "the post-event epoch"))
     try:
-        a = align_epochs(pre.xyz, post.xyz, stable_mask(pre.classification, pre.building_id),
-                         stable_mask(post.classification, post.building_id),
-                         max_points=CHECK_MAX_POINTS if mode == "auto" else 2_000_000,
-                         pre_name=str(pre.source), post_name=str(post.source))
+        a = align_epochs(pre_sample, post_sample, np.ones(len(pre_sample), bool), np.ones(len(post_sample), bool),
+                         max_points=check_max_points(align), pre_name=pre_name, post_name=post_name)
     except AlignmentError as e:
         if mode == "on":
-            raise AlignmentError(f"--align: cannot align {post.source} to {pre.source}: {e}") from None
+            raise AlignmentError(f"--align: cannot align {post_name} to {pre_name}: {e}") from None
         log.warning("cannot check that the epochs are registered (%s); classifying them as they are: an offset "
                     "between them would read as damage", e)
         return {"mode": mode, "checked": False, "reason": str(e)}
-    offset = max_displacement_m(a, post.xyz)
+    offset = max_displacement_m(a, post.xyz if post_bounds is None else post_bounds)
     record = {"mode": mode, "checked": True, "offset_m": round(offset, 4), "tolerance_m": tolerance,
               "applied": False}
     needed = offset > tolerance and a.rmse_after_m < a.rmse_before_m
     if mode == "on" or needed:
-        post.xyz = a.apply(post.xyz)
+        if post is not None and post_bounds is None:
+            post.xyz = a.apply(post.xyz)
         summary["alignment"] = a.to_json()
         record["applied"] = True
         if mode == "auto":

@@ -252,6 +252,7 @@ def make_default_model(work: Path, output: Path, *, seed: int = 0, size: str = "
     stage_log.info(comparison_table(scores))
     stage_log.info(f"chosen: {config['name']}")
     model = fit_default_model(table, plan, config, scores, seed=seed, command=command, seconds_building=t_build)
+    model.provenance["size"] = size
     model.provenance["scenes"] = scenes
     model.provenance["damage"] = damage
     model.provenance["small_buildings"] = small

@@ -473,29 +473,56 @@ def write_grade_las(path, epoch_xyz, origin, crs: str | None, building_id,
     its attributes (classification, intensity, returns, GPS time, scan angle, point source,
     its extra dimensions) is kept, converted to format 7 as laspy converts formats. `.laz`
     output is compressed."""
-    import laspy
-
-    path = Path(path)
-    if path.suffix.lower() not in (".las", ".laz"):
-        raise ResultsError(f"{path}: output must end in .las or .laz")
+    path = _grade_las_path(path)
     xyz = np.asarray(epoch_xyz, dtype=np.float64).reshape(-1, 3)
     n = len(xyz)
-    origin = np.asarray(origin, dtype=np.float64)[:3]
     ids = np.zeros(n, np.int64) if building_id is None else np.asarray(building_id, dtype=np.int64)
     if len(ids) != n:
         raise ResultsError(f"{path}: {len(ids)} building IDs for {n} points")
-
-    id_type = np.uint32 if not n or ids.max() <= np.iinfo(np.uint32).max else np.uint64
     kept = _source_points(source, n, path)
+    extra = None if kept is None else [(name, kept.array[name].dtype) for name in kept.point_format.extra_dimension_names]
+    header = _grade_header(path, origin, crs, int(ids.max()) if n else 0, extra)
+    _write_grade_chunks(path, header, origin, grade_by_building, [(xyz, ids, kept)])
+
+
+def write_grade_las_streamed(path, chunks, origin, crs: str | None, grade_by_building: dict, *, max_id: int,
+                             source_extra_dims: list | None = None) -> None:
+    """`write_grade_las` of a cloud that arrives in chunks: (xyz local, building IDs, the
+    source's points of the chunk converted to point format 7 or None) each; `max_id` sets the
+    ID type; `source_extra_dims` [(name, dtype)] the source's extra dimensions to keep."""
+    path = _grade_las_path(path)
+    header = _grade_header(path, origin, crs, max_id, source_extra_dims)
+    _write_grade_chunks(path, header, origin, grade_by_building, chunks)
+
+
+def source_chunks_format7(reader, chunk_points: int):
+    """The points of an open laspy reader chunk by chunk, converted to point format 7 as
+    `write_grade_las` converts its source (whole degrees of a legacy scan angle kept)."""
+    import laspy
+
+    for chunk in reader.chunk_iterator(chunk_points):
+        yield chunk, _format7(laspy.LasData(header=reader.header, points=chunk.copy()))
+
+
+def _grade_las_path(path) -> Path:
+    path = Path(path)
+    if path.suffix.lower() not in (".las", ".laz"):
+        raise ResultsError(f"{path}: output must end in .las or .laz")
+    return path
+
+
+def _grade_header(path: Path, origin, crs, max_id: int, extra):
+    import laspy
+
+    id_type = np.uint32 if max_id <= np.iinfo(np.uint32).max else np.uint64
     header = laspy.LasHeader(point_format=7, version="1.4")
-    if kept is not None:
-        header.add_extra_dims([laspy.ExtraBytesParams(name=name, type=kept.array[name].dtype)
-                               for name in kept.point_format.extra_dimension_names
+    if extra:
+        header.add_extra_dims([laspy.ExtraBytesParams(name=name, type=dtype) for name, dtype in extra
                                if name not in ("building_id", "predicted_grade")])
     header.add_extra_dims([
         laspy.ExtraBytesParams(name="building_id", type=id_type, description="building ID, 0 = none"),
         laspy.ExtraBytesParams(name="predicted_grade", type=np.uint8, description="EMS-98 grade, 255 = n.a.")])
-    header.offsets = origin
+    header.offsets = np.asarray(origin, dtype=np.float64)[:3]
     header.scales = np.array([SCALE] * 3)
     header.creation_date = datetime.date.today()
     header.generating_software = "QuakeScan"
@@ -506,8 +533,48 @@ def write_grade_las(path, epoch_xyz, origin, crs: str | None, building_id,
             header.add_crs(pyproj.CRS.from_user_input(crs))
         except Exception as e:
             raise ResultsError(f"{path}: cannot write CRS {crs!r} to LAS: {e}") from None
+    return header
 
-    # grade and colour per point through a lookup over the unique IDs
+
+def _write_grade_chunks(path: Path, header, origin, grade_by_building: dict, chunks) -> None:
+    import laspy
+
+    origin = np.asarray(origin, dtype=np.float64)[:3]
+    compress = path.suffix.lower() == ".laz"
+    lim = np.iinfo(np.int32)
+    id_type = header.point_format.dimension_by_name("building_id").dtype
+    written = 0
+    with replacing(path) as tmp:
+        with laspy.open(tmp, mode="w", header=header, do_compress=compress) as w:
+            for xyz, ids, kept in chunks:
+                n = len(xyz)
+                if not n:
+                    continue
+                g, rgb = _grade_colours(ids, grade_by_building)
+                ints = np.rint(xyz / SCALE)
+                if ints.min() < lim.min or ints.max() > lim.max:
+                    raise ResultsError(f"{path}: coordinates lie more than 2 147 km from the offset {origin.tolist()}")
+                points = laspy.ScaleAwarePointRecord.zeros(n, header=header)
+                a = points.array
+                if kept is not None:  # every attribute of the input first; coordinates, colours and ours below
+                    for name in kept.array.dtype.names:
+                        if name in a.dtype.names and name not in ("X", "Y", "Z", "building_id", "predicted_grade"):
+                            a[name] = kept.array[name]
+                else:
+                    a["bit_fields"] = 1 | (1 << 4)  # return 1 of 1
+                a["X"], a["Y"], a["Z"] = ints[:, 0], ints[:, 1], ints[:, 2]
+                a["red"], a["green"], a["blue"] = rgb[:, 0], rgb[:, 1], rgb[:, 2]
+                a["building_id"] = np.maximum(ids, 0).astype(id_type)
+                a["predicted_grade"] = g
+                w.write_points(points)
+                written += n
+            if not written:  # laspy leaves an empty file's bounds at ±inf
+                w.header.mins = origin
+                w.header.maxs = origin
+
+
+def _grade_colours(ids: np.ndarray, grade_by_building: dict):
+    """Grade (uint8) and 16-bit RGB per point through a lookup over the unique IDs."""
     uniq, inv = np.unique(ids, return_inverse=True)
     g_u = np.full(len(uniq), GRADE_NONE, np.uint8)
     rgb_u = np.tile(np.array(_rgb8(BACKGROUND_COLOUR), np.uint16), (len(uniq), 1))
@@ -520,32 +587,7 @@ def write_grade_las(path, epoch_xyz, origin, crs: str | None, building_id,
             g_u[k] = int(g)
         rgb_u[k] = _rgb8(colour_of(g))
     rgb_u = rgb_u * 257
-
-    ints = np.rint(xyz / SCALE)
-    lim = np.iinfo(np.int32)
-    if n and (ints.min() < lim.min or ints.max() > lim.max):
-        raise ResultsError(f"{path}: coordinates lie more than 2 147 km from the offset {origin.tolist()}")
-    las = laspy.LasData(header)
-    las.points = laspy.ScaleAwarePointRecord.zeros(n, header=header)
-    a = las.points.array
-    if kept is not None:  # every attribute of the input first; coordinates, colours and ours below
-        for name in kept.array.dtype.names:
-            if name in a.dtype.names and name not in ("X", "Y", "Z", "building_id", "predicted_grade"):
-                a[name] = kept.array[name]
-    else:
-        a["bit_fields"] = 1 | (1 << 4)  # return 1 of 1
-    a["X"], a["Y"], a["Z"] = ints[:, 0], ints[:, 1], ints[:, 2]
-    a["red"], a["green"], a["blue"] = rgb_u[inv, 0], rgb_u[inv, 1], rgb_u[inv, 2]
-    a["building_id"] = np.maximum(ids, 0).astype(id_type)
-    a["predicted_grade"] = g_u[inv]
-    compress = path.suffix.lower() == ".laz"
-    with replacing(path) as tmp:
-        with laspy.open(tmp, mode="w", header=header, do_compress=compress) as w:
-            if n:
-                w.write_points(las.points)
-            else:  # laspy leaves an empty file's bounds at ±inf
-                w.header.mins = origin
-                w.header.maxs = origin
+    return g_u[inv], rgb_u[inv]
 
 
 def _source_points(source, n: int, path: Path):
@@ -557,6 +599,13 @@ def _source_points(source, n: int, path: Path):
     src = laspy.read(source)
     if len(src.points) != n:
         raise ResultsError(f"{path}: the source {source} has {len(src.points)} points, the epoch {n}")
+    return _format7(src)
+
+
+def _format7(src):
+    """The points of a LasData in point format 7."""
+    import laspy
+
     if src.point_format.id != 7:
         legacy = "scan_angle_rank" in src.point_format.dimension_names
         rank = np.asarray(src.scan_angle_rank, dtype=np.float64) if legacy else None
@@ -568,4 +617,4 @@ def _source_points(source, n: int, path: Path):
 
 __all__ = ["BACKGROUND_COLOUR", "BuildingResult", "GRADE_COLOURS", "GRADE_NONE", "NOT_ASSESSABLE",
            "NOT_ASSESSABLE_COLOUR", "Outline", "ResultsError", "building_outlines", "colour_of", "read_csv",
-           "write_csv", "write_geojson", "write_grade_las", "write_map_png"]
+           "write_csv", "write_geojson", "write_grade_las", "write_grade_las_streamed", "write_map_png"]
