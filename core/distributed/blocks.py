@@ -1,0 +1,312 @@
+"""An epoch streamed from its LAS/LAZ file into square blocks on disk, and read back by box.
+
+The tiling step of a distributed classification. The file is read in chunks (laspy's chunk
+iterator: memory holds one chunk, never the cloud), each point gets its building ID (the
+file's `building_id` or the footprint that holds it), and is appended to the file of its
+block: a square of `block_cells` density cells (1 m, `quakescan.change.surface.DENSITY_CELL_M`)
+in the pair's local frame. A block holds each point once; the halo a tile needs is read
+from the blocks around it when the tile is described, so one tiling serves every halo.
+
+A point is stored as its file's integers (X, Y, Z), its classification, building ID and its
+index in the file. Reading a box turns the integers into the same float64 coordinates
+`quakescan.formats.pointcloud.read_epoch` makes (integers × scale + (offset − origin), one
+operation per element) and sorts the points by their index: a worker sees exactly the
+values, in exactly the order, that a single process sees, so its descriptors are equal to
+the last bit.
+
+While streaming, the client keeps what needs the whole epoch and is small: per building its
+point count and x/y box, the epoch's bounds, the stable points the registration check
+samples (`quakescan.change.align.sample_mask`), every k-th point for the map, and the convex
+hull of each building's pre-event points (the outline of a building without a footprint).
+"""
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..change.surface import DENSITY_CELL_M
+from ..formats.pointcloud import PointCloudError
+
+# The stored point: the file's integers, so a float64 coordinate is made once, on reading
+RECORD = np.dtype([("index", "<i8"), ("X", "<i4"), ("Y", "<i4"), ("Z", "<i4"), ("classification", "u1"),
+                   ("building_id", "<i8")])
+CHUNK_POINTS = 2_000_000  # points per chunk read from a LAS/LAZ file: ~150 MB of arrays
+MAP_POINTS = 200_000  # points of the pre-event epoch drawn under the damage map (as classify does)
+
+
+@dataclass
+class EpochFile:
+    """What an epoch's header says: enough to make its coordinates without reading points."""
+
+    path: str
+    n: int
+    scales: list
+    offsets: list
+    mins: list
+    maxs: list
+    crs: str | None
+    dimensions: list
+
+    def local_xyz(self, X, Y, Z, origin) -> np.ndarray:
+        """float64 coordinates relative to `origin`, computed as `read_epoch` does."""
+        xyz = np.empty((len(X), 3))
+        for k, ints in enumerate((X, Y, Z)):
+            xyz[:, k] = np.asarray(ints, dtype=np.float64) * self.scales[k] + (self.offsets[k] - origin[k])
+        return xyz
+
+    def to_json(self) -> dict:
+        return dict(self.__dict__)
+
+
+def open_epoch_file(path) -> EpochFile:
+    """The header of a LAS/LAZ file, checked as `read_epoch` checks the whole file."""
+    import laspy
+
+    from ..formats.pointcloud import _crs_of
+
+    path = Path(path)
+    if path.is_dir():
+        raise PointCloudError(f"{path}: is a folder, not a LAS/LAZ point cloud file")
+    if not path.is_file():
+        raise PointCloudError(f"{path}: point cloud file does not exist")
+    try:
+        with laspy.open(path) as f:
+            h = f.header
+            return EpochFile(str(path), int(h.point_count), [float(v) for v in h.scales],
+                             [float(v) for v in h.offsets], [float(v) for v in h.mins], [float(v) for v in h.maxs],
+                             _crs_of(h, path), list(h.point_format.dimension_names))
+    except PointCloudError:
+        raise
+    except Exception as e:
+        raise PointCloudError(f"{path}: cannot read as LAS/LAZ ({e})") from None
+
+
+def default_origin(f: EpochFile) -> np.ndarray:
+    """The local frame `read_epoch` chooses for a file read first: its offset, or its
+    minimum corner (floored) when the offset is zero."""
+    origin = np.asarray(f.offsets, dtype=np.float64)
+    if not np.any(origin) and f.n:
+        origin = np.floor(np.asarray(f.mins, dtype=np.float64))
+    return origin
+
+
+@dataclass
+class EpochStats:
+    """What the client keeps of a streamed epoch."""
+
+    n: int = 0
+    counts: dict = field(default_factory=dict)  # building ID -> points
+    lo: dict = field(default_factory=dict)  # building ID -> (x, y) minimum, local frame
+    hi: dict = field(default_factory=dict)
+    bounds: list | None = None  # [[x, y, z] min, [x, y, z] max] of every point, local
+    blocks: list = field(default_factory=list)  # [bx, by] of the blocks holding points
+    stable_sample: np.ndarray | None = None  # (m, 3) local: the registration check's points
+    map_xy: np.ndarray | None = None  # (k, 2) local
+    hulls: dict = field(default_factory=dict)  # building ID -> (h, 2) hull vertices, world x/y
+
+    def to_json(self) -> dict:
+        return {"n": self.n, "counts": {str(k): v for k, v in self.counts.items()},
+                "lo": {str(k): list(v) for k, v in self.lo.items()},
+                "hi": {str(k): list(v) for k, v in self.hi.items()},
+                "bounds": self.bounds, "blocks": self.blocks}
+
+    @classmethod
+    def from_json(cls, d: dict, arrays: dict) -> EpochStats:
+        return cls(int(d["n"]), {int(k): int(v) for k, v in d["counts"].items()},
+                   {int(k): tuple(v) for k, v in d["lo"].items()}, {int(k): tuple(v) for k, v in d["hi"].items()},
+                   d["bounds"], [list(b) for b in d["blocks"]], arrays.get("stable_sample"), arrays.get("map_xy"),
+                   {int(k[5:]): v for k, v in arrays.items() if k.startswith("hull_")})
+
+
+def block_of(xy: np.ndarray, block_cells: int) -> np.ndarray:
+    """(n, 2) block indices of local x/y: the density cell (floored exactly as the density is
+    counted) divided by the block's cells, so a density cell never straddles two blocks."""
+    cells = np.floor(xy / DENSITY_CELL_M).astype(np.int64)
+    return cells // int(block_cells)
+
+
+def block_path(folder: Path, key) -> Path:
+    return Path(folder) / f"{int(key[0])}_{int(key[1])}.bin"
+
+
+class _Hulls:
+    """Each building's hull vertices in world x/y, grown chunk by chunk: the hull of a union
+    is the hull of the parts' hull vertices. shapely (GEOS) makes them, from world
+    coordinates made as `building_outlines` makes them, so the outline is the one a single
+    process draws from every point."""
+
+    def __init__(self, origin):
+        self.origin = np.asarray(origin, dtype=np.float64)[:2]
+        self.vertices: dict[int, np.ndarray] = {}
+
+    def add(self, ids: np.ndarray, xy: np.ndarray) -> None:
+        import shapely
+
+        order = np.argsort(ids, kind="stable")
+        u, starts = np.unique(ids[order], return_index=True)
+        ends = np.append(starts[1:], len(order))
+        for b, s, t in zip(u.tolist(), starts, ends):
+            if b <= 0:
+                continue
+            world = xy[order[s:t]] + self.origin
+            if b in self.vertices:
+                world = np.vstack([self.vertices[b], world])
+            hull = shapely.convex_hull(shapely.multipoints(world))
+            self.vertices[b] = shapely.get_coordinates(hull)  # a polygon's ring, a line or a point
+
+
+def stream_epoch(f: EpochFile, origin: np.ndarray, folder: Path, *, block_cells: int, footprints=None,
+                 with_hulls: bool = False, sample: tuple | None = None, map_step: int | None = None,
+                 chunk_points: int = CHUNK_POINTS, on_chunk=None) -> EpochStats:
+    """Write the epoch's points into block files under `folder` and return its EpochStats.
+
+    `footprints`: give building IDs by footprint (else the file's `building_id`);
+    `sample`: (n_total, max_points) of the registration check's sample (`sample_mask`);
+    `map_step`: keep every k-th point for the map; `with_hulls`: hull every building."""
+    import laspy
+
+    from ..change.align import sample_mask, stable_mask
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    for old in folder.glob("*.bin"):  # a cut earlier stream: its blocks would be appended to
+        old.unlink()
+    stats = EpochStats(n=0)
+    hulls = _Hulls(origin) if with_hulls else None
+    lo_all, hi_all = np.full(3, np.inf), np.full(3, -np.inf)
+    samples, maps, blocks = [], [], set()
+    if footprints is None and "building_id" not in f.dimensions:
+        raise PointCloudError(f"{f.path}: no building_id dimension; give building footprints "
+                              "(--footprints F.geojson in the clouds' CRS)")
+    try:
+        reader = laspy.open(f.path)
+    except Exception as e:
+        raise PointCloudError(f"{f.path}: cannot read as LAS/LAZ ({e})") from None
+    with reader:
+        start = 0
+        for chunk in reader.chunk_iterator(chunk_points):
+            X, Y, Z = (np.asarray(chunk.array[c]) for c in "XYZ")
+            n = len(X)
+            xyz = f.local_xyz(X, Y, Z, origin)
+            cls = np.asarray(chunk.classification, dtype=np.uint8)
+            if footprints is not None:
+                from ..formats.footprints import assign_buildings
+
+                ids = assign_buildings(xyz[:, 0] + origin[0], xyz[:, 1] + origin[1], footprints)
+            else:
+                ids = np.asarray(chunk["building_id"], dtype=np.int64)
+            index = np.arange(start, start + n, dtype=np.int64)
+            if n:
+                lo_all = np.minimum(lo_all, xyz.min(axis=0))
+                hi_all = np.maximum(hi_all, xyz.max(axis=0))
+            _add_building_stats(stats, ids, xyz[:, :2])
+            if hulls is not None:
+                hulls.add(ids, xyz[:, :2])
+            if sample is not None:
+                keep = stable_mask(cls, ids) & sample_mask(index, *sample)
+                samples.append(xyz[keep])
+            if map_step:
+                maps.append(xyz[index % map_step == 0, :2])
+            keys = block_of(xyz[:, :2], block_cells)
+            rec = np.empty(n, RECORD)
+            rec["index"], rec["X"], rec["Y"], rec["Z"] = index, X, Y, Z
+            rec["classification"], rec["building_id"] = cls, ids
+            _append_blocks(folder, keys, rec, blocks)
+            start += n
+            if on_chunk:
+                on_chunk(start, f.n)
+    stats.n = start
+    stats.bounds = [lo_all.tolist(), hi_all.tolist()] if start else None
+    stats.blocks = sorted([list(b) for b in blocks])
+    stats.stable_sample = np.vstack(samples) if samples else np.zeros((0, 3))
+    stats.map_xy = np.vstack(maps) if maps else np.zeros((0, 2))
+    stats.hulls = hulls.vertices if hulls is not None else {}
+    return stats
+
+
+def _add_building_stats(stats: EpochStats, ids: np.ndarray, xy: np.ndarray) -> None:
+    order = np.argsort(ids, kind="stable")
+    u, starts, counts = np.unique(ids[order], return_index=True, return_counts=True)
+    if not len(u):
+        return
+    s = xy[order]
+    lo = np.column_stack([np.minimum.reduceat(s[:, 0], starts), np.minimum.reduceat(s[:, 1], starts)])
+    hi = np.column_stack([np.maximum.reduceat(s[:, 0], starts), np.maximum.reduceat(s[:, 1], starts)])
+    for b, c, a, z in zip(u.tolist(), counts.tolist(), lo.tolist(), hi.tolist()):
+        if b <= 0:
+            continue
+        if b in stats.counts:
+            stats.counts[b] += c
+            pa, pz = stats.lo[b], stats.hi[b]
+            stats.lo[b] = (min(pa[0], a[0]), min(pa[1], a[1]))
+            stats.hi[b] = (max(pz[0], z[0]), max(pz[1], z[1]))
+        else:
+            stats.counts[b], stats.lo[b], stats.hi[b] = c, tuple(a), tuple(z)
+
+
+def _append_blocks(folder: Path, keys: np.ndarray, rec: np.ndarray, seen: set) -> None:
+    if not len(rec):
+        return
+    span = int(keys[:, 1].max() - keys[:, 1].min()) + 1
+    flat = (keys[:, 0] - keys[:, 0].min()) * span + (keys[:, 1] - keys[:, 1].min())
+    order = np.argsort(flat, kind="stable")  # a block's points stay in file order
+    u, starts = np.unique(flat[order], return_index=True)
+    ends = np.append(starts[1:], len(order))
+    for s, t in zip(starts, ends):
+        key = (int(keys[order[s], 0]), int(keys[order[s], 1]))
+        seen.add(key)
+        with open(block_path(folder, key), "ab") as out:
+            out.write(rec[order[s:t]].tobytes())
+
+
+def blocks_in_box(box: np.ndarray, block_cells: int) -> list[tuple[int, int]]:
+    """Every block that can hold a point of the x/y box ((2, 2): min, max; local frame)."""
+    a, b = block_of(np.asarray(box, dtype=np.float64), block_cells)
+    return [(i, j) for i in range(int(a[0]), int(b[0]) + 1) for j in range(int(a[1]), int(b[1]) + 1)]
+
+
+def read_records(folder: Path, keys) -> np.ndarray:
+    """The stored points of the given blocks, in file order (their `index` ascending)."""
+    parts = []
+    for key in keys:
+        p = block_path(folder, key)
+        if p.is_file():
+            parts.append(np.fromfile(p, dtype=RECORD))
+    rec = np.concatenate(parts) if parts else np.zeros(0, RECORD)
+    return rec[np.argsort(rec["index"], kind="stable")]
+
+
+def write_manifest(path: Path, d: dict) -> None:
+    from ..runtime.atomic import write_text
+
+    write_text(path, json.dumps(d))
+
+
+def read_manifest(path: Path) -> dict | None:
+    try:
+        return json.loads(Path(path).read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def save_arrays(path: Path, arrays: dict) -> None:
+    """The stats' arrays next to the manifest, written under a temporary name."""
+    tmp = Path(str(path) + ".part.npz")
+    np.savez(tmp, **arrays)
+    os.replace(tmp, path)
+
+
+def folder_size_bytes(folder: Path) -> int:
+    return sum(p.stat().st_size for p in Path(folder).glob("*.bin"))
+
+
+def block_m(block_cells: int) -> float:
+    return float(block_cells) * DENSITY_CELL_M
+
+
+__all__ = ["CHUNK_POINTS", "EpochFile", "EpochStats", "RECORD", "block_of", "blocks_in_box", "default_origin",
+           "open_epoch_file", "read_records", "stream_epoch"]

@@ -1,0 +1,181 @@
+"""What a Dask worker runs: one block's roof-cell counts, one tile's building rows.
+
+Plain functions of plain arguments (paths, lists, dicts, settings as JSON): a task pickles
+in a few hundred bytes and a worker reads its points from the block files itself, so no
+point cloud ever travels through the scheduler.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..change.surface import DENSITY_CELL_M, ROOF_BAND_M
+from .blocks import EpochFile, blocks_in_box, read_records
+
+# the eight neighbours a roof cell needs occupied to count as interior (roof_cell_density)
+NEIGHBOURS = [(dx, dy) for dx in (-1, 0, 1) for dy in (-1, 0, 1) if dx or dy]
+
+
+class TileReachError(Exception):
+    """A tile's descriptors read points beyond the halo it was given (a nearest post-event
+    point farther than the halo): the client describes the tile again with `needed_m`."""
+
+    def __init__(self, needed_m: float):
+        super().__init__(f"the tile's descriptors reach {needed_m:.1f} m beyond its buildings")
+        self.needed_m = float(needed_m)
+
+
+def block_roof_cells(folder: str, key, block_cells: int, building_only: bool = True, transform=None) -> dict:
+    """One block's share of `quakescan.change.surface.planimetric_density`.
+
+    Per density cell of the block (its points with a building ID, or all points): the
+    number of points within ROOF_BAND_M of the cell's highest one. Cells whose eight
+    neighbours lie in the block are decided here (a histogram of the interior cells'
+    counts); cells on the block's edge are returned with the neighbours the block cannot
+    see, for the client to decide (`merge_roof_cells`)."""
+    key = (int(key[0]), int(key[1]))
+    if transform is None:
+        rec = read_records(Path(folder), [key])
+    else:  # the alignment moves points across block edges (by less than a block): read the ring too
+        rec = read_records(Path(folder), [(key[0] + dx, key[1] + dy) for dx in (-1, 0, 1) for dy in (-1, 0, 1)])
+    if building_only:
+        rec = rec[rec["building_id"] > 0]
+    out = {"key": list(key), "hist": {}, "edge": [], "sum": 0, "cells": 0}
+    f = EpochFile(**_epoch_file_args(folder))
+    xyz = f.local_xyz(rec["X"], rec["Y"], rec["Z"], np.asarray(_origin(folder)))
+    if transform is not None:
+        from ..change.align import apply_transform
+        from .blocks import block_of
+
+        xyz = apply_transform(transform, xyz)
+        xyz = xyz[np.all(block_of(xyz[:, :2], block_cells) == np.asarray(key), axis=1)]
+    if not len(xyz):
+        return out
+    cells = np.floor(xyz[:, :2] / DENSITY_CELL_M).astype(np.int64)
+    lo = cells.min(axis=0) - 1
+    span = int(cells[:, 1].max() - lo[1]) + 2
+    keys, inverse = np.unique((cells[:, 0] - lo[0]) * span + (cells[:, 1] - lo[1]), return_inverse=True)
+    top = np.full(len(keys), -np.inf)
+    np.maximum.at(top, inverse, xyz[:, 2])
+    counts = np.bincount(inverse[xyz[:, 2] >= top[inverse] - ROOF_BAND_M], minlength=len(keys))
+    ci, cj = keys // span + lo[0], keys % span + lo[1]
+    b0 = np.asarray(key, dtype=np.int64) * int(block_cells)
+    b1 = b0 + int(block_cells) - 1
+    occupied = set(zip(ci.tolist(), cj.tolist()))
+    hist: dict[int, int] = {}
+    for i, j, c in zip(ci.tolist(), cj.tolist(), counts.tolist()):
+        outside = []
+        inside_ok = True
+        for dx, dy in NEIGHBOURS:
+            ni, nj = i + dx, j + dy
+            if b0[0] <= ni <= b1[0] and b0[1] <= nj <= b1[1]:
+                if (ni, nj) not in occupied:
+                    inside_ok = False
+                    break
+            else:
+                outside.append((ni, nj))
+        if not inside_ok:
+            continue
+        if outside:
+            out["edge"].append([i, j, c, outside])
+        else:
+            hist[c] = hist.get(c, 0) + 1
+    out["hist"] = hist
+    out["sum"], out["cells"] = int(counts.sum()), int(len(counts))
+    out["occupied_edge"] = [[i, j] for i, j in zip(ci.tolist(), cj.tolist())
+                            if i in (b0[0], b1[0]) or j in (b0[1], b1[1])]
+    return out
+
+
+def merge_roof_cells(parts: list[dict]) -> float:
+    """The epoch's planimetric density from every block's `block_roof_cells`: equal to
+    `planimetric_density` of the whole epoch (the interquartile mean of integer counts is
+    the same whatever order they come in; their sum is exact in float64)."""
+    from scipy.stats import trim_mean
+
+    occupied = set()
+    for p in parts:
+        occupied.update((i, j) for i, j in p.get("occupied_edge", []))
+    hist: dict[int, int] = {}
+    for p in parts:
+        for c, k in p["hist"].items():
+            hist[int(c)] = hist.get(int(c), 0) + int(k)
+        for i, j, c, outside in p["edge"]:
+            if all((a, b) in occupied for a, b in outside):
+                hist[int(c)] = hist.get(int(c), 0) + 1
+    if hist:
+        values = np.repeat(np.array(sorted(hist), dtype=np.int64), [hist[c] for c in sorted(hist)])
+        return float(trim_mean(values, 0.25)) / DENSITY_CELL_M ** 2
+    cells = sum(p["cells"] for p in parts)
+    if not cells:
+        return 0.0
+    # np.mean of integer counts, as planimetric_density takes it: an exact sum over the cells
+    return float(sum(p["sum"] for p in parts) / cells) / DENSITY_CELL_M ** 2
+
+
+def describe_tile_task(store: str, tile: dict, settings_json: dict, geometry: dict | None, alignment: list | None,
+                       threads: int = 1) -> dict:
+    """The rows of one tile's buildings, read from the block files of both epochs.
+
+    `tile`: {"bids": [...], "box": [[x, y], [x, y]] the x/y box of everything the tile's
+    buildings' descriptors may read, "block_cells": int}. Raises TileReachError when a
+    nearest post-event point lies beyond the box (the client widens it and asks again)."""
+    from ..change.pipeline import PipelineSettings, describe_tile
+    from ..change.surface import SurfaceGeometry
+    from ..formats.pointcloud import Epoch
+
+    settings = PipelineSettings.from_json(settings_json)
+    box = np.asarray(tile["box"], dtype=np.float64)
+    epochs = []
+    for name in ("pre", "post"):
+        folder = Path(store) / name
+        f = EpochFile(**_epoch_file_args(folder))
+        origin = np.asarray(_origin(folder))
+        grow = float(tile.get("read_margin", 0.0)) if name == "post" else 0.0  # alignment moves points this far
+        rec = read_records(folder, blocks_in_box(box + np.array([[-grow], [grow]]), int(tile["block_cells"])))
+        xyz = f.local_xyz(rec["X"], rec["Y"], rec["Z"], origin)
+        if name == "post" and alignment is not None:
+            from ..change.align import apply_transform
+
+            xyz = apply_transform(alignment, xyz)
+        inside = np.all((xyz[:, :2] >= box[0]) & (xyz[:, :2] <= box[1]), axis=1)
+        epochs.append(Epoch(xyz[inside], origin, rec["classification"][inside],
+                            building_id=rec["building_id"][inside], source=f.path))
+    pre, post = epochs
+    geom = None if geometry is None else SurfaceGeometry(**geometry)
+    reach: dict = {}
+    rows = describe_tile(pre, post, tile["bids"], settings, geom, workers=threads, reach=reach)
+    _check_reach(reach, box, settings, tile.get("whole_post_box"))
+    return {"key": tile["key"], "rows": rows}
+
+
+def _check_reach(reach: dict, box: np.ndarray, settings, whole_post_box) -> None:
+    """The paper's descriptors map each query point to its nearest post-event point and read
+    that point's neighbourhood: both must lie inside the box, or the tile is described again."""
+    if not reach:
+        return
+    if whole_post_box is not None:
+        w = np.asarray(whole_post_box, dtype=np.float64)
+        if np.all(box[0] <= w[0]) and np.all(box[1] >= w[1]):
+            return  # the box holds the whole post-event epoch: nothing lies beyond it
+    q_lo, q_hi = np.asarray(reach["queries_box"][0]), np.asarray(reach["queries_box"][1])
+    clearance = float(min((q_lo - box[0]).min(), (box[1] - q_hi).min()))
+    needed = reach["max_distance_m"] + 1.0001 * settings.radius_m
+    if needed > clearance:
+        raise TileReachError(needed)
+
+
+def _epoch_file_args(folder) -> dict:
+    import json
+
+    return json.loads((Path(folder) / "epoch.json").read_text())["file"]
+
+
+def _origin(folder) -> list:
+    import json
+
+    return json.loads((Path(folder) / "epoch.json").read_text())["origin"]
+
+
+__all__ = ["TileReachError", "block_roof_cells", "describe_tile_task", "merge_roof_cells"]
