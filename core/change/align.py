@@ -224,7 +224,10 @@ def align_epochs(pre_xyz, post_xyz, pre_stable, post_stable, max_distance_m: flo
         raise AlignmentError(f"{post_name}: epochs do not overlap within max_distance {max_distance_m} m: "
                              f"no stable point of it lies that close to {pre_name}'s "
                              f"({n_post} and {n_pre} stable points)")
-    t_c = np.asarray(result.transformation, dtype=np.float64)
+    # open3d sums over threads: two runs on the same points differ in the last bits (7.6e-19
+    # measured). Rounded to 1e-12 (a nanometre at a kilometre) every run moves the points alike,
+    # so a rerun, or a distributed run, writes the same results.
+    t_c = np.round(np.asarray(result.transformation, dtype=np.float64), 12)
 
     # quality on the full-resolution (subsampled) points, before and after
     down_pts = np.asarray(target.points)

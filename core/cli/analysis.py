@@ -93,10 +93,13 @@ def cmd_classify(args) -> int:
     from ..learning.classification import classify
 
     check_threads(args.threads)
-    summary = classify(args.pre, args.post, args.output, model_path=args.model, footprints_path=args.footprints,
-                       id_field=args.id_field, align=args.align, workers=args.threads,
-                       progress=reporter(args, "classify"),
-                       write_las=not args.no_las, laz=args.laz, force=args.force)
+    if args.workers is not None or args.scheduler:
+        summary = _classify_on_dask(args)
+    else:
+        summary = classify(args.pre, args.post, args.output, model_path=args.model, footprints_path=args.footprints,
+                           id_field=args.id_field, align=args.align, workers=args.threads,
+                           progress=reporter(args, "classify"),
+                           write_las=not args.no_las, laz=args.laz, force=args.force)
     if summary.get("up_to_date"):
         print(f"{args.output}: up to date (same inputs, model and options); --force recomputes")
         return 0
@@ -116,6 +119,23 @@ def cmd_classify(args) -> int:
           f"{out / 'damage_map.png'}, {out / 'damage_map.html'} (opens offline)"
           + (f", {summary['post_grades']}" if "post_grades" in summary else ""))
     return 0
+
+
+def _classify_on_dask(args) -> dict:
+    """classify with its tiles as Dask tasks: a LocalCluster of --workers processes, or the
+    cluster of --scheduler; the dashboard's address printed before the work starts."""
+    from ..distributed.classify import classify_distributed, dashboard_address, dask_client
+
+    with dask_client(workers=args.workers, scheduler=args.scheduler, memory_limit=args.memory_limit) as client:
+        where = f"scheduler {args.scheduler}" if args.scheduler else f"a LocalCluster of {args.workers} workers"
+        board = dashboard_address(client)
+        print(f"Dask: {where}" + (f"; dashboard {board}" if board else ""), flush=True)
+        return classify_distributed(args.pre, args.post, args.output, client, model_path=args.model,
+                                    footprints_path=args.footprints, id_field=args.id_field, align=args.align,
+                                    progress=reporter(args, "classify"), write_las=not args.no_las, laz=args.laz,
+                                    force=args.force,
+                                    on_stage=lambda name: print(f"classify: {name}", flush=True)
+                                    if args.progress else None)
 
 
 def cmd_evaluate(args) -> int:
@@ -189,6 +209,14 @@ def add_classify(sub) -> None:
     cl.add_argument("--laz", action="store_const", const=True, default=None,
                     help="compress the per-point grades (post_grades.laz); default: as the post-event file is")
     cl.add_argument("--threads", type=int, default=EVERY_CORE, help=THREADS_HELP)
+    dask = cl.add_mutually_exclusive_group()
+    dask.add_argument("--workers", type=int, metavar="N",
+                      help="describe the tiles as Dask tasks on a LocalCluster of N single-threaded worker processes "
+                      "(the same results as without; the inputs are streamed to OUT_DIR/.blocks, never loaded whole)")
+    dask.add_argument("--scheduler", metavar="ADDRESS",
+                      help="the same on an existing Dask cluster (tcp://host:8786; its workers must reach OUT_DIR)")
+    cl.add_argument("--memory-limit", default="auto",
+                    help="memory per LocalCluster worker (e.g. 4GB; default: the machine's memory shared out)")
     cl.add_argument("--progress", action="store_true", help=PROGRESS_HELP)
     cl.add_argument("-o", "--output", required=True, help="output folder")
     cl.set_defaults(func=cmd_classify)

@@ -137,8 +137,8 @@ def classify_distributed(pre_path, post_path, out_dir, client, *, model_path=Non
     stage("densities")
     geometry = _pair_geometry(client, store, pre_s, post_s, settings, block_cells, transform)
     stage("tiles")
-    rows = _describe_tiles(client, store, pre_s, post_s, settings, geometry, block_cells, transform, shift,
-                           out, run_fp.digest, progress)
+    rows, resumed, widened = _describe_tiles(client, store, pre_s, post_s, settings, geometry, block_cells,
+                                             transform, shift, out, run_fp.digest, progress)
     if fp is not None:
         hit = set(pre_s.counts) | set(post_s.counts)
         rows += [cl.BuildingRow(int(b), 0, 0, False, "no point inside the footprint")
@@ -164,11 +164,12 @@ def classify_distributed(pre_path, post_path, out_dir, client, *, model_path=Non
     for r in res:
         counts[r.label] = counts.get(r.label, 0) + 1
     summary.update({"buildings": len(res), "by_label": counts, "by_grade_name": cl.counts_by_grade_name(res),
-                    "resumed_buildings": summary.pop("_resumed", 0),
+                    "resumed_buildings": resumed,
                     "seconds": {"read": round(t_read - t0, 2), "describe": round(t_describe - t_read, 2),
                                 "total": round(time.perf_counter() - t0, 2)},
                     "dask": {"workers": len(client.scheduler_info().get("workers", {})),
-                             "dashboard": dashboard_address(client), "block_m": bk.block_m(block_cells)}})
+                             "dashboard": dashboard_address(client), "block_m": bk.block_m(block_cells),
+                             "tiles_widened": widened}})
     summary["fingerprint"] = run_fp.digest
     summary["options"] = options
     from ..runtime.atomic import write_text
@@ -290,7 +291,7 @@ def _describe_tiles(client, store, pre_s, post_s, settings, geometry, block_cell
                 "block_cells": block_cells, "read_margin": shift,
                 "whole_post_box": None if post_box is None else post_box.tolist()}
 
-    futures = {}
+    futures, widened = {}, 0
     for key in sorted(tiles):
         bids = tiles[key]
         if all(b in ckpt.rows for b in bids):
@@ -316,6 +317,7 @@ def _describe_tiles(client, store, pre_s, post_s, settings, geometry, block_cell
                                   1, pure=False)
             futures[again] = wider
             queue.add(again)
+            widened += 1
             continue
         tile_rows = result["rows"]
         for r in tile_rows:
@@ -327,7 +329,7 @@ def _describe_tiles(client, store, pre_s, post_s, settings, geometry, block_cell
             progress(finished, total)
     if resumed:
         log.warning("%s: resuming, %d buildings already described", out, resumed)
-    return [quality_gate(rows[b], settings) for b in sorted(rows)]
+    return [quality_gate(rows[b], settings) for b in sorted(rows)], resumed, widened
 
 
 def _halo(settings, geometry) -> float:

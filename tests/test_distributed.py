@@ -1,0 +1,220 @@
+"""classify as Dask tasks (`quakescan.distributed`): the same files as one process, byte for
+byte, on a 2-worker LocalCluster; a worker killed mid-task; an interrupted client resumed."""
+import filecmp
+import os
+from pathlib import Path
+
+import laspy
+import numpy as np
+import pytest
+
+from quakescan.learning.classification import DEFAULT_MODEL, classify
+from quakescan.learning.model import load_model, save_model
+from tests.scenes import scan_box_pair
+
+distributed = pytest.importorskip("distributed")
+slow = pytest.mark.slow  # a LocalCluster starts in seconds; each run classifies the box city twice
+
+SAME_FILES = ["buildings.csv", "buildings.geojson", "buildings.qml", "damage_map.html"]
+BLOCK_CELLS = 7  # 7 m blocks: every building and tile spans several, so block edges are crossed everywhere
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0",
+                                  memory_limit="2GB") as c, distributed.Client(c) as client:
+        yield client
+
+
+@pytest.fixture(scope="module")
+def pair(tmp_path_factory):
+    """The box city (buildings 2 and 4 collapsed) and the shipped model with 25 m tiles: six
+    tiles, one per building (the street pitch is 22 m)."""
+    d = tmp_path_factory.mktemp("dask_pair")
+    scan_box_pair(d, (9.0, 4.0, 9.0, 3.0, 9.0, 12.0))
+    m = load_model(DEFAULT_MODEL)
+    m.split = {**m.split, "tile_m": 25.0}
+    save_model(m, d / "model.skops")
+    return d
+
+
+def _same_outputs(a: Path, b: Path, las: str | None = "post_grades.las"):
+    for name in SAME_FILES:
+        assert filecmp.cmp(a / name, b / name, shallow=False), name
+    if las:
+        x, y = laspy.read(a / las), laspy.read(b / las)
+        assert x.header.point_count == y.header.point_count
+        for dim in x.points.array.dtype.names:
+            np.testing.assert_array_equal(x.points.array[dim], y.points.array[dim], err_msg=dim)
+
+
+def _run(pair, out, client, **kw):
+    from quakescan.distributed.classify import classify_distributed
+
+    return classify_distributed(pair / "pre.las", pair / "post.las", out, client, model_path=pair / "model.skops",
+                                block_cells=BLOCK_CELLS, chunk_points=50_000, **kw)
+
+
+@pytest.fixture(scope="module")
+def single(pair, tmp_path_factory):
+    out = tmp_path_factory.mktemp("single")
+    summary = classify(pair / "pre.las", pair / "post.las", out, model_path=pair / "model.skops")
+    return out, summary
+
+
+@slow
+def test_two_workers_write_the_files_one_process_writes(pair, single, cluster, tmp_path):
+    out, s1 = single
+    s2 = _run(pair, tmp_path / "dask", cluster)
+    _same_outputs(out, tmp_path / "dask")
+    assert s2["dask"]["workers"] == 2 and s2["points"] == s1["points"]
+    assert s2["registration"] == s1["registration"]
+    assert not (tmp_path / "dask" / ".blocks").exists()  # the blocks go when the results are written
+    rows = (out / "buildings.csv").read_text().splitlines()
+    assert len(rows) == 7  # six buildings, described, not all "not assessable"
+    assert sum(",model," in r or ",no change," in r for r in rows) >= 4
+
+
+@slow
+def test_an_offset_post_epoch_is_aligned_as_one_process_aligns_it(pair, cluster, tmp_path):
+    """0.5 m up (the flat ground shows a vertical offset, not a horizontal one): beyond the
+    model's tolerance, so both runs align it; the workers move the points and count the
+    densities in the moved frame."""
+    las = laspy.read(pair / "post.las")
+    las.z = np.asarray(las.z) + 0.5
+    las.write(tmp_path / "post_shifted.las")
+    single = classify(pair / "pre.las", tmp_path / "post_shifted.las", tmp_path / "single",
+                      model_path=pair / "model.skops")
+    assert single["registration"]["applied"]
+    from quakescan.distributed.classify import classify_distributed
+
+    dask = classify_distributed(pair / "pre.las", tmp_path / "post_shifted.las", tmp_path / "dask", cluster,
+                                model_path=pair / "model.skops", block_cells=BLOCK_CELLS, chunk_points=50_000)
+    assert dask["alignment"]["transform"] == single["alignment"]["transform"]  # ICP rounded: the same in every run
+    assert dask["alignment"]["rmse_after_m"] == pytest.approx(single["alignment"]["rmse_after_m"], rel=1e-9)
+    _same_outputs(tmp_path / "single", tmp_path / "dask")
+
+
+class _DieOnce(distributed.WorkerPlugin):
+    """Kills its worker's process the first time any worker starts a tile task (a marker
+    file makes it once across processes): the nanny starts a new worker and the scheduler
+    gives the lost task to a live one."""
+
+    def __init__(self, marker: str):
+        self.marker = marker
+
+    def setup(self, worker):
+        self.worker = worker
+
+    def transition(self, key, start, finish, **kwargs):
+        name = key if isinstance(key, str) else str(key)
+        if finish == "executing" and name.startswith("tile-") and not os.path.exists(self.marker):
+            Path(self.marker).write_text(str(os.getpid()))
+            os._exit(1)
+
+
+@slow
+def test_a_worker_killed_mid_task_has_its_tile_redone_and_the_result_is_the_same(pair, single, tmp_path):
+    marker = tmp_path / "killed"
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0",
+                                  memory_limit="2GB") as c, distributed.Client(c) as client:
+        pids = set(client.run(os.getpid).values())
+        client.register_plugin(_DieOnce(str(marker)))
+        _run(pair, tmp_path / "dask", client)
+        assert marker.is_file() and int(marker.read_text()) in pids  # a worker did die mid-task
+    _same_outputs(single[0], tmp_path / "dask")
+
+
+@slow
+def test_an_interrupted_client_resumes_from_its_finished_tiles_and_blocks(pair, single, cluster, tmp_path,
+                                                                         monkeypatch):
+    from quakescan.distributed import blocks
+
+    out = tmp_path / "dask"
+    calls = []
+
+    def stop_after_two(done, total):
+        calls.append(done)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        _run(pair, out, cluster, progress=stop_after_two)
+    assert (out / ".blocks" / "manifest.json").is_file() and (out / ".checkpoint.jsonl").is_file()
+
+    def no_streaming(*a, **k):
+        raise AssertionError("the blocks of the interrupted run are valid: no streaming again")
+
+    monkeypatch.setattr(blocks, "stream_epoch", no_streaming)
+    summary = _run(pair, out, cluster)
+    assert summary["resumed_buildings"] >= 2
+    _same_outputs(single[0], out)
+
+
+@slow
+def test_a_paper_descriptor_tile_whose_nearest_points_lie_beyond_its_halo_is_widened(tmp_path, cluster):
+    """Building 2 loses all but a 2 m strip at one end: its query points' nearest post-event
+    points lie up to ~12 m away, beyond the first halo (radius + 10 m) from the far end."""
+    from quakescan.change.pipeline import PipelineSettings
+    from quakescan.distributed.classify import classify_distributed
+    from quakescan.learning.training import TrainingPair, train
+
+    scan_box_pair(tmp_path, (9.0, 4.0, 9.0, 3.0, 9.0, 12.0))
+    post = laspy.read(tmp_path / "post.las")
+    ids = np.asarray(post["building_id"])
+    b2 = ids == 2
+    x = np.asarray(post.x)
+    strip = b2 & (x <= x[b2].min() + 2.0)
+    post.points = post.points[~b2 | strip]
+    post.write(tmp_path / "post_strip.las")
+    model, _, _ = train([TrainingPair(str(tmp_path / "pre.las"), str(tmp_path / "post.las"))],
+                        PipelineSettings(tile_m=25.0), n_estimators=5, test_size=0.0)
+    save_model(model, tmp_path / "paper.skops")
+    single = classify(tmp_path / "pre.las", tmp_path / "post_strip.las", tmp_path / "single",
+                      model_path=tmp_path / "paper.skops", write_las=False)
+    dask = classify_distributed(tmp_path / "pre.las", tmp_path / "post_strip.las", tmp_path / "dask", cluster,
+                                model_path=tmp_path / "paper.skops", block_cells=BLOCK_CELLS, write_las=False)
+    assert dask["dask"]["tiles_widened"] >= 1
+    _same_outputs(tmp_path / "single", tmp_path / "dask", las=None)
+    assert single["buildings"] == dask["buildings"] == 6
+
+
+@slow
+def test_the_cli_runs_on_a_local_cluster_and_names_its_dashboard(pair, single, tmp_path, capsys):
+    from quakescan.cli import main
+
+    out = tmp_path / "cli"
+    assert main(["classify", "--pre", str(pair / "pre.las"), "--post", str(pair / "post.las"), "--model",
+                 str(pair / "model.skops"), "--workers", "2", "--memory-limit", "1GB", "-o", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "Dask: a LocalCluster of 2 workers; dashboard http" in printed
+    _same_outputs(single[0], out)
+
+
+@slow
+def test_bad_cluster_options_are_named(tmp_path, pair, capsys):
+    from quakescan.cli import main
+
+    args = ["classify", "--pre", str(pair / "pre.las"), "--post", str(pair / "post.las"), "-o", str(tmp_path / "o")]
+    assert main(args + ["--workers", "0"]) != 0
+    assert "--workers must be at least 1, got 0" in capsys.readouterr().err
+    assert main(args + ["--scheduler", "tcp://127.0.0.1:9"]) != 0
+    assert "--scheduler tcp://127.0.0.1:9: cannot reach the Dask scheduler" in capsys.readouterr().err
+
+
+def test_blocks_hold_every_point_once_and_read_back_in_file_order(pair, tmp_path):
+    from quakescan.distributed import blocks
+
+    f = blocks.open_epoch_file(pair / "pre.las")
+    origin = blocks.default_origin(f)
+    stats = blocks.stream_epoch(f, origin, tmp_path / "pre", block_cells=BLOCK_CELLS, chunk_points=33_333)
+    rec = blocks.read_records(tmp_path / "pre", [tuple(k) for k in stats.blocks])
+    np.testing.assert_array_equal(rec["index"], np.arange(f.n))
+    from quakescan.formats.pointcloud import read_epoch
+
+    e = read_epoch(pair / "pre.las")
+    np.testing.assert_array_equal(f.local_xyz(rec["X"], rec["Y"], rec["Z"], origin), e.xyz)
+    np.testing.assert_array_equal(rec["building_id"], e.building_id)
+    ids, counts = np.unique(e.building_id[e.building_id > 0], return_counts=True)
+    assert stats.counts == dict(zip(ids.tolist(), counts.tolist()))
+    assert stats.n == f.n
