@@ -163,7 +163,9 @@ def _generic_shell(rng, typ):
 def _extent(shell, rot):
     p = np.asarray(shell["footprint"], dtype=float)
     c, s = math.cos(rot), math.sin(rot)
-    q = p @ np.array([[c, s], [-s, c]])
+    # element by element, not `p @ rotation`: a BLAS kernel with fused multiply-add rounds the
+    # last bit differently, so the same seed drew other extents on another processor
+    q = np.column_stack([p[:, 0] * c + p[:, 1] * -s, p[:, 0] * s + p[:, 1] * c])
     return q.min(axis=0), q.max(axis=0)
 
 
