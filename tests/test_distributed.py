@@ -218,3 +218,45 @@ def test_blocks_hold_every_point_once_and_read_back_in_file_order(pair, tmp_path
     ids, counts = np.unique(e.building_id[e.building_id > 0], return_counts=True)
     assert stats.counts == dict(zip(ids.tolist(), counts.tolist()))
     assert stats.n == f.n
+
+
+def test_a_tile_over_the_memory_budget_is_split_into_quarters_by_building_centre():
+    from quakescan.distributed.classify import MAX_SPLIT_DEPTH, split_tile
+
+    # a 100 m tile (1, 2) holding four buildings, one in each quarter, and 100 bytes a building
+    centres = {1: (110.0, 210.0), 2: (160.0, 210.0), 3: (110.0, 260.0), 4: (190.0, 290.0)}
+
+    def estimate(key, bids):
+        return 100.0 * len(bids)
+
+    assert split_tile((1, 2), [1, 2, 3, 4], centres.get, 100.0, estimate, 400.0) == [((1, 2), [1, 2, 3, 4])]
+    assert split_tile((1, 2), [1, 2, 3, 4], centres.get, 100.0, estimate, 250.0) == [
+        ((1, 2, 0, 0), [1]), ((1, 2, 0, 1), [3]), ((1, 2, 1, 0), [2]), ((1, 2, 1, 1), [4])]
+    # two buildings in one quarter: only that quarter is split again, into its own quarters
+    centres[2] = (135.0, 215.0)
+    parts = split_tile((1, 2), [1, 2, 3, 4], centres.get, 100.0, estimate, 150.0)
+    assert parts == [((1, 2, 0, 0, 0, 0), [1]), ((1, 2, 0, 0, 1, 0), [2]), ((1, 2, 0, 1), [3]), ((1, 2, 1, 1), [4])]
+    assert sorted(b for _, bids in parts for b in bids) == [1, 2, 3, 4]  # every building in exactly one part
+    # buildings sharing one centre cannot be parted: the split stops at its depth limit
+    same = split_tile((1, 2), [5, 6], lambda b: (150.0, 250.0), 100.0, estimate, 50.0)
+    assert len(same) == 1 and same[0][1] == [5, 6] and len(same[0][0]) == 2 + 2 * MAX_SPLIT_DEPTH
+
+
+@slow
+def test_tiles_too_large_for_the_workers_memory_are_split_and_give_the_same_files(tmp_path, monkeypatch):
+    """The shipped model's 150 m tiles hold all six buildings of the box city together; with a
+    per-point cost that puts every tile over a 1 GB worker's budget the client splits them down
+    to one building a task, and the files are those of one process with whole tiles."""
+    from quakescan.distributed import classify as dc
+
+    scan_box_pair(tmp_path, (9.0, 4.0, 9.0, 3.0, 9.0, 12.0))
+    single = classify(tmp_path / "pre.las", tmp_path / "post.las", tmp_path / "single")
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0",
+                                  memory_limit="1GB") as c, distributed.Client(c) as client:
+        assert dc.tile_memory_budget(client) == pytest.approx(dc.TILE_MEMORY_SHARE * 1e9, rel=0.01)
+        monkeypatch.setattr(dc, "DESCRIBE_BYTES_PER_POINT", 10 ** 6)  # every tile over the budget
+        summary = dc.classify_distributed(tmp_path / "pre.las", tmp_path / "post.las", tmp_path / "dask", client,
+                                          block_cells=BLOCK_CELLS, chunk_points=50_000)
+    assert summary["dask"]["tiles_split"] >= 4
+    assert summary["buildings"] == single["buildings"] == 6
+    _same_outputs(tmp_path / "single", tmp_path / "dask")

@@ -465,14 +465,17 @@ def tile_key(lo_xy, hi_xy, tile_m: float) -> tuple[int, int]:
 
 
 def describe_tile(pre: Epoch, post: Epoch, bids: Sequence[int], settings: PipelineSettings, geometry, *,
-                  workers: int = -1, reach: dict | None = None) -> list[BuildingRow]:
+                  workers: int = -1, reach: dict | None = None, facing_counts=None,
+                  facing_out: dict | None = None) -> list[BuildingRow]:
     """Rows of the buildings `bids` of one tile, from epochs that hold at least every point
     their descriptors read: what a distributed worker runs on its tile's points
     (`quakescan.distributed`). `geometry`: the whole pair's, which one tile cannot know.
     The rows carry centres; counts and the quality gate are the caller's. `reach`, when
     given, receives how far the paper's descriptors read ("queries_box": the x/y box of their
     query points; "max_distance_m": the farthest nearest post-event point), so a caller
-    holding only part of the epochs can check that it held enough.
+    holding only part of the epochs can check that it held enough. `facing_out` and
+    `facing_counts`: the counts the surface descriptors judge lost walls by, out of this call
+    and into it (`quakescan.change.surface.describe_surfaces`), for a tile described in parts.
 
     A building whose points coincide (fewer distinct positions than the minimum counts) is
     not assessable, as in `describe_pair`; the others are described together."""
@@ -498,7 +501,7 @@ def describe_tile(pre: Epoch, post: Epoch, bids: Sequence[int], settings: Pipeli
         pre_index = GridIndex(pre.xyz[:, :2], settings.tile_m / 4)
         post_index = GridIndex(post.xyz[:, :2], settings.tile_m / 4)
         for r in _describe_tile(pre, post, pre_index, post_index, ok, members, settings, geometry, workers,
-                                reach):
+                                reach, facing_counts, facing_out):
             r.centre_xy = tuple(pre.xyz[members[r.building_id], :2].mean(axis=0).tolist())
             rows.append(r)
     return rows
@@ -561,7 +564,8 @@ def quality_gate(row: BuildingRow, settings: PipelineSettings) -> BuildingRow:
 
 
 def _describe_tile(pre, post, pre_index, post_index, bids, members, settings: PipelineSettings, geometry,
-                   workers, reach: dict | None = None) -> list[BuildingRow]:
+                   workers, reach: dict | None = None, facing_counts=None,
+                   facing_out: dict | None = None) -> list[BuildingRow]:
     """Descriptor rows of the buildings of one tile (counts and centres are the caller's)."""
     descriptors = {b: {} for b in bids}
     quality = {b: {} for b in bids}
@@ -576,7 +580,7 @@ def _describe_tile(pre, post, pre_index, post_index, bids, members, settings: Pi
         ground = pre.classification[pre_r] == GROUND_CLASS if pre.classification is not None else None
         surf, cores, qual = describe_surfaces(pre.xyz[pre_r], pre.building_id[pre_r], ground, post.xyz[post_r],
                                               bids, settings.surface, geometry, workers=workers,
-                                              quality=True)
+                                              quality=True, facing_counts=facing_counts, facing_out=facing_out)
         for b in bids:
             descriptors[b].update({k: surf[b][k] for k in settings.surface_descriptors})
             quality[b] = qual[b]

@@ -366,7 +366,8 @@ def _neighbour_offsets(width: int, radius_cells: int, disc_m: float | None = Non
 
 def describe_surfaces(pre_xyz: np.ndarray, pre_bid: np.ndarray, pre_ground: np.ndarray, post_xyz: np.ndarray,
                       bids, settings: SurfaceSettings, geom: SurfaceGeometry, *, workers: int = -1,
-                      quality: bool = False):
+                      quality: bool = False, facing_counts: np.ndarray | None = None,
+                      facing_out: dict | None = None):
     """Surface descriptors of the buildings `bids` from the points of a region around them.
 
     pre_xyz/post_xyz: (n, 3) local-frame points of the region (every kind of point);
@@ -374,7 +375,13 @@ def describe_surfaces(pre_xyz: np.ndarray, pre_bid: np.ndarray, pre_ground: np.n
     or None. Returns ({building ID: {descriptor: value}}, {building ID: CoreChange}) and,
     with `quality`, {building ID: {density_pre, density_post, coverage}}: planimetric
     densities (pts/m²) of the building's own pre-event points and of the post-event points
-    over its cells, and the share of its cells with post-event points."""
+    over its cells, and the share of its cells with post-event points.
+
+    Whether a wall is lost is judged against how well the post-event flight saw walls facing
+    the same way among the core points of all of `bids` (`_lost`): `facing_out`, when given,
+    receives those counts ("facing_counts", `count_by_facing`), and `facing_counts` given
+    replaces them, so buildings described in parts (a tile split to fit a worker's memory)
+    are judged against the counts of the whole tile."""
     from .features import compute_features
 
     bids = [int(b) for b in bids]
@@ -436,7 +443,11 @@ def describe_surfaces(pre_xyz: np.ndarray, pre_bid: np.ndarray, pre_ground: np.n
     post_grid = ColumnGrid(post_xyz, max(geom.cylinder_radius_m, 0.5))
     nrm = np.vstack([normals[b] for b in bids]) if bids else np.zeros((0, 3))
     res = m3c2(pre_xyz[all_core], nrm, pre_grid, post_grid, settings.m3c2, geom.cylinder_radius_m)
-    lost_all = _lost(res, nrm, np.concatenate([outline_core[b] for b in bids]) if bids else np.zeros(0, bool))
+    facing = _facing(nrm)
+    if facing_out is not None:
+        facing_out["facing_counts"] = count_by_facing(res, facing)
+    lost_all = _lost(res, facing, np.concatenate([outline_core[b] for b in bids]) if bids else np.zeros(0, bool),
+                     count_by_facing(res, facing) if facing_counts is None else np.asarray(facing_counts))
     cores, start = {}, 0
     for bid in bids:
         k = len(core_of[bid])
@@ -650,21 +661,29 @@ def _facing(normals: np.ndarray) -> np.ndarray:
 LOST_ALPHA = 0.01  # an empty post-event cylinder counts only where chance gives it < 1 %
 
 
-def _lost(res, normals: np.ndarray, outline: np.ndarray) -> np.ndarray:
+def count_by_facing(res, facing: np.ndarray) -> np.ndarray:
+    """(FACING_BINS + 1, 2) integers: post- and pre-event points over the M3C2 cylinders of
+    the core points facing each way (integers, so parts add up to the whole exactly)."""
+    out = np.zeros((FACING_BINS + 1, 2), dtype=np.int64)
+    np.add.at(out[:, 0], facing, np.asarray(res.n_post, dtype=np.int64))
+    np.add.at(out[:, 1], facing, np.asarray(res.n_pre, dtype=np.int64))
+    return out
+
+
+
+
+def _lost(res, facing: np.ndarray, outline: np.ndarray, counts: np.ndarray) -> np.ndarray:
     """Core points whose surface is gone, not just unobserved.
 
     Roofs: lost with the post-event epoch seeing through (points below them: the floor
     through a hole, the rubble of a collapse). Walls: an airborne sensor seldom sees behind a
     wall, so a lost wall point must instead be unlikely to be empty by chance given how well
-    the post-event flight saw walls facing the same way in this region (the ratio of post- to
-    pre-event points over all such cylinders): a facade the flight hardly saw is not lost.
-    Either way an empty cylinder must be unlikely by chance (`LOST_ALPHA`)."""
-    facing = _facing(normals)
-    ratio = np.zeros(len(facing))
-    for b in range(FACING_BINS + 1):
-        sel = facing == b
-        if sel.any():
-            ratio[sel] = res.n_post[sel].sum() / max(res.n_pre[sel].sum(), 1)
+    the post-event flight saw walls facing the same way in this region (`counts`: the ratio
+    of post- to pre-event points over all such cylinders, `count_by_facing`): a facade the
+    flight hardly saw is not lost. Either way an empty cylinder must be unlikely by chance
+    (`LOST_ALPHA`)."""
+    ratio_of = counts[:, 0] / np.maximum(counts[:, 1], 1)
+    ratio = ratio_of[facing] if len(facing) else np.zeros(0)
     roof = facing == FACING_BINS
     by_chance = res.lost_beyond_chance(ratio, LOST_ALPHA)
     # at the outline a roof cylinder's "behind" reaches past the eave to the ground beside the

@@ -126,7 +126,7 @@ def _classify_on_dask(args) -> dict:
     cluster of --scheduler; the dashboard's address printed before the work starts."""
     from ..distributed.classify import classify_distributed, dashboard_address, dask_client
 
-    with dask_client(workers=args.workers, scheduler=args.scheduler, memory_limit=args.memory_limit) as client:
+    with dask_client(n_workers=args.workers, scheduler=args.scheduler, memory_limit=args.memory_limit) as client:
         where = f"scheduler {args.scheduler}" if args.scheduler else f"a LocalCluster of {args.workers} workers"
         board = dashboard_address(client)
         print(f"Dask: {where}" + (f"; dashboard {board}" if board else ""), flush=True)

@@ -36,6 +36,17 @@ log = logging.getLogger(__name__)
 BLOCK_CELLS = 50  # a block is 50 × 50 density cells (50 m): a 150 m tile reads about 5 × 5 of them
 MANIFEST = "manifest.json"
 HALO_STEP_M = 10.0  # a tile whose nearest neighbours reach beyond its halo asks again with this much more
+# What a tile task holds at its peak, per point: the records of every block it reads (their
+# bytes, the index sort and the sorted copy) and, per point inside its box, the coordinates,
+# grid index, descriptor arrays and scratch. Set from the peak RSS of describe_tile_task on the
+# three largest 150 m tiles of bench_pipeline's 75 M-point pair (8-10 M points read, 1.3-1.5 GB
+# above the worker's 0.5 GB at rest): these constants put them at 1.45-1.8 GB, 15-20 % over.
+READ_BYTES_PER_POINT = 60
+DESCRIBE_BYTES_PER_POINT = 200
+# A tile is split when its estimate passes this share of the smallest worker's memory limit:
+# Dask's nanny pauses a worker at 80 % and kills it at 95 %, and the estimate is an average
+TILE_MEMORY_SHARE = 0.5
+MAX_SPLIT_DEPTH = 12  # quarters of a 150 m tile down to 4 cm: buildings sharing one centre stay together
 
 
 class DistributedError(cl.ClassifyError):
@@ -43,9 +54,10 @@ class DistributedError(cl.ClassifyError):
 
 
 @contextlib.contextmanager
-def dask_client(workers: int | None = None, scheduler: str | None = None, memory_limit: str | None = "auto"):
-    """A Dask client: on an existing scheduler's cluster, or on a LocalCluster of `workers`
-    single-threaded processes started here and closed on leaving."""
+def dask_client(n_workers: int | None = None, scheduler: str | None = None, memory_limit: str | None = "auto"):
+    """A Dask client: on an existing scheduler's cluster, or on a LocalCluster of `n_workers`
+    single-threaded processes started here and closed on leaving (Dask's name: `workers` is
+    the library's thread count everywhere else)."""
     try:
         from dask.distributed import Client, LocalCluster
     except ImportError as e:  # pragma: no cover - dask is a dependency
@@ -60,9 +72,9 @@ def dask_client(workers: int | None = None, scheduler: str | None = None, memory
         finally:
             client.close()
         return
-    if workers is None or workers < 1:
-        raise DistributedError(f"--workers must be at least 1, got {workers}")
-    cluster = LocalCluster(n_workers=int(workers), threads_per_worker=1, processes=True,
+    if n_workers is None or n_workers < 1:
+        raise DistributedError(f"--workers must be at least 1, got {n_workers}")
+    cluster = LocalCluster(n_workers=int(n_workers), threads_per_worker=1, processes=True,
                            memory_limit=memory_limit, dashboard_address=":0")
     client = Client(cluster)
     try:
@@ -137,8 +149,9 @@ def classify_distributed(pre_path, post_path, out_dir, client, *, model_path=Non
     stage("densities")
     geometry = _pair_geometry(client, store, pre_s, post_s, settings, block_cells, transform)
     stage("tiles")
-    rows, resumed, widened = _describe_tiles(client, store, pre_s, post_s, settings, geometry, block_cells,
-                                             transform, shift, out, run_fp.digest, progress)
+    budget = tile_memory_budget(client)
+    rows, resumed, widened, split = _describe_tiles(client, store, pre_s, post_s, settings, geometry, block_cells,
+                                                    transform, shift, out, run_fp.digest, progress, budget)
     if fp is not None:
         hit = set(pre_s.counts) | set(post_s.counts)
         rows += [cl.BuildingRow(int(b), 0, 0, False, "no point inside the footprint")
@@ -169,7 +182,8 @@ def classify_distributed(pre_path, post_path, out_dir, client, *, model_path=Non
                                 "total": round(time.perf_counter() - t0, 2)},
                     "dask": {"workers": len(client.scheduler_info().get("workers", {})),
                              "dashboard": dashboard_address(client), "block_m": bk.block_m(block_cells),
-                             "tiles_widened": widened}})
+                             "tiles_widened": widened, "tiles_split": split,
+                             "tile_memory_budget_bytes": int(budget) if np.isfinite(budget) else None}})
     summary["fingerprint"] = run_fp.digest
     summary["options"] = options
     from ..runtime.atomic import write_text
@@ -264,11 +278,11 @@ def _pair_geometry(client, store, pre_s, post_s, settings, block_cells, transfor
 
 
 def _describe_tiles(client, store, pre_s, post_s, settings, geometry, block_cells, transform, shift, out, digest,
-                    progress):
+                    progress, budget):
     from dask.distributed import as_completed
 
     from ..change.pipeline import quality_gate, rows_by_counts, tile_key
-    from .tasks import TileReachError, describe_tile_task
+    from .tasks import TileReachError, add_facing_counts, describe_tile_task
 
     rows, ok = rows_by_counts(pre_s.counts, post_s.counts, settings)
     halo = _halo(settings, geometry)
@@ -291,7 +305,20 @@ def _describe_tiles(client, store, pre_s, post_s, settings, geometry, block_cell
                 "block_cells": block_cells, "read_margin": shift,
                 "whole_post_box": None if post_box is None else post_box.tolist()}
 
-    futures, widened = {}, 0
+    def estimate(s):
+        return tile_memory_bytes(store, s, block_cells)
+
+    def centre_of(b):  # the point tile_key floors: the centre of the building's pre-event x/y box
+        return (np.asarray(pre_s.lo[b], dtype=np.float64) + np.asarray(pre_s.hi[b], dtype=np.float64)) / 2
+
+    futures, groups, widened, split = {}, {}, 0, 0
+
+    def submit(s, facing=None, name=None):
+        fut = client.submit(describe_tile_task, str(store), s, settings_json, geometry_json, transform, 1, facing,
+                            pure=False, **({"key": name} if name else {}))
+        futures[fut] = (s, facing)
+        return fut
+
     for key in sorted(tiles):
         bids = tiles[key]
         if all(b in ckpt.rows for b in bids):
@@ -302,22 +329,39 @@ def _describe_tiles(client, store, pre_s, post_s, settings, geometry, block_cell
             if progress:
                 progress(finished, total)
             continue
-        s = spec(key, bids, halo)
-        fut = client.submit(describe_tile_task, str(store), s, settings_json, geometry_json, transform, 1,
-                            pure=False, key=f"tile-{key[0]}_{key[1]}-{digest[:8]}")
-        futures[fut] = s
+        parts = split_tile(key, bids, centre_of, settings.tile_m, lambda k, b: estimate(spec(k, b, halo)), budget)
+        split += len(parts) - 1
+        _warn_alone(parts, lambda k, b: estimate(spec(k, b, halo)), budget)
+        # the parts of a split tile count their walls first: lost walls are judged by the whole tile's counts
+        count_first = len(parts) > 1 and settings.surface is not None
+        if count_first:
+            groups[tuple(key)] = {"parts": parts, "counts": []}
+        for part_key, part_bids in parts:
+            s = spec(part_key, part_bids, halo)
+            name = "_".join(str(v) for v in part_key)
+            if count_first:
+                submit({**s, "count_facing": True, "group": list(key)}, name=f"count-{name}-{digest[:8]}")
+            else:
+                submit(s, name=f"tile-{name}-{digest[:8]}")
     queue = as_completed(list(futures))
     for fut in queue:
-        s = futures.pop(fut)
+        s, facing = futures.pop(fut)
         try:
             result = fut.result()
         except TileReachError as e:  # widen the halo and ask again
-            wider = spec(tuple(s["key"]), s["bids"], max(s["halo"] + HALO_STEP_M, e.needed_m + HALO_STEP_M))
-            again = client.submit(describe_tile_task, str(store), wider, settings_json, geometry_json, transform,
-                                  1, pure=False)
-            futures[again] = wider
-            queue.add(again)
+            wider = {**spec(tuple(s["key"]), s["bids"], max(s["halo"] + HALO_STEP_M, e.needed_m + HALO_STEP_M)),
+                     **{k: s[k] for k in ("count_facing", "group") if k in s}}
+            queue.add(submit(wider, facing))
             widened += 1
+            continue
+        if s.get("count_facing"):
+            group = groups[tuple(s["group"])]
+            group["counts"].append(result)
+            if len(group["counts"]) == len(group["parts"]):
+                whole = add_facing_counts(*group["counts"])
+                for part_key, part_bids in group["parts"]:
+                    name = "_".join(str(v) for v in part_key)
+                    queue.add(submit(spec(part_key, part_bids, halo), whole, name=f"tile-{name}-{digest[:8]}"))
             continue
         tile_rows = result["rows"]
         for r in tile_rows:
@@ -329,7 +373,68 @@ def _describe_tiles(client, store, pre_s, post_s, settings, geometry, block_cell
             progress(finished, total)
     if resumed:
         log.warning("%s: resuming, %d buildings already described", out, resumed)
-    return [quality_gate(rows[b], settings) for b in sorted(rows)], resumed, widened
+    if split:
+        log.info("%d tiles more than the model's tiling: tiles split to fit %.1f GB per worker", split,
+                 budget / 1e9)
+    return [quality_gate(rows[b], settings) for b in sorted(rows)], resumed, widened, split
+
+
+def _warn_alone(parts, estimate, budget) -> None:
+    """Say so where a building alone is over the budget: it cannot be split, and is described whole."""
+    if len(parts) < 2:
+        return
+    for key, bids in parts:
+        if len(bids) == 1 and (need := estimate(key, bids)) > budget:
+            log.warning("building %d alone needs about %.1f GB to describe, more than the %.1f GB a worker may "
+                        "take (%.0f %% of its memory limit): it is described whole", bids[0], need / 1e9,
+                        budget / 1e9, 100 * TILE_MEMORY_SHARE)
+
+
+def tile_memory_budget(client) -> float:
+    """Bytes a tile task may take: a share of the smallest worker memory limit of the
+    cluster (infinite where the workers have none)."""
+    limits = [w.get("memory_limit") or 0 for w in client.scheduler_info().get("workers", {}).values()]
+    limits = [v for v in limits if v > 0]
+    return TILE_MEMORY_SHARE * min(limits) if limits else float("inf")
+
+
+def tile_memory_bytes(store: Path, tile: dict, block_cells: int) -> float:
+    """The peak memory of `describe_tile_task` on `tile`, estimated from the sizes of the block
+    files it reads: every point of those blocks is read, the share of them inside the tile's
+    box is described."""
+    from .blocks import RECORD, block_path, blocks_in_box
+
+    box = np.asarray(tile["box"], dtype=np.float64)
+    area = float(np.prod(np.maximum(box[1] - box[0], 0.0)))
+    side = bk.block_m(block_cells)
+    read = inside = 0.0
+    for name, grow in (("pre", 0.0), ("post", float(tile.get("read_margin", 0.0)))):
+        keys = blocks_in_box(box + np.array([[-grow], [grow]]), block_cells)
+        n = sum(block_path(Path(store) / name, k).stat().st_size
+                for k in keys if block_path(Path(store) / name, k).is_file()) / RECORD.itemsize
+        read += n
+        inside += n * min(1.0, area / (len(keys) * side * side)) if keys else 0.0
+    return read * READ_BYTES_PER_POINT + inside * DESCRIBE_BYTES_PER_POINT
+
+
+def split_tile(key: tuple, bids: list, centre_of, tile_m: float, estimate, budget: float) -> list[tuple[tuple, list]]:
+    """The tile as (key, buildings) parts whose `estimate(key, bids)` fits `budget`: split into
+    the four quarters of its square (a building goes to the quarter holding `centre_of(b)`, as
+    it went to the tile), and those again, down to one building a part. A part's key is the
+    tile's followed by its quarters' (0/1, 0/1) indices. A building's descriptors read only the
+    points around it, so its row does not depend on the part it is in."""
+    depth = (len(key) - 2) // 2 + 1
+    if len(bids) <= 1 or depth > MAX_SPLIT_DEPTH or estimate(key, bids) <= budget:
+        return [(tuple(key), list(bids))]
+    side = tile_m / 2 ** depth
+    quarters: dict[tuple, list] = {}
+    for b in bids:
+        i, j = np.floor(np.asarray(centre_of(b), dtype=np.float64) / side).astype(np.int64).tolist()
+        quarters.setdefault((i % 2, j % 2), []).append(b)
+    parts = []
+    for q in sorted(quarters):
+        parts += split_tile(tuple(key) + q, quarters[q], centre_of, tile_m, estimate, budget)
+    return parts
 
 
 def _halo(settings, geometry) -> float:
@@ -370,4 +475,5 @@ def _write_graded_cloud(path, post_f, origin, crs, fp, transform, grade_by_build
                                  source_extra_dims=extra)
 
 
-__all__ = ["BLOCK_CELLS", "DistributedError", "classify_distributed", "dashboard_address", "dask_client"]
+__all__ = ["BLOCK_CELLS", "DistributedError", "classify_distributed", "dashboard_address", "dask_client",
+           "split_tile", "tile_memory_bytes", "tile_memory_budget"]

@@ -115,12 +115,19 @@ def merge_roof_cells(parts: list[dict]) -> float:
 
 
 def describe_tile_task(store: str, tile: dict, settings_json: dict, geometry: dict | None, alignment: list | None,
-                       threads: int = 1) -> dict:
+                       workers: int = -1, facing_counts=None) -> dict:
     """The rows of one tile's buildings, read from the block files of both epochs.
 
     `tile`: {"bids": [...], "box": [[x, y], [x, y]] the x/y box of everything the tile's
     buildings' descriptors may read, "block_cells": int}. Raises TileReachError when a
-    nearest post-event point lies beyond the box (the client widens it and asks again)."""
+    nearest post-event point lies beyond the box (the client widens it and asks again).
+
+    One part of a tile split to fit the worker's memory is described twice: first for its
+    share of the counts lost walls are judged by (`tile["count_facing"]`: returns them as
+    "facing_counts", no rows), then with `facing_counts` the whole tile's sum of them, so its
+    rows are those of the whole tile. `workers`: threads of the descriptor kernels (the client
+    asks for one: a Dask worker runs one task a thread, the cluster's processes are the
+    parallelism)."""
     from ..change.pipeline import PipelineSettings, describe_tile
     from ..change.surface import SurfaceGeometry
     from ..formats.pointcloud import Epoch
@@ -145,9 +152,18 @@ def describe_tile_task(store: str, tile: dict, settings_json: dict, geometry: di
     pre, post = epochs
     geom = None if geometry is None else SurfaceGeometry(**geometry)
     reach: dict = {}
-    rows = describe_tile(pre, post, tile["bids"], settings, geom, workers=threads, reach=reach)
+    counted: dict = {}
+    rows = describe_tile(pre, post, tile["bids"], settings, geom, workers=workers, reach=reach,
+                         facing_counts=facing_counts, facing_out=counted)
     _check_reach(reach, box, settings, tile.get("whole_post_box"))
+    if tile.get("count_facing"):
+        return {"key": tile["key"], "facing_counts": counted["facing_counts"].tolist()}
     return {"key": tile["key"], "rows": rows}
+
+
+def add_facing_counts(*parts: dict) -> list:
+    """The whole tile's counts from its parts' (integers: the same sum in any order)."""
+    return np.sum([np.asarray(p["facing_counts"], dtype=np.int64) for p in parts], axis=0).tolist()
 
 
 def _check_reach(reach: dict, box: np.ndarray, settings, whole_post_box) -> None:
@@ -178,4 +194,4 @@ def _origin(folder) -> list:
     return json.loads((Path(folder) / "epoch.json").read_text())["origin"]
 
 
-__all__ = ["TileReachError", "block_roof_cells", "describe_tile_task", "merge_roof_cells"]
+__all__ = ["TileReachError", "add_facing_counts", "block_roof_cells", "describe_tile_task", "merge_roof_cells"]
