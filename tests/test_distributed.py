@@ -128,12 +128,15 @@ def test_a_worker_killed_mid_task_has_its_tile_redone_and_the_result_is_the_same
 @slow
 def test_an_interrupted_client_resumes_from_its_finished_tiles_and_blocks(pair, single, cluster, tmp_path,
                                                                          monkeypatch):
-    from quakescan.distributed import blocks
+    from quakescan.distributed import tasks
 
     out = tmp_path / "dask"
     calls = []
 
-    def stop_after_two(done, total):
+    def stop_after_two(done, total, stage=""):
+        if stage:  # the tiling's points: streamed whole before the first tile
+            assert stage in ("tiling pre", "tiling post") and 0 < done <= total
+            return
         calls.append(done)
         if len(calls) == 2:
             raise KeyboardInterrupt
@@ -142,10 +145,10 @@ def test_an_interrupted_client_resumes_from_its_finished_tiles_and_blocks(pair, 
         _run(pair, out, cluster, progress=stop_after_two)
     assert (out / ".blocks" / "manifest.json").is_file() and (out / ".checkpoint.jsonl").is_file()
 
-    def no_streaming(*a, **k):
+    def no_streaming(*a, **k):  # submitted to the workers in its place, where it would raise
         raise AssertionError("the blocks of the interrupted run are valid: no streaming again")
 
-    monkeypatch.setattr(blocks, "stream_epoch", no_streaming)
+    monkeypatch.setattr(tasks, "stream_part", no_streaming)
     summary = _run(pair, out, cluster)
     assert summary["resumed_buildings"] >= 2
     _same_outputs(single[0], out)
@@ -260,3 +263,44 @@ def test_tiles_too_large_for_the_workers_memory_are_split_and_give_the_same_file
     assert summary["dask"]["tiles_split"] >= 4
     assert summary["buildings"] == single["buildings"] == 6
     _same_outputs(tmp_path / "single", tmp_path / "dask")
+
+
+def test_an_epoch_streamed_in_parts_is_the_epoch_streamed_whole(pair, tmp_path):
+    """Three ranges of the file's points, each into its own part files: the same records in
+    every block, in the same order, and the same stats (counts, boxes, samples, map, hulls)."""
+    from quakescan.distributed import blocks
+    from quakescan.distributed.classify import part_bounds
+
+    f = blocks.open_epoch_file(pair / "pre.las")
+    origin = blocks.default_origin(f)
+    kw = dict(block_cells=BLOCK_CELLS, chunk_points=20_000, with_hulls=True, sample=(f.n, 5_000), map_step=7)
+    whole = blocks.stream_epoch(f, origin, tmp_path / "whole", **kw)
+    bounds = part_bounds(f.n, 1, 40_000)
+    assert bounds[0] == 0 and bounds[-1] == f.n and len(bounds) >= 3
+    (tmp_path / "parts").mkdir()
+    (tmp_path / "parts" / "epoch.json").write_text('{"parts": %d}' % (len(bounds) - 1))
+    parts = [blocks.stream_epoch(f, origin, tmp_path / "parts", part=k, start=a, stop=b, **kw)
+             for k, (a, b) in enumerate(zip(bounds[:-1], bounds[1:]))]
+    merged = blocks.merge_stats(parts)
+    assert merged.n == whole.n == f.n and merged.counts == whole.counts
+    assert merged.lo == whole.lo and merged.hi == whole.hi and merged.bounds == whole.bounds
+    assert merged.blocks == whole.blocks
+    np.testing.assert_array_equal(merged.stable_sample, whole.stable_sample)
+    np.testing.assert_array_equal(merged.map_xy, whole.map_xy)
+    assert set(merged.hulls) == set(whole.hulls)
+    for b in whole.hulls:
+        np.testing.assert_array_equal(merged.hulls[b], whole.hulls[b])
+    for key in whole.blocks:
+        a = blocks.read_records(tmp_path / "whole", [tuple(key)])
+        b = blocks.read_records(tmp_path / "parts", [tuple(key)])
+        np.testing.assert_array_equal(a, b)
+
+
+def test_parts_are_two_a_worker_and_never_smaller_than_a_chunk():
+    from quakescan.distributed.classify import PART_POINTS, part_bounds
+
+    assert part_bounds(1_000, 2, 100) == [0, 250, 500, 750, 1000]  # two a worker
+    assert part_bounds(1_000, 2, 400) == [0, 333, 667, 1000]  # no part under a chunk: 3, not 4
+    assert part_bounds(10, 4, 2_000_000) == [0, 10]
+    n = 5 * PART_POINTS + 1  # more than PART_POINTS a part otherwise: six parts
+    assert len(part_bounds(n, 1, 1_000)) - 1 == 6

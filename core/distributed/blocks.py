@@ -129,8 +129,26 @@ def block_of(xy: np.ndarray, block_cells: int) -> np.ndarray:
     return cells // int(block_cells)
 
 
-def block_path(folder: Path, key) -> Path:
-    return Path(folder) / f"{int(key[0])}_{int(key[1])}.bin"
+def block_path(folder: Path, key, part: int | None = None) -> Path:
+    """A block's file, or the file of one part of the epoch's points in that block (an epoch
+    streamed in parts, one task each: every part writes its own files)."""
+    tail = ".bin" if part is None else f".{int(part)}.bin"
+    return Path(folder) / f"{int(key[0])}_{int(key[1])}{tail}"
+
+
+def block_files(folder: Path, key, parts: int | None = None) -> list[Path]:
+    """The files holding a block's points: one, or one per part of an epoch streamed in parts."""
+    if parts is None:
+        parts = _parts_of(folder)
+    return [block_path(folder, key)] if not parts else [block_path(folder, key, p) for p in range(parts)]
+
+
+def _parts_of(folder: Path) -> int:
+    """How many parts the epoch in `folder` was streamed in (its epoch.json; 0: streamed whole)."""
+    try:
+        return int(json.loads((Path(folder) / "epoch.json").read_text()).get("parts", 0))
+    except (OSError, ValueError):
+        return 0
 
 
 class _Hulls:
@@ -161,20 +179,26 @@ class _Hulls:
 
 def stream_epoch(f: EpochFile, origin: np.ndarray, folder: Path, *, block_cells: int, footprints=None,
                  with_hulls: bool = False, sample: tuple | None = None, map_step: int | None = None,
-                 chunk_points: int = CHUNK_POINTS, on_chunk=None) -> EpochStats:
+                 chunk_points: int = CHUNK_POINTS, on_chunk=None, part: int | None = None, start: int = 0,
+                 stop: int | None = None) -> EpochStats:
     """Write the epoch's points into block files under `folder` and return its EpochStats.
 
     `footprints`: give building IDs by footprint (else the file's `building_id`);
     `sample`: (n_total, max_points) of the registration check's sample (`sample_mask`);
-    `map_step`: keep every k-th point for the map; `with_hulls`: hull every building."""
+    `map_step`: keep every k-th point for the map; `with_hulls`: hull every building.
+    `part`, `start`, `stop`: stream only the file's points start..stop into the files of that
+    part (`block_path`), for one of several tasks streaming an epoch (`merge_stats` joins
+    their stats into the whole epoch's)."""
     import laspy
 
     from ..change.align import sample_mask, stable_mask
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    for old in folder.glob("*.bin"):  # a cut earlier stream: its blocks would be appended to
+    # a cut earlier stream: its blocks would be appended to
+    for old in folder.glob("*.bin" if part is None else f"*.{int(part)}.bin"):
         old.unlink()
+    stop = f.n if stop is None else min(int(stop), f.n)
     stats = EpochStats(n=0)
     hulls = _Hulls(origin) if with_hulls else None
     lo_all, hi_all = np.full(3, np.inf), np.full(3, -np.inf)
@@ -187,8 +211,13 @@ def stream_epoch(f: EpochFile, origin: np.ndarray, folder: Path, *, block_cells:
     except Exception as e:
         raise PointCloudError(f"{f.path}: cannot read as LAS/LAZ ({e})") from None
     with reader:
-        start = 0
-        for chunk in reader.chunk_iterator(chunk_points):
+        first = start
+        if start:
+            reader.seek(start)
+        while start < stop:
+            chunk = reader.read_points(min(chunk_points, stop - start))
+            if not len(chunk):
+                break
             X, Y, Z = (np.asarray(chunk.array[c]) for c in "XYZ")
             n = len(X)
             xyz = f.local_xyz(X, Y, Z, origin)
@@ -215,12 +244,12 @@ def stream_epoch(f: EpochFile, origin: np.ndarray, folder: Path, *, block_cells:
             rec = np.empty(n, RECORD)
             rec["index"], rec["X"], rec["Y"], rec["Z"] = index, X, Y, Z
             rec["classification"], rec["building_id"] = cls, ids
-            _append_blocks(folder, keys, rec, blocks)
+            _append_blocks(folder, keys, rec, blocks, part)
             start += n
             if on_chunk:
-                on_chunk(start, f.n)
-    stats.n = start
-    stats.bounds = [lo_all.tolist(), hi_all.tolist()] if start else None
+                on_chunk(start - first, stop - first)
+    stats.n = start - first
+    stats.bounds = [lo_all.tolist(), hi_all.tolist()] if start > first else None
     stats.blocks = sorted([list(b) for b in blocks])
     stats.stable_sample = np.vstack(samples) if samples else np.zeros((0, 3))
     stats.map_xy = np.vstack(maps) if maps else np.zeros((0, 2))
@@ -248,7 +277,7 @@ def _add_building_stats(stats: EpochStats, ids: np.ndarray, xy: np.ndarray) -> N
             stats.counts[b], stats.lo[b], stats.hi[b] = c, tuple(a), tuple(z)
 
 
-def _append_blocks(folder: Path, keys: np.ndarray, rec: np.ndarray, seen: set) -> None:
+def _append_blocks(folder: Path, keys: np.ndarray, rec: np.ndarray, seen: set, part: int | None = None) -> None:
     if not len(rec):
         return
     span = int(keys[:, 1].max() - keys[:, 1].min()) + 1
@@ -259,8 +288,45 @@ def _append_blocks(folder: Path, keys: np.ndarray, rec: np.ndarray, seen: set) -
     for s, t in zip(starts, ends):
         key = (int(keys[order[s], 0]), int(keys[order[s], 1]))
         seen.add(key)
-        with open(block_path(folder, key), "ab") as out:
+        with open(block_path(folder, key, part), "ab") as out:
             out.write(rec[order[s:t]].tobytes())
+
+
+def merge_stats(parts: list[EpochStats]) -> EpochStats:
+    """The stats of an epoch streamed in parts (in the file's order), as streaming it whole
+    gives them: counts added, boxes and bounds joined, samples and map points in file order,
+    each building's hull made from its parts' hull vertices (the hull of a union is the hull
+    of the parts' hulls, as chunks are joined while streaming)."""
+    out = EpochStats(n=0)
+    hulls: dict[int, list] = {}
+    lo_all, hi_all = np.full(3, np.inf), np.full(3, -np.inf)
+    blocks = set()
+    for s in parts:
+        out.n += s.n
+        for b, c in s.counts.items():
+            if b in out.counts:
+                out.counts[b] += c
+                a, z = out.lo[b], out.hi[b]
+                out.lo[b] = (min(a[0], s.lo[b][0]), min(a[1], s.lo[b][1]))
+                out.hi[b] = (max(z[0], s.hi[b][0]), max(z[1], s.hi[b][1]))
+            else:
+                out.counts[b], out.lo[b], out.hi[b] = c, tuple(s.lo[b]), tuple(s.hi[b])
+        if s.bounds:
+            lo_all = np.minimum(lo_all, s.bounds[0])
+            hi_all = np.maximum(hi_all, s.bounds[1])
+        blocks.update(tuple(b) for b in s.blocks)
+        for b, v in s.hulls.items():
+            hulls.setdefault(b, []).append(np.asarray(v))
+    out.bounds = [lo_all.tolist(), hi_all.tolist()] if out.n else None
+    out.blocks = sorted([list(b) for b in blocks])
+    out.stable_sample = np.vstack([s.stable_sample for s in parts]) if parts else np.zeros((0, 3))
+    out.map_xy = np.vstack([s.map_xy for s in parts]) if parts else np.zeros((0, 2))
+    if hulls:
+        import shapely
+
+        out.hulls = {b: shapely.get_coordinates(shapely.convex_hull(shapely.multipoints(np.vstack(v))))
+                     for b, v in hulls.items()}
+    return out
 
 
 def blocks_in_box(box: np.ndarray, block_cells: int) -> list[tuple[int, int]]:
@@ -272,10 +338,11 @@ def blocks_in_box(box: np.ndarray, block_cells: int) -> list[tuple[int, int]]:
 def read_records(folder: Path, keys) -> np.ndarray:
     """The stored points of the given blocks, in file order (their `index` ascending)."""
     parts = []
+    n_parts = _parts_of(folder)
     for key in keys:
-        p = block_path(folder, key)
-        if p.is_file():
-            parts.append(np.fromfile(p, dtype=RECORD))
+        for p in block_files(folder, key, n_parts):
+            if p.is_file():
+                parts.append(np.fromfile(p, dtype=RECORD))
     rec = np.concatenate(parts) if parts else np.zeros(0, RECORD)
     return rec[np.argsort(rec["index"], kind="stable")]
 
@@ -308,5 +375,5 @@ def block_m(block_cells: int) -> float:
     return float(block_cells) * DENSITY_CELL_M
 
 
-__all__ = ["CHUNK_POINTS", "EpochFile", "EpochStats", "RECORD", "block_of", "blocks_in_box", "default_origin",
-           "open_epoch_file", "read_records", "stream_epoch"]
+__all__ = ["CHUNK_POINTS", "EpochFile", "EpochStats", "RECORD", "block_files", "block_of", "blocks_in_box",
+           "default_origin", "merge_stats", "open_epoch_file", "read_records", "stream_epoch"]

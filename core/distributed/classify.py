@@ -46,6 +46,7 @@ DESCRIBE_BYTES_PER_POINT = 200
 # A tile is split when its estimate passes this share of the smallest worker's memory limit:
 # Dask's nanny pauses a worker at 80 % and kills it at 95 %, and the estimate is an average
 TILE_MEMORY_SHARE = 0.5
+PART_POINTS = 16_000_000  # points of one epoch streamed by one task at most: a few tasks a worker to balance
 MAX_SPLIT_DEPTH = 12  # quarters of a 150 m tile down to 4 cm: buildings sharing one centre stay together
 
 
@@ -97,7 +98,9 @@ def classify_distributed(pre_path, post_path, out_dir, client, *, model_path=Non
                          block_cells: int = BLOCK_CELLS, chunk_points: int = bk.CHUNK_POINTS,
                          on_stage=None) -> dict:
     """`quakescan.learning.classification.classify` with the tiles described by the workers of
-    `client` (a dask.distributed Client). Same files, same rows; the summary adds "dask"."""
+    `client` (a dask.distributed Client). Same files, same rows; the summary adds "dask".
+    `progress(done, total, stage)`: the points of each epoch streamed into blocks (stages
+    "tiling pre", "tiling post"), then the buildings described (no stage), as `classify`."""
     t0 = time.perf_counter()
     out = Path(out_dir)
     model_path = Path(model_path) if model_path else cl.default_model_path()
@@ -124,7 +127,10 @@ def classify_distributed(pre_path, post_path, out_dir, client, *, model_path=Non
     store = out / ".blocks"
     sample = None if align is False else cl.check_max_points(align)
     stage("tiling")
-    pre_s, post_s = _tiled_epochs(store, run_fp.digest, pre_f, post_f, origin, fp, block_cells, sample, chunk_points)
+    footprints = None if footprints_path is None else {"path": str(Path(footprints_path).resolve()),
+                                                       "id_field": id_field}
+    pre_s, post_s = _tiled_epochs(client, store, run_fp.digest, pre_f, post_f, origin, fp, footprints, block_cells,
+                                  sample, chunk_points, progress)
     if fp is not None and not pre_s.counts:
         b = fp.bounds()
         raise cl.ClassifyError(f"{footprints_path}: no footprint contains a pre-event point (footprints span "
@@ -229,9 +235,17 @@ def _pair_crs(pre_f, post_f, fp) -> str | None:
     return crs
 
 
-def _tiled_epochs(store: Path, digest: str, pre_f, post_f, origin, fp, block_cells, sample, chunk_points):
-    """Both epochs as blocks under `store`, streamed now or kept from an interrupted run of
-    the same inputs (its manifest is written last)."""
+def _tiled_epochs(client, store: Path, digest: str, pre_f, post_f, origin, fp, footprints, block_cells, sample,
+                  chunk_points, progress=None):
+    """Both epochs as blocks under `store`, streamed now by the workers or kept from an
+    interrupted run of the same inputs (its manifest is written last). Each epoch is streamed
+    in parts, ranges of the file's points, one task each (`tasks.stream_part`), so the
+    tiling runs on every worker instead of the client alone; `progress` counts the points
+    streamed, as the stages "tiling pre" and "tiling post"."""
+    from dask.distributed import as_completed
+
+    from .tasks import stream_part
+
     manifest = bk.read_manifest(store / MANIFEST)
     if manifest and manifest.get("fingerprint") == digest and manifest.get("block_cells") == block_cells:
         try:
@@ -240,15 +254,32 @@ def _tiled_epochs(store: Path, digest: str, pre_f, post_f, origin, fp, block_cel
         except (OSError, KeyError, ValueError):
             pass  # unreadable: tiled again
     shutil.rmtree(store, ignore_errors=True)
-    stats = {}
+    n_workers = max(1, len(client.scheduler_info().get("workers", {})))
+    futures = {}
     for name, f in (("pre", pre_f), ("post", post_f)):
         folder = store / name
         folder.mkdir(parents=True, exist_ok=True)
-        (folder / "epoch.json").write_text(json.dumps({"file": f.to_json(), "origin": origin.tolist()}))
-        s = bk.stream_epoch(f, origin, folder, block_cells=block_cells, footprints=fp,
-                            with_hulls=(name == "pre" and fp is None),
-                            sample=None if sample is None else (f.n, sample),
-                            map_step=cl.map_step(f.n) if name == "pre" else None, chunk_points=chunk_points)
+        bounds = part_bounds(f.n, n_workers, chunk_points)
+        (folder / "epoch.json").write_text(json.dumps({"file": f.to_json(), "origin": origin.tolist(),
+                                                       "parts": len(bounds) - 1}))
+        for part, (a, b) in enumerate(zip(bounds[:-1], bounds[1:])):
+            fut = client.submit(stream_part, str(folder), f.to_json(), origin.tolist(), part, a, b, block_cells,
+                                footprints, name == "pre" and fp is None,
+                                None if sample is None else (f.n, sample),
+                                cl.map_step(f.n) if name == "pre" else None, chunk_points, pure=False,
+                                key=f"stream-{name}-{part}-{digest[:8]}")
+            futures[fut] = (name, part, b - a)
+    parts: dict[str, dict] = {"pre": {}, "post": {}}
+    done = {"pre": 0, "post": 0}
+    for fut in as_completed(list(futures)):
+        name, part, n = futures[fut]
+        parts[name][part] = fut.result()
+        done[name] += n
+        if progress:
+            progress(done[name], (pre_f if name == "pre" else post_f).n, f"tiling {name}")
+    stats = {}
+    for name in ("pre", "post"):
+        s = bk.merge_stats([parts[name][k] for k in sorted(parts[name])])
         arrays = {"stable_sample": s.stable_sample, "map_xy": s.map_xy}
         arrays.update({f"hull_{b}": v for b, v in s.hulls.items()})
         bk.save_arrays(store / f"{name}.npz", arrays)
@@ -256,6 +287,15 @@ def _tiled_epochs(store: Path, digest: str, pre_f, post_f, origin, fp, block_cel
     bk.write_manifest(store / MANIFEST, {"fingerprint": digest, "block_cells": block_cells,
                                          "pre": stats["pre"].to_json(), "post": stats["post"].to_json()})
     return stats["pre"], stats["post"]
+
+
+def part_bounds(n: int, n_workers: int, chunk_points: int) -> list[int]:
+    """Where the parts an epoch of `n` points is streamed in begin and end: two parts a worker
+    at least (the last part of one epoch overlaps the first of the other), at most
+    PART_POINTS a part, never fewer points than a chunk in a part."""
+    parts = max(2 * n_workers, -(-n // PART_POINTS))
+    parts = max(1, min(parts, -(-n // max(1, chunk_points))))
+    return [round(k * n / parts) for k in range(parts + 1)]
 
 
 def _pair_geometry(client, store, pre_s, post_s, settings, block_cells, transform):
@@ -314,8 +354,9 @@ def _describe_tiles(client, store, pre_s, post_s, settings, geometry, block_cell
     futures, groups, widened, split = {}, {}, 0, 0
 
     def submit(s, facing=None, name=None):
+        # the largest tiles first, so that no worker is left with a large one while the others idle
         fut = client.submit(describe_tile_task, str(store), s, settings_json, geometry_json, transform, 1, facing,
-                            pure=False, **({"key": name} if name else {}))
+                            pure=False, priority=int(estimate(s) // 1e6), **({"key": name} if name else {}))
         futures[fut] = (s, facing)
         return fut
 
@@ -402,7 +443,7 @@ def tile_memory_bytes(store: Path, tile: dict, block_cells: int) -> float:
     """The peak memory of `describe_tile_task` on `tile`, estimated from the sizes of the block
     files it reads: every point of those blocks is read, the share of them inside the tile's
     box is described."""
-    from .blocks import RECORD, block_path, blocks_in_box
+    from .blocks import RECORD, block_files, blocks_in_box
 
     box = np.asarray(tile["box"], dtype=np.float64)
     area = float(np.prod(np.maximum(box[1] - box[0], 0.0)))
@@ -410,8 +451,8 @@ def tile_memory_bytes(store: Path, tile: dict, block_cells: int) -> float:
     read = inside = 0.0
     for name, grow in (("pre", 0.0), ("post", float(tile.get("read_margin", 0.0)))):
         keys = blocks_in_box(box + np.array([[-grow], [grow]]), block_cells)
-        n = sum(block_path(Path(store) / name, k).stat().st_size
-                for k in keys if block_path(Path(store) / name, k).is_file()) / RECORD.itemsize
+        n = sum(f.stat().st_size for k in keys for f in block_files(Path(store) / name, k) if f.is_file())
+        n /= RECORD.itemsize
         read += n
         inside += n * min(1.0, area / (len(keys) * side * side)) if keys else 0.0
     return read * READ_BYTES_PER_POINT + inside * DESCRIBE_BYTES_PER_POINT

@@ -88,6 +88,35 @@ def block_roof_cells(folder: str, key, block_cells: int, building_only: bool = T
     return out
 
 
+def stream_part(folder: str, epoch_json: dict, origin: list, part: int, start: int, stop: int, block_cells: int,
+                footprints: dict | None, with_hulls: bool, sample, map_step: int | None, chunk_points: int):
+    """Points start..stop of an epoch's file streamed into the block files of `part` under
+    `folder` (`quakescan.distributed.blocks.stream_epoch`): one of the tasks that tile an
+    epoch in parallel. `footprints`: {"path", "id_field"} read here (building IDs by
+    footprint), or None (the file's building_id). Returns the part's EpochStats."""
+    from .blocks import stream_epoch
+
+    fp = None if footprints is None else _footprints(footprints["path"], footprints.get("id_field"))
+    return stream_epoch(EpochFile(**epoch_json), np.asarray(origin, dtype=np.float64), Path(folder),
+                        block_cells=block_cells, footprints=fp, with_hulls=with_hulls,
+                        sample=None if sample is None else tuple(sample), map_step=map_step,
+                        chunk_points=chunk_points, part=part, start=start, stop=stop)
+
+
+_FOOTPRINTS: dict = {}
+
+
+def _footprints(path: str, id_field):
+    """The footprints of `path`, read once per worker process (every part of both epochs asks)."""
+    from ..formats.footprints import read_footprints
+
+    key = (path, id_field, Path(path).stat().st_mtime_ns)
+    if key not in _FOOTPRINTS:
+        _FOOTPRINTS.clear()
+        _FOOTPRINTS[key] = read_footprints(path, id_field)
+    return _FOOTPRINTS[key]
+
+
 def merge_roof_cells(parts: list[dict]) -> float:
     """The epoch's planimetric density from every block's `block_roof_cells`: equal to
     `planimetric_density` of the whole epoch (the interquartile mean of integer counts is
@@ -194,4 +223,5 @@ def _origin(folder) -> list:
     return json.loads((Path(folder) / "epoch.json").read_text())["origin"]
 
 
-__all__ = ["TileReachError", "add_facing_counts", "block_roof_cells", "describe_tile_task", "merge_roof_cells"]
+__all__ = ["TileReachError", "add_facing_counts", "block_roof_cells", "describe_tile_task", "merge_roof_cells",
+           "stream_part"]
