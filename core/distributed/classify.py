@@ -17,7 +17,6 @@ the block files to OUT/.blocks, valid for one fingerprint of the inputs.
 """
 from __future__ import annotations
 
-import contextlib
 import json
 import logging
 import shutil
@@ -30,6 +29,7 @@ from ..formats.pointcloud import PointCloudError, check_coordinates_fit_crs
 from ..learning import classification as cl
 from ..runtime.progress import ProgressCallback
 from . import blocks as bk
+from .cluster import dashboard_address, dask_client  # noqa: F401  (moved; still importable here)
 
 log = logging.getLogger(__name__)
 
@@ -40,43 +40,6 @@ HALO_STEP_M = 10.0  # a tile whose nearest neighbours reach beyond its halo asks
 
 class DistributedError(cl.ClassifyError):
     """The distributed classification cannot run as asked."""
-
-
-@contextlib.contextmanager
-def dask_client(workers: int | None = None, scheduler: str | None = None, memory_limit: str | None = "auto"):
-    """A Dask client: on an existing scheduler's cluster, or on a LocalCluster of `workers`
-    single-threaded processes started here and closed on leaving."""
-    try:
-        from dask.distributed import Client, LocalCluster
-    except ImportError as e:  # pragma: no cover - dask is a dependency
-        raise DistributedError(f"--workers/--scheduler need dask.distributed ({e})") from None
-    if scheduler:
-        try:
-            client = Client(scheduler, timeout="20s")
-        except (OSError, TimeoutError) as e:
-            raise DistributedError(f"--scheduler {scheduler}: cannot reach the Dask scheduler ({e})") from None
-        try:
-            yield client
-        finally:
-            client.close()
-        return
-    if workers is None or workers < 1:
-        raise DistributedError(f"--workers must be at least 1, got {workers}")
-    cluster = LocalCluster(n_workers=int(workers), threads_per_worker=1, processes=True,
-                           memory_limit=memory_limit, dashboard_address=":0")
-    client = Client(cluster)
-    try:
-        yield client
-    finally:
-        client.close()
-        cluster.close()
-
-
-def dashboard_address(client) -> str | None:
-    try:
-        return client.dashboard_link
-    except Exception:  # no dashboard (bokeh missing): the run goes on without one
-        return None
 
 
 def classify_distributed(pre_path, post_path, out_dir, client, *, model_path=None, footprints_path=None,

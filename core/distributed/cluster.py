@@ -1,0 +1,55 @@
+"""The Dask cluster a command runs its tasks on: a LocalCluster it starts and closes, or an
+existing scheduler's cluster; shared by `classify` and `training-set` (`--workers N |
+--scheduler ADDRESS`)."""
+from __future__ import annotations
+
+import contextlib
+
+from ..errors import QuakeScanError
+
+
+class ClusterError(QuakeScanError):
+    """A Dask cluster cannot be started or reached as asked."""
+
+
+@contextlib.contextmanager
+def dask_client(workers: int | None = None, scheduler: str | None = None, memory_limit: str | None = "auto"):
+    """A Dask client: on an existing scheduler's cluster, or on a LocalCluster of `workers`
+    single-threaded processes started here and closed on leaving."""
+    try:
+        from dask.distributed import Client, LocalCluster
+    except ImportError as e:  # pragma: no cover - dask is a dependency
+        raise ClusterError(f"--workers/--scheduler need dask.distributed ({e})") from None
+    if scheduler:
+        try:
+            client = Client(scheduler, timeout="20s")
+        except (OSError, TimeoutError) as e:
+            raise ClusterError(f"--scheduler {scheduler}: cannot reach the Dask scheduler ({e})") from None
+        except Exception as e:  # a malformed address (ValueError) or a host name that does not resolve
+            raise ClusterError(f"--scheduler {scheduler}: not a reachable Dask scheduler address, e.g. "
+                               f"tcp://host:8786 ({type(e).__name__}: {e})") from None
+        try:
+            yield client
+        finally:
+            client.close()
+        return
+    if workers is None or workers < 1:
+        raise ClusterError(f"--workers must be at least 1, got {workers}")
+    cluster = LocalCluster(n_workers=int(workers), threads_per_worker=1, processes=True,
+                           memory_limit=memory_limit, dashboard_address=":0")
+    client = Client(cluster)
+    try:
+        yield client
+    finally:
+        client.close()
+        cluster.close()
+
+
+def dashboard_address(client) -> str | None:
+    try:
+        return client.dashboard_link
+    except Exception:  # no dashboard (bokeh missing): the run goes on without one
+        return None
+
+
+__all__ = ["ClusterError", "dashboard_address", "dask_client"]
