@@ -10,6 +10,7 @@ import json
 import os
 import shutil
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -144,13 +145,13 @@ def test_an_interrupted_client_loses_no_finished_pair(plan, sequential, cluster,
 
 
 class _DieMidTask(distributed.WorkerPlugin):
-    """Kills its worker's process shortly after the first pair task starts on any worker (a
-    marker file makes it once across processes): mid-acquisition or mid-description, with
-    temporary files half written. The nanny starts a new worker and the scheduler gives the
-    lost task to a live one."""
+    """Kills its worker's process in the middle of the first pair task any worker starts (a
+    marker file makes it once across processes): as soon as a cloud is half written under
+    `folder` by it (a .part file in its city's clouds), or after `limit_s`. The nanny starts a new worker and the
+    scheduler gives the lost task to a live one, which finds the half-written file."""
 
-    def __init__(self, marker: str, delay_s: float):
-        self.marker, self.delay_s = marker, delay_s
+    def __init__(self, marker: str, folder: str, limit_s: float = 3.0):
+        self.marker, self.folder, self.limit_s = marker, folder, limit_s
 
     def setup(self, worker):
         self.worker = worker
@@ -159,7 +160,16 @@ class _DieMidTask(distributed.WorkerPlugin):
         name = key if isinstance(key, str) else str(key)
         if finish == "executing" and name.startswith("trainset-pair-") and not os.path.exists(self.marker):
             Path(self.marker).write_text(f"{os.getpid()} {name}")
-            threading.Timer(self.delay_s, os._exit, (1,)).start()
+            clouds = Path(self.folder) / "clouds" / name.removeprefix("trainset-pair-").split(".")[0]
+            threading.Thread(target=self._die, args=(clouds,), daemon=True).start()
+
+    def _die(self, clouds: Path):
+        end = time.monotonic() + self.limit_s
+        while time.monotonic() < end and not any(clouds.glob("*.part")):
+            time.sleep(0.002)
+        with open(self.marker, "a") as f:  # what the task run again finds
+            f.write("".join(f"\n{p}" for p in clouds.glob("*.part")))
+        os._exit(1)
 
 
 @slow
@@ -169,7 +179,7 @@ def test_a_worker_killed_mid_task_has_its_pair_redone_with_the_same_table(plan, 
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0",
                                   memory_limit="2GB") as c, distributed.Client(c) as client:
         pids = set(client.run(os.getpid).values())
-        client.register_plugin(_DieMidTask(str(marker), 0.3))
+        client.register_plugin(_DieMidTask(str(marker), str(tmp_path / "out")))
         table = build(tmp_path / "out", plan, TABLE_SETTINGS, client=client)
         assert marker.is_file() and int(marker.read_text().split()[0]) in pids  # a worker did die
         assert set(client.run(os.getpid).values()) != pids  # and was replaced

@@ -26,6 +26,8 @@ generator settings, a cloud whose sidecar records the same acquisition, seed and
 and a table whose fingerprint (`quakescan.runtime.fingerprint`: the pair, its scenes, the settings) is
 the one it would get now are not made again; anything else is made again. The same plan and seed
 give the same table.
+With a dask.distributed client, `build` runs one task per city and one per pair (`pair_table`,
+the function the single-process run calls) on its cluster: the same tables, resumable alike.
 
 The Zurich city model in `../shared/data` is reserved for evaluation and never used here.
 """
