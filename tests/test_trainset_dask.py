@@ -3,9 +3,9 @@
 a resumed or interrupted build redoes only what is missing, a worker killed mid-task has its
 task redone with the same result.
 
-The plan is small enough to run for real (two cities of three and four buildings, sparse
-airborne and photogrammetric clouds), so the workers run the real generator, scanner and
-descriptors: fakes patched into this process would not reach them."""
+The plan is small enough to run for real (two cities of four and three buildings, airborne
+and photogrammetric clouds of them: seconds a pair), so the workers run the real generator,
+scanners and descriptors: fakes patched into this process would not reach them."""
 import json
 import os
 import shutil
@@ -70,6 +70,7 @@ def sequential(plan, tmp_path_factory):
     # two threads here, one in each task: the tables must not depend on it
     table = build(out, plan, TABLE_SETTINGS, workers=2, progress=lambda done, total: calls.append((done, total)))
     assert len(table.y) >= 10 and set(table.pairs) == {p.name for p in plan.pairs}
+    assert set(table.y[table.pair == 2]) == {0} and set(table.y) == {0, 3, 4, 5}
     assert calls == [(k, 6) for k in range(1, 7)]
     return out, table
 
