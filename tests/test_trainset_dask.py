@@ -6,6 +6,7 @@ task redone with the same result.
 The plan is small enough to run for real (two cities of four and three buildings, airborne
 and photogrammetric clouds of them: seconds a pair), so the workers run the real generator,
 scanners and descriptors: fakes patched into this process would not reach them."""
+import gc
 import json
 import os
 import shutil
@@ -216,6 +217,9 @@ def test_bad_cluster_options_are_named(tmp_path, capsys):
     assert "argument --scheduler: not allowed with argument --workers" in capsys.readouterr().err
     assert main(args + ["--scheduler", "tpc://127.0.0.1:8786"]) == 2  # a typo in the scheme: at once, not a traceback
     assert "--scheduler tpc://127.0.0.1:8786: not a reachable Dask scheduler address" in capsys.readouterr().err
+    # the client that failed is closed now: left to the garbage collector, it would close
+    # while the next client starts and hang it (the lock of distributed's loop runner)
+    assert not [c for c in gc.get_objects() if isinstance(c, distributed.Client) and c.status == "connecting"]
     assert not (tmp_path / "ts" / "scenes").exists()  # nothing was started
 
 

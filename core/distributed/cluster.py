@@ -4,6 +4,7 @@ existing scheduler's cluster; shared by `classify` and `training-set` (`--worker
 from __future__ import annotations
 
 import contextlib
+import gc
 
 from ..errors import QuakeScanError
 
@@ -21,13 +22,21 @@ def dask_client(workers: int | None = None, scheduler: str | None = None, memory
     except ImportError as e:  # pragma: no cover - dask is a dependency
         raise ClusterError(f"--workers/--scheduler need dask.distributed ({e})") from None
     if scheduler:
+        why = None
         try:
             client = Client(scheduler, timeout="20s")
         except (OSError, TimeoutError) as e:
-            raise ClusterError(f"--scheduler {scheduler}: cannot reach the Dask scheduler ({e})") from None
+            why = f"--scheduler {scheduler}: cannot reach the Dask scheduler ({e})"
         except Exception as e:  # a malformed address (ValueError) or a host name that does not resolve
-            raise ClusterError(f"--scheduler {scheduler}: not a reachable Dask scheduler address, e.g. "
-                               f"tcp://host:8786 ({type(e).__name__}: {e})") from None
+            why = (f"--scheduler {scheduler}: not a reachable Dask scheduler address, e.g. tcp://host:8786 "
+                   f"({type(e).__name__}: {e})")
+        if why:
+            # The client that failed to connect stays "connecting" in a reference cycle (its
+            # traceback). Collected later, while another client starts, its close() waits for
+            # the lock that start holds (distributed 2026.8): collect it now, outside the
+            # exception, and raise without it.
+            gc.collect()
+            raise ClusterError(why)
         try:
             yield client
         finally:
