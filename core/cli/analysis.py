@@ -124,7 +124,8 @@ def cmd_classify(args) -> int:
 def _classify_on_dask(args) -> dict:
     """classify with its tiles as Dask tasks: a LocalCluster of --workers processes, or the
     cluster of --scheduler; the dashboard's address printed before the work starts."""
-    from ..distributed.classify import classify_distributed, dashboard_address, dask_client
+    from ..distributed.classify import classify_distributed
+    from ..distributed.cluster import dashboard_address, dask_client
 
     with dask_client(n_workers=args.workers, scheduler=args.scheduler, memory_limit=args.memory_limit) as client:
         where = f"scheduler {args.scheduler}" if args.scheduler else f"a LocalCluster of {args.workers} workers"

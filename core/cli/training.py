@@ -107,12 +107,28 @@ def cmd_training_set(args) -> int:
     check_seed(args.seed)
     check_threads(args.threads)
     check_folder_output(Path(args.output))
-    table = build(args.output, default_plan(args.seed, args.size, args.scenes, args.damage, args.small),
-                  TABLE_SETTINGS, workers=args.threads,
-                  progress=reporter(args, "training set"))
+    plan = default_plan(args.seed, args.size, args.scenes, args.damage, args.small)
+    if args.workers is not None or args.scheduler:
+        table = _training_set_on_dask(args, plan, TABLE_SETTINGS)
+    else:
+        table = build(args.output, plan, TABLE_SETTINGS, workers=args.threads,
+                      progress=reporter(args, "training set"))
     counts = dict(zip(*(v.tolist() for v in np.unique(table.y, return_counts=True))))
     print(f"{args.output}: {len(table.y)} building rows, grades {counts}; manifest.json and tables/")
     return 0
+
+
+def _training_set_on_dask(args, plan, settings):
+    """The training set's cities and pairs as Dask tasks: a LocalCluster of --workers processes
+    or the cluster of --scheduler; the dashboard's address printed before the work starts."""
+    from ..distributed.cluster import dashboard_address, dask_client
+    from ..learning.trainset import build
+
+    with dask_client(n_workers=args.workers, scheduler=args.scheduler) as client:
+        where = f"scheduler {args.scheduler}" if args.scheduler else f"a LocalCluster of {args.workers} workers"
+        board = dashboard_address(client)
+        print(f"Dask: {where}" + (f"; dashboard {board}" if board else ""), flush=True)
+        return build(args.output, plan, settings, progress=reporter(args, "training set"), client=client)
 
 
 def add_train(sub) -> None:
@@ -161,5 +177,12 @@ def add_training_set(sub) -> None:
                     help="full/large: also two cities of small buildings (sheds, garages, row houses), acquired "
                     "ALS-like before")
     ts.add_argument("--threads", type=int, default=EVERY_CORE, help=THREADS_HELP)
+    dask = ts.add_mutually_exclusive_group()
+    dask.add_argument("--workers", type=int, metavar="N",
+                      help="generate, acquire and describe as Dask tasks (one per city, one per pair) on a "
+                      "LocalCluster of N single-threaded worker processes (the same tables as without)")
+    dask.add_argument("--scheduler", metavar="ADDRESS",
+                      help="the same on an existing Dask cluster (tcp://host:8786; its workers must reach the "
+                      "output folder and run the scene generator)")
     ts.add_argument("--progress", action="store_true", help=PROGRESS_HELP)
     ts.set_defaults(func=cmd_training_set)

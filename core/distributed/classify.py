@@ -17,7 +17,6 @@ the block files to OUT/.blocks, valid for one fingerprint of the inputs.
 """
 from __future__ import annotations
 
-import contextlib
 import json
 import logging
 import shutil
@@ -30,6 +29,7 @@ from ..formats.pointcloud import PointCloudError, check_coordinates_fit_crs
 from ..learning import classification as cl
 from ..runtime.progress import ProgressCallback
 from . import blocks as bk
+from .cluster import dashboard_address, dask_client  # noqa: F401  (moved; still importable here)
 
 log = logging.getLogger(__name__)
 
@@ -52,44 +52,6 @@ MAX_SPLIT_DEPTH = 12  # quarters of a 150 m tile down to 4 cm: buildings sharing
 
 class DistributedError(cl.ClassifyError):
     """The distributed classification cannot run as asked."""
-
-
-@contextlib.contextmanager
-def dask_client(n_workers: int | None = None, scheduler: str | None = None, memory_limit: str | None = "auto"):
-    """A Dask client: on an existing scheduler's cluster, or on a LocalCluster of `n_workers`
-    single-threaded processes started here and closed on leaving (Dask's name: `workers` is
-    the library's thread count everywhere else)."""
-    try:
-        from dask.distributed import Client, LocalCluster
-    except ImportError as e:  # pragma: no cover - dask is a dependency
-        raise DistributedError(f"--workers/--scheduler need dask.distributed ({e})") from None
-    if scheduler:
-        try:
-            client = Client(scheduler, timeout="20s")
-        except (OSError, TimeoutError) as e:
-            raise DistributedError(f"--scheduler {scheduler}: cannot reach the Dask scheduler ({e})") from None
-        try:
-            yield client
-        finally:
-            client.close()
-        return
-    if n_workers is None or n_workers < 1:
-        raise DistributedError(f"--workers must be at least 1, got {n_workers}")
-    cluster = LocalCluster(n_workers=int(n_workers), threads_per_worker=1, processes=True,
-                           memory_limit=memory_limit, dashboard_address=":0")
-    client = Client(cluster)
-    try:
-        yield client
-    finally:
-        client.close()
-        cluster.close()
-
-
-def dashboard_address(client) -> str | None:
-    try:
-        return client.dashboard_link
-    except Exception:  # no dashboard (bokeh missing): the run goes on without one
-        return None
 
 
 def classify_distributed(pre_path, post_path, out_dir, client, *, model_path=None, footprints_path=None,
@@ -267,7 +229,7 @@ def _tiled_epochs(client, store: Path, digest: str, pre_f, post_f, origin, fp, f
                                 footprints, name == "pre" and fp is None,
                                 None if sample is None else (f.n, sample),
                                 cl.map_step(f.n) if name == "pre" else None, chunk_points, pure=False,
-                                key=f"stream-{name}-{part}-{digest[:8]}")
+                                key=f"stream-{name}-{part}-{run_token()}")
             futures[fut] = (name, part, b - a)
     parts: dict[str, dict] = {"pre": {}, "post": {}}
     done = {"pre": 0, "post": 0}
@@ -287,6 +249,14 @@ def _tiled_epochs(client, store: Path, digest: str, pre_f, post_f, origin, fp, f
     bk.write_manifest(store / MANIFEST, {"fingerprint": digest, "block_cells": block_cells,
                                          "pre": stats["pre"].to_json(), "post": stats["post"].to_json()})
     return stats["pre"], stats["post"]
+
+
+def run_token() -> str:
+    """A part of the task keys new in every run: the keys of a run interrupted a moment ago may
+    still be cancelling on the scheduler, and a new future under such a key is cancelled too."""
+    import uuid
+
+    return uuid.uuid4().hex[:8]
 
 
 def part_bounds(n: int, n_workers: int, chunk_points: int) -> list[int]:
@@ -352,6 +322,7 @@ def _describe_tiles(client, store, pre_s, post_s, settings, geometry, block_cell
         return (np.asarray(pre_s.lo[b], dtype=np.float64) + np.asarray(pre_s.hi[b], dtype=np.float64)) / 2
 
     futures, groups, widened, split = {}, {}, 0, 0
+    run = run_token()
 
     def submit(s, facing=None, name=None):
         # the largest tiles first, so that no worker is left with a large one while the others idle
@@ -381,9 +352,9 @@ def _describe_tiles(client, store, pre_s, post_s, settings, geometry, block_cell
             s = spec(part_key, part_bids, halo)
             name = "_".join(str(v) for v in part_key)
             if count_first:
-                submit({**s, "count_facing": True, "group": list(key)}, name=f"count-{name}-{digest[:8]}")
+                submit({**s, "count_facing": True, "group": list(key)}, name=f"count-{name}-{run}")
             else:
-                submit(s, name=f"tile-{name}-{digest[:8]}")
+                submit(s, name=f"tile-{name}-{run}")
     queue = as_completed(list(futures))
     for fut in queue:
         s, facing = futures.pop(fut)
@@ -402,7 +373,7 @@ def _describe_tiles(client, store, pre_s, post_s, settings, geometry, block_cell
                 whole = add_facing_counts(*group["counts"])
                 for part_key, part_bids in group["parts"]:
                     name = "_".join(str(v) for v in part_key)
-                    queue.add(submit(spec(part_key, part_bids, halo), whole, name=f"tile-{name}-{digest[:8]}"))
+                    queue.add(submit(spec(part_key, part_bids, halo), whole, name=f"tile-{name}-{run}"))
             continue
         tile_rows = result["rows"]
         for r in tile_rows:

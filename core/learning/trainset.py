@@ -26,6 +26,8 @@ generator settings, a cloud whose sidecar records the same acquisition, seed and
 and a table whose fingerprint (`quakescan.runtime.fingerprint`: the pair, its scenes, the settings) is
 the one it would get now are not made again; anything else is made again. The same plan and seed
 give the same table.
+With a dask.distributed client, `build` runs one task per city and one per pair (`pair_table`,
+the function the single-process run calls) on its cluster: the same tables, resumable alike.
 
 The Zurich city model in `../shared/data` is reserved for evaluation and never used here.
 """
@@ -389,92 +391,120 @@ def _grades(scene_dir: Path) -> dict:
     return {int(b["id"]): int(b["grade"]) for b in doc["buildings"]}
 
 
-@accepts_old_say
-def build(out_dir, plan: TrainingPlan, settings, *, workers: int = -1,
-          progress: ProgressCallback | None = None) -> TransferTable:
-    """Generate, acquire and describe everything the plan asks for under out_dir; returns the
-    table of all pairs. Resumable and seeded (see the module docstring). `progress(done,
-    total)` counts cities generated and pairs acquired and described; the stage messages go to
-    the logger `quakescan.stages` (`quakescan.runtime.progress`)."""
+def pair_table(out_dir, pair: dict, settings: dict, labels: str = "simulator", workers: int = -1) -> dict:
+    """The descriptor table of one pair of the training set under `out_dir`, whose city's
+    scenes are made: read when its file is current (fingerprint), else the pair's clouds
+    acquired (each reused when its sidecar records the same acquisition), described, and the
+    table written under its name only when complete, with its fingerprint after it.
+
+    Plain arguments (the pair's `PairSpec` and the `PipelineSettings` as their JSON) and no
+    state of the process, so that the sequential `build` and a Dask worker run the same call
+    and get the same table; a worker killed while it runs leaves at most temporary files,
+    which the task run again replaces. Returns the table's arrays: x, y, building_id,
+    density, cells, seconds (acquisition and description)."""
     from ..acquisition.acquire import Acquisition, acquire
-    from ..change.pipeline import describe_pair, descriptor_matrix
+    from ..change.pipeline import PipelineSettings, describe_pair, descriptor_matrix
     from ..results.evaluation import to_target_grade
     from .classification import load_pair
 
+    out, spec, config = Path(out_dir), PairSpec(**pair), PipelineSettings.from_json(settings)
+    scenes = out / "scenes" / spec.city
+    table_path = out / "tables" / f"{spec.name}.{_settings_key(config, labels)}.npz"
+    clouds = out / "clouds" / spec.city
+    clouds.mkdir(parents=True, exist_ok=True)
+    part = None
+    table_fp = _table_fingerprint(spec, scenes, config, labels)
+    found = fingerprint.state(table_path, table_fp)
+    if found == "changed":
+        log.warning("%s: unreadable table (cut or replaced since it was written), discarded: recomputing it",
+                    table_path)
+    elif found == "current":
+        try:
+            with np.load(table_path) as d:
+                part = {k: d[k] for k in d.files}
+        except Exception as e:  # foreign: recomputed, never a traceback on every rerun
+            log.warning("%s: unreadable table (%s), discarded: recomputing it", table_path, e)
+            table_path.unlink(missing_ok=True)
+    if part is not None:
+        return part
+    fingerprint.forget(table_path)
+    t = time.perf_counter()
+    paths = _cloud_paths(out, spec)
+    for (scene, acq, seed, role), path in zip(_epochs(spec), paths):
+        acquire(scenes / scene, Acquisition.from_json(acq, f"{spec.name} {role}"), path, seed=seed, workers=workers)
+    t_acq = time.perf_counter() - t
+    data = load_pair(*paths, footprints_path=scene_footprints(scenes) if labels == "footprints" else None)
+    truth = _grades(scenes / spec.post_scene)
+    rows = [r for r in describe_pair(data.pre, data.post, config, workers=workers)
+            if r.assessable and r.building_id in truth]
+    part = {"x": descriptor_matrix(rows, config.descriptor_names()),
+            "y": to_target_grade(np.array([truth[r.building_id] for r in rows], np.int64)),
+            "building_id": np.array([r.building_id for r in rows], np.int64),
+            "density": np.array([[r.quality.get("density_pre", np.nan), r.quality.get("density_post", np.nan)]
+                                 for r in rows], dtype=np.float64).reshape(len(rows), 2),
+            "cells": np.array([r.quality.get("cells", 0) for r in rows], np.int64),
+            "seconds": np.array([t_acq, time.perf_counter() - t - t_acq])}
+    with open_replacing(table_path, "wb") as f:
+        np.savez(f, **part)
+    fingerprint.record(table_path, table_fp)
+    return part
+
+
+def _epochs(pair: PairSpec) -> tuple:
+    """(scene, acquisition, seed, role) of the pair's pre- and post-event clouds."""
+    return (("pre", pair.pre, pair.pre_seed, "pre"), (pair.post_scene, pair.post, pair.post_seed, "post"))
+
+
+def _cloud_paths(out: Path, pair: PairSpec) -> list:
+    return [out / "clouds" / pair.city / f"{scene}.{acq['kind']}.{seed}.las" for scene, acq, seed, _ in _epochs(pair)]
+
+
+def _city_task(out_dir: str, city: dict) -> str:
+    """Dask task: the city's scenes (`generate_city`) from its plain record; returns its name."""
+    spec = CitySpec(**{**city, "grade_mix": None if city["grade_mix"] is None
+                       else {int(g): int(n) for g, n in city["grade_mix"].items()}})
+    generate_city(spec, Path(out_dir) / "scenes" / spec.name)
+    return spec.name
+
+
+def _pair_task(after: list, out_dir: str, pair: dict, settings: dict, labels: str) -> dict:
+    """Dask task: `pair_table` on a single-threaded worker. `after` holds the results of the
+    tasks it must follow (its city's generation, earlier pairs writing one of its clouds):
+    Dask runs it only once they are done."""
+    return pair_table(out_dir, pair, settings, labels, workers=1)
+
+
+@accepts_old_say
+def build(out_dir, plan: TrainingPlan, settings, *, workers: int = -1,
+          progress: ProgressCallback | None = None, client=None) -> TransferTable:
+    """Generate, acquire and describe everything the plan asks for under out_dir; returns the
+    table of all pairs. Resumable and seeded (see the module docstring). `progress(done,
+    total)` counts cities generated and pairs acquired and described; the stage messages go to
+    the logger `quakescan.stages` (`quakescan.runtime.progress`).
+
+    `client` (a dask.distributed Client): the same work as Dask tasks on its cluster, one per
+    city (the generator) and one per pair (`pair_table`: acquisition and description, after
+    its city), the same table; every worker must reach out_dir. Without, one process, city
+    after city and pair after pair with `workers` threads."""
     out = Path(out_dir)
     for sub in ("scenes", "clouds", "tables"):
         (out / sub).mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     cities = {c.name: c for c in plan.cities}
+    if len(cities) < len(plan.cities):  # one folder per name: two cities would write the same scenes
+        twice = sorted({c.name for c in plan.cities if sum(d.name == c.name for d in plan.cities) > 1})
+        raise TrainingSetError(f"the plan names a city more than once: {twice}")
     unknown = sorted({p.city for p in plan.pairs} - set(cities))
     if unknown:
         raise TrainingSetError(f"pairs name cities the plan does not have: {unknown}")
-    steps = len(plan.cities) + len(plan.pairs)
-    stage_log.info(f"training set 1/3: {len(plan.cities)} cities -> {out / 'scenes'}")
-    for k, city in enumerate(plan.cities, 1):
-        t = time.perf_counter()
-        generate_city(city, out / "scenes" / city.name)
-        stage_log.info(f"  [{k}/{len(plan.cities)}] {city.name} ({city.source}, {city.dataset}) {time.perf_counter() - t:.0f} s")
-        if progress:
-            progress(k, steps)
-    key = _settings_key(settings, plan.labels)
     names = settings.descriptor_names()
-    stage_log.info(f"training set 2/3 and 3/3: acquiring and describing {len(plan.pairs)} pairs")
-    parts, manifest_pairs = [], []
-    for k, pair in enumerate(plan.pairs, 1):
-        scenes = out / "scenes" / pair.city
-        table_path = out / "tables" / f"{pair.name}.{key}.npz"
-        clouds = out / "clouds" / pair.city
-        clouds.mkdir(exist_ok=True)
-        part = None
-        table_fp = _table_fingerprint(pair, scenes, settings, plan.labels)
-        found = fingerprint.state(table_path, table_fp)
-        if found == "changed":
-            log.warning("%s: unreadable table (cut or replaced since it was written), discarded: recomputing it",
-                        table_path)
-        elif found == "current":
-            try:
-                with np.load(table_path) as d:
-                    part = {k2: d[k2] for k2 in d.files}
-            except Exception as e:  # foreign: recomputed, never a traceback on every rerun
-                log.warning("%s: unreadable table (%s), discarded: recomputing it", table_path, e)
-                table_path.unlink(missing_ok=True)
-        if part is None:
-            fingerprint.forget(table_path)
-        t = time.perf_counter()
-        paths = []
-        for role, scene, acq, seed in (("pre", "pre", pair.pre, pair.pre_seed),
-                                       ("post", pair.post_scene, pair.post, pair.post_seed)):
-            a = Acquisition.from_json(acq, f"{pair.name} {role}")
-            path = clouds / f"{scene}.{a.kind}.{seed}.las"
-            if part is None:
-                acquire(scenes / scene, a, path, seed=seed)
-            paths.append(path)
-        t_acq = time.perf_counter() - t
-        if part is None:
-            data = load_pair(*paths, footprints_path=scene_footprints(scenes) if plan.labels == "footprints"
-                             else None)
-            truth = _grades(scenes / pair.post_scene)
-            rows = [r for r in describe_pair(data.pre, data.post, settings, workers=workers)
-                    if r.assessable and r.building_id in truth]
-            part = {"x": descriptor_matrix(rows, names),
-                    "y": to_target_grade(np.array([truth[r.building_id] for r in rows], np.int64)),
-                    "building_id": np.array([r.building_id for r in rows], np.int64),
-                    "density": np.array([[r.quality.get("density_pre", np.nan), r.quality.get("density_post", np.nan)]
-                                         for r in rows], dtype=np.float64).reshape(len(rows), 2),
-                    "cells": np.array([r.quality.get("cells", 0) for r in rows], np.int64),
-                    "seconds": np.array([t_acq, time.perf_counter() - t - t_acq])}
-            with open_replacing(table_path, "wb") as f:
-                np.savez(f, **part)
-            fingerprint.record(table_path, table_fp)
-        parts.append(part)
-        manifest_pairs.append({"name": pair.name, "rows": int(len(part["y"])),
-                               "acquire_s": round(float(part["seconds"][0]), 1),
-                               "describe_s": round(float(part["seconds"][1]), 1)})
-        stage_log.info(f"  [{k}/{len(plan.pairs)}] {pair.name}: {len(part['y'])} buildings "
-                       f"(acquire {part['seconds'][0]:.0f} s, describe {part['seconds'][1]:.0f} s)")
-        if progress:
-            progress(len(plan.cities) + k, steps)
+    if client is None:
+        parts = _build_here(out, plan, settings, workers, progress)
+    else:
+        parts = _build_on_dask(client, out, plan, settings, progress)
+    manifest_pairs = [{"name": pair.name, "rows": int(len(part["y"])),
+                       "acquire_s": round(float(part["seconds"][0]), 1),
+                       "describe_s": round(float(part["seconds"][1]), 1)} for pair, part in zip(plan.pairs, parts)]
     city_index = {c.name: i for i, c in enumerate(plan.cities)}
     for c in plan.cities:  # a physics twin holds its twin's buildings and acquisitions: one city when held out
         if c.damage != "patterns" and c.name.removesuffix(f"-{c.damage}") in city_index:
@@ -497,3 +527,85 @@ def build(out_dir, plan: TrainingPlan, settings, *, workers: int = -1,
     stage_log.info(f"training set: {len(table.y)} building rows from {len(plan.pairs)} pairs in "
                    f"{time.perf_counter() - t0:.0f} s")
     return table
+
+
+def _pair_message(k: int, n: int, pair: PairSpec, part: dict) -> str:
+    return (f"  [{k}/{n}] {pair.name}: {len(part['y'])} buildings "
+            f"(acquire {part['seconds'][0]:.0f} s, describe {part['seconds'][1]:.0f} s)")
+
+
+def _build_here(out: Path, plan: TrainingPlan, settings, workers: int, progress) -> list:
+    """The tables of every pair, made in this process: every city first, then pair by pair."""
+    steps = len(plan.cities) + len(plan.pairs)
+    stage_log.info(f"training set 1/3: {len(plan.cities)} cities -> {out / 'scenes'}")
+    for k, city in enumerate(plan.cities, 1):
+        t = time.perf_counter()
+        generate_city(city, out / "scenes" / city.name)
+        stage_log.info(f"  [{k}/{len(plan.cities)}] {city.name} ({city.source}, {city.dataset}) {time.perf_counter() - t:.0f} s")
+        if progress:
+            progress(k, steps)
+    stage_log.info(f"training set 2/3 and 3/3: acquiring and describing {len(plan.pairs)} pairs")
+    parts, config = [], settings.to_json()
+    for k, pair in enumerate(plan.pairs, 1):
+        parts.append(pair_table(out, asdict(pair), config, plan.labels, workers))
+        stage_log.info(_pair_message(k, len(plan.pairs), pair, parts[-1]))
+        if progress:
+            progress(len(plan.cities) + k, steps)
+    return parts
+
+
+def _build_on_dask(client, out: Path, plan: TrainingPlan, settings, progress) -> list:
+    """The tables of every pair as Dask tasks on `client`'s cluster: one task per city, one per
+    pair after its city's. Tasks take the output folder and the plain specs and return only
+    the small table arrays; the scenes and clouds stay on disk and each worker builds its own
+    ray-casting scene. Progress counts tasks as they finish, in any order; the tables are put
+    back in the plan's order."""
+    import uuid
+
+    from dask.distributed import as_completed
+
+    root, config = str(out.resolve()), settings.to_json()
+    # keys new in every call: a key of a run interrupted a moment ago may still be cancelling
+    # on the scheduler, and a new future under it would be cancelled with it
+    run = uuid.uuid4().hex[:8]
+    stage_log.info(f"training set on Dask: {len(plan.cities)} cities and {len(plan.pairs)} pairs as tasks "
+                   f"-> {out}")
+    futures, what, made = [], {}, {}
+    for city in plan.cities:
+        record = asdict(city)
+        f = client.submit(_city_task, root, record, key=f"trainset-city-{city.name}-{run}")
+        made[city.name] = f
+        futures.append(f)
+        what[f.key] = ("city", city)
+    # a cloud file shared by two pairs (same scene, sensor and seed) is written by the first
+    # and reused or rewritten by the next, as one process does: never by two tasks at once
+    last_writer, pair_futures = {}, []
+    for pair in plan.pairs:
+        record = asdict(pair)
+        paths = _cloud_paths(out, pair)
+        after = [made[pair.city]] + [last_writer[p] for p in paths if p in last_writer]
+        f = client.submit(_pair_task, after, root, record, config, plan.labels,
+                          key=f"trainset-pair-{pair.name}-{run}")
+        for p in paths:
+            last_writer[p] = f
+        futures.append(f)
+        pair_futures.append(f)
+        what[f.key] = ("pair", pair)
+    steps, done, cities_done, pairs_done, results = len(futures), 0, 0, 0, {}
+    try:
+        for f in as_completed(futures):
+            result = f.result()  # a task's error is raised here, with the task's traceback
+            done += 1
+            kind, spec = what[f.key]
+            if kind == "city":
+                cities_done += 1
+                stage_log.info(f"  [{cities_done}/{len(plan.cities)}] {spec.name} ({spec.source}, {spec.dataset})")
+            else:
+                pairs_done += 1
+                results[f.key] = result
+                stage_log.info(_pair_message(pairs_done, len(plan.pairs), spec, result))
+            if progress:
+                progress(done, steps)
+        return [results[f.key] for f in pair_futures]
+    finally:
+        client.cancel([f for f in futures if not f.done()])

@@ -1,0 +1,65 @@
+"""The Dask cluster a command runs its tasks on: a LocalCluster it starts and closes, or an
+existing scheduler's cluster; shared by `classify` and `training-set` (`--workers N |
+--scheduler ADDRESS`)."""
+from __future__ import annotations
+
+import contextlib
+import gc
+
+from ..errors import QuakeScanError
+
+
+class ClusterError(QuakeScanError):
+    """A Dask cluster cannot be started or reached as asked."""
+
+
+@contextlib.contextmanager
+def dask_client(n_workers: int | None = None, scheduler: str | None = None, memory_limit: str | None = "auto"):
+    """A Dask client: on an existing scheduler's cluster, or on a LocalCluster of `n_workers`
+    single-threaded processes started here and closed on leaving (Dask's name: `workers` is
+    the library's thread count everywhere else)."""
+    try:
+        from dask.distributed import Client, LocalCluster
+    except ImportError as e:  # pragma: no cover - dask is a dependency
+        raise ClusterError(f"--workers/--scheduler need dask.distributed ({e})") from None
+    if scheduler:
+        why = None
+        try:
+            client = Client(scheduler, timeout="20s")
+        except (OSError, TimeoutError) as e:
+            why = f"--scheduler {scheduler}: cannot reach the Dask scheduler ({e})"
+        except Exception as e:  # a malformed address (ValueError) or a host name that does not resolve
+            why = (f"--scheduler {scheduler}: not a reachable Dask scheduler address, e.g. tcp://host:8786 "
+                   f"({type(e).__name__}: {e})")
+        if why:
+            # The client that failed to connect stays "connecting" in a reference cycle (its
+            # traceback). Collected later, while another client starts, its close() waits for
+            # the lock that start holds (distributed 2026.8): collect it now, outside the
+            # exception, and raise without it.
+            gc.collect()
+            raise ClusterError(why)
+        try:
+            yield client
+        finally:
+            client.close()
+        return
+    if n_workers is None or n_workers < 1:
+        raise ClusterError(f"--workers must be at least 1, got {n_workers}")
+    cluster = LocalCluster(n_workers=int(n_workers), threads_per_worker=1, processes=True,
+                           memory_limit=memory_limit, dashboard_address=":0")
+    client = Client(cluster)
+    try:
+        yield client
+    finally:
+        client.close()
+        cluster.close()
+
+
+def dashboard_address(client) -> str | None:
+    try:
+        return client.dashboard_link
+    except Exception:  # no dashboard (bokeh missing): the run goes on without one
+        return None
+
+
+__all__ = ["ClusterError", "dashboard_address", "dask_client"]
