@@ -46,6 +46,7 @@ DESCRIBE_BYTES_PER_POINT = 200
 # A tile is split when its estimate passes this share of the smallest worker's memory limit:
 # Dask's nanny pauses a worker at 80 % and kills it at 95 %, and the estimate is an average
 TILE_MEMORY_SHARE = 0.5
+DENSITY_GROUP = 4  # blocks counted 4 × 4 a task: an aligned epoch's ring of blocks is read once a group
 PART_POINTS = 16_000_000  # points of one epoch streamed by one task at most: a few tasks a worker to balance
 MAX_SPLIT_DEPTH = 12  # quarters of a 150 m tile down to 4 cm: buildings sharing one centre stay together
 
@@ -273,12 +274,18 @@ def _pair_geometry(client, store, pre_s, post_s, settings, block_cells, transfor
     if settings.surface is None:
         return None
     from ..change.surface import SurfaceGeometry
-    from .tasks import block_roof_cells, merge_roof_cells
+    from .tasks import group_roof_cells, merge_roof_cells
 
     def density(name, stats, building_only, moved):
-        futures = [client.submit(block_roof_cells, str(store / name), tuple(k), block_cells, building_only,
-                                 moved, pure=False) for k in stats.blocks]
-        return merge_roof_cells(client.gather(futures))
+        keys = {tuple(k) for k in stats.blocks}
+        if moved is not None:  # a block empty before the alignment may hold points after it
+            keys = {(k[0] + dx, k[1] + dy) for k in keys for dx in (-1, 0, 1) for dy in (-1, 0, 1)}
+        groups: dict[tuple, list] = {}
+        for k in sorted(keys):
+            groups.setdefault((k[0] // DENSITY_GROUP, k[1] // DENSITY_GROUP), []).append(k)
+        futures = [client.submit(group_roof_cells, str(store / name), g, block_cells, building_only, moved,
+                                 pure=False) for g in groups.values()]
+        return merge_roof_cells([part for parts in client.gather(futures) for part in parts])
 
     d_pre = density("pre", pre_s, True, None)
     d_post = density("post", post_s, True, transform)
