@@ -536,8 +536,8 @@ def _surface_geometry(pre: Epoch, post: Epoch, settings: PipelineSettings):
         return None
     from .surface import SurfaceGeometry, planimetric_density
 
-    d_pre = planimetric_density(pre.xyz[pre.building_id > 0])
-    d_post = planimetric_density(post.xyz[post.building_id > 0])
+    d_pre = planimetric_density(pre.xyz, pre.building_id > 0)
+    d_post = planimetric_density(post.xyz, post.building_id > 0)
     if d_post == 0.0:  # a post-event epoch without building points (all collapsed, or footprints missed)
         d_post = planimetric_density(post.xyz)
     return SurfaceGeometry.for_pair(settings.surface, d_pre, d_post)

@@ -186,9 +186,12 @@ def roof_cell_density(cells: np.ndarray, z: np.ndarray) -> tuple[float, int]:
 
     if len(cells) == 0:
         return math.nan, 0
-    ij = cells - cells.min(axis=0) + 1  # >= 1: every neighbour index stays >= 0
-    span = int(ij[:, 1].max()) + 2
-    keys, inverse = np.unique(ij[:, 0] * span + ij[:, 1], return_inverse=True)
+    lo = cells.min(axis=0) - 1  # cell - lo >= 1: every neighbour index stays >= 0
+    span = int(cells[:, 1].max() - lo[1]) + 2
+    key = (cells[:, 0] - lo[0]) * span  # built in place: no (n, 2) copy of a whole epoch's cells
+    key += cells[:, 1] - lo[1]
+    keys, inverse = np.unique(key, return_inverse=True)
+    del key
     top = np.full(len(keys), -np.inf)
     np.maximum.at(top, inverse, z)
     counts = np.bincount(inverse[z >= top[inverse] - ROOF_BAND_M], minlength=len(keys))
@@ -203,22 +206,30 @@ def roof_cell_density(cells: np.ndarray, z: np.ndarray) -> tuple[float, int]:
     return float(trim_mean(counts[interior], 0.25)) / DENSITY_CELL_M ** 2, int(interior.sum())
 
 
-def planimetric_density(xyz: np.ndarray) -> float:
+def planimetric_density(xyz: np.ndarray, where: np.ndarray | None = None) -> float:
     """Points per m² of roof seen from above (`roof_cell_density` on 1 m cells of the given
     frame; the same measure as `quakescan.acquisition.density.measured_density`). A building too small for
-    an interior cell takes the mean top-band count of all its cells; no point gives 0."""
+    an interior cell takes the mean top-band count of all its cells; no point gives 0.
+    `where`: a mask of the points to measure, so that a whole epoch's building points are
+    measured without a copy of their coordinates (a column at a time: 0.7 GB less at the
+    peak of a 37 M-point epoch)."""
     xyz = np.asarray(xyz, dtype=np.float64)
-    if len(xyz) == 0:
+    idx = slice(None) if where is None else np.flatnonzero(where)
+    z = xyz[idx, 2]
+    if len(z) == 0:
         return 0.0
-    cells = np.floor(xyz[:, :2] / DENSITY_CELL_M).astype(np.int64)
-    d, n = roof_cell_density(cells, xyz[:, 2])
+    cells = np.empty((len(z), 2), dtype=np.int64)
+    for k in range(2):
+        cells[:, k] = np.floor(xyz[idx, k] / DENSITY_CELL_M)
+    del idx
+    d, n = roof_cell_density(cells, z)
     if n:
         return d
     keys, inverse = np.unique(cells[:, 0] * (int(cells[:, 1].max() - cells[:, 1].min()) + 2)
                               + (cells[:, 1] - cells[:, 1].min()), return_inverse=True)
     top = np.full(len(keys), -np.inf)
-    np.maximum.at(top, inverse, xyz[:, 2])
-    counts = np.bincount(inverse[xyz[:, 2] >= top[inverse] - ROOF_BAND_M], minlength=len(keys))
+    np.maximum.at(top, inverse, z)
+    counts = np.bincount(inverse[z >= top[inverse] - ROOF_BAND_M], minlength=len(keys))
     return float(counts.mean()) / DENSITY_CELL_M ** 2
 
 

@@ -66,13 +66,9 @@ def open_epoch_file(path) -> EpochFile:
     """The header of a LAS/LAZ file, checked as `read_epoch` checks the whole file."""
     import laspy
 
-    from ..formats.pointcloud import _crs_of
+    from ..formats.pointcloud import _crs_of, check_point_cloud_path
 
-    path = Path(path)
-    if path.is_dir():
-        raise PointCloudError(f"{path}: is a folder, not a LAS/LAZ point cloud file")
-    if not path.is_file():
-        raise PointCloudError(f"{path}: point cloud file does not exist")
+    path = check_point_cloud_path(path)
     try:
         with laspy.open(path) as f:
             h = f.header

@@ -212,12 +212,18 @@ def pack_points(header, chunk: PointChunk, name="point cloud"):
     return rec
 
 
-def read_las(path: str | os.PathLike) -> laspy.LasData:
+def check_point_cloud_path(path: str | os.PathLike) -> Path:
+    """`path` as a Path, refused with its reason when it is a folder or does not exist."""
     path = Path(path)
     if path.is_dir():
         raise PointCloudError(f"{path}: is a folder, not a LAS/LAZ point cloud file")
     if not path.is_file():
         raise PointCloudError(f"{path}: point cloud file does not exist")
+    return path
+
+
+def read_las(path: str | os.PathLike) -> laspy.LasData:
+    path = check_point_cloud_path(path)
     try:
         return laspy.read(path)
     except Exception as e:
