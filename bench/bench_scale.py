@@ -1,0 +1,284 @@
+#!/usr/bin/env python3
+"""Classification beyond one process: `quakescan classify` alone, on a Dask LocalCluster of 1
+and 2 workers, and on a pair too large for one process, measured side by side in one run.
+
+    .venv/bin/python bench/bench_scale.py [--rows single,cluster,large,trainset] [--work out/bench_scale]
+
+Rows (issue 16's table):
+
+- single: the 75 M-point pair (`bench_pipeline`'s generic city of 480 buildings, the paper's
+  survey, pre-event vs post_destruction), `quakescan classify` in one process: wall time and
+  peak RSS (target <= 3 min, <= 8 GB);
+- cluster: the same pair with `--workers 1` and `--workers 2` (LocalCluster, one thread a
+  worker): wall time of each, speed-up (target >= 1.8x), the client's and the largest
+  worker's peak RSS;
+- large: the pair copied side by side (each copy 600 m east of the last, building IDs
+  offset) to >= 2 x 250 M points on disk, `--workers 2 --memory-limit 4GB`: it finishes, the
+  largest worker's peak (target <= 4 GB), and throughput per worker (points of both epochs
+  per second per worker) against the single process's (target >= 0.9x);
+- trainset: the paper's four states (pre, heavy, extreme, destruction) of 1,000 generic
+  buildings generated, acquired and described (`quakescan.learning.trainset.build` on a
+  LocalCluster of 2 workers; target <= 30 min on 2 cores), and the time to resume it.
+
+Peak RSS per process is sampled every 0.2 s over the command's process tree (psutil): the
+client is the command's own process, the workers are its other descendants. Every run is a
+fresh process; nothing is skipped as up to date (`--force`). Writes the table to stdout and to
+BENCHMARKS.md (section "bench_scale"), the raw figures to WORK/results.json.
+"""
+from __future__ import annotations
+
+import argparse
+import copy
+import json
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
+
+from _report import machine, table, write_section  # noqa: E402
+
+WORK = ROOT / "out" / "bench_scale"
+LARGE_POINTS = 250_000_000  # per epoch, at least
+COPY_STEP_M = 600.0  # the big city is 576 m wide: copies 600 m apart never share a building
+ID_STEP = 100_000  # building IDs of copy k: k * ID_STEP + the source's
+ROWS = ("single", "cluster", "large", "trainset")
+
+
+class TreeSampler:
+    """Peak RSS of a process and of each of its descendants, sampled while it runs."""
+
+    def __init__(self, pid: int, every_s: float = 0.2):
+        import psutil
+
+        self.root = psutil.Process(pid)
+        self.every = every_s
+        self.peaks: dict[int, int] = {}
+        self.names: dict[int, str] = {}
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self):
+        import psutil
+
+        while not self._stop.is_set():
+            try:
+                procs = [self.root] + self.root.children(recursive=True)
+            except psutil.Error:
+                break
+            for p in procs:
+                try:
+                    rss = p.memory_info().rss
+                    if p.pid not in self.names:
+                        self.names[p.pid] = " ".join(p.cmdline())[:200]
+                except psutil.Error:
+                    continue
+                self.peaks[p.pid] = max(self.peaks.get(p.pid, 0), rss)
+            self._stop.wait(self.every)
+
+    def stop(self) -> dict:
+        self._stop.set()
+        self._thread.join()
+        client = self.peaks.get(self.root.pid, 0)
+        # a worker is a spawned Python (multiprocessing); its nanny is the small one above it
+        workers = [v for pid, v in self.peaks.items() if pid != self.root.pid and "multiprocessing" in
+                   self.names.get(pid, "")]
+        return {"client_mb": client / 2 ** 20, "worker_mb": max(workers, default=0) / 2 ** 20,
+                "workers_seen": len(workers)}
+
+
+def run_classify(pre: Path, post: Path, out: Path, extra: list) -> dict:
+    cmd = [str(Path(sys.executable).with_name("quakescan")), "classify", "--pre", str(pre), "--post", str(post),
+           "-o", str(out), "--force", "--no-las", *extra]
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    sampler = TreeSampler(proc.pid)
+    stdout, stderr = proc.communicate()
+    wall = time.perf_counter() - t0
+    mem = sampler.stop()
+    if proc.returncode != 0:
+        raise SystemExit(f"{' '.join(cmd)} failed:\n{stderr[-3000:]}")
+    summary = json.loads((out / "summary.json").read_text())
+    points = summary["points"]["pre"] + summary["points"]["post"]
+    r = {"at": time.strftime("%Y-%m-%d %H:%M", time.gmtime()), "cmd": " ".join(cmd[1:]), "wall_s": wall, "points": points, "buildings": summary["buildings"],
+         "seconds": summary["seconds"], "dask": summary.get("dask"), **mem}
+    print(json.dumps({k: v for k, v in r.items() if k != "cmd"}), flush=True)
+    return r
+
+
+def big_pair() -> tuple[Path, Path]:
+    from bench_pipeline import ensure_big_pair
+
+    return ensure_big_pair()
+
+
+def large_pair(work: Path, pre: Path, post: Path) -> tuple[Path, Path, int]:
+    """The big pair copied side by side until each epoch holds >= LARGE_POINTS, written chunk by
+    chunk (never whole in memory); kept when already there with the right count."""
+    import laspy
+
+    with laspy.open(pre) as f:
+        copies = int(np.ceil(LARGE_POINTS / f.header.point_count))
+    out = []
+    for src in (pre, post):
+        dst = work / f"large_{src.stem}.las"
+        with laspy.open(src) as f:
+            want = f.header.point_count * copies
+            header = f.header
+        if dst.is_file():
+            with laspy.open(dst) as f:
+                if f.header.point_count == want:
+                    out.append(dst)
+                    continue
+        tmp = dst.with_suffix(".part.las")
+        t = time.perf_counter()
+        with laspy.open(src) as reader:
+            step = int(round(COPY_STEP_M / header.scales[0]))
+            # the source's header (point format, scales, offsets, CRS and extra-bytes VLRs) as it
+            # is: the writer counts the points and grows the bounds as they are written
+            with laspy.open(tmp, mode="w", header=copy.deepcopy(header)) as writer:
+                for k in range(copies):
+                    reader.seek(0)
+                    for chunk in reader.chunk_iterator(5_000_000):
+                        chunk.array["X"] += k * step
+                        ids = np.asarray(chunk["building_id"])
+                        chunk["building_id"] = np.where(ids > 0, ids + k * ID_STEP, ids)
+                        writer.write_points(chunk)
+        tmp.replace(dst)
+        print(f"{dst}: {want:,} points ({copies} copies) in {time.perf_counter() - t:.0f} s", flush=True)
+        out.append(dst)
+    return out[0], out[1], copies
+
+
+def paper_plan(buildings: int, per_city: int = 112, seed: int = 0):
+    """Generic cities of the paper's design (pre-event and the three post-event states) with at
+    least `buildings` buildings in all, each state paired with the pre-event scene by two random
+    ULS acquisitions."""
+    from quakescan.acquisition.acquire import random_acquisition
+    from quakescan.learning.trainset import CitySpec, PairSpec, TrainingPlan
+
+    rng = np.random.default_rng([seed, 16])
+    cities = [CitySpec(f"paper_g{k}", "generic", "paper", 16_000 + k, per_city)
+              for k in range(int(np.ceil(buildings / per_city)))]
+    pairs = []
+    for city in cities:
+        for scene in city.post_scenes:
+            a, b = random_acquisition("uls", rng), random_acquisition("uls", rng)
+            s1, s2 = (int(v) for v in rng.integers(1, 2 ** 31 - 1, 2))
+            pairs.append(PairSpec(city.name, scene, a.to_json(), b.to_json(), s1, s2))
+    return TrainingPlan(cities, pairs, seed, f"bench-scale-paper-{buildings}")
+
+
+def trainset_row(work: Path, buildings: int = 1000) -> dict:
+    """The paper's design (pre + three post-event states, generic city, paper ULS survey) for
+    `buildings` buildings in cities of 112, generated, acquired and described on 2 workers;
+    then the same call again (everything on disk: the resume)."""
+    from quakescan.distributed.cluster import dask_client
+    from quakescan.learning.default_model import TABLE_SETTINGS
+    from quakescan.learning.trainset import build
+
+    plan = paper_plan(buildings)
+
+    folder = work / "trainset"
+    t = time.perf_counter()
+    with dask_client(n_workers=2, memory_limit="6GB") as client:
+        table1 = build(folder, plan, TABLE_SETTINGS, client=client)
+        first = time.perf_counter() - t
+        t = time.perf_counter()
+        table2 = build(folder, plan, TABLE_SETTINGS, client=client)
+        again = time.perf_counter() - t
+    assert np.array_equal(table1.x, table2.x, equal_nan=True)
+    r = {"at": time.strftime("%Y-%m-%d %H:%M", time.gmtime()), "buildings": sum(c.buildings for c in plan.cities), "pairs": len(plan.pairs), "rows": int(len(table1.y)),
+         "wall_s": first, "resume_s": again}
+    print(json.dumps(r), flush=True)
+    return r
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--rows", default=",".join(ROWS), help=f"which rows, comma-separated ({', '.join(ROWS)})")
+    ap.add_argument("--work", type=Path, default=WORK)
+    a = ap.parse_args(argv)
+    rows_wanted = [r.strip() for r in a.rows.split(",") if r.strip()]
+    bad = sorted(set(rows_wanted) - set(ROWS))
+    if bad:
+        ap.error(f"--rows: unknown {bad}; choose from {', '.join(ROWS)}")
+    work = a.work
+    work.mkdir(parents=True, exist_ok=True)
+    results_path = work / "results.json"
+    results = json.loads(results_path.read_text()) if results_path.is_file() else {}
+    t_all = time.perf_counter()
+    pre, post = big_pair()
+    if "single" in rows_wanted:
+        results["single"] = run_classify(pre, post, work / "single", [])
+    if "cluster" in rows_wanted:
+        for n in (1, 2):
+            results[f"cluster{n}"] = run_classify(pre, post, work / f"cluster{n}", ["--workers", str(n)])
+    if "large" in rows_wanted:
+        lpre, lpost, copies = large_pair(work, pre, post)
+        results["large"] = {**run_classify(lpre, lpost, work / "large", ["--workers", "2", "--memory-limit", "4GB"]),
+                            "copies": copies}
+    if "trainset" in rows_wanted:
+        results["trainset"] = trainset_row(work)
+    results_path.write_text(json.dumps(results, indent=1))
+
+    def mb(v):
+        return f"{v:,.0f}"
+
+    rows = []
+    s = results.get("single")
+    if s:
+        rows.append(("75 M-point pair, one process", "<= 180 s, <= 8,192 MiB", f"{s['points']:,}",
+                     f"{s['wall_s']:.0f}", f"{s['seconds']['read']:.0f} / {s['seconds']['describe']:.0f}",
+                     mb(s["client_mb"]), "—", f"{s['points'] / s['wall_s'] / 1e6:.3f}", "", s.get("at", "")))
+    c1, c2 = results.get("cluster1"), results.get("cluster2")
+    for c, n in ((c1, 1), (c2, 2)):
+        if c:
+            speed = f"speed-up {c1['wall_s'] / c2['wall_s']:.2f}x" if (n == 2 and c1) else ""
+            rows.append((f"same pair, LocalCluster {n} worker{'s' if n > 1 else ''}",
+                         ">= 1.8x (2 vs 1)" if n == 2 else "", f"{c['points']:,}", f"{c['wall_s']:.0f}",
+                         f"{c['seconds']['read']:.0f} / {c['seconds']['describe']:.0f}", mb(c["client_mb"]),
+                         mb(c["worker_mb"]), f"{c['points'] / c['wall_s'] / n / 1e6:.3f}", speed, c.get("at", "")))
+    lg = results.get("large")
+    if lg:
+        ratio = ""
+        if s:
+            ratio = (f"{(lg['points'] / lg['wall_s'] / 2) / (s['points'] / s['wall_s']):.2f}x the single process; "
+                     f"tiles split {lg['dask'].get('tiles_split', 0)}")
+        rows.append((f"2 x {lg['points'] // 2 / 1e6:.0f} M points ({lg['copies']} copies), 2 workers, 4 GB each",
+                     "finishes; worker <= 4,096 MiB; >= 0.9x per worker", f"{lg['points']:,}", f"{lg['wall_s']:.0f}",
+                     f"{lg['seconds']['read']:.0f} / {lg['seconds']['describe']:.0f}", mb(lg["client_mb"]),
+                     mb(lg["worker_mb"]), f"{lg['points'] / lg['wall_s'] / 2 / 1e6:.3f}", ratio, lg.get("at", "")))
+    ts = results.get("trainset")
+    if ts:
+        rows.append((f"training set: {ts['buildings']:,} buildings x 4 states ({ts['pairs']} pairs), 2 workers",
+                     "<= 1,800 s, resumable", f"{ts['rows']:,} rows", f"{ts['wall_s']:.0f}", "—", "—", "—", "—",
+                     f"resumed in {ts['resume_s']:.0f} s", ts.get("at", "")))
+    text = "\n\n".join([
+        "## Beyond one process: Dask (`bench/bench_scale.py`)",
+        f"Machine: {machine()}. Command: `.venv/bin/python bench/bench_scale.py`; "
+        f"the last run: rows {', '.join(rows_wanted) or 'none (the table rewritten)'}, "
+        f"{time.perf_counter() - t_all:.0f} s (rows of earlier runs "
+        "are kept from WORK/results.json, with the time each was measured). `quakescan classify "
+        "--no-las --force` in a fresh process each (the graded LAS left out: it is streamed by the client alike "
+        "in every mode); \"read\" is reading the epochs (one process) or streaming them into blocks (Dask: "
+        "the workers, a part of the file each) and the registration check, \"describe\" the descriptors (with "
+        "Dask: the densities and the tiles, in the workers). Peak RSS sampled every 0.2 s: "
+        "the command's own process (client) and the largest of its worker processes. Throughput: points of both "
+        "epochs per second per worker (per process for the single run).",
+        table(["case", "target", "points", "wall s", "read / describe s", "client peak MiB",
+               "worker peak MiB", "M points/s per worker", "result", "measured (UTC)"], rows),
+    ])
+    print("\n" + text)
+    write_section("bench_scale", text)
+
+
+if __name__ == "__main__":
+    main()
