@@ -455,10 +455,11 @@ def describe_surfaces(pre_xyz: np.ndarray, pre_bid: np.ndarray, pre_ground: np.n
     nrm = np.vstack([normals[b] for b in bids]) if bids else np.zeros((0, 3))
     res = m3c2(pre_xyz[all_core], nrm, pre_grid, post_grid, settings.m3c2, geom.cylinder_radius_m)
     facing = _facing(nrm)
+    own_counts = count_by_facing(res, facing)
     if facing_out is not None:
-        facing_out["facing_counts"] = count_by_facing(res, facing)
+        facing_out["facing_counts"] = own_counts
     lost_all = _lost(res, facing, np.concatenate([outline_core[b] for b in bids]) if bids else np.zeros(0, bool),
-                     count_by_facing(res, facing) if facing_counts is None else np.asarray(facing_counts))
+                     own_counts if facing_counts is None else np.asarray(facing_counts))
     cores, start = {}, 0
     for bid in bids:
         k = len(core_of[bid])
@@ -679,8 +680,6 @@ def count_by_facing(res, facing: np.ndarray) -> np.ndarray:
     np.add.at(out[:, 0], facing, np.asarray(res.n_post, dtype=np.int64))
     np.add.at(out[:, 1], facing, np.asarray(res.n_pre, dtype=np.int64))
     return out
-
-
 
 
 def _lost(res, facing: np.ndarray, outline: np.ndarray, counts: np.ndarray) -> np.ndarray:

@@ -125,12 +125,10 @@ def _classify_on_dask(args) -> dict:
     """classify with its tiles as Dask tasks: a LocalCluster of --workers processes, or the
     cluster of --scheduler; the dashboard's address printed before the work starts."""
     from ..distributed.classify import classify_distributed
-    from ..distributed.cluster import dashboard_address, dask_client
+    from ..distributed.cluster import dask_client, describe_cluster
 
     with dask_client(n_workers=args.workers, scheduler=args.scheduler, memory_limit=args.memory_limit) as client:
-        where = f"scheduler {args.scheduler}" if args.scheduler else f"a LocalCluster of {args.workers} workers"
-        board = dashboard_address(client)
-        print(f"Dask: {where}" + (f"; dashboard {board}" if board else ""), flush=True)
+        print(describe_cluster(client, args.workers, args.scheduler), flush=True)
         return classify_distributed(args.pre, args.post, args.output, client, model_path=args.model,
                                     footprints_path=args.footprints, id_field=args.id_field, align=args.align,
                                     progress=reporter(args, "classify"), write_las=not args.no_las, laz=args.laz,

@@ -121,13 +121,11 @@ def cmd_training_set(args) -> int:
 def _training_set_on_dask(args, plan, settings):
     """The training set's cities and pairs as Dask tasks: a LocalCluster of --workers processes
     or the cluster of --scheduler; the dashboard's address printed before the work starts."""
-    from ..distributed.cluster import dashboard_address, dask_client
+    from ..distributed.cluster import dask_client, describe_cluster
     from ..learning.trainset import build
 
     with dask_client(n_workers=args.workers, scheduler=args.scheduler) as client:
-        where = f"scheduler {args.scheduler}" if args.scheduler else f"a LocalCluster of {args.workers} workers"
-        board = dashboard_address(client)
-        print(f"Dask: {where}" + (f"; dashboard {board}" if board else ""), flush=True)
+        print(describe_cluster(client, args.workers, args.scheduler), flush=True)
         return build(args.output, plan, settings, progress=reporter(args, "training set"), client=client)
 
 

@@ -51,10 +51,6 @@ PART_POINTS = 16_000_000  # points of one epoch streamed by one task at most: a 
 MAX_SPLIT_DEPTH = 12  # quarters of a 150 m tile down to 4 cm: buildings sharing one centre stay together
 
 
-class DistributedError(cl.ClassifyError):
-    """The distributed classification cannot run as asked."""
-
-
 def classify_distributed(pre_path, post_path, out_dir, client, *, model_path=None, footprints_path=None,
                          id_field=None, align: bool | None = None, progress: ProgressCallback | None = None,
                          write_las: bool = True, laz: bool | None = None, force: bool = False,
@@ -322,8 +318,13 @@ def _describe_tiles(client, store, pre_s, post_s, settings, geometry, block_cell
                 "block_cells": block_cells, "read_margin": shift,
                 "whole_post_box": None if post_box is None else post_box.tolist()}
 
-    def estimate(s):
-        return tile_memory_bytes(store, s, block_cells)
+    estimates: dict = {}
+
+    def estimate(s):  # asked when splitting, warning and submitting: the block files are statted once
+        key = (tuple(s["bids"]), s["halo"])
+        if key not in estimates:
+            estimates[key] = tile_memory_bytes(store, s, block_cells)
+        return estimates[key]
 
     def centre_of(b):  # the point tile_key floors: the centre of the building's pre-event x/y box
         return (np.asarray(pre_s.lo[b], dtype=np.float64) + np.asarray(pre_s.hi[b], dtype=np.float64)) / 2
@@ -441,7 +442,8 @@ def split_tile(key: tuple, bids: list, centre_of, tile_m: float, estimate, budge
     the four quarters of its square (a building goes to the quarter holding `centre_of(b)`, as
     it went to the tile), and those again, down to one building a part. A part's key is the
     tile's followed by its quarters' (0/1, 0/1) indices. A building's descriptors read only the
-    points around it, so its row does not depend on the part it is in."""
+    points around it but for the wall counts its tile shares (`count_by_facing`), which the
+    parts add up before they describe (`_describe_tiles`)."""
     depth = (len(key) - 2) // 2 + 1
     if len(bids) <= 1 or depth > MAX_SPLIT_DEPTH or estimate(key, bids) <= budget:
         return [(tuple(key), list(bids))]
@@ -494,5 +496,5 @@ def _write_graded_cloud(path, post_f, origin, crs, fp, transform, grade_by_build
                                  source_extra_dims=extra)
 
 
-__all__ = ["BLOCK_CELLS", "DistributedError", "classify_distributed", "dashboard_address", "dask_client",
+__all__ = ["BLOCK_CELLS", "classify_distributed", "dashboard_address", "dask_client",
            "split_tile", "tile_memory_bytes", "tile_memory_budget"]

@@ -55,6 +55,13 @@ def dask_client(n_workers: int | None = None, scheduler: str | None = None, memo
         cluster.close()
 
 
+def describe_cluster(client, n_workers: int | None, scheduler: str | None) -> str:
+    """The line a command prints before its tasks start: where they run, and the dashboard."""
+    where = f"scheduler {scheduler}" if scheduler else f"a LocalCluster of {n_workers} workers"
+    board = dashboard_address(client)
+    return f"Dask: {where}" + (f"; dashboard {board}" if board else "")
+
+
 def dashboard_address(client) -> str | None:
     try:
         return client.dashboard_link
@@ -62,4 +69,4 @@ def dashboard_address(client) -> str | None:
         return None
 
 
-__all__ = ["ClusterError", "dashboard_address", "dask_client"]
+__all__ = ["ClusterError", "dashboard_address", "dask_client", "describe_cluster"]
