@@ -64,9 +64,11 @@ SMALL_SENSOR_PAIRS = (("als", "als"), ("als", "uls"), ("als", "dim"))
 DAMAGES = ("patterns", "both")
 # Mixed cities that get a twin whose grade-4/5 buildings collapse by rigid-body simulation
 # (same seed, buildings, grades and acquisitions: the twins differ only in how the damage was
-# made). Four, not all: a collapse costs ~8 s of Blender per building (bench_physics).
+# made). Not all: a collapse costs ~8 s of Blender per building (bench_physics). The large
+# plan twins four of its added cities too (measured against four twins in bench_transfer's ablation).
 PHYSICS_TWINS = {"full": ("generic_m0", "generic_m1", "region_m0", "region_m1"),
-                 "large": ("generic_m0", "generic_m1", "region_m0", "region_m1"),
+                 "large": ("generic_m0", "generic_m1", "region_m0", "region_m1",
+                           "generic_m6", "generic_m7", "region_m6", "region_m7"),
                  "quick": ("generic_m0",)}
 
 

@@ -113,12 +113,16 @@ def _acquire(kind: str, scene_dir: Path, stem: Path, seed: int) -> Path:
     from ..acquisition import sensors
     from ..acquisition.acquire import Acquisition, acquire
 
-    out = stem.with_name(f"{stem.name}.seed{seed}.las")
+    out = _acquired_path(stem, seed)
     t0 = time.perf_counter()
     got = acquire(scene_dir, Acquisition(kind, sensors.get(kind).default()), out, seed=seed)
     if not got.resumed:
         stage_log.info(f"  {out.name}: {kind.upper()} in {time.perf_counter() - t0:.0f} s")
     return out
+
+
+def _acquired_path(stem: Path, seed: int) -> Path:
+    return stem.with_name(f"{stem.name}.seed{seed}.las")
 
 
 def _table(pre: Path, posts: list, cache: Path, settings, workers) -> dict:
@@ -209,15 +213,21 @@ def _levels_of_detection(s: ExperimentSettings, pre: Path, rescan: Path, cache: 
 
 @accepts_old_say
 def run_paper_experiment(out_dir, settings: ExperimentSettings | None = None, *, workers: int = -1,
-                         progress: ProgressCallback | None = None) -> dict:
+                         progress: ProgressCallback | None = None, client=None) -> dict:
     """Run everything and write the report to out_dir; returns {classifier: Evaluation}.
 
     `progress(done, total)` counts steps: cities generated, clouds acquired, the levels of
     detection, descriptor tables, the test city described, the classifiers trained (a cached
-    step counts as done)."""
-    from ..change.pipeline import PipelineSettings, describe_pair
+    step counts as done).
+
+    `client` (a dask.distributed Client): every step but the training as a Dask task on its
+    cluster (a city per task, a cloud per task after its city, the levels of detection, a
+    descriptor table per dataset and the test city after their clouds; single-threaded tasks,
+    each worker its own ray-casting scene); every worker must reach out_dir. The same files,
+    caches and numbers as one process makes: either run resumes the other's."""
+    from ..change.pipeline import PipelineSettings
     from ..demo import generate
-    from ..learning.classification import load_pair, predict_rows
+    from ..learning.classification import predict_rows
     from ..learning.model import DamageModel
 
     s = settings or ExperimentSettings()
@@ -242,59 +252,78 @@ def run_paper_experiment(out_dir, settings: ExperimentSettings | None = None, *,
             progress(done[0], total)
         return result
 
+    run = _InProcess(advance, workers) if client is None else _OnDask(client, advance)
     stage_log.info(f"experiment 1/5: generating the generic and region-specific datasets ({s.buildings} buildings "
                    "each" + (f", and a mixed city {s.mixed_training_mix} each" if mixed else "")
-                   + f") and the test city {s.test_mix}")
+                   + f") and the test city {s.test_mix}" + ("" if client is None else " (Dask tasks from here on)"))
     # the data folder is the experiment's own cache: bundles of another generator are made again
-    advance(generate("generic", "paper", s.buildings, s.seed, data / "generic", force=True))
-    advance(generate("region", "paper", s.buildings, s.seed + 1, data / "region", force=True))
-    advance(generate("region", "mixed", None, s.seed + 2, data / "test", grade_mix=s.test_mix, force=True))
+    made = {"generic": run("generate-generic", generate, "generic", "paper", s.buildings, s.seed, data / "generic",
+                           force=True),
+            "region": run("generate-region", generate, "region", "paper", s.buildings, s.seed + 1, data / "region",
+                          force=True),
+            "test": run("generate-test", generate, "region", "mixed", None, s.seed + 2, data / "test",
+                        grade_mix=s.test_mix, force=True)}
     if mixed:
-        advance(generate("generic", "mixed", None, s.seed + 3, data / "generic_mixed", grade_mix=s.mixed_training_mix,
-                         force=True))
-        advance(generate("region", "mixed", None, s.seed + 4, data / "region_mixed", grade_mix=s.mixed_training_mix,
-                         force=True))
+        made["generic_mixed"] = run("generate-generic-mixed", generate, "generic", "mixed", None, s.seed + 3,
+                                    data / "generic_mixed", grade_mix=s.mixed_training_mix, force=True)
+        made["region_mixed"] = run("generate-region-mixed", generate, "region", "mixed", None, s.seed + 4,
+                                   data / "region_mixed", grade_mix=s.mixed_training_mix, force=True)
     step("generate")
 
     stage_log.info("experiment 2/5: acquiring the clouds (ULS: paper survey; DIM: paper photo flight)")
     clouds: dict[tuple, dict] = {}
+    paths = {}  # a cloud's step -> the cloud's path (a Dask step's value is there once it has run)
+
+    def acquire(kind, city, scene, stem, seed):
+        cloud = run(f"acquire-{stem}", _acquire, kind, data / city / scene, data / stem, seed, after=made[city])
+        paths[cloud] = _acquired_path(data / stem, seed)
+        return cloud
+
     # every cloud its own seed, the same whatever the training layout
     for k, (dataset, kind) in enumerate((("generic", "uls"), ("region", "uls"), ("region", "dim"))):
         c = {}
         for j, (name, scene, _) in enumerate((("pre", "pre", None), *TRAINING_SCENES)):
-            c[name] = advance(_acquire(kind, data / dataset / scene, data / f"{dataset}_{kind}_{name}",
-                                       s.seed * 100 + 5 * k + j + 1))
+            c[name] = acquire(kind, dataset, scene, f"{dataset}_{kind}_{name}", s.seed * 100 + 5 * k + j + 1)
         if mixed:
             for j, ep in enumerate(("pre", "post")):
-                c[f"mixed_{ep}"] = advance(_acquire(kind, data / f"{dataset}_mixed" / ep,
-                                                    data / f"{dataset}_mixed_{kind}_{ep}",
-                                                    s.seed * 100 + 60 + 2 * k + j))
+                c[f"mixed_{ep}"] = acquire(kind, f"{dataset}_mixed", ep, f"{dataset}_mixed_{kind}_{ep}",
+                                           s.seed * 100 + 60 + 2 * k + j)
         clouds[(dataset, kind)] = c
-    test_pre = advance(_acquire("dim", data / "test" / "pre", data / "test_dim_pre", s.seed * 100 + 90))
-    test_post = advance(_acquire("dim", data / "test" / "post", data / "test_dim_post", s.seed * 100 + 91))
+    test_pre = acquire("dim", "test", "pre", "test_dim_pre", s.seed * 100 + 90)
+    test_post = acquire("dim", "test", "post", "test_dim_post", s.seed * 100 + 91)
     step("acquire")
 
     dim = clouds[("region", "dim")]
-    lod = advance(_levels_of_detection(s, dim["pre"], dim["pre_rescan"], data / f"lod_{dim['pre_rescan'].stem}.json",
-                                       workers))
-    pipe = PipelineSettings(split=lod.split())
-    stage_log.info(f"experiment 3/5: change descriptors of every training pair (levels of detection "
-                   f"{lod.lod_height_m:.2f} m, {lod.lod_curvature:.2f} 1/m; one table per dataset, shared)")
+    lod = run("levels-of-detection", _levels_of_detection, s, dim["pre"], dim["pre_rescan"],
+              data / f"lod_{paths[dim['pre_rescan']].stem}.json", run.workers)
+    if client is None:
+        stage_log.info(f"experiment 3/5: change descriptors of every training pair (levels of detection "
+                       f"{lod.lod_height_m:.2f} m, {lod.lod_curvature:.2f} 1/m; one table per dataset, shared)")
     tables = {}  # cached under a hash of the settings and the input clouds' names (seeds included)
     for key in sorted(clouds):
         c = clouds[key]
-        parts = [advance(_table(c["pre"], [(c[name], g) for name, _, g in TRAINING_SCENES],
-                                data / f"table_{key[0]}_{key[1]}", pipe, workers))]
-        if mixed:
-            truth = read_truth(data / f"{key[0]}_mixed" / "post")
-            parts.append(advance(_table(c["mixed_pre"], [(c["mixed_post"], truth)],
-                                        data / f"table_{key[0]}_mixed_{key[1]}", pipe, workers)))
-        tables[key] = {"paper": parts[0], "mixed": parts[1] if mixed else None}
+        paper = run(f"table-{key[0]}-{key[1]}", _table_after_lod, c["pre"],
+                    [(c[name], g) for name, _, g in TRAINING_SCENES], data / f"table_{key[0]}_{key[1]}", lod,
+                    run.workers)
+        mixed_table = None
+        if mixed:  # its truth is read once the city is made
+            mixed_table = run(f"table-{key[0]}-mixed-{key[1]}", _table_after_lod, c["mixed_pre"],
+                              [(c["mixed_post"], data / f"{key[0]}_mixed" / "post")],
+                              data / f"table_{key[0]}_mixed_{key[1]}", lod, run.workers)
+        tables[key] = {"paper": paper, "mixed": mixed_table}
     step("describe training")
 
-    stage_log.info("experiment 4/5: training the four classifiers and classifying the held-out DIM test city")
-    pair = load_pair(test_pre, test_post)
-    test_rows = advance(describe_pair(pair.pre, pair.post, pipe, workers=workers))
+    if client is None:
+        stage_log.info("experiment 4/5: training the four classifiers and classifying the held-out DIM test city")
+    test_rows = run("describe-test", _describe_after_lod, test_pre, test_post, lod, run.workers)
+    shipped = run("shipped-default", shipped_default, test_pre, test_post, data / "test" / "post", run.workers,
+                  count=False)
+    if client is not None:  # every task above runs now; progress as they finish
+        lod, tables, test_rows, shipped = run.wait((lod, tables, test_rows, shipped))
+        timings = {"generate, acquire, describe (Dask tasks)": round(time.perf_counter() - t0, 1)}
+        stage_log.info(f"experiment 3-4/5: levels of detection {lod.lod_height_m:.2f} m, {lod.lod_curvature:.2f} "
+                       "1/m; training the four classifiers and classifying the held-out DIM test city")
+    pipe = PipelineSettings(split=lod.split())
     truth = read_truth(data / "test" / "post")
     names = pipe.descriptor_names()
 
@@ -320,20 +349,94 @@ def run_paper_experiment(out_dir, settings: ExperimentSettings | None = None, *,
     for lay in ((("paper",), ("paper", "mixed")) if mixed else (("paper",),)):
         for rows in ("all, unweighted", "changed, balanced"):
             ablation[("+".join(lay), rows)] = {name: evaluate(parts, lay, rows) for name, parts in CLASSIFIERS.items()}
-    shipped = shipped_default(pair, truth, workers)
     advance()
     step("train + classify")
 
     stage_log.info(f"experiment 5/5: report -> {out}")
-    write_report(out, results, s, lod, timings, time.perf_counter() - t0, ablation, shipped)
+    write_report(out, results, s, lod, timings, time.perf_counter() - t0, ablation, shipped,
+                 dask_workers=None if client is None else _worker_count(client))
     return results
 
 
-def shipped_default(pair, truth: dict, workers) -> Evaluation | None:
+class _InProcess:
+    """Runs each step of the experiment when it is asked for, in this process, with `workers`
+    threads; a step's result is its value."""
+
+    def __init__(self, advance, workers):
+        self.advance, self.workers = advance, workers
+
+    def __call__(self, key, fn, *args, after=None, count=True, **kwargs):
+        result = fn(*args, **kwargs)
+        return self.advance(result) if count else result
+
+
+class _OnDask:
+    """Submits each step as a Dask task (single-threaded: `workers` 1) whose inputs are the
+    futures of the steps it needs, and `after` those it must follow; `wait` counts them as they
+    finish and gathers the values asked for."""
+
+    workers = 1
+
+    def __init__(self, client, advance):
+        import uuid
+
+        self.client, self.advance = client, advance
+        # keys new in every run: a key of a run interrupted a moment ago may still be cancelling
+        self.run = uuid.uuid4().hex[:8]
+        self.futures, self.counted = [], set()
+
+    def __call__(self, key, fn, *args, after=None, count=True, **kwargs):
+        f = self.client.submit(_after, fn, after, *args, key=f"experiment-{key}-{self.run}", pure=False, **kwargs)
+        self.futures.append(f)
+        if count:
+            self.counted.add(f.key)
+        return f
+
+    def wait(self, values):
+        from dask.distributed import as_completed
+
+        try:
+            for f in as_completed(self.futures):
+                f.result()  # a task's error is raised here, with the task's traceback
+                if f.key in self.counted:
+                    self.advance()
+            return self.client.gather(values)
+        finally:
+            self.client.cancel([f for f in self.futures if not f.done()])
+
+
+def _after(fn, after, *args, **kwargs):
+    """Dask task: fn(*args, **kwargs), once `after` (a future's result) is there."""
+    return fn(*args, **kwargs)
+
+
+def _worker_count(client) -> int:
+    return len(client.scheduler_info().get("workers", {}))
+
+
+def _table_after_lod(pre: Path, posts: list, cache: Path, lod, workers) -> dict:
+    """`_table` with the split of the measured levels of detection; a post-event cloud's grade
+    may be a scene folder whose truth holds the grades (a mixed city, read once it is made)."""
+    from ..change.pipeline import PipelineSettings
+
+    posts = [(post, read_truth(grade) if isinstance(grade, Path) else grade) for post, grade in posts]
+    return _table(pre, posts, cache, PipelineSettings(split=lod.split()), workers)
+
+
+def _describe_after_lod(pre: Path, post: Path, lod, workers) -> list:
+    """The test pair's building rows with the split of the measured levels of detection."""
+    from ..change.pipeline import PipelineSettings, describe_pair
+    from ..learning.classification import load_pair
+
+    pair = load_pair(pre, post)
+    return describe_pair(pair.pre, pair.post, PipelineSettings(split=lod.split()), workers=workers)
+
+
+def shipped_default(pre: Path, post: Path, truth_dir: Path, workers) -> Evaluation | None:
     """The shipped default model (trained on the transfer training set, not on this experiment's
     data) applied as it is to the test pair: what a user gets without training anything."""
     from ..change.pipeline import describe_pair
-    from ..learning.classification import default_model_path, model_settings, predict_rows
+    from ..learning.classification import default_model_path, load_pair, model_settings, predict_rows
     from ..learning.model import ModelError, load_model
 
     try:
@@ -341,6 +444,7 @@ def shipped_default(pair, truth: dict, workers) -> Evaluation | None:
         model = load_model(path)
     except ModelError:
         return None
+    pair, truth = load_pair(pre, post), read_truth(truth_dir)
     rows = describe_pair(pair.pre, pair.post, model_settings(model, str(path)), workers=workers)
     pred = [r for r in predict_rows(rows, model) if r.building_id in truth]
     assessed = [r for r in pred if r.assessable]
@@ -409,7 +513,8 @@ def shipped_text(ev: Evaluation | None) -> str:
 
 
 def write_report(out: Path, results: dict, s: ExperimentSettings, lod, timings: dict, total_s: float,
-                 ablation: dict | None = None, shipped: Evaluation | None = None) -> None:
+                 ablation: dict | None = None, shipped: Evaluation | None = None,
+                 dask_workers: int | None = None) -> None:
     out.mkdir(parents=True, exist_ok=True)
     for name, ev in results.items():
         slug = name.lower().replace(" + ", "_plus_").replace(" ", "_")
@@ -435,9 +540,10 @@ def write_report(out: Path, results: dict, s: ExperimentSettings, lod, timings: 
     grades = ", ".join(f"{v} × grade {k}" for k, v in s.mixed_training_mix.items())
     mixed = (f" Each set also holds a mixed city ({grades}), where undamaged buildings stand beside damaged ones."
              if s.training == "paper+mixed" else "")
+    where = "" if dask_workers is None else f", as Dask tasks on {dask_workers} workers"
     text = f"""# The paper's experiment, simulated
 
-Command: `{_command(out, s)}`; {total_s / 60:.1f} min on this machine
+Command: `{_command(out, s)}`; {total_s / 60:.1f} min on this machine{where}
 (stages: {", ".join(f"{k} {v} s" for k, v in timings.items())}).
 
 Training sets: the generic and the region-specific (L'Aquila-like) dataset, {s.buildings} buildings each,
