@@ -16,8 +16,9 @@ damage procedure. Overall accuracy, F1 per grade and damaged vs undamaged for ea
 Then the cross-generator table: the shipped classifier configuration refitted on (a) four
 mixed training cities made with the patterns, (b) their physics twins (`quakescan.learning.trainset`
 PHYSICS_TWINS: the same buildings, grades and acquisitions, grades 4-5 collapsed by
-simulation), (c) both, (d) the shipped model's whole training set and (e) that set with the
-physics twins added, each scored on the same described rows of the four held-out pairs
+simulation), (c) both, (d) the shipped model's training plan (bare and realistic scenes)
+without physics twins, (e) with the full plan's four and (f) with every twin of its plan,
+each scored on the same described rows of the four held-out pairs
 (patterns and physics city, ULS and DIM). Builds the twins' training tables under
 --training-work when missing (resumable; ~8 s of Blender per collapsed building).
 
@@ -36,7 +37,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
 from _report import machine, peak_rss_mb, table, write_section  # noqa: E402
-from bench_transfer import TEST_MIX, TEST_SEED, _describe_rows, run_classify  # noqa: E402
+from bench_transfer import TEST_MIX, TEST_SEED, _describe_rows, plan_size, run_classify  # noqa: E402
 
 SENSORS = {"ULS pair": ("uls", 11), "DIM pair": ("dim", 12)}
 
@@ -121,7 +122,7 @@ def main(argv=None) -> int:
     (work / "results.json").write_text(json.dumps(results, indent=1, default=str))
     from quakescan.learning.model import load_model
 
-    trained_on = ("trained on the add-on's patterns and four physics twins"
+    trained_on = ("trained on the add-on's patterns and physics twins"
                   if load_model(a.model).provenance.get("damage") == "both"
                   else "trained on the add-on's parametric patterns only")
     fell = {r["damage"]: r["fallback"] for r in results["rows"]}
@@ -163,21 +164,24 @@ def cross_generator(training_work: Path, model_path: str, tests: dict) -> dict:
     seed = model.provenance.get("seed", 0) or 0
     print("cross-generator: training tables (the physics twins are generated, acquired and described when missing)",
           flush=True)
-    _, full = transfer_training_table(training_work, seed=seed, size="full", scenes="both", damage="both", small=True)
-    full = training_rows(model_columns(full, model.feature_names))
-    pair_city = full.pair_city.astype(str)
+    size = plan_size(model.provenance)
+    _, whole = transfer_training_table(training_work, seed=seed, size=size, scenes="both", damage="both")
+    whole = training_rows(model_columns(whole, model.feature_names))
+    pair_city = whole.pair_city.astype(str)
     twins = np.isin(pair_city, [f"{n}-physics" for n in PHYSICS_TWINS["full"]])
     bases = np.isin(pair_city, list(PHYSICS_TWINS["full"]))
-    small = np.char.startswith(pair_city.astype(str), "small_")
+    every_twin = np.char.endswith(pair_city, "-physics")
+    n_twins = len(set(pair_city[every_twin]))
     t_tables = time.perf_counter() - t0
 
-    rows = full.subset
+    rows = whole.subset
 
     variants = {"patterns: 4 cities": rows(bases), "physics: their 4 twins": rows(twins),
                 "both: 4 + 4 twins": rows(bases | twins),
-                "full plan, patterns (model v12's set)": rows(~twins & ~small),
-                "full plan + 4 physics twins": rows(~small),
-                "full plan + twins + small-building cities": rows(np.ones(len(full.y), bool))}
+                f"{size} plan, patterns only": rows(~every_twin),
+                f"{size} plan + 4 physics twins": rows(~every_twin | twins)}
+    if n_twins > 4:
+        variants[f"{size} plan + {n_twins} physics twins"] = rows(np.ones(len(whole.y), bool))
     limits = model_settings(model)
     described = {}
     for damage, (folder, pairs) in tests.items():

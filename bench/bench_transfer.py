@@ -328,6 +328,32 @@ def plan_size(provenance: dict) -> str:
     return m.group(1) if m else "full"
 
 
+def training_variants(tab) -> dict:
+    """Masks of the training rows without one source of variety each (the shipped model's
+    configuration is refitted on each): what every part of the training set buys."""
+    from quakescan.learning.trainset import PHYSICS_TWINS
+
+    city = tab.pair_city.astype(str)
+    twin = np.char.endswith(city, "-physics")
+    first_twins = np.isin(city, [f"{n}-physics" for n in PHYSICS_TWINS["full"]])
+    variants = {}
+    if (twin & ~first_twins).any():
+        variants["without the physics twins of the added cities (" + ", ".join(
+            sorted({c.removesuffix("-physics") for c in city[twin & ~first_twins]})) + ")"] = ~(twin & ~first_twins)
+    if twin.any():
+        variants["without any physics twin"] = ~twin
+    real = np.char.endswith(city, "-real")
+    if real.any():
+        variants["without the realistic scenes"] = ~real
+    rotterdam = np.char.startswith(city, "rotterdam")
+    if rotterdam.any():
+        variants["without the Rotterdam buildings"] = ~rotterdam
+    paper = np.array([re.search(r"_p\d", c) is not None for c in city], dtype=bool)
+    if paper.any():
+        variants["without the paper-design cities"] = ~paper
+    return variants
+
+
 def ablation(work: Path, model, training_work: Path, city: Path, pairs: dict, real: list) -> dict:
     """Refit the shipped classifier without each descriptor group (and the other candidates)
     on the training set; score all on the same test rows."""
@@ -386,6 +412,11 @@ def ablation(work: Path, model, training_work: Path, city: Path, pairs: dict, re
     for cand in CANDIDATES:
         if cand["name"] != config["name"]:
             runs[f"classifier: {cand['name']}"] = fit_score(cand, base)
+    full_tab = tab
+    for variant, keep in training_variants(tab).items():
+        tab = full_tab.subset(keep)
+        runs[f"training data: {variant} ({len(tab.y):,} rows)"] = fit_score(config, base)
+    tab = full_tab
     sim = list(pairs)
     real_names = [r[0] for r in real]
     head = ["variant", "fit s"] + [f"{n} OA / F1 3" for n in sim] + [f"{n.split(':')[0]}{' halves' if 'halves' in n else ' thin'} dmg %"
@@ -394,7 +425,8 @@ def ablation(work: Path, model, training_work: Path, city: Path, pairs: dict, re
     for variant, r in runs.items():
         rows.append([variant, r["fit_s"]] + [f"{100 * r[n]['oa']:.1f} / {100 * r[n]['f1_3']:.0f}" for n in sim]
                     + [f"{100 * r[n]:.1f}" for n in real_names])
-    text = ("Ablation on the same rows (each descriptor group left out, and the other classifier candidates, refitted "
+    text = ("Ablation on the same rows (each descriptor group left out, the other classifier candidates, and the "
+            "shipped configuration on the training set without one source of variety, refitted "
             f"on the {len(tab.y):,} training rows it was fitted on; {time.perf_counter() - t0:.0f} s; the test rows "
             "assessable within the shipped model's limits): overall accuracy % / heavy F1 % on the simulated pairs, "
             "share called damaged on the real no-change pairs. The shipped row refits the shipped configuration "

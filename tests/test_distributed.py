@@ -195,6 +195,28 @@ def test_the_cli_runs_on_a_local_cluster_and_names_its_dashboard(pair, single, t
 
 
 @slow
+def test_the_graded_cloud_is_made_in_parts_by_the_workers_and_compressed_as_one_process_compresses(
+        pair, cluster, tmp_path, monkeypatch):
+    """The workers make the graded cloud's records of the post-event file's parts; the client
+    puts them behind one header: the .laz one process writes, byte for byte but the header's
+    creation day."""
+    from quakescan.distributed import classify as dc
+
+    made = []
+    real = dc.part_bounds
+    monkeypatch.setattr(dc, "part_bounds", lambda *a: made.append(real(*a)) or made[-1])
+    single = classify(pair / "pre.las", pair / "post.las", tmp_path / "single", model_path=pair / "model.skops",
+                      laz=True)
+    dask = _run(pair, tmp_path / "dask", cluster, laz=True)
+    assert single["post_grades"].endswith(".laz") and dask["post_grades"].endswith(".laz")
+    assert len(made[-1]) - 1 >= 4  # the graded cloud's parts: two a worker at least
+    _same_outputs(tmp_path / "single", tmp_path / "dask", las="post_grades.laz")
+    a, b = ((tmp_path / d / "post_grades.laz").read_bytes() for d in ("single", "dask"))
+    assert len(a) == len(b) and sum(x != y for x, y in zip(a, b)) <= 4  # at most the creation day and year
+    assert not (tmp_path / "dask" / ".graded").exists()
+
+
+@slow
 def test_bad_cluster_options_are_named(tmp_path, pair, capsys):
     from quakescan.cli import main
 

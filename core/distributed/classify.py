@@ -135,8 +135,9 @@ def classify_distributed(pre_path, post_path, out_dir, client, *, model_path=Non
         stage("graded cloud")
         compress = Path(post_path).suffix.lower() == ".laz" if laz is None else laz
         graded = out / ("post_grades.laz" if compress else "post_grades.las")
-        _write_graded_cloud(graded, post_f, origin, crs, fp, transform, {r.building_id: r.grade for r in res},
-                            max(post_s.counts, default=0), chunk_points)
+        _write_graded_cloud(client, graded, post_f, origin, crs, footprints, transform,
+                            {r.building_id: r.grade for r in res}, max(post_s.counts, default=0), chunk_points,
+                            out / ".graded", progress)
         summary["post_grades"] = str(graded)
     counts: dict[str, int] = {}
     for r in res:
@@ -469,31 +470,55 @@ def _halo(settings, geometry) -> float:
     return h
 
 
-def _write_graded_cloud(path, post_f, origin, crs, fp, transform, grade_by_building, max_id, chunk_points):
-    """post_grades.las/.laz streamed from the post-event file: its points, aligned as the
-    tiles saw them, with every attribute of the file, building ID and grade."""
+def _write_graded_cloud(client, path, post_f, origin, crs, footprints, transform, grade_by_building, max_id,
+                        chunk_points, folder: Path, progress=None):
+    """post_grades.las/.laz of the post-event file's points, aligned as the tiles saw them,
+    with every attribute of the file, building ID and grade: the workers make the point
+    records of the file's parts (`tasks.graded_part`, as the tiling's parts), the client puts
+    them behind one header in order (and compresses them for .laz) — the bytes one process
+    writes. `progress` counts the points made, as the stage "graded cloud"."""
     import laspy
+    from dask.distributed import as_completed
 
-    from ..change.align import apply_transform
-    from ..formats.footprints import assign_buildings
-    from ..results.writers import source_chunks_format7, write_grade_las_streamed
+    from ..results.writers import grade_header, write_grade_records
+    from .tasks import graded_part
 
-    def chunks(reader):
-        for raw, kept in source_chunks_format7(reader, chunk_points):
-            xyz = post_f.local_xyz(raw.array["X"], raw.array["Y"], raw.array["Z"], origin)
-            if fp is None:
-                ids = np.asarray(raw["building_id"], dtype=np.int64)
-            else:  # IDs from the unaligned points, as the tiles got them
-                ids = assign_buildings(xyz[:, 0] + origin[0], xyz[:, 1] + origin[1], fp)
-            if transform is not None:
-                xyz = apply_transform(transform, xyz)
-            yield xyz, ids, kept
-
+    shutil.rmtree(folder, ignore_errors=True)
+    folder.mkdir(parents=True)
+    n_workers = max(1, len(client.scheduler_info().get("workers", {})))
+    bounds = part_bounds(post_f.n, n_workers, chunk_points)
+    grades = {int(b): (None if g is None else int(g)) for b, g in grade_by_building.items()}
+    token = run_token()
+    futures = {client.submit(graded_part, str(folder / f"{k}.bin"), post_f.to_json(), origin.tolist(), a, b,
+                             footprints, transform, grades, max_id, chunk_points, pure=False,
+                             key=f"graded-{k}-{token}"): b - a
+               for k, (a, b) in enumerate(zip(bounds[:-1], bounds[1:]))}
+    done = 0
+    try:
+        for fut in as_completed(list(futures)):
+            fut.result()
+            done += futures[fut]
+            if progress:
+                progress(done, post_f.n, "graded cloud")
+    finally:
+        client.cancel([f for f in futures if not f.done()])
     with laspy.open(post_f.path) as reader:
         extra = [(name, reader.header.point_format.dimension_by_name(name).dtype)
                  for name in reader.header.point_format.extra_dimension_names]
-        write_grade_las_streamed(path, chunks(reader), origin, crs, grade_by_building, max_id=max_id,
-                                 source_extra_dims=extra)
+    header = grade_header(path, origin, crs, max_id, extra)
+    dtype = header.point_format.dtype()
+
+    def records():
+        for k in range(len(bounds) - 1):
+            with open(folder / f"{k}.bin", "rb") as fh:
+                while True:
+                    array = np.fromfile(fh, dtype=dtype, count=chunk_points)
+                    if not len(array):
+                        break
+                    yield laspy.PackedPointRecord(array, header.point_format)
+
+    write_grade_records(path, header, origin, records())
+    shutil.rmtree(folder, ignore_errors=True)
 
 
 __all__ = ["BLOCK_CELLS", "classify_distributed", "dashboard_address", "dask_client",

@@ -134,6 +134,43 @@ def stream_part(folder: str, epoch_json: dict, origin: list, part: int, start: i
                         chunk_points=chunk_points, part=part, start=start, stop=stop)
 
 
+def graded_part(out_file: str, epoch_json: dict, origin: list, start: int, stop: int, footprints: dict | None,
+                transform, grade_by_building: dict, max_id: int, chunk_points: int) -> int:
+    """Points start..stop of the post-event file as point records of the graded cloud
+    (`quakescan.results.writers.grade_records`: every attribute of the file, aligned as the
+    tiles saw them, building ID, grade and colour), appended raw to `out_file` (written under
+    a temporary name, complete or absent); the client puts the parts' records behind one
+    header. Returns the number of points."""
+    import laspy
+
+    from ..change.align import apply_transform
+    from ..formats.footprints import assign_buildings
+    from ..results.writers import grade_header, grade_records, source_chunks_format7
+    from ..runtime.atomic import open_replacing
+
+    f = EpochFile(**epoch_json)
+    origin = np.asarray(origin, dtype=np.float64)
+    fp = None if footprints is None else _footprints(footprints["path"], footprints.get("id_field"))
+    n = 0
+    with laspy.open(f.path) as reader, open_replacing(Path(out_file), "wb") as out:
+        extra = [(name, reader.header.point_format.dimension_by_name(name).dtype)
+                 for name in reader.header.point_format.extra_dimension_names]
+        header = grade_header(Path(out_file), origin, None, max_id, extra)  # the records' layout only
+        for raw, kept in source_chunks_format7(reader, chunk_points, start, stop):
+            xyz = f.local_xyz(raw.array["X"], raw.array["Y"], raw.array["Z"], origin)
+            if fp is None:
+                ids = np.asarray(raw["building_id"], dtype=np.int64)
+            else:  # IDs from the unaligned points, as the tiles got them
+                ids = assign_buildings(xyz[:, 0] + origin[0], xyz[:, 1] + origin[1], fp)
+            if transform is not None:
+                xyz = apply_transform(transform, xyz)
+            records = grade_records(out_file, header, origin, grade_by_building, xyz, ids, kept)
+            if records is not None:
+                out.write(records.array.tobytes())
+                n += len(records)
+    return n
+
+
 _FOOTPRINTS: dict = {}
 
 

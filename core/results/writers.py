@@ -481,7 +481,7 @@ def write_grade_las(path, epoch_xyz, origin, crs: str | None, building_id,
         raise ResultsError(f"{path}: {len(ids)} building IDs for {n} points")
     kept = _source_points(source, n, path)
     extra = None if kept is None else [(name, kept.array[name].dtype) for name in kept.point_format.extra_dimension_names]
-    header = _grade_header(path, origin, crs, int(ids.max()) if n else 0, extra)
+    header = grade_header(path, origin, crs, int(ids.max()) if n else 0, extra)
     _write_grade_chunks(path, header, origin, grade_by_building, [(xyz, ids, kept)])
 
 
@@ -491,16 +491,24 @@ def write_grade_las_streamed(path, chunks, origin, crs: str | None, grade_by_bui
     source's points of the chunk converted to point format 7 or None) each; `max_id` sets the
     ID type; `source_extra_dims` [(name, dtype)] the source's extra dimensions to keep."""
     path = _grade_las_path(path)
-    header = _grade_header(path, origin, crs, max_id, source_extra_dims)
+    header = grade_header(path, origin, crs, max_id, source_extra_dims)
     _write_grade_chunks(path, header, origin, grade_by_building, chunks)
 
 
-def source_chunks_format7(reader, chunk_points: int):
-    """The points of an open laspy reader chunk by chunk, converted to point format 7 as
-    `write_grade_las` converts its source (whole degrees of a legacy scan angle kept)."""
+def source_chunks_format7(reader, chunk_points: int, start: int = 0, stop: int | None = None):
+    """The points of an open laspy reader chunk by chunk (points start..stop, all by
+    default), converted to point format 7 as `write_grade_las` converts its source (whole
+    degrees of a legacy scan angle kept)."""
     import laspy
 
-    for chunk in reader.chunk_iterator(chunk_points):
+    stop = reader.header.point_count if stop is None else stop
+    if start:
+        reader.seek(start)
+    while start < stop:
+        chunk = reader.read_points(min(chunk_points, stop - start))
+        if not len(chunk):
+            break
+        start += len(chunk)
         yield chunk, _format7(laspy.LasData(header=reader.header, points=chunk.copy()))
 
 
@@ -511,7 +519,9 @@ def _grade_las_path(path) -> Path:
     return path
 
 
-def _grade_header(path: Path, origin, crs, max_id: int, extra):
+def grade_header(path: Path, origin, crs, max_id: int, extra):
+    """The LAS 1.4 header of a graded cloud (point format 7, the source's extra dimensions
+    `extra` [(name, dtype)], building_id of a type that holds `max_id`, predicted_grade)."""
     import laspy
 
     id_type = np.uint32 if max_id <= np.iinfo(np.uint32).max else np.uint64
@@ -537,40 +547,60 @@ def _grade_header(path: Path, origin, crs, max_id: int, extra):
 
 
 def _write_grade_chunks(path: Path, header, origin, grade_by_building: dict, chunks) -> None:
+    records = (grade_records(path, header, origin, grade_by_building, xyz, ids, kept) for xyz, ids, kept in chunks)
+    write_grade_records(path, header, origin, records)
+
+
+def write_grade_records(path, header, origin, records) -> None:
+    """A graded LAS/LAZ (`path`, written atomically) of `header` (`grade_header`) and its point
+    records, arriving in chunks (laspy point records of the header's format, or None)."""
     import laspy
 
+    path = Path(path)
     origin = np.asarray(origin, dtype=np.float64)[:3]
     compress = path.suffix.lower() == ".laz"
-    lim = np.iinfo(np.int32)
-    id_type = header.point_format.dimension_by_name("building_id").dtype
     written = 0
     with replacing(path) as tmp:
         with laspy.open(tmp, mode="w", header=header, do_compress=compress) as w:
-            for xyz, ids, kept in chunks:
-                n = len(xyz)
-                if not n:
+            for points in records:
+                if points is None or not len(points):
                     continue
-                g, rgb = _grade_colours(ids, grade_by_building)
-                ints = np.rint(xyz / SCALE)
-                if ints.min() < lim.min or ints.max() > lim.max:
-                    raise ResultsError(f"{path}: coordinates lie more than 2 147 km from the offset {origin.tolist()}")
-                points = laspy.ScaleAwarePointRecord.zeros(n, header=header)
-                a = points.array
-                if kept is not None:  # every attribute of the input first; coordinates, colours and ours below
-                    for name in kept.array.dtype.names:
-                        if name in a.dtype.names and name not in ("X", "Y", "Z", "building_id", "predicted_grade"):
-                            a[name] = kept.array[name]
-                else:
-                    a["bit_fields"] = 1 | (1 << 4)  # return 1 of 1
-                a["X"], a["Y"], a["Z"] = ints[:, 0], ints[:, 1], ints[:, 2]
-                a["red"], a["green"], a["blue"] = rgb[:, 0], rgb[:, 1], rgb[:, 2]
-                a["building_id"] = np.maximum(ids, 0).astype(id_type)
-                a["predicted_grade"] = g
                 w.write_points(points)
-                written += n
+                written += len(points)
             if not written:  # laspy leaves an empty file's bounds at ±inf
                 w.header.mins = origin
                 w.header.maxs = origin
+
+
+def grade_records(path, header, origin, grade_by_building: dict, xyz, ids, kept):
+    """The point records (laspy, `header`'s format) of one chunk of a graded cloud: `xyz` local
+    to `origin`, building IDs, the source's points in format 7 or None; None when empty.
+    `path` names the output in errors."""
+    import laspy
+
+    n = len(xyz)
+    if not n:
+        return None
+    lim = np.iinfo(np.int32)
+    id_type = header.point_format.dimension_by_name("building_id").dtype
+    g, rgb = _grade_colours(ids, grade_by_building)
+    ints = np.rint(xyz / SCALE)
+    if ints.min() < lim.min or ints.max() > lim.max:
+        raise ResultsError(f"{path}: coordinates lie more than 2 147 km from the offset "
+                           f"{np.asarray(origin, dtype=np.float64)[:3].tolist()}")
+    points = laspy.ScaleAwarePointRecord.zeros(n, header=header)
+    a = points.array
+    if kept is not None:  # every attribute of the input first; coordinates, colours and ours below
+        for name in kept.array.dtype.names:
+            if name in a.dtype.names and name not in ("X", "Y", "Z", "building_id", "predicted_grade"):
+                a[name] = kept.array[name]
+    else:
+        a["bit_fields"] = 1 | (1 << 4)  # return 1 of 1
+    a["X"], a["Y"], a["Z"] = ints[:, 0], ints[:, 1], ints[:, 2]
+    a["red"], a["green"], a["blue"] = rgb[:, 0], rgb[:, 1], rgb[:, 2]
+    a["building_id"] = np.maximum(ids, 0).astype(id_type)
+    a["predicted_grade"] = g
+    return points
 
 
 def _grade_colours(ids: np.ndarray, grade_by_building: dict):
