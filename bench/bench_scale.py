@@ -2,7 +2,7 @@
 """Classification beyond one process: `quakescan classify` alone, on a Dask LocalCluster of 1
 and 2 workers, and on a pair too large for one process, measured side by side in one run.
 
-    .venv/bin/python bench/bench_scale.py [--rows single,cluster,large,trainset] [--work out/bench_scale]
+    .venv/bin/python bench/bench_scale.py [--rows single,cluster,large,trainset,graded] [--work out/bench_scale]
 
 Rows (issue 16's table):
 
@@ -16,6 +16,10 @@ Rows (issue 16's table):
   offset) to >= 2 x 250 M points on disk, `--workers 2 --memory-limit 4GB`: it finishes, the
   largest worker's peak (target <= 4 GB), and throughput per worker (points of both epochs
   per second per worker) against the single process's (target >= 0.9x);
+- single also runs the pair with `--threads 1`: one core's throughput, the like-for-like
+  reference of a one-thread worker;
+- graded: the pair classified with the graded cloud (post_grades.las) written, in one
+  process and on 2 workers (whose tasks make its records in parts): the time to write it;
 - trainset: the paper's four states (pre, heavy, extreme, destruction) of 1,000 generic
   buildings generated, acquired and described (`quakescan.learning.trainset.build` on a
   LocalCluster of 2 workers; target <= 30 min on 2 cores), and the time to resume it.
@@ -48,7 +52,7 @@ WORK = ROOT / "out" / "bench_scale"
 LARGE_POINTS = 250_000_000  # per epoch, at least
 COPY_STEP_M = 600.0  # the big city is 576 m wide: copies 600 m apart never share a building
 ID_STEP = 100_000  # building IDs of copy k: k * ID_STEP + the source's
-ROWS = ("single", "cluster", "large", "trainset")
+ROWS = ("single", "cluster", "large", "trainset", "graded")
 
 
 class TreeSampler:
@@ -94,9 +98,9 @@ class TreeSampler:
                 "workers_seen": len(workers)}
 
 
-def run_classify(pre: Path, post: Path, out: Path, extra: list) -> dict:
+def run_classify(pre: Path, post: Path, out: Path, extra: list, las: bool = False) -> dict:
     cmd = [str(Path(sys.executable).with_name("quakescan")), "classify", "--pre", str(pre), "--post", str(post),
-           "-o", str(out), "--force", "--no-las", *extra]
+           "-o", str(out), "--force", *([] if las else ["--no-las"]), *extra]
     t0 = time.perf_counter()
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     sampler = TreeSampler(proc.pid)
@@ -218,6 +222,7 @@ def main(argv=None):
     pre, post = big_pair()
     if "single" in rows_wanted:
         results["single"] = run_classify(pre, post, work / "single", [])
+        results["single1"] = run_classify(pre, post, work / "single1", ["--threads", "1"])
     if "cluster" in rows_wanted:
         for n in (1, 2):
             results[f"cluster{n}"] = run_classify(pre, post, work / f"cluster{n}", ["--workers", str(n)])
@@ -227,6 +232,9 @@ def main(argv=None):
                             "copies": copies}
     if "trainset" in rows_wanted:
         results["trainset"] = trainset_row(work)
+    if "graded" in rows_wanted:  # the graded cloud written too: one process, and made in parts by 2 workers
+        results["graded1"] = run_classify(pre, post, work / "graded1", [], las=True)
+        results["graded2"] = run_classify(pre, post, work / "graded2", ["--workers", "2"], las=True)
     results_path.write_text(json.dumps(results, indent=1))
 
     def mb(v):
@@ -238,6 +246,12 @@ def main(argv=None):
         rows.append(("75 M-point pair, one process", "<= 180 s, <= 8,192 MiB", f"{s['points']:,}",
                      f"{s['wall_s']:.0f}", f"{s['seconds']['read']:.0f} / {s['seconds']['describe']:.0f}",
                      mb(s["client_mb"]), "—", f"{s['points'] / s['wall_s'] / 1e6:.3f}", "", s.get("at", "")))
+    s1 = results.get("single1")
+    if s1:
+        rows.append(("same pair, one process, one thread (`--threads 1`)", "", f"{s1['points']:,}",
+                     f"{s1['wall_s']:.0f}", f"{s1['seconds']['read']:.0f} / {s1['seconds']['describe']:.0f}",
+                     mb(s1["client_mb"]), "—", f"{s1['points'] / s1['wall_s'] / 1e6:.3f}",
+                     "one core's throughput: the like-for-like reference of a one-thread worker", s1.get("at", "")))
     c1, c2 = results.get("cluster1"), results.get("cluster2")
     for c, n in ((c1, 1), (c2, 2)):
         if c:
@@ -249,9 +263,12 @@ def main(argv=None):
     lg = results.get("large")
     if lg:
         ratio = ""
+        per_worker = lg["points"] / lg["wall_s"] / 2
         if s:
-            ratio = (f"{(lg['points'] / lg['wall_s'] / 2) / (s['points'] / s['wall_s']):.2f}x the single process; "
-                     f"tiles split {lg['dask'].get('tiles_split', 0)}")
+            ratio = f"{per_worker / (s['points'] / s['wall_s']):.2f}x the single process (2 threads); "
+        if s1:
+            ratio += f"{per_worker / (s1['points'] / s1['wall_s']):.2f}x it with one thread; "
+        ratio += f"tiles split {lg['dask'].get('tiles_split', 0)}"
         rows.append((f"2 x {lg['points'] // 2 / 1e6:.0f} M points ({lg['copies']} copies), 2 workers, 4 GB each",
                      "finishes; worker <= 4,096 MiB; >= 0.9x per worker", f"{lg['points']:,}", f"{lg['wall_s']:.0f}",
                      f"{lg['seconds']['read']:.0f} / {lg['seconds']['describe']:.0f}", mb(lg["client_mb"]),
@@ -261,14 +278,22 @@ def main(argv=None):
         rows.append((f"training set: {ts['buildings']:,} buildings x 4 states ({ts['pairs']} pairs), 2 workers",
                      "<= 1,800 s, resumable", f"{ts['rows']:,} rows", f"{ts['wall_s']:.0f}", "—", "—", "—", "—",
                      f"resumed in {ts['resume_s']:.0f} s", ts.get("at", "")))
+    for key, label in (("graded1", "one process"), ("graded2", "LocalCluster 2 workers")):
+        g = results.get(key)
+        if g:
+            rows.append((f"same pair with the graded cloud (post_grades.las), {label}", "", f"{g['points']:,}",
+                         f"{g['wall_s']:.0f}", f"{g['seconds']['read']:.0f} / {g['seconds']['describe']:.0f}",
+                         mb(g["client_mb"]), mb(g["worker_mb"]) if g.get("dask") else "—",
+                         f"{g['points'] / g['wall_s'] / (2 if g.get('dask') else 1) / 1e6:.3f}",
+                         f"graded cloud written in {g['seconds'].get('graded_cloud', float('nan')):.0f} s",
+                         g.get("at", "")))
     text = "\n\n".join([
         "## Beyond one process: Dask (`bench/bench_scale.py`)",
         f"Machine: {machine()}. Command: `.venv/bin/python bench/bench_scale.py`; "
         f"the last run: rows {', '.join(rows_wanted) or 'none (the table rewritten)'}, "
         f"{time.perf_counter() - t_all:.0f} s (rows of earlier runs "
         "are kept from WORK/results.json, with the time each was measured). `quakescan classify "
-        "--no-las --force` in a fresh process each (the graded LAS left out: it is streamed by the client alike "
-        "in every mode); \"read\" is reading the epochs (one process) or streaming them into blocks (Dask: "
+        "--no-las --force` in a fresh process each (the graded LAS left out but in the rows that say so); \"read\" is reading the epochs (one process) or streaming them into blocks (Dask: "
         "the workers, a part of the file each) and the registration check, \"describe\" the descriptors (with "
         "Dask: the densities and the tiles, in the workers). Peak RSS sampled every 0.2 s: "
         "the command's own process (client) and the largest of its worker processes. Throughput: points of both "

@@ -277,19 +277,21 @@ def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=N
     outlines = results.building_outlines(res, fp, _xy_by_building(pre) if fp is None else None, pre.origin)
     write_building_results(out, res, model.grades, fp, outlines, pre.crs,
                            pre.xyz[:: map_step(len(pre)), :2] + pre.origin[:2], f"Damage grades: {Path(post_path).name}")
+    t_graded = time.perf_counter()
     if write_las:
         compress = Path(post_path).suffix.lower() == ".laz" if laz is None else laz
         graded = out / ("post_grades.laz" if compress else "post_grades.las")
         results.write_grade_las(graded, post.xyz, post.origin, post.crs, post.building_id,
                                 {r.building_id: r.grade for r in res}, source=post_path)
         summary["post_grades"] = str(graded)
+    t_graded = time.perf_counter() - t_graded
     counts: dict[str, int] = {}
     for r in res:
         counts[r.label] = counts.get(r.label, 0) + 1
     summary.update({"buildings": len(res), "by_label": counts, "by_grade_name": counts_by_grade_name(res),
                     "resumed_buildings": resumed,
                     "seconds": {"read": round(t_read - t0, 2), "describe": round(t_describe - t_read, 2),
-                                "total": round(time.perf_counter() - t0, 2)}})
+                                "graded_cloud": round(t_graded, 2), "total": round(time.perf_counter() - t0, 2)}})
     summary["fingerprint"] = run_fp.digest
     summary["options"] = options
     write_text(out / "summary.json", json.dumps(summary, indent=1, default=_json_default))
