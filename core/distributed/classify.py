@@ -76,7 +76,12 @@ def classify_distributed(pre_path, post_path, out_dir, client, *, model_path=Non
         return {**done, "up_to_date": True}
     model = cl.load_model(model_path)
     settings = cl.model_settings(model, str(model_path))
-    stage = on_stage or (lambda name: None)
+    marks: list = []  # (stage, when it began): the summary's seconds per stage
+
+    def stage(name):
+        marks.append((name, time.perf_counter()))
+        if on_stage:
+            on_stage(name)
 
     pre_f, post_f = bk.open_epoch_file(pre_path), bk.open_epoch_file(post_path)
     fp = _read_footprints(footprints_path, id_field, pre_f, post_f)
@@ -125,6 +130,7 @@ def classify_distributed(pre_path, post_path, out_dir, client, *, model_path=Non
         rows += [cl.BuildingRow(int(b), 0, 0, False, why) for b, why, _ in fp.rejected if int(b) not in described]
     rows.sort(key=lambda r: r.building_id)
     t_describe = time.perf_counter()
+    stage("results")
     res = cl.predict_rows(rows, model)
     from ..results import writers as results
 
@@ -147,7 +153,8 @@ def classify_distributed(pre_path, post_path, out_dir, client, *, model_path=Non
     summary.update({"buildings": len(res), "by_label": counts, "by_grade_name": cl.counts_by_grade_name(res),
                     "resumed_buildings": resumed,
                     "seconds": {"read": round(t_read - t0, 2), "describe": round(t_describe - t_read, 2),
-                                "graded_cloud": round(t_graded, 2), "total": round(time.perf_counter() - t0, 2)},
+                                "graded_cloud": round(t_graded, 2), "total": round(time.perf_counter() - t0, 2),
+                                "stages": _stage_seconds(marks, time.perf_counter())},
                     "dask": {"workers": len(client.scheduler_info().get("workers", {})),
                              "dashboard": dashboard_address(client), "block_m": bk.block_m(block_cells),
                              "tiles_widened": widened, "tiles_split": split,
@@ -160,6 +167,12 @@ def classify_distributed(pre_path, post_path, out_dir, client, *, model_path=Non
     (out / ".checkpoint.jsonl").unlink(missing_ok=True)
     shutil.rmtree(store, ignore_errors=True)
     return summary
+
+
+def _stage_seconds(marks: list, end: float) -> dict:
+    """Seconds from each stage's start to the next's (the last to `end`)."""
+    ends = [t for _, t in marks[1:]] + [end]
+    return {name: round(max(0.0, stop - start), 2) for (name, start), stop in zip(marks, ends)}
 
 
 def _read_footprints(footprints_path, id_field, pre_f, post_f):
