@@ -331,3 +331,34 @@ def test_the_interior_seen_through_a_wall_opening_is_the_share_of_its_inner_cell
     for depth in (0.0, 0.8):
         intact, _ = describe(pre, drone(depth), 20.0, 100.0)
         assert intact["s_interior_seen"] == 0.0, depth
+
+
+def test_the_m3c2_kernels_run_on_the_threads_asked_for_with_the_same_descriptors(monkeypatch):
+    """A Dask worker describes with one thread (its process is the parallelism): the cylinder
+    kernel must not take every core beside the other workers. Same numbers either way."""
+    import numba
+
+    from quakescan.change import m3c2 as m3c2_module
+    from quakescan.runtime.workers import kernel_threads
+
+    before = numba.get_num_threads()
+    with kernel_threads(1):
+        assert numba.get_num_threads() == 1
+    assert numba.get_num_threads() == before
+    seen = []
+    real = m3c2_module.ColumnGrid.cylinders
+
+    def spy(self, *a, **kw):
+        seen.append(numba.get_num_threads())
+        return real(self, *a, **kw)
+
+    monkeypatch.setattr(m3c2_module.ColumnGrid, "cylinders", spy)
+    rng = np.random.default_rng(3)
+    pre, post = scene(rng, 100, False), scene(rng, 100, True)
+    s = SurfaceSettings()
+    geom = SurfaceGeometry.for_pair(s, 100, 100)
+    one, _ = describe_surfaces(pre[0], pre[1], pre[2] == 2, post[0], [1], s, geom, workers=1)
+    assert seen and set(seen) == {1}
+    every, _ = describe_surfaces(pre[0], pre[1], pre[2] == 2, post[0], [1], s, geom, workers=-1)
+    assert seen[-1] == before
+    assert one == every

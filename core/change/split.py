@@ -91,20 +91,15 @@ def nearest_neighbours(pre_xyz: np.ndarray, post_xyz: np.ndarray, workers: int =
     while nx * ny > 4 * len(post_xyz) + 1024:  # a long thin cloud: keep the column table small
         cell *= 2
         nx, ny = int(span[0] // cell) + 1, int(span[1] // cell) + 1
-    from numba import get_num_threads, set_num_threads
+    from ..runtime.workers import kernel_threads
 
-    old = get_num_threads()
-    if workers is not None and workers > 0:
-        set_num_threads(min(workers, old))
-    try:
+    with kernel_threads(workers):
         order, starts = K.counting_sort(K.column_index(post_xyz, lo[0], lo[1], cell, nx, ny), nx * ny)
         px, py, pz = K.sort_columns_by_z(order, starts, post_xyz)
         # queries in their own order: scans are coherent along scan lines already
         idx = np.empty(len(pre_xyz), np.int64)
         dist = np.empty(len(pre_xyz))
         K.nearest(pre_xyz, px, py, pz, order, starts, lo[0], lo[1], cell, nx, ny, MAX_RING, idx, dist)
-    finally:
-        set_num_threads(old)
     q = pre_xyz
     far = np.flatnonzero(idx < 0)
     if len(far):

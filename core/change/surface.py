@@ -393,6 +393,7 @@ def describe_surfaces(pre_xyz: np.ndarray, pre_bid: np.ndarray, pre_ground: np.n
     receives those counts ("facing_counts", `count_by_facing`), and `facing_counts` given
     replaces them, so buildings described in parts (a tile split to fit a worker's memory)
     are judged against the counts of the whole tile."""
+    from ..runtime.workers import kernel_threads
     from .features import compute_features
 
     bids = [int(b) for b in bids]
@@ -450,10 +451,11 @@ def describe_surfaces(pre_xyz: np.ndarray, pre_bid: np.ndarray, pre_ground: np.n
         pos = np.searchsorted(sorted_core, core_of[bid])
         normals[bid] = orient_normals(normals_all[pos], pre_xyz[core_of[bid], :2],
                                       pre_xyz[members[bid], :2].mean(axis=0))
-    pre_grid = ColumnGrid(pre_xyz, max(geom.cylinder_radius_m, 0.5))
-    post_grid = ColumnGrid(post_xyz, max(geom.cylinder_radius_m, 0.5))
     nrm = np.vstack([normals[b] for b in bids]) if bids else np.zeros((0, 3))
-    res = m3c2(pre_xyz[all_core], nrm, pre_grid, post_grid, settings.m3c2, geom.cylinder_radius_m)
+    with kernel_threads(workers):  # the column sorts and the cylinder kernel
+        pre_grid = ColumnGrid(pre_xyz, max(geom.cylinder_radius_m, 0.5))
+        post_grid = ColumnGrid(post_xyz, max(geom.cylinder_radius_m, 0.5))
+        res = m3c2(pre_xyz[all_core], nrm, pre_grid, post_grid, settings.m3c2, geom.cylinder_radius_m)
     facing = _facing(nrm)
     own_counts = count_by_facing(res, facing)
     if facing_out is not None:

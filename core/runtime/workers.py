@@ -7,6 +7,7 @@ took it as `threads` before: `accepts_old_threads` keeps that keyword working fo
 """
 from __future__ import annotations
 
+import contextlib
 import functools
 import warnings
 
@@ -37,3 +38,19 @@ def accepts_old_threads(fn):
             kwargs["workers"] = threads
         return fn(*args, **kwargs)
     return wrapper
+
+
+@contextlib.contextmanager
+def kernel_threads(workers):
+    """The numba kernels called inside run on at most `workers` threads (-1 or None: every
+    core); the calling thread's setting is restored after. numba's thread count is per
+    calling thread, so tiles described in parallel threads each keep their own."""
+    from numba import get_num_threads, set_num_threads
+
+    old = get_num_threads()
+    if workers is not None and workers > 0:
+        set_num_threads(min(int(workers), old))
+    try:
+        yield
+    finally:
+        set_num_threads(old)
