@@ -472,8 +472,12 @@ def _city_task(out_dir: str, city: dict) -> str:
 def _pair_task(after: list, out_dir: str, pair: dict, settings: dict, labels: str) -> dict:
     """Dask task: `pair_table` on a single-threaded worker. `after` holds the results of the
     tasks it must follow (its city's generation, earlier pairs writing one of its clouds):
-    Dask runs it only once they are done."""
-    return pair_table(out_dir, pair, settings, labels, workers=1)
+    Dask runs it only once they are done. Every numba kernel on one thread: the worker
+    processes are the parallelism."""
+    from ..runtime.workers import kernel_threads
+
+    with kernel_threads(1):
+        return pair_table(out_dir, pair, settings, labels, workers=1)
 
 
 @accepts_old_say

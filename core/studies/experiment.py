@@ -406,8 +406,12 @@ class _OnDask:
 
 
 def _after(fn, after, *args, **kwargs):
-    """Dask task: fn(*args, **kwargs), once `after` (a future's result) is there."""
-    return fn(*args, **kwargs)
+    """Dask task: fn(*args, **kwargs), once `after` (a future's result) is there; every numba
+    kernel on one thread (the worker processes are the parallelism)."""
+    from ..runtime.workers import kernel_threads
+
+    with kernel_threads(1):
+        return fn(*args, **kwargs)
 
 
 def _worker_count(client) -> int:
