@@ -1,4 +1,5 @@
-"""The paper's experiment end to end on a tiny version (4 buildings per training set)."""
+"""The paper's experiment end to end on a tiny version (4 buildings per training set), in one
+process and as Dask tasks."""
 import json
 
 import pytest
@@ -43,14 +44,25 @@ def test_tiny_paper_experiment_writes_the_report(tmp_path, capsys):
     assert f"experiment  {steps}/{steps}  100 %" in shown
     again = json.loads((out / "results.json").read_text())
     assert again["results"] == json.loads(first)["results"]
-    # from nothing in another folder, same seed: the same clouds and numbers (reproducible)
+    # from nothing in another folder, same seed, as Dask tasks on a 2-worker LocalCluster: the
+    # same clouds byte for byte, levels of detection and numbers (reproducible, and the Dask
+    # path is the single process's)
     other = tmp_path / "exp2"
-    assert main([*args[:2], "-o", str(other), *args[4:]]) == 0
+    assert main([*args[:2], "-o", str(other), *args[4:], "--workers", "2"]) == 0
+    assert "Dask: a LocalCluster of 2 workers" in capsys.readouterr().out
     fresh = json.loads((other / "results.json").read_text())
     assert fresh["results"] == json.loads(first)["results"]
+    assert fresh["ablation"] == doc["ablation"] and fresh["shipped_default"] == doc["shipped_default"]
     assert fresh["levels_of_detection"] == doc["levels_of_detection"]
-    for las in sorted((out / "data").glob("*.las"))[:3]:
-        assert (other / "data" / las.name).read_bytes() == las.read_bytes()
+    assert "as Dask tasks on 2 workers" in (other / "README.md").read_text()
+    clouds = sorted(p.name for p in (out / "data").glob("*.las"))
+    assert len(clouds) == 3 * 7 + 2 and clouds == sorted(p.name for p in (other / "data").glob("*.las"))
+    for name in clouds:
+        assert (other / "data" / name).read_bytes() == (out / "data" / name).read_bytes(), name
+    # the Dask run's caches are the single process's: resuming it in one process redoes nothing
+    assert main([*args[:2], "-o", str(other), *args[4:]]) == 0
+    shown = capsys.readouterr().err
+    assert ": DIM in" not in shown and ": ULS in" not in shown and " buildings in " not in shown
 
 
 def test_paper_table_is_transcribed_faithfully():
@@ -76,3 +88,14 @@ def test_bad_test_mix_is_refused(tmp_path, capsys):
 def test_too_few_training_buildings_for_a_mixed_city_are_refused(tmp_path, capsys):
     assert main(["experiment", "paper", "-o", str(tmp_path / "x"), "--buildings", "3"]) == 2
     assert "buildings per training dataset must be >= 4, got 3" in capsys.readouterr().err
+
+
+def test_experiment_workers_must_be_at_least_one(tmp_path, capsys):
+    assert main(["experiment", "paper", "-o", str(tmp_path / "x"), "--workers", "0"]) == 2
+    assert "--workers must be at least 1, got 0" in capsys.readouterr().err
+
+
+def test_experiment_takes_workers_or_a_scheduler_not_both(tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        main(["experiment", "paper", "-o", str(tmp_path / "x"), "--workers", "2", "--scheduler", "tcp://h:1"])
+    assert "not allowed with argument" in capsys.readouterr().err
