@@ -319,3 +319,39 @@ def test_failed_write_leaves_nothing(tmp_path):
         R.write_csv([Boom(1, 1, 1, True, grade=0)], path, CLASSES)
     assert not path.exists()
     _no_part(tmp_path)
+
+
+def test_the_graded_las_streams_its_source_in_chunks_and_keeps_every_attribute(tmp_path, monkeypatch):
+    """The source file is converted a chunk at a time (never whole beside the epoch): the same
+    file whatever the chunk, every attribute of a legacy format kept; a source of another
+    length is refused by name."""
+    import laspy
+
+    rng = np.random.default_rng(4)
+    n = 11
+    src = laspy.create(point_format=1, file_version="1.2")
+    src.add_extra_dim(laspy.ExtraBytesParams(name="reflectance", type=np.float32))
+    src.header.offsets, src.header.scales = ORIGIN, [0.001] * 3
+    xyz = rng.uniform(0, 20, (n, 3))
+    src.x, src.y, src.z = (xyz[:, k] + ORIGIN[k] for k in range(3))
+    src.intensity = rng.integers(0, 60000, n)
+    src.gps_time = rng.uniform(0, 1e5, n)
+    src.scan_angle_rank = rng.integers(-30, 30, n)
+    src.reflectance = rng.uniform(-10, 0, n).astype(np.float32)
+    src.write(tmp_path / "src.las")
+    ids = np.arange(n) % 3
+    whole, chunked = tmp_path / "whole.las", tmp_path / "chunked.las"
+    R.write_grade_las(whole, xyz, ORIGIN, None, ids, {1: 3, 2: 5}, source=tmp_path / "src.las")
+    monkeypatch.setattr(R, "SOURCE_CHUNK_POINTS", 3)
+    R.write_grade_las(chunked, xyz, ORIGIN, None, ids, {1: 3, 2: 5}, source=tmp_path / "src.las")
+    a, b = laspy.read(whole), laspy.read(chunked)
+    assert a.header.point_count == b.header.point_count == n
+    for dim in a.points.array.dtype.names:
+        np.testing.assert_array_equal(a.points.array[dim], b.points.array[dim], err_msg=dim)
+    np.testing.assert_array_equal(b.intensity, src.intensity)
+    np.testing.assert_allclose(b.gps_time, src.gps_time)
+    np.testing.assert_allclose(np.asarray(b.scan_angle) * 0.006, src.scan_angle_rank, atol=0.003)  # 0.006° steps
+    np.testing.assert_array_equal(b.reflectance, src.reflectance)
+    np.testing.assert_array_equal(b.predicted_grade, np.where(ids == 1, 3, np.where(ids == 2, 5, 255)))
+    with pytest.raises(R.ResultsError, match=r"the source .*src.las has 11 points, the epoch 10"):
+        R.write_grade_las(tmp_path / "bad.las", xyz[:10], ORIGIN, None, ids[:10], {}, source=tmp_path / "src.las")

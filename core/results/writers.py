@@ -33,6 +33,7 @@ GRADE_COLOURS = {0: "#1a9641", 1: "#a6d96a", 2: "#d9ef8b", 3: "#ffd700", 4: "#fd
 NOT_ASSESSABLE_COLOUR = "#8c8c8c"  # grey
 BACKGROUND_COLOUR = "#d9d9d9"  # light grey: points that belong to no building (map scatter, LAS)
 GRADE_NONE = 255  # `predicted_grade` in the LAS: not a building, or not assessable
+SOURCE_CHUNK_POINTS = 2_000_000  # points of the source cloud converted at a time for the graded LAS
 BUFFER_M = 0.5  # radius around the points of a building too small for a hull
 OUTLINE_FOOTPRINT = "footprint"
 OUTLINE_HULL = "convex hull of points"
@@ -479,10 +480,30 @@ def write_grade_las(path, epoch_xyz, origin, crs: str | None, building_id,
     ids = np.zeros(n, np.int64) if building_id is None else np.asarray(building_id, dtype=np.int64)
     if len(ids) != n:
         raise ResultsError(f"{path}: {len(ids)} building IDs for {n} points")
-    kept = _source_points(source, n, path)
-    extra = None if kept is None else [(name, kept.array[name].dtype) for name in kept.point_format.extra_dimension_names]
-    header = grade_header(path, origin, crs, int(ids.max()) if n else 0, extra)
-    _write_grade_chunks(path, header, origin, grade_by_building, [(xyz, ids, kept)])
+    max_id = int(ids.max()) if n else 0
+    if source is None:
+        header = grade_header(path, origin, crs, max_id, None)
+        _write_grade_chunks(path, header, origin, grade_by_building, [(xyz, ids, None)])
+        return
+    import laspy
+
+    # the source streamed a chunk at a time beside the epoch's arrays: a whole copy of a large
+    # cloud in both point formats would double the peak of a classification
+    with laspy.open(source) as reader:
+        if reader.header.point_count != n:
+            raise ResultsError(f"{path}: the source {source} has {reader.header.point_count} points, the epoch {n}")
+        extra = [(name, reader.header.point_format.dimension_by_name(name).dtype)
+                 for name in reader.header.point_format.extra_dimension_names]
+        header = grade_header(path, origin, crs, max_id, extra)
+
+        def chunks():
+            start = 0
+            for raw, kept in source_chunks_format7(reader, SOURCE_CHUNK_POINTS):
+                stop = start + len(raw)
+                yield xyz[start:stop], ids[start:stop], kept
+                start = stop
+
+        _write_grade_chunks(path, header, origin, grade_by_building, chunks())
 
 
 def write_grade_las_streamed(path, chunks, origin, crs: str | None, grade_by_building: dict, *, max_id: int,
@@ -618,18 +639,6 @@ def _grade_colours(ids: np.ndarray, grade_by_building: dict):
         rgb_u[k] = _rgb8(colour_of(g))
     rgb_u = rgb_u * 257
     return g_u[inv], rgb_u[inv]
-
-
-def _source_points(source, n: int, path: Path):
-    """The source file's points converted to point format 7 (None without a source)."""
-    if source is None:
-        return None
-    import laspy
-
-    src = laspy.read(source)
-    if len(src.points) != n:
-        raise ResultsError(f"{path}: the source {source} has {len(src.points)} points, the epoch {n}")
-    return _format7(src)
 
 
 def _format7(src):
