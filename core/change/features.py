@@ -322,8 +322,9 @@ def _kernel_measures(cloud, query, radius, names, workers, cells_per_radius=None
     """What the features `names` need, by the numba kernel. cloud: (x, y, z) contiguous
     arrays in the local frame (z >= 0); query: the same for core points, or None for the
     cloud's own points (all of them, or those in `query_index`)."""
-    from numba import get_num_threads, set_num_threads
+    from numba import get_num_threads
 
+    from ..runtime.workers import kernel_threads
     from . import _feature_kernels as K
 
     k = CELLS_PER_RADIUS if cells_per_radius is None else int(cells_per_radius)
@@ -343,10 +344,7 @@ def _kernel_measures(cloud, query, radius, names, workers, cells_per_radius=None
     if zext / q >= 2.0 ** zbits - 2:
         q, sh = zext / (2.0 ** zbits - 2), 0
 
-    old = get_num_threads()
-    if workers is not None and workers > 0:
-        set_num_threads(min(workers, old))  # for the sort and the kernel
-    try:
+    with kernel_threads(workers):  # for the sort and the kernel
         def sort(x, y, z):
             keys = np.empty(len(x), np.int64)
             K.grid_keys(x, y, z, lo[0], lo[1], s, q, nxc, nyc, zbits, keys)
@@ -410,8 +408,6 @@ def _kernel_measures(cloud, query, radius, names, workers, cells_per_radius=None
                              count, lam, normal, rough, zrank, zrange, curv, ncyl, nexact)
             if progress:
                 progress(int(gstart[min(int(part[-1] + 1) * _BLOCK, len(gcol))]), m)
-    finally:
-        set_num_threads(old)
     if stats is not None:
         stats["exact_share"] = float(nexact.mean()) if m else 0.0
         stats["groups"] = len(gcol)

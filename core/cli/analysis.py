@@ -9,8 +9,8 @@ from pathlib import Path
 from ..errors import QuakeScanError
 from ..runtime.atomic import write_json
 from ..runtime.workers import EVERY_CORE
-from .options import (PROGRESS_HELP, THREADS_HELP, check_cloud_output, check_file_output, check_number, check_seed,
-                      check_threads, csv_list, old_form)
+from .options import (PROGRESS_HELP, THREADS_HELP, add_dask_options, dask_client_for, check_cloud_output,
+                      check_file_output, check_number, check_seed, check_threads, csv_list, old_form)
 from .reporting import reporter
 
 
@@ -125,10 +125,8 @@ def _classify_on_dask(args) -> dict:
     """classify with its tiles as Dask tasks: a LocalCluster of --workers processes, or the
     cluster of --scheduler; the dashboard's address printed before the work starts."""
     from ..distributed.classify import classify_distributed
-    from ..distributed.cluster import dask_client, describe_cluster
 
-    with dask_client(n_workers=args.workers, scheduler=args.scheduler, memory_limit=args.memory_limit) as client:
-        print(describe_cluster(client, args.workers, args.scheduler), flush=True)
+    with dask_client_for(args, args.memory_limit) as client:
         return classify_distributed(args.pre, args.post, args.output, client, model_path=args.model,
                                     footprints_path=args.footprints, id_field=args.id_field, align=args.align,
                                     progress=reporter(args, "classify"), write_las=not args.no_las, laz=args.laz,
@@ -208,12 +206,9 @@ def add_classify(sub) -> None:
     cl.add_argument("--laz", action="store_const", const=True, default=None,
                     help="compress the per-point grades (post_grades.laz); default: as the post-event file is")
     cl.add_argument("--threads", type=int, default=EVERY_CORE, help=THREADS_HELP)
-    dask = cl.add_mutually_exclusive_group()
-    dask.add_argument("--workers", type=int, metavar="N",
-                      help="describe the tiles as Dask tasks on a LocalCluster of N single-threaded worker processes "
-                      "(the same results as without; the inputs are streamed to OUT_DIR/.blocks, never loaded whole)")
-    dask.add_argument("--scheduler", metavar="ADDRESS",
-                      help="the same on an existing Dask cluster (tcp://host:8786; its workers must reach OUT_DIR)")
+    add_dask_options(cl, "describe the tiles as Dask tasks on a LocalCluster of N single-threaded worker processes "
+                     "(the same results as without; the inputs are streamed to OUT_DIR/.blocks, never loaded whole)",
+                     "the same on an existing Dask cluster (tcp://host:8786; its workers must reach OUT_DIR)")
     cl.add_argument("--memory-limit", default="auto",
                     help="memory per LocalCluster worker (e.g. 4GB; default: the machine's memory shared out)")
     cl.add_argument("--progress", action="store_true", help=PROGRESS_HELP)

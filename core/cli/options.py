@@ -2,6 +2,7 @@
 flag), and the old forms still accepted."""
 from __future__ import annotations
 
+import contextlib
 import os
 from pathlib import Path
 
@@ -17,6 +18,25 @@ THREADS_HELP = "worker threads, >= 1, or -1 for every core (default: -1); the re
 PROGRESS_HELP = ("show progress (done/total, %%, elapsed, ETA) even when stderr is not a terminal; "
                  "on a terminal it is shown unless -q")
 QUIET_HELP = "no progress, stage messages or notes on stderr (warnings and errors stay)"
+
+
+def add_dask_options(parser, workers_help: str, scheduler_help: str) -> None:
+    """--workers N | --scheduler ADDRESS: the command's work as Dask tasks on a LocalCluster of N
+    single-threaded worker processes, or on an existing cluster."""
+    dask = parser.add_mutually_exclusive_group()
+    dask.add_argument("--workers", type=int, metavar="N", help=workers_help)
+    dask.add_argument("--scheduler", metavar="ADDRESS", help=scheduler_help)
+
+
+@contextlib.contextmanager
+def dask_client_for(args, memory_limit: str | None = "auto"):
+    """The Dask client of --workers/--scheduler, its line (where the tasks run, the dashboard)
+    printed before the work starts; the LocalCluster closed on leaving."""
+    from ..distributed.cluster import dask_client, describe_cluster
+
+    with dask_client(n_workers=args.workers, scheduler=args.scheduler, memory_limit=memory_limit) as client:
+        print(describe_cluster(client, args.workers, args.scheduler), flush=True)
+        yield client
 
 
 def csv_list(text: str | None) -> tuple | None:

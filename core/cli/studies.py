@@ -7,8 +7,8 @@ import numpy as np
 
 from ..errors import QuakeScanError
 from ..runtime.workers import EVERY_CORE
-from .options import (PROGRESS_HELP, THREADS_HELP, check_folder_output, check_number, check_seed, check_threads,
-                      old_form)
+from .options import (PROGRESS_HELP, THREADS_HELP, add_dask_options, dask_client_for, check_folder_output, check_number,
+                      check_seed, check_threads, old_form)
 from .reporting import reporter
 
 
@@ -109,10 +109,7 @@ def cmd_experiment(args) -> int:
                                   lod_height_m=args.lod_height, lod_curvature=args.lod_curvature,
                                   training=args.training)
     if args.workers is not None or args.scheduler:
-        from ..distributed.cluster import dask_client, describe_cluster
-
-        with dask_client(n_workers=args.workers, scheduler=args.scheduler) as client:
-            print(describe_cluster(client, args.workers, args.scheduler), flush=True)
+        with dask_client_for(args) as client:
             results = run_paper_experiment(args.output, settings, progress=reporter(args, "experiment"),
                                            client=client)
     else:
@@ -172,12 +169,9 @@ def add_experiment(sub) -> None:
                     help="level of detection of curvature change, 1/m (default: measured on a DIM rescan)")
     ex.add_argument("--seed", type=int, default=0, help="seed of the cities, acquisitions and forests (default 0)")
     ex.add_argument("--threads", type=int, default=EVERY_CORE, help=THREADS_HELP)
-    dask = ex.add_mutually_exclusive_group()
-    dask.add_argument("--workers", type=int, metavar="N",
-                      help="generate, acquire and describe as Dask tasks (a city, a cloud, a table per task) on a "
-                      "LocalCluster of N single-threaded worker processes (the same numbers as without)")
-    dask.add_argument("--scheduler", metavar="ADDRESS",
-                      help="the same on an existing Dask cluster (tcp://host:8786; its workers must reach the "
-                      "output folder and run the scene generator)")
+    add_dask_options(ex, "generate, acquire and describe as Dask tasks (a city, a cloud, a table per task) on a "
+                     "LocalCluster of N single-threaded worker processes (the same numbers as without)",
+                     "the same on an existing Dask cluster (tcp://host:8786; its workers must reach the output "
+                     "folder and run the scene generator)")
     ex.add_argument("--progress", action="store_true", help=PROGRESS_HELP)
     ex.set_defaults(func=cmd_experiment)

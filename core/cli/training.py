@@ -8,8 +8,8 @@ import numpy as np
 
 from ..errors import QuakeScanError
 from ..runtime.workers import EVERY_CORE
-from .options import (PROGRESS_HELP, THREADS_HELP, check_file_output, check_folder_output, check_number, check_seed,
-                      check_threads, csv_list, old_form)
+from .options import (PROGRESS_HELP, THREADS_HELP, add_dask_options, dask_client_for, check_file_output,
+                      check_folder_output, check_number, check_seed, check_threads, csv_list, old_form)
 from .reporting import reporter
 
 
@@ -121,11 +121,9 @@ def cmd_training_set(args) -> int:
 def _training_set_on_dask(args, plan, settings):
     """The training set's cities and pairs as Dask tasks: a LocalCluster of --workers processes
     or the cluster of --scheduler; the dashboard's address printed before the work starts."""
-    from ..distributed.cluster import dask_client, describe_cluster
     from ..learning.trainset import build
 
-    with dask_client(n_workers=args.workers, scheduler=args.scheduler) as client:
-        print(describe_cluster(client, args.workers, args.scheduler), flush=True)
+    with dask_client_for(args) as client:
         return build(args.output, plan, settings, progress=reporter(args, "training set"), client=client)
 
 
@@ -175,12 +173,9 @@ def add_training_set(sub) -> None:
                     help="full/large: also two cities of small buildings (sheds, garages, row houses), acquired "
                     "ALS-like before")
     ts.add_argument("--threads", type=int, default=EVERY_CORE, help=THREADS_HELP)
-    dask = ts.add_mutually_exclusive_group()
-    dask.add_argument("--workers", type=int, metavar="N",
-                      help="generate, acquire and describe as Dask tasks (one per city, one per pair) on a "
-                      "LocalCluster of N single-threaded worker processes (the same tables as without)")
-    dask.add_argument("--scheduler", metavar="ADDRESS",
-                      help="the same on an existing Dask cluster (tcp://host:8786; its workers must reach the "
-                      "output folder and run the scene generator)")
+    add_dask_options(ts, "generate, acquire and describe as Dask tasks (one per city, one per pair) on a "
+                     "LocalCluster of N single-threaded worker processes (the same tables as without)",
+                     "the same on an existing Dask cluster (tcp://host:8786; its workers must reach the output "
+                     "folder and run the scene generator)")
     ts.add_argument("--progress", action="store_true", help=PROGRESS_HELP)
     ts.set_defaults(func=cmd_training_set)

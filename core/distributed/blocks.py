@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from ..change.surface import DENSITY_CELL_M
-from ..formats.pointcloud import PointCloudError
+from ..formats.pointcloud import PointCloudError, read_point_range
 
 # The stored point: the file's integers, so a float64 coordinate is made once, on reading
 RECORD = np.dtype([("index", "<i8"), ("X", "<i4"), ("Y", "<i4"), ("Z", "<i4"), ("classification", "u1"),
@@ -208,12 +208,7 @@ def stream_epoch(f: EpochFile, origin: np.ndarray, folder: Path, *, block_cells:
         raise PointCloudError(f"{f.path}: cannot read as LAS/LAZ ({e})") from None
     with reader:
         first = start
-        if start:
-            reader.seek(start)
-        while start < stop:
-            chunk = reader.read_points(min(chunk_points, stop - start))
-            if not len(chunk):
-                break
+        for chunk in read_point_range(reader, start, stop, chunk_points):
             X, Y, Z = (np.asarray(chunk.array[c]) for c in "XYZ")
             n = len(X)
             xyz = f.local_xyz(X, Y, Z, origin)

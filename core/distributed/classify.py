@@ -495,7 +495,7 @@ def _write_graded_cloud(client, path, post_f, origin, crs, footprints, transform
     import laspy
     from dask.distributed import as_completed
 
-    from ..results.writers import grade_header, write_grade_records
+    from ..results.writers import grade_header, source_extra_dims, write_grade_records
     from .tasks import graded_part
 
     shutil.rmtree(folder, ignore_errors=True)
@@ -518,9 +518,7 @@ def _write_graded_cloud(client, path, post_f, origin, crs, footprints, transform
     finally:
         client.cancel([f for f in futures if not f.done()])
     with laspy.open(post_f.path) as reader:
-        extra = [(name, reader.header.point_format.dimension_by_name(name).dtype)
-                 for name in reader.header.point_format.extra_dimension_names]
-    header = grade_header(path, origin, crs, max_id, extra)
+        header = grade_header(path, origin, crs, max_id, source_extra_dims(reader.header))
     dtype = header.point_format.dtype()
 
     def records():

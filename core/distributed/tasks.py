@@ -145,7 +145,7 @@ def graded_part(out_file: str, epoch_json: dict, origin: list, start: int, stop:
 
     from ..change.align import apply_transform
     from ..formats.footprints import assign_buildings
-    from ..results.writers import grade_header, grade_records, source_chunks_format7
+    from ..results.writers import grade_header, grade_records, source_chunks_format7, source_extra_dims
     from ..runtime.atomic import open_replacing
 
     f = EpochFile(**epoch_json)
@@ -153,9 +153,8 @@ def graded_part(out_file: str, epoch_json: dict, origin: list, start: int, stop:
     fp = None if footprints is None else _footprints(footprints["path"], footprints.get("id_field"))
     n = 0
     with laspy.open(f.path) as reader, open_replacing(Path(out_file), "wb") as out:
-        extra = [(name, reader.header.point_format.dimension_by_name(name).dtype)
-                 for name in reader.header.point_format.extra_dimension_names]
-        header = grade_header(Path(out_file), origin, None, max_id, extra)  # the records' layout only
+        # the records' layout only: the client writes the header
+        header = grade_header(Path(out_file), origin, None, max_id, source_extra_dims(reader.header))
         for raw, kept in source_chunks_format7(reader, chunk_points, start, stop):
             xyz = f.local_xyz(raw.array["X"], raw.array["Y"], raw.array["Z"], origin)
             if fp is None:

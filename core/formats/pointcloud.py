@@ -212,6 +212,19 @@ def pack_points(header, chunk: PointChunk, name="point cloud"):
     return rec
 
 
+def read_point_range(reader, start: int, stop: int, chunk_points: int):
+    """Points start..stop of an open laspy reader, chunk by chunk (at most `chunk_points`
+    each): a part of a file streamed without reading the rest (LAZ seeks by its chunk table)."""
+    if start:
+        reader.seek(start)
+    while start < stop:
+        chunk = reader.read_points(min(chunk_points, stop - start))
+        if not len(chunk):
+            return
+        start += len(chunk)
+        yield chunk
+
+
 def check_point_cloud_path(path: str | os.PathLike) -> Path:
     """`path` as a Path, refused with its reason when it is a folder or does not exist."""
     path = Path(path)

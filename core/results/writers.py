@@ -492,9 +492,7 @@ def write_grade_las(path, epoch_xyz, origin, crs: str | None, building_id,
     with laspy.open(source) as reader:
         if reader.header.point_count != n:
             raise ResultsError(f"{path}: the source {source} has {reader.header.point_count} points, the epoch {n}")
-        extra = [(name, reader.header.point_format.dimension_by_name(name).dtype)
-                 for name in reader.header.point_format.extra_dimension_names]
-        header = grade_header(path, origin, crs, max_id, extra)
+        header = grade_header(path, origin, crs, max_id, source_extra_dims(reader.header))
 
         def chunks():
             start = 0
@@ -522,15 +520,17 @@ def source_chunks_format7(reader, chunk_points: int, start: int = 0, stop: int |
     degrees of a legacy scan angle kept)."""
     import laspy
 
+    from ..formats.pointcloud import read_point_range
+
     stop = reader.header.point_count if stop is None else stop
-    if start:
-        reader.seek(start)
-    while start < stop:
-        chunk = reader.read_points(min(chunk_points, stop - start))
-        if not len(chunk):
-            break
-        start += len(chunk)
+    for chunk in read_point_range(reader, start, stop, chunk_points):
         yield chunk, _format7(laspy.LasData(header=reader.header, points=chunk.copy()))
+
+
+def source_extra_dims(header) -> list:
+    """[(name, dtype)] of a source file's extra dimensions, which its graded cloud keeps."""
+    return [(name, header.point_format.dimension_by_name(name).dtype)
+            for name in header.point_format.extra_dimension_names]
 
 
 def _grade_las_path(path) -> Path:
