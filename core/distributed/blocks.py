@@ -338,6 +338,36 @@ def read_records(folder: Path, keys) -> np.ndarray:
     return rec[np.argsort(rec["index"], kind="stable")]
 
 
+def read_box(folder: Path, f: EpochFile, origin, box, block_cells: int) -> tuple[np.ndarray, np.ndarray]:
+    """(records, local float64 coordinates) of the stored points inside the x/y `box` ((2, 2):
+    min, max; local frame, edges included), in file order: `read_records` of the blocks the
+    box touches, kept to the box. Each block file is cut to the box as it is read, so the
+    sort by index and the copies see the box's points only (a tile's box covers about half
+    of the blocks it touches) and the coordinates are made once."""
+    box = np.asarray(box, dtype=np.float64)
+    origin = np.asarray(origin, dtype=np.float64)
+    n_parts = _parts_of(folder)
+    recs, coords = [], []
+    for key in blocks_in_box(box, block_cells):
+        for p in block_files(folder, key, n_parts):
+            if not p.is_file():
+                continue
+            rec = np.fromfile(p, dtype=RECORD)
+            xyz = f.local_xyz(rec["X"], rec["Y"], rec["Z"], origin)
+            inside = np.all((xyz[:, :2] >= box[0]) & (xyz[:, :2] <= box[1]), axis=1)
+            if inside.all():
+                recs.append(rec)
+                coords.append(xyz)
+            elif inside.any():
+                recs.append(rec[inside])
+                coords.append(xyz[inside])
+    if not recs:
+        return np.zeros(0, RECORD), np.zeros((0, 3))
+    rec, xyz = np.concatenate(recs), np.concatenate(coords)
+    order = np.argsort(rec["index"], kind="stable")
+    return rec[order], xyz[order]
+
+
 def write_manifest(path: Path, d: dict) -> None:
     from ..runtime.atomic import write_text
 
@@ -367,4 +397,4 @@ def block_m(block_cells: int) -> float:
 
 
 __all__ = ["CHUNK_POINTS", "EpochFile", "EpochStats", "RECORD", "block_files", "block_of", "blocks_in_box",
-           "default_origin", "merge_stats", "open_epoch_file", "read_records", "stream_epoch"]
+           "default_origin", "merge_stats", "open_epoch_file", "read_box", "read_records", "stream_epoch"]

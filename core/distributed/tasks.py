@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from ..change.surface import DENSITY_CELL_M, ROOF_BAND_M
-from .blocks import EpochFile, blocks_in_box, read_records
+from .blocks import EpochFile, read_box, read_records
 
 # the eight neighbours a roof cell needs occupied to count as interior (roof_cell_density)
 NEIGHBOURS = [(dx, dy) for dx in (-1, 0, 1) for dy in (-1, 0, 1) if dx or dy]
@@ -236,15 +236,14 @@ def describe_tile_task(store: str, tile: dict, settings_json: dict, geometry: di
         f = EpochFile(**_epoch_file_args(folder))
         origin = np.asarray(_origin(folder))
         grow = float(tile.get("read_margin", 0.0)) if name == "post" else 0.0  # alignment moves points this far
-        rec = read_records(folder, blocks_in_box(box + np.array([[-grow], [grow]]), int(tile["block_cells"])))
-        xyz = f.local_xyz(rec["X"], rec["Y"], rec["Z"], origin)
+        rec, xyz = read_box(folder, f, origin, box + np.array([[-grow], [grow]]), int(tile["block_cells"]))
         if name == "post" and alignment is not None:
             from ..change.align import apply_transform
 
             xyz = apply_transform(alignment, xyz)
-        inside = np.all((xyz[:, :2] >= box[0]) & (xyz[:, :2] <= box[1]), axis=1)
-        epochs.append(Epoch(xyz[inside], origin, rec["classification"][inside],
-                            building_id=rec["building_id"][inside], source=f.path))
+            inside = np.all((xyz[:, :2] >= box[0]) & (xyz[:, :2] <= box[1]), axis=1)
+            rec, xyz = rec[inside], xyz[inside]
+        epochs.append(Epoch(xyz, origin, rec["classification"], building_id=rec["building_id"], source=f.path))
     pre, post = epochs
     geom = None if geometry is None else SurfaceGeometry(**geometry)
     reach: dict = {}
