@@ -116,6 +116,34 @@ def _square(n=11, side=10.0, at=(1000.0, 2000.0)):
     return np.column_stack([xx.ravel(), yy.ravel()]) + np.asarray(at)
 
 
+@pytest.mark.parametrize("kind", ["disc", "grid", "roof at UTM", "line", "thin sliver", "duplicates"])
+def test_hull_candidates_give_geos_the_same_polygon_as_every_point(kind):
+    """Culling the points inside the octagon of extremes leaves the hull's vertices: GEOS makes
+    the same polygon, byte for byte, from a few hundred points as from all of them."""
+    rng = np.random.default_rng(3)
+    if kind == "disc":
+        a, r = rng.uniform(0, 2 * np.pi, 20_000), np.sqrt(rng.uniform(0, 1, 20_000)) * 7.0
+        xy = np.column_stack([r * np.cos(a), r * np.sin(a)])
+    elif kind == "grid":  # many points on the hull's edges: collinear, not vertices
+        xy = _square(n=101, side=12.0, at=(3.0, -4.0))
+    elif kind == "roof at UTM":  # an L-shaped building's points at UTM coordinates, mm-quantised
+        xy = rng.uniform(0, 20, (30_000, 2))
+        xy = xy[(xy[:, 0] < 8) | (xy[:, 1] < 8)]
+        xy = np.round(xy + [674_512.0, 5_206_733.0], 3)
+    elif kind == "line":
+        xy = np.column_stack([np.linspace(0, 9, 500), np.linspace(0, 3, 500)]) + 1e6
+    elif kind == "thin sliver":
+        xy = np.column_stack([rng.uniform(0, 50, 5_000), rng.uniform(0, 1e-7, 5_000)]) + [5e5, 4e6]
+    else:
+        xy = np.repeat(rng.uniform(0, 5, (40, 2)), 50, axis=0)
+    kept = R.hull_candidates(xy)
+    every = shapely.convex_hull(shapely.multipoints(xy))
+    culled = shapely.convex_hull(shapely.multipoints(kept))
+    assert shapely.to_wkb(culled) == shapely.to_wkb(every)
+    if kind in ("disc", "grid", "roof at UTM"):
+        assert len(kept) < len(xy) // 5  # the point of it (a disc keeps the most: ~11 %)
+
+
 def test_outlines_hull_in_world_coordinates_and_footprints():
     rows = _rows()
     fp_poly = shapely.geometry.box(501000.0, 5002000.0, 501012.0, 5002008.0)

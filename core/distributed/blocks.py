@@ -160,6 +160,8 @@ class _Hulls:
     def add(self, ids: np.ndarray, xy: np.ndarray) -> None:
         import shapely
 
+        from ..results.writers import hull_candidates
+
         order = np.argsort(ids, kind="stable")
         u, starts = np.unique(ids[order], return_index=True)
         ends = np.append(starts[1:], len(order))
@@ -169,7 +171,7 @@ class _Hulls:
             world = xy[order[s:t]] + self.origin
             if b in self.vertices:
                 world = np.vstack([self.vertices[b], world])
-            hull = shapely.convex_hull(shapely.multipoints(world))
+            hull = shapely.convex_hull(shapely.multipoints(hull_candidates(world)))
             self.vertices[b] = shapely.get_coordinates(hull)  # a polygon's ring, a line or a point
 
 
