@@ -62,3 +62,18 @@ def _ints(x):
     if isinstance(x, list):
         return [i for y in x for i in _ints(y)]
     return [x] if isinstance(x, int) else []
+
+
+def test_pooled_metrics_are_those_of_the_evaluation_of_every_building_at_once():
+    from quakescan.results.evaluation import evaluate_grades
+
+    rng = np.random.default_rng(0)
+    grades = np.array([0, 3, 4, 5])
+    runs = [(grades[rng.integers(0, 4, 49)], grades[rng.integers(0, 4, 49)]) for _ in range(3)]
+    pooled = sum(np.asarray(evaluate_grades(t, p).confusion) for t, p in runs)
+    m = bench_zurich.confusion_metrics(pooled)
+    whole = evaluate_grades(np.concatenate([t for t, _ in runs]), np.concatenate([p for _, p in runs]))
+    assert m["n"] == whole.n == 147
+    assert m["overall_accuracy"] == pytest.approx(whole.overall_accuracy)
+    assert m["f1"] == pytest.approx([whole.per_grade[g]["f1"] for g in (0, 3, 4, 5)])
+    assert m["damaged_f1"] == pytest.approx(whole.damaged["f1"])
