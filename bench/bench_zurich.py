@@ -13,7 +13,8 @@ bottoms by the CityJSON importer); nothing of a shape is changed. The add-on's g
 damages the packed city with a mix in the paper's proportions (35/19/32/35 of 121, scaled to
 49 buildings), once with its parametric patterns and once with grades 4-5 collapsed by
 rigid-body simulation (`--damage physics`), and the paper's ULS and DIM presets acquire both
-epochs. The shipped model classifies each pair; overall accuracy, F1 per grade and damaged vs
+epochs; the airborne (ALS-like) preset acquires the pre-event epoch again for the cross-source
+pairs a responder has (a national archive before, a drone after). The shipped model classifies each pair; overall accuracy, F1 per grade and damaged vs
 undamaged F1 against the scene's grades.
 
 This is the closest the project gets to the independent benchmark (real shapes, damage by
@@ -43,7 +44,10 @@ ZURICH = ROOT.parent / "shared" / "data" / "zurich_subset_lod2.json"
 STREET_M = 14.0  # between the bounding boxes of neighbouring buildings: a street with pavements
 SEEDS = (97_001, 97_002)  # generator seeds (no training city uses the 97 000s): other grades, other patterns
 PAPER_MIX = {0: 35, 3: 19, 4: 32, 5: 35}
-SENSORS = {"ULS pair": ("uls", 21), "DIM pair": ("dim", 22)}
+SENSOR_SEEDS = {"uls": 21, "dim": 22, "als": 23}
+# what a responder has: a drone both times, or a national airborne archive before and a drone after
+PAIRS = {"ULS pair": ("uls", "uls"), "DIM pair": ("dim", "dim"), "ALS-like pre + DIM post": ("als", "dim"),
+         "ALS-like pre + ULS post": ("als", "uls")}
 
 
 def scaled_mix(n: int, mix: dict = PAPER_MIX) -> dict:
@@ -163,16 +167,18 @@ def city(work: Path, damage: str, seed: int) -> tuple[Path, dict, float, int]:
     if damage != "patterns":
         fallback = sum(1 for b in read_scene(folder / "post").buildings
                        if b.grade >= 4 and "physics_collapse" not in {p["name"] for p in b.patterns})
-    acq = {"uls": Acquisition("uls", preset("paper")), "dim": Acquisition("dim", preset_dim("paper"))}
-    pairs = {}
-    for name, (kind, seed) in SENSORS.items():
-        paths = []
+    acq = {"uls": Acquisition("uls", preset("paper")), "dim": Acquisition("dim", preset_dim("paper")),
+           "als": Acquisition("als", preset("als"))}
+    clouds = {}
+    for kind, sensor_seed in SENSOR_SEEDS.items():
         for scene_name, k in (("pre", 0), ("post", 1)):
+            if kind == "als" and scene_name == "post":  # the archive is the pre-event epoch only
+                continue
             p = work / f"seed_{seed}" / "clouds" / damage / f"{scene_name}_{kind}.las"
             p.parent.mkdir(parents=True, exist_ok=True)
-            acquire(folder / scene_name, acq[kind], p, seed=seed * 10 + k)
-            paths.append(p)
-        pairs[name] = tuple(paths)
+            acquire(folder / scene_name, acq[kind], p, seed=sensor_seed * 10 + k)
+            clouds[(scene_name, kind)] = p
+    pairs = {name: (clouds[("pre", a)], clouds[("post", b)]) for name, (a, b) in PAIRS.items()}
     return folder, pairs, seconds, fallback
 
 
@@ -235,7 +241,7 @@ def main(argv=None) -> int:
         + "/".join(str(mix[g]) for g in (0, 3, 4, 5)) + f" (0/3/4/5, the paper's proportions), damaged by generator seeds "
         f"{seed_text} (each row pools them: {len(seeds)} x {sum(mix.values())} buildings), once with the "
         f"add-on's patterns and once with grades 4-5 collapsed by rigid-body simulation ({fell['physics']} collapses "
-        "did not come to rest and kept the patterns); paper ULS and DIM presets. Reserved for evaluation: measured "
+        "did not come to rest and kept the patterns); paper ULS and DIM presets, and the ALS-like preset before a drone after. Reserved for evaluation: measured "
         "here, never trained or tuned on. Overall accuracy %, F1 % per grade, damaged vs undamaged F1 %.", "",
         table(["damage", "pair", "OA", "F1 0", "F1 3", "F1 4", "F1 5", "F1 damaged", "assessed (not)"], rows)])
     print(text)
