@@ -277,3 +277,34 @@ def test_a_finished_folder_of_another_model_or_cloud_is_classified_again(city, t
     os.utime(tmp_path / "post.las", ns=(stat.st_atime_ns, stat.st_mtime_ns + 10**9))  # acquired again
     assert main(args) == 0
     assert "up to date" not in capsys.readouterr().out
+
+
+def _turn_about_z(deg: float, centre) -> np.ndarray:
+    c, s = np.cos(np.radians(deg)), np.sin(np.radians(deg))
+    r = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    t = np.eye(4)
+    t[:3, :3] = r
+    t[:3, 3] = np.asarray(centre) - r @ np.asarray(centre)
+    return t
+
+
+@pytest.mark.parametrize("rmse_after, applied", [(0.031327, False), (0.0300, False), (0.0280, True)])
+def test_an_automatic_alignment_must_fit_the_stable_points_markedly_better(monkeypatch, rmse_after, applied):
+    """A 0.12° turn about the vertical over a 300 m square moves its corners 0.44 m (beyond
+    the 0.2 m tolerance) but on flat ground no residual sees it: applied only when it removes
+    at least MIN_FIT_GAIN of the rmse (0.0313 m before)."""
+    from quakescan.change import align
+    from quakescan.change.pipeline import PipelineSettings
+    from quakescan.learning import classification as cl
+
+    turn = align.Alignment(_turn_about_z(0.1198, [150.0, 150.0, 1.0]), 0.031330, rmse_after, rmse_after, 0.99, 9, 9,
+                           np.array([150.0, 150.0, 1.0]))
+    monkeypatch.setattr(align, "align_epochs", lambda *a, **k: turn)
+    sample = np.random.default_rng(0).uniform(0, 300, (1000, 3)) * [1, 1, 0]
+    bounds = np.array([[0.0, 0.0, 0.0], [300.0, 300.0, 20.0]])
+    summary: dict = {}
+    record = cl.register_samples(sample, sample, None, PipelineSettings(), None, summary, post_bounds=bounds)
+    assert record["checked"] and record["offset_m"] > 0.4  # the corners 212 m from the centre
+    assert record["applied"] is applied and ("alignment" in summary) is applied
+    assert ("unobserved" in record) is (not applied)
+    assert 1 - 0.028 / 0.03133 > cl.MIN_FIT_GAIN > 1 - 0.030 / 0.03133
