@@ -37,7 +37,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
 from _report import machine, peak_rss_mb, table, write_section  # noqa: E402
-from bench_transfer import TEST_MIX, TEST_SEED, _describe_rows, plan_size, run_classify  # noqa: E402
+from bench_transfer import TEST_MIX, TEST_SEED, _describe_rows, classify_and_evaluate, plan_size  # noqa: E402
 
 SENSORS = {"ULS pair": ("uls", 11), "DIM pair": ("dim", 12)}
 
@@ -75,7 +75,6 @@ def city(work: Path, damage: str) -> tuple[Path, dict, float, list]:
 
 def main(argv=None) -> int:
     from quakescan.learning.classification import DEFAULT_MODEL
-    from quakescan.results.evaluation import evaluate_files
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--work", default=str(ROOT / "out" / "bench_damage_transfer"))
@@ -96,8 +95,7 @@ def main(argv=None) -> int:
               f"{len(fallback)}", flush=True)
         for name, (pre, post) in pairs.items():
             tag = f"{damage}_{name.replace(' ', '_')}"
-            summary, secs = run_classify(pre, post, work / "results" / tag, a.model)
-            ev = evaluate_files(work / "results" / tag / "buildings.csv", folder / "post")
+            summary, secs, ev = classify_and_evaluate(pre, post, work / "results" / tag, a.model, folder)
             f1 = {g: m["f1"] for g, m in ev.per_grade.items()}
             row = {"damage": damage, "pair": name, "overall_accuracy": ev.overall_accuracy, "n": ev.n,
                    "not_assessable": ev.not_assessable, "f1": {str(g): v for g, v in f1.items()},

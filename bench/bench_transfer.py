@@ -133,6 +133,15 @@ def run_classify(pre, post, out_dir, model, footprints=None):
     return summary, time.perf_counter() - t0
 
 
+def classify_and_evaluate(pre, post, out_dir, model, truth_city, footprints=None) -> tuple:
+    """(summary, seconds, Evaluation): the pair classified into `out_dir` (`run_classify`) and
+    its buildings.csv scored against the grades of `truth_city`'s post-event scene."""
+    from quakescan.results.evaluation import evaluate_files
+
+    summary, secs = run_classify(pre, post, out_dir, model, footprints=footprints)
+    return summary, secs, evaluate_files(Path(out_dir) / "buildings.csv", Path(truth_city) / "post")
+
+
 def flagged(csv_path: Path) -> tuple:
     import csv
 
@@ -145,7 +154,6 @@ def flagged(csv_path: Path) -> tuple:
 def main(argv=None) -> int:
     from quakescan.learning.classification import DEFAULT_MODEL
     from quakescan.learning.model import load_model
-    from quakescan.results.evaluation import evaluate_files
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--work", default=str(ROOT / "out" / "bench_transfer"))
@@ -204,8 +212,8 @@ def main(argv=None) -> int:
         row = {"case": name}
         for label, mp in models.items():
             tag = name.replace(" ", "_").replace("+", "").replace("-", "").replace(":", "")
-            summary, secs = run_classify(pre, post, work / "results" / label / tag, mp, footprints=footprints)
-            ev = evaluate_files(work / "results" / label / tag / "buildings.csv", truth_city / "post")
+            summary, secs, ev = classify_and_evaluate(pre, post, work / "results" / label / tag, mp, truth_city,
+                                                      footprints=footprints)
             f1s = ", ".join(f"{g}: {100 * m['f1']:.0f}" for g, m in ev.per_grade.items())
             row[label] = {"overall_accuracy": ev.overall_accuracy, "n": ev.n, "not_assessable": ev.not_assessable,
                           "f1": {str(g): m["f1"] for g, m in ev.per_grade.items()}, "damaged_f1": ev.damaged["f1"],

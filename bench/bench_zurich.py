@@ -38,7 +38,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
 from _report import machine, peak_rss_mb, table, write_section  # noqa: E402
-from bench_transfer import run_classify  # noqa: E402
+from bench_transfer import classify_and_evaluate  # noqa: E402
 
 ZURICH = ROOT.parent / "shared" / "data" / "zurich_subset_lod2.json"
 STREET_M = 14.0  # between the bounding boxes of neighbouring buildings: a street with pavements
@@ -184,7 +184,6 @@ def city(work: Path, damage: str, seed: int) -> tuple[Path, dict, float, int]:
 
 def main(argv=None) -> int:
     from quakescan.learning.classification import DEFAULT_MODEL
-    from quakescan.results.evaluation import evaluate_files
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--work", default=str(ROOT / "out" / "bench_zurich"))
@@ -210,8 +209,7 @@ def main(argv=None) -> int:
                   f"patterns: {fallback}", flush=True)
             for name, (pre, post) in pairs.items():
                 tag = f"seed_{seed}/{damage}_{name.replace(' ', '_')}"
-                _, secs = run_classify(pre, post, work / "results" / tag, a.model)
-                ev = evaluate_files(work / "results" / tag / "buildings.csv", folder / "post")
+                _, secs, ev = classify_and_evaluate(pre, post, work / "results" / tag, a.model, folder)
                 results["rows"].append({"damage": damage, "pair": name, "seed": seed,
                                         "overall_accuracy": ev.overall_accuracy, "n": ev.n,
                                         "not_assessable": ev.not_assessable,
