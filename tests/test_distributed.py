@@ -243,6 +243,17 @@ def test_blocks_hold_every_point_once_and_read_back_in_file_order(pair, tmp_path
     ids, counts = np.unique(e.building_id[e.building_id > 0], return_counts=True)
     assert stats.counts == dict(zip(ids.tolist(), counts.tolist()))
     assert stats.n == f.n
+    # building points have files of their own: the densities read them alone
+    keys = [tuple(k) for k in stats.blocks]
+    only = blocks.read_records(tmp_path / "pre", keys, buildings_only=True)
+    np.testing.assert_array_equal(only, rec[rec["building_id"] > 0])
+    assert 0 < len(only) < len(rec)
+    for k in keys:
+        kept, rest = (blocks.block_path(tmp_path / "pre", k, buildings=b) for b in (True, False))
+        if kept.is_file():
+            assert (np.fromfile(kept, dtype=blocks.RECORD)["building_id"] > 0).all()
+        if rest.is_file():
+            assert (np.fromfile(rest, dtype=blocks.RECORD)["building_id"] <= 0).all()
     # a box read (what a tile task reads): exactly the points inside it, edges included, in file order
     box = np.array([np.quantile(e.xyz[:, :2], 0.3, axis=0), np.quantile(e.xyz[:, :2], 0.6, axis=0)])
     box[0, 0] = e.xyz[123, 0]  # a point on the edge is kept
@@ -340,6 +351,26 @@ def test_an_epoch_streamed_in_parts_is_the_epoch_streamed_whole(pair, tmp_path):
         np.testing.assert_array_equal(a, b)
 
 
+def test_blocks_of_an_interrupted_run_are_kept_only_for_the_same_inputs_and_layout(tmp_path):
+    from quakescan.distributed import blocks
+    from quakescan.distributed.classify import MANIFEST, kept_epochs
+
+    stats = blocks.EpochStats(n=3, counts={7: 3}, lo={7: (0.0, 0.0)}, hi={7: (1.0, 1.0)}, blocks=[[0, 0]])
+    for name in ("pre", "post"):
+        blocks.save_arrays(tmp_path / f"{name}.npz", {"map_xy": np.zeros((1, 2))})
+    manifest = {"fingerprint": "abc", "block_cells": 50, "layout": blocks.LAYOUT,
+                "pre": stats.to_json(), "post": stats.to_json()}
+    blocks.write_manifest(tmp_path / MANIFEST, manifest)
+    pre, post = kept_epochs(tmp_path, "abc", 50)
+    assert pre.counts == post.counts == {7: 3}
+    assert kept_epochs(tmp_path, "other inputs", 50) is None
+    assert kept_epochs(tmp_path, "abc", 25) is None
+    # a store of the layout before building points had files of their own: its densities
+    # would read no building point, so it is tiled again
+    blocks.write_manifest(tmp_path / MANIFEST, {k: v for k, v in manifest.items() if k != "layout"})
+    assert kept_epochs(tmp_path, "abc", 50) is None
+
+
 def test_parts_are_two_a_worker_and_never_smaller_than_a_chunk():
     from quakescan.distributed.classify import PART_POINTS, part_bounds
 
@@ -348,3 +379,23 @@ def test_parts_are_two_a_worker_and_never_smaller_than_a_chunk():
     assert part_bounds(10, 4, 2_000_000) == [0, 10]
     n = 5 * PART_POINTS + 1  # more than PART_POINTS a part otherwise: six parts
     assert len(part_bounds(n, 1, 1_000)) - 1 == 6
+
+
+def test_a_model_file_that_does_not_load_stops_the_tiling_and_is_named(pair, cluster, tmp_path):
+    """The model is read while the workers stream the epochs: a file that is not a model stops
+    the run with its name, and its streaming tasks are cancelled."""
+    from quakescan.distributed.classify import classify_distributed
+    from quakescan.errors import QuakeScanError
+
+    bad = tmp_path / "not_a_model.skops"
+    bad.write_bytes(b"not a zip archive")
+    with pytest.raises(QuakeScanError, match="not_a_model.skops"):
+        classify_distributed(pair / "pre.las", pair / "post.las", tmp_path / "o", cluster, model_path=bad,
+                             block_cells=BLOCK_CELLS, chunk_points=50_000)
+    import time
+
+    deadline = time.monotonic() + 60  # cancelled: a part being streamed finishes, no other starts
+    while any(cluster.processing().values()) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert not any(cluster.processing().values())
+    assert not (tmp_path / "o" / ".blocks" / "manifest.json").exists()

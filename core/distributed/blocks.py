@@ -7,7 +7,9 @@ block: a square of `block_cells` density cells (1 m, `quakescan.change.surface.D
 in the pair's local frame. A block holds each point once; the halo a tile needs is read
 from the blocks around it when the tile is described, so one tiling serves every halo.
 
-A point is stored as its file's integers (X, Y, Z), its classification, building ID and its
+A block's points with a building ID and the rest are kept in two files: the densities of
+the surface descriptors read building points only, half of an epoch or less. A point is
+stored as its file's integers (X, Y, Z), its classification, building ID and its
 index in the file. Reading a box turns the integers into the same float64 coordinates
 `quakescan.formats.pointcloud.read_epoch` makes (integers × scale + (offset − origin), one
 operation per element) and sorts the points by their index: a worker sees exactly the
@@ -34,6 +36,9 @@ from ..formats.pointcloud import PointCloudError, read_point_range
 # The stored point: the file's integers, so a float64 coordinate is made once, on reading
 RECORD = np.dtype([("index", "<i8"), ("X", "<i4"), ("Y", "<i4"), ("Z", "<i4"), ("classification", "u1"),
                    ("building_id", "<i8")])
+# Bumped whenever the block files change: a store tiled by an earlier layout is tiled again
+# (2: building points in files of their own)
+LAYOUT = 2
 CHUNK_POINTS = 2_000_000  # points per chunk read from a LAS/LAZ file: ~150 MB of arrays
 MAP_POINTS = 200_000  # points of the pre-event epoch drawn under the damage map (as classify does)
 
@@ -125,18 +130,23 @@ def block_of(xy: np.ndarray, block_cells: int) -> np.ndarray:
     return cells // int(block_cells)
 
 
-def block_path(folder: Path, key, part: int | None = None) -> Path:
+def block_path(folder: Path, key, part: int | None = None, buildings: bool = False) -> Path:
     """A block's file, or the file of one part of the epoch's points in that block (an epoch
-    streamed in parts, one task each: every part writes its own files)."""
+    streamed in parts, one task each: every part writes its own files); `buildings`: the
+    file of the block's points with a building ID (prefix "b"), else of the others."""
     tail = ".bin" if part is None else f".{int(part)}.bin"
-    return Path(folder) / f"{int(key[0])}_{int(key[1])}{tail}"
+    return Path(folder) / f"{'b' if buildings else ''}{int(key[0])}_{int(key[1])}{tail}"
 
 
-def block_files(folder: Path, key, parts: int | None = None) -> list[Path]:
-    """The files holding a block's points: one, or one per part of an epoch streamed in parts."""
+def block_files(folder: Path, key, parts: int | None = None, buildings_only: bool = False) -> list[Path]:
+    """The files holding a block's points (`buildings_only`: its points with a building ID):
+    one of each kind, or one of each kind per part of an epoch streamed in parts."""
     if parts is None:
         parts = _parts_of(folder)
-    return [block_path(folder, key)] if not parts else [block_path(folder, key, p) for p in range(parts)]
+    kinds = (True,) if buildings_only else (True, False)
+    if not parts:
+        return [block_path(folder, key, None, b) for b in kinds]
+    return [block_path(folder, key, p, b) for p in range(parts) for b in kinds]
 
 
 def _parts_of(folder: Path) -> int:
@@ -275,13 +285,15 @@ def _append_blocks(folder: Path, keys: np.ndarray, rec: np.ndarray, seen: set, p
         return
     span = int(keys[:, 1].max() - keys[:, 1].min()) + 1
     flat = (keys[:, 0] - keys[:, 0].min()) * span + (keys[:, 1] - keys[:, 1].min())
-    order = np.argsort(flat, kind="stable")  # a block's points stay in file order
+    # one stable sort by (block, building or not): a file's points stay in file order
+    flat = 2 * flat + (rec["building_id"] > 0)
+    order = np.argsort(flat, kind="stable")
     u, starts = np.unique(flat[order], return_index=True)
     ends = np.append(starts[1:], len(order))
-    for s, t in zip(starts, ends):
+    for code, s, t in zip(u.tolist(), starts, ends):
         key = (int(keys[order[s], 0]), int(keys[order[s], 1]))
         seen.add(key)
-        with open(block_path(folder, key, part), "ab") as out:
+        with open(block_path(folder, key, part, buildings=bool(code % 2)), "ab") as out:
             out.write(rec[order[s:t]].tobytes())
 
 
@@ -328,12 +340,13 @@ def blocks_in_box(box: np.ndarray, block_cells: int) -> list[tuple[int, int]]:
     return [(i, j) for i in range(int(a[0]), int(b[0]) + 1) for j in range(int(a[1]), int(b[1]) + 1)]
 
 
-def read_records(folder: Path, keys) -> np.ndarray:
-    """The stored points of the given blocks, in file order (their `index` ascending)."""
+def read_records(folder: Path, keys, buildings_only: bool = False) -> np.ndarray:
+    """The stored points of the given blocks (`buildings_only`: those with a building ID), in
+    file order (their `index` ascending)."""
     parts = []
     n_parts = _parts_of(folder)
     for key in keys:
-        for p in block_files(folder, key, n_parts):
+        for p in block_files(folder, key, n_parts, buildings_only):
             if p.is_file():
                 parts.append(np.fromfile(p, dtype=RECORD))
     rec = np.concatenate(parts) if parts else np.zeros(0, RECORD)

@@ -74,8 +74,6 @@ def classify_distributed(pre_path, post_path, out_dir, client, *, model_path=Non
     done = cl._finished(out, run_fp)
     if done is not None and not force:
         return {**done, "up_to_date": True}
-    model = cl.load_model(model_path)
-    settings = cl.model_settings(model, str(model_path))
     marks: list = []  # (stage, when it began): the summary's seconds per stage
 
     def stage(name):
@@ -93,8 +91,15 @@ def classify_distributed(pre_path, post_path, out_dir, client, *, model_path=Non
     stage("tiling")
     footprints = None if footprints_path is None else {"path": str(Path(footprints_path).resolve()),
                                                        "id_field": id_field}
+    loaded: dict = {}
+
+    def load_model():  # the client's own work while the workers stream: the model is read meanwhile
+        loaded["model"] = cl.load_model(model_path)
+        loaded["settings"] = cl.model_settings(loaded["model"], str(model_path))
+
     pre_s, post_s = _tiled_epochs(client, store, run_fp.digest, pre_f, post_f, origin, fp, footprints, block_cells,
-                                  sample, chunk_points, progress)
+                                  sample, chunk_points, progress, meanwhile=load_model)
+    model, settings = loaded["model"], loaded["settings"]
     if fp is not None and not pre_s.counts:
         b = fp.bounds()
         raise cl.ClassifyError(f"{footprints_path}: no footprint contains a pre-event point (footprints span "
@@ -105,19 +110,23 @@ def classify_distributed(pre_path, post_path, out_dir, client, *, model_path=Non
     summary: dict = {"pre": str(pre_path), "post": str(post_path), "model": str(model_path),
                      "model_provenance": model.provenance, "settings": settings.to_json(),
                      "points": {"pre": pre_s.n, "post": post_s.n}, "crs": crs}
+    t_read = time.perf_counter()
+    stage("densities")
     transform, shift = None, 0.0
-    if align is False:
-        summary["registration"] = {"mode": "off", "checked": False}
-    else:
+
+    def register():  # the client's own work while the workers count the densities
+        nonlocal transform, shift
+        if align is False:
+            summary["registration"] = {"mode": "off", "checked": False}
+            return None
         summary["registration"] = cl.register_samples(pre_s.stable_sample, post_s.stable_sample, None, settings,
                                                       align, summary, post_bounds=np.asarray(post_s.bounds))
         if summary["registration"].get("applied"):
             transform = summary["alignment"]["transform"]
             shift = float(summary["registration"]["offset_m"])
-    t_read = time.perf_counter()
+        return transform
 
-    stage("densities")
-    geometry = _pair_geometry(client, store, pre_s, post_s, settings, block_cells, transform)
+    geometry = _pair_geometry(client, store, pre_s, post_s, settings, block_cells, register)
     stage("tiles")
     budget = tile_memory_budget(client)
     rows, resumed, widened, split = _describe_tiles(client, store, pre_s, post_s, settings, geometry, block_cells,
@@ -211,23 +220,22 @@ def _pair_crs(pre_f, post_f, fp) -> str | None:
 
 
 def _tiled_epochs(client, store: Path, digest: str, pre_f, post_f, origin, fp, footprints, block_cells, sample,
-                  chunk_points, progress=None):
+                  chunk_points, progress=None, meanwhile=None):
     """Both epochs as blocks under `store`, streamed now by the workers or kept from an
     interrupted run of the same inputs (its manifest is written last). Each epoch is streamed
     in parts, ranges of the file's points, one task each (`tasks.stream_part`), so the
     tiling runs on every worker instead of the client alone; `progress` counts the points
-    streamed, as the stages "tiling pre" and "tiling post"."""
+    streamed, as the stages "tiling pre" and "tiling post". `meanwhile()`: the client's own
+    work, done while the workers stream (the streaming is cancelled if it raises)."""
     from dask.distributed import as_completed
 
     from .tasks import stream_part
 
-    manifest = bk.read_manifest(store / MANIFEST)
-    if manifest and manifest.get("fingerprint") == digest and manifest.get("block_cells") == block_cells:
-        try:
-            return tuple(bk.EpochStats.from_json(manifest[name], dict(np.load(store / f"{name}.npz")))
-                         for name in ("pre", "post"))
-        except (OSError, KeyError, ValueError):
-            pass  # unreadable: tiled again
+    kept = kept_epochs(store, digest, block_cells)
+    if kept is not None:
+        if meanwhile:
+            meanwhile()
+        return kept
     shutil.rmtree(store, ignore_errors=True)
     n_workers = max(1, len(client.scheduler_info().get("workers", {})))
     futures = {}
@@ -244,6 +252,12 @@ def _tiled_epochs(client, store: Path, digest: str, pre_f, post_f, origin, fp, f
                                 cl.map_step(f.n) if name == "pre" else None, chunk_points, pure=False,
                                 key=f"stream-{name}-{part}-{run_token()}")
             futures[fut] = (name, part, b - a)
+    if meanwhile:
+        try:
+            meanwhile()
+        except BaseException:
+            client.cancel(list(futures))
+            raise
     parts: dict[str, dict] = {"pre": {}, "post": {}}
     done = {"pre": 0, "post": 0}
     for fut in as_completed(list(futures)):
@@ -259,9 +273,23 @@ def _tiled_epochs(client, store: Path, digest: str, pre_f, post_f, origin, fp, f
         arrays.update({f"hull_{b}": v for b, v in s.hulls.items()})
         bk.save_arrays(store / f"{name}.npz", arrays)
         stats[name] = s
-    bk.write_manifest(store / MANIFEST, {"fingerprint": digest, "block_cells": block_cells,
+    bk.write_manifest(store / MANIFEST, {"fingerprint": digest, "block_cells": block_cells, "layout": bk.LAYOUT,
                                          "pre": stats["pre"].to_json(), "post": stats["post"].to_json()})
     return stats["pre"], stats["post"]
+
+
+def kept_epochs(store: Path, digest: str, block_cells: int):
+    """(pre, post) EpochStats of the blocks an interrupted run of the same inputs, block size
+    and block layout finished under `store`, or None (none, other, or unreadable: tiled again)."""
+    manifest = bk.read_manifest(store / MANIFEST)
+    if not (manifest and manifest.get("fingerprint") == digest and manifest.get("block_cells") == block_cells
+            and manifest.get("layout") == bk.LAYOUT):
+        return None
+    try:
+        return tuple(bk.EpochStats.from_json(manifest[name], dict(np.load(store / f"{name}.npz")))
+                     for name in ("pre", "post"))
+    except (OSError, KeyError, ValueError):
+        return None
 
 
 def run_token() -> str:
@@ -281,28 +309,44 @@ def part_bounds(n: int, n_workers: int, chunk_points: int) -> list[int]:
     return [round(k * n / parts) for k in range(parts + 1)]
 
 
-def _pair_geometry(client, store, pre_s, post_s, settings, block_cells, transform):
-    """The surface descriptors' grid and cylinder sizes, from the densities the workers count."""
-    if settings.surface is None:
-        return None
-    from ..change.surface import SurfaceGeometry
+def _pair_geometry(client, store, pre_s, post_s, settings, block_cells, register):
+    """The surface descriptors' grid and cylinder sizes, from the densities the workers count.
+
+    `register()` (the registration check, in the client) runs while the workers count, and
+    returns the post epoch's alignment or None: the post epoch's densities are counted again,
+    moved, only when an alignment is applied (rare: `MIN_FIT_GAIN`)."""
     from .tasks import group_roof_cells, merge_roof_cells
 
-    def density(name, stats, building_only, moved):
+    def submit(name, stats, building_only, moved):
         keys = {tuple(k) for k in stats.blocks}
         if moved is not None:  # a block empty before the alignment may hold points after it
             keys = {(k[0] + dx, k[1] + dy) for k in keys for dx in (-1, 0, 1) for dy in (-1, 0, 1)}
         groups: dict[tuple, list] = {}
         for k in sorted(keys):
             groups.setdefault((k[0] // DENSITY_GROUP, k[1] // DENSITY_GROUP), []).append(k)
-        futures = [client.submit(group_roof_cells, str(store / name), g, block_cells, building_only, moved,
-                                 pure=False) for g in groups.values()]
+        return [client.submit(group_roof_cells, str(store / name), g, block_cells, building_only, moved,
+                              pure=False) for g in groups.values()]
+
+    def density(futures):
         return merge_roof_cells([part for parts in client.gather(futures) for part in parts])
 
-    d_pre = density("pre", pre_s, True, None)
-    d_post = density("post", post_s, True, transform)
+    if settings.surface is None:
+        register()
+        return None
+    from ..change.surface import SurfaceGeometry
+
+    pre_jobs, post_jobs = submit("pre", pre_s, True, None), submit("post", post_s, True, None)
+    try:
+        transform = register()
+    except BaseException:
+        client.cancel(pre_jobs + post_jobs)
+        raise
+    if transform is not None:
+        client.cancel(post_jobs)
+        post_jobs = submit("post", post_s, True, transform)
+    d_pre, d_post = density(pre_jobs), density(post_jobs)
     if d_post == 0.0:
-        d_post = density("post", post_s, False, transform)
+        d_post = density(submit("post", post_s, False, transform))
     return SurfaceGeometry.for_pair(settings.surface, d_pre, d_post)
 
 

@@ -37,9 +37,7 @@ def group_roof_cells(folder: str, keys, block_cells: int, building_only: bool = 
     from .blocks import block_of
 
     ring = sorted({(k[0] + dx, k[1] + dy) for k in keys for dx in (-1, 0, 1) for dy in (-1, 0, 1)})
-    rec = read_records(Path(folder), ring)
-    if building_only:
-        rec = rec[rec["building_id"] > 0]
+    rec = read_records(Path(folder), ring, buildings_only=building_only)
     f = EpochFile(**_epoch_file_args(folder))
     xyz = apply_transform(transform, f.local_xyz(rec["X"], rec["Y"], rec["Z"], np.asarray(_origin(folder))))
     moved = block_of(xyz[:, :2], block_cells)
@@ -71,9 +69,7 @@ def block_roof_cells(folder: str, key, block_cells: int, building_only: bool = T
     key = (int(key[0]), int(key[1]))
     if transform is not None:  # the alignment moves points across block edges (by less than a block)
         return group_roof_cells(folder, [key], block_cells, building_only, transform)[0]
-    rec = read_records(Path(folder), [key])
-    if building_only:
-        rec = rec[rec["building_id"] > 0]
+    rec = read_records(Path(folder), [key], buildings_only=building_only)
     f = EpochFile(**_epoch_file_args(folder))
     return _roof_cells(f.local_xyz(rec["X"], rec["Y"], rec["Z"], np.asarray(_origin(folder))), key, block_cells)
 
