@@ -55,6 +55,7 @@ class EpochFile:
     maxs: list
     crs: str | None
     dimensions: list
+    copc: bool = False  # a COPC file: read back by bounds from the file itself, no block files
 
     def local_xyz(self, X, Y, Z, origin) -> np.ndarray:
         """float64 coordinates relative to `origin`, computed as `read_epoch` does."""
@@ -71,6 +72,7 @@ def open_epoch_file(path) -> EpochFile:
     """The header of a LAS/LAZ file, checked as `read_epoch` checks the whole file."""
     import laspy
 
+    from ..formats.copc import is_copc
     from ..formats.pointcloud import _crs_of, check_point_cloud_path
 
     path = check_point_cloud_path(path)
@@ -79,7 +81,7 @@ def open_epoch_file(path) -> EpochFile:
             h = f.header
             return EpochFile(str(path), int(h.point_count), [float(v) for v in h.scales],
                              [float(v) for v in h.offsets], [float(v) for v in h.mins], [float(v) for v in h.maxs],
-                             _crs_of(h, path), list(h.point_format.dimension_names))
+                             _crs_of(h, path), list(h.point_format.dimension_names), is_copc(h))
     except PointCloudError:
         raise
     except Exception as e:
@@ -244,10 +246,13 @@ def stream_epoch(f: EpochFile, origin: np.ndarray, folder: Path, *, block_cells:
             if map_step:
                 maps.append(xyz[index % map_step == 0, :2])
             keys = block_of(xyz[:, :2], block_cells)
-            rec = np.empty(n, RECORD)
-            rec["index"], rec["X"], rec["Y"], rec["Z"] = index, X, Y, Z
-            rec["classification"], rec["building_id"] = cls, ids
-            _append_blocks(folder, keys, rec, blocks, part)
+            if f.copc:  # read back by bounds from the file itself (`read_box`): no block files
+                blocks.update(map(tuple, np.unique(keys, axis=0).tolist()))
+            else:
+                rec = np.empty(n, RECORD)
+                rec["index"], rec["X"], rec["Y"], rec["Z"] = index, X, Y, Z
+                rec["classification"], rec["building_id"] = cls, ids
+                _append_blocks(folder, keys, rec, blocks, part)
             start += n
             if on_chunk:
                 on_chunk(start - first, stop - first)
@@ -343,6 +348,9 @@ def blocks_in_box(box: np.ndarray, block_cells: int) -> list[tuple[int, int]]:
 def read_records(folder: Path, keys, buildings_only: bool = False) -> np.ndarray:
     """The stored points of the given blocks (`buildings_only`: those with a building ID), in
     file order (their `index` ascending)."""
+    epoch = _epoch_json(folder)
+    if epoch.get("file", {}).get("copc"):
+        return _copc_block_records(Path(folder), epoch, keys, buildings_only)
     parts = []
     n_parts = _parts_of(folder)
     for key in keys:
@@ -361,6 +369,8 @@ def read_box(folder: Path, f: EpochFile, origin, box, block_cells: int) -> tuple
     of the blocks it touches) and the coordinates are made once."""
     box = np.asarray(box, dtype=np.float64)
     origin = np.asarray(origin, dtype=np.float64)
+    if f.copc:
+        return _copc_box(Path(folder), f, origin, box)
     n_parts = _parts_of(folder)
     recs, coords = [], []
     for key in blocks_in_box(box, block_cells):
@@ -381,6 +391,69 @@ def read_box(folder: Path, f: EpochFile, origin, box, block_cells: int) -> tuple
     rec, xyz = np.concatenate(recs), np.concatenate(coords)
     order = np.argsort(rec["index"], kind="stable")
     return rec[order], xyz[order]
+
+
+def _epoch_json(folder: Path) -> dict:
+    try:
+        return json.loads((Path(folder) / "epoch.json").read_text())
+    except (OSError, ValueError):
+        return {}
+
+
+def _copc_box(folder: Path, f: EpochFile, origin: np.ndarray, box: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`read_box` of a COPC epoch: the nodes the box overlaps, decompressed from the file, kept
+    to the box as the block files are (local coordinates, edges included), in file order."""
+    from ..formats.copc import copc_index
+
+    margin = np.array([[-1.0], [1.0]])  # nodes chosen in world coordinates, points kept in local ones
+    index = copc_index(f.path)
+    packed, where = index.points_in_nodes(index.nodes_in_box(box + origin[:2] + margin))
+    xyz = f.local_xyz(packed["X"], packed["Y"], packed["Z"], origin)
+    inside = np.all((xyz[:, :2] >= box[0]) & (xyz[:, :2] <= box[1]), axis=1)
+    return _copc_records(folder, f, origin, packed[inside], where[inside], xyz[inside]), xyz[inside]
+
+
+def _copc_block_records(folder: Path, epoch: dict, keys, buildings_only: bool) -> np.ndarray:
+    """`read_records` of a COPC epoch: the points of the blocks `keys`, read by their box."""
+    keys = [(int(k[0]), int(k[1])) for k in keys]
+    if not keys:
+        return np.zeros(0, RECORD)
+    f = EpochFile(**epoch["file"])
+    origin = np.asarray(epoch["origin"], dtype=np.float64)
+    side = float(epoch.get("block_cells", 0)) * DENSITY_CELL_M
+    k = np.asarray(keys, dtype=np.float64)
+    box = np.array([k.min(axis=0) * side, (k.max(axis=0) + 1) * side])
+    rec, xyz = _copc_box(folder, f, origin, box)
+    wanted = set(keys)
+    keep = np.array([tuple(b) in wanted for b in block_of(xyz[:, :2], int(epoch["block_cells"])).tolist()],
+                    dtype=bool).reshape(-1)
+    if buildings_only:
+        keep &= rec["building_id"] > 0
+    return rec[keep]
+
+
+def _copc_records(folder: Path, f: EpochFile, origin: np.ndarray, packed: np.ndarray, index: np.ndarray,
+                  xyz: np.ndarray) -> np.ndarray:
+    """RECORDs of a COPC file's points, building IDs given as `stream_epoch` gives them (the
+    footprint holding the point, or the file's building_id)."""
+    import laspy
+
+    from ..formats.copc import copc_index
+
+    points = laspy.PackedPointRecord(packed, copc_index(f.path).header.point_format)
+    rec = np.empty(len(packed), RECORD)
+    rec["index"], rec["X"], rec["Y"], rec["Z"] = index, packed["X"], packed["Y"], packed["Z"]
+    rec["classification"] = np.asarray(points["classification"], dtype=np.uint8)
+    footprints = _epoch_json(folder).get("footprints")
+    if footprints:
+        from ..formats.footprints import assign_buildings
+        from .tasks import _footprints
+
+        rec["building_id"] = assign_buildings(xyz[:, 0] + origin[0], xyz[:, 1] + origin[1],
+                                              _footprints(footprints["path"], footprints.get("id_field")))
+    else:
+        rec["building_id"] = np.asarray(points["building_id"], dtype=np.int64)
+    return rec
 
 
 def write_manifest(path: Path, d: dict) -> None:

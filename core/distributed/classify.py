@@ -244,7 +244,8 @@ def _tiled_epochs(client, store: Path, digest: str, pre_f, post_f, origin, fp, f
         folder.mkdir(parents=True, exist_ok=True)
         bounds = part_bounds(f.n, n_workers, chunk_points)
         (folder / "epoch.json").write_text(json.dumps({"file": f.to_json(), "origin": origin.tolist(),
-                                                       "parts": len(bounds) - 1}))
+                                                       "parts": len(bounds) - 1, "block_cells": block_cells,
+                                                       "footprints": footprints}))
         for part, (a, b) in enumerate(zip(bounds[:-1], bounds[1:])):
             fut = client.submit(stream_part, str(folder), f.to_json(), origin.tolist(), part, a, b, block_cells,
                                 footprints, name == "pre" and fp is None,
@@ -481,7 +482,7 @@ def tile_memory_budget(client) -> float:
 def tile_memory_bytes(store: Path, tile: dict, block_cells: int) -> float:
     """The peak memory of `describe_tile_task` on `tile`, estimated from the sizes of the block
     files it reads: every point of those blocks is read, the share of them inside the tile's
-    box is described."""
+    box is described (a COPC epoch: the points of the file's nodes the box overlaps)."""
     from .blocks import RECORD, block_files, blocks_in_box
 
     box = np.asarray(tile["box"], dtype=np.float64)
@@ -490,6 +491,15 @@ def tile_memory_bytes(store: Path, tile: dict, block_cells: int) -> float:
     read = inside = 0.0
     for name, grow in (("pre", 0.0), ("post", float(tile.get("read_margin", 0.0)))):
         keys = blocks_in_box(box + np.array([[-grow], [grow]]), block_cells)
+        epoch = bk._epoch_json(Path(store) / name)
+        if epoch.get("file", {}).get("copc"):  # the points of the file's nodes the box overlaps
+            from ..formats.copc import copc_index
+
+            world = box + np.array([[-grow], [grow]]) + np.asarray(epoch["origin"], dtype=np.float64)[:2]
+            n, n_inside = copc_index(epoch["file"]["path"]).points_for_box(world)
+            read += n
+            inside += n_inside
+            continue
         n = sum(f.stat().st_size for k in keys for f in block_files(Path(store) / name, k) if f.is_file())
         n /= RECORD.itemsize
         read += n
