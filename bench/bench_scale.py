@@ -2,7 +2,7 @@
 """Classification beyond one process: `quakescan classify` alone, on a Dask LocalCluster of 1
 and 2 workers, and on a pair too large for one process, measured side by side in one run.
 
-    .venv/bin/python bench/bench_scale.py [--rows single,cluster,large,trainset,graded] [--work out/bench_scale]
+    .venv/bin/python bench/bench_scale.py [--rows single,cluster,large,trainset,graded,copc] [--work out/bench_scale]
 
 Rows (issue 16's table):
 
@@ -19,6 +19,8 @@ Rows (issue 16's table):
   per second per worker) against the single process's (target >= 0.9x);
 - single also runs the pair with `--threads 1`: one core's throughput, the like-for-like
   reference of a one-thread worker;
+- copc: the pair rewritten as COPC files (compressed, octree nodes of ~100 k points) on 2
+  workers: tiles and densities read by bounds from the files, no block files;
 - graded: the pair classified with the graded cloud (post_grades.las) written, in one
   process and on 2 workers (whose tasks make its records in parts): the time to write it;
 - trainset: the paper's four states (pre, heavy, extreme, destruction) of 1,000 generic
@@ -53,7 +55,7 @@ WORK = ROOT / "out" / "bench_scale"
 LARGE_POINTS = 250_000_000  # per epoch, at least
 COPY_STEP_M = 600.0  # the big city is 576 m wide: copies 600 m apart never share a building
 ID_STEP = 100_000  # building IDs of copy k: k * ID_STEP + the source's
-ROWS = ("single", "cluster", "large", "trainset", "graded")
+ROWS = ("single", "cluster", "large", "trainset", "graded", "copc")
 
 
 class TreeSampler:
@@ -122,6 +124,29 @@ def big_pair() -> tuple[Path, Path]:
     from bench_pipeline import ensure_big_pair
 
     return ensure_big_pair()
+
+
+def copc_pair(work: Path, pre: Path, post: Path) -> tuple[Path, Path]:
+    """The big pair rewritten as COPC files (`tests/copc_files.py`, the specification's layout:
+    octree levels down to ~100 k points a node), kept when already there and newer."""
+    import os
+
+    import laspy
+
+    from tests.copc_files import write_copc
+
+    out = []
+    for src in (pre, post):
+        dst = work / f"{src.stem}.copc.laz"
+        if not dst.is_file() or dst.stat().st_mtime < src.stat().st_mtime:
+            with laspy.open(src) as f:
+                n = f.header.point_count
+            depth = max(1, int(np.ceil(np.log(max(n, 1) / 100_000) / np.log(4))))
+            tmp = dst.with_name(dst.name + ".part")
+            write_copc(src, tmp, max_level=depth)
+            os.replace(tmp, dst)
+        out.append(dst)
+    return out[0], out[1]
 
 
 def large_pair(work: Path, pre: Path, post: Path) -> tuple[Path, Path, int]:
@@ -242,6 +267,9 @@ def main(argv=None):
                             "copies": copies}
     if "trainset" in rows_wanted:
         results["trainset"] = trainset_row(work)
+    if "copc" in rows_wanted:  # the same pair as COPC files: tiles read by bounds from the files, no blocks
+        cpre, cpost = copc_pair(work, pre, post)
+        results["copc2"] = run_classify(cpre, cpost, work / "copc2", ["--workers", "2"])
     if "graded" in rows_wanted:  # the graded cloud written too: one process, and made in parts by 2 workers
         results["graded1"] = run_classify(pre, post, work / "graded1", [], las=True)
         results["graded2"] = run_classify(pre, post, work / "graded2", ["--workers", "2"], las=True)
@@ -289,6 +317,13 @@ def main(argv=None):
                      "finishes; worker <= 4,096 MiB; >= 0.9x per worker", f"{lg['points']:,}", f"{lg['wall_s']:.0f}",
                      f"{lg['seconds']['read']:.0f} / {lg['seconds']['describe']:.0f}", mb(lg["client_mb"]),
                      mb(lg["worker_mb"]), f"{lg['points'] / lg['wall_s'] / 2 / 1e6:.3f}", ratio, lg.get("at", "")))
+    cp = results.get("copc2")
+    if cp:
+        rows.append(("same pair as COPC files (LAZ), LocalCluster 2 workers", "", f"{cp['points']:,}",
+                     f"{cp['wall_s']:.0f}", f"{cp['seconds']['read']:.0f} / {cp['seconds']['describe']:.0f}",
+                     mb(cp["client_mb"]), mb(cp["worker_mb"]), f"{cp['points'] / cp['wall_s'] / 2 / 1e6:.3f}",
+                     "tiles read by bounds from the files, no block files; stages s: " + ", ".join(
+                         f"{k} {v:.0f}" for k, v in cp["seconds"].get("stages", {}).items()), cp.get("at", "")))
     ts = results.get("trainset")
     if ts:
         rows.append((f"training set: {ts['buildings']:,} buildings x 4 states ({ts['pairs']} pairs), 2 workers",

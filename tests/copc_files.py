@@ -6,7 +6,8 @@ specification (copc.io, version 1.0): a LAS 1.4 file with point format 6-8, comp
 LASzip in variable-size chunks, one chunk an octree node; the COPC info VLR first of the
 VLRs; the hierarchy (one page: a node's key, byte offset, byte size and point count) in an
 EVLR. Each point goes to the node of its level (drawn at random, as a real writer keeps a
-subsample at each level) that holds it, so a box query touches several levels and nodes.
+subsample at each level) that holds it, so a box query touches several levels and nodes;
+`max_level` sets the depth (a real writer stops at ~100 k points a node).
 The file's point order is the nodes' order: what `laspy.read` returns.
 """
 from __future__ import annotations
@@ -37,9 +38,10 @@ def write_copc(source: Path, out: Path, max_level: int = 2, seed: int = 0) -> Pa
     centre = (lo + hi) / 2
     halfsize = float((hi - lo).max() / 2) * 1.001 + 1e-6
     rng = np.random.default_rng(seed)
-    # a real writer keeps a subsample at each level: about 1/8 of the points at level 0,
-    # 2/8 at level 1, the rest at the deepest
-    level = np.minimum(rng.choice(3, size=len(xyz), p=[0.125, 0.25, 0.625]), max_level)
+    # a real writer keeps a subsample at each level, as dense as the level's spacing: a city
+    # (2.5-D) fills about 4^level nodes of a level, so a level holds points in that proportion
+    share = 4.0 ** np.arange(max_level + 1)
+    level = rng.choice(max_level + 1, size=len(xyz), p=share / share.sum())
     cell = (2 * halfsize) / (2.0 ** level)
     key = np.floor((xyz - (centre - halfsize)) / cell[:, None]).astype(np.int64)
     key = np.minimum(key, (2 ** level)[:, None] - 1)

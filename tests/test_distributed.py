@@ -1,6 +1,7 @@
 """classify as Dask tasks (`quakescan.distributed`): the same files as one process, byte for
 byte, on a 2-worker LocalCluster; a worker killed mid-task; an interrupted client resumed."""
 import filecmp
+import json
 import os
 from pathlib import Path
 
@@ -399,3 +400,24 @@ def test_a_model_file_that_does_not_load_stops_the_tiling_and_is_named(pair, clu
         time.sleep(0.2)
     assert not any(cluster.processing().values())
     assert not (tmp_path / "o" / ".blocks" / "manifest.json").exists()
+
+
+@pytest.mark.parametrize("cells", [7, 50])
+def test_block_densities_merged_are_the_whole_epochs_density_to_the_last_bit(pair, tmp_path, cells):
+    """Each block's roof cells counted on its own (a dense grid, neighbours by shifting it),
+    merged by the client: the planimetric density one process computes from every building
+    point at once, exactly."""
+    from quakescan.change.surface import planimetric_density
+    from quakescan.distributed import blocks
+    from quakescan.distributed.tasks import block_roof_cells, merge_roof_cells
+    from quakescan.formats.pointcloud import read_epoch
+
+    for name in ("pre", "post"):
+        f = blocks.open_epoch_file(pair / f"{name}.las")
+        origin = blocks.default_origin(f)
+        folder = tmp_path / f"{name}{cells}"
+        stats = blocks.stream_epoch(f, origin, folder, block_cells=cells, chunk_points=50_000)
+        (folder / "epoch.json").write_text(json.dumps({"file": f.to_json(), "origin": origin.tolist(), "parts": 0}))
+        merged = merge_roof_cells([block_roof_cells(str(folder), k, cells) for k in stats.blocks])
+        e = read_epoch(pair / f"{name}.las", origin=origin)
+        assert merged == planimetric_density(e.xyz, e.building_id > 0) > 0

@@ -362,3 +362,17 @@ def test_the_m3c2_kernels_run_on_the_threads_asked_for_with_the_same_descriptors
     every, _ = describe_surfaces(pre[0], pre[1], pre[2] == 2, post[0], [1], s, geom, workers=-1)
     assert seen[-1] == before
     assert one == every
+
+
+def test_compiled_top_band_counts_are_numpys_to_the_last_bit():
+    from quakescan.change._cell_kernels import top_band_counts, top_band_counts_reference
+
+    rng = np.random.default_rng(3)
+    cell = rng.integers(0, 50, 20_000)
+    z = np.round(rng.normal(5.0, 2.0, 20_000), 3)  # ties at the band's edge happen
+    for band in (0.0, 1.0, 3.7):
+        top, counts = top_band_counts(cell, z, 60, band)
+        ref_top, ref_counts = top_band_counts_reference(cell, z, 60, band)
+        np.testing.assert_array_equal(top, ref_top)
+        np.testing.assert_array_equal(counts, ref_counts)
+    assert np.isneginf(top[50:]).all() and not counts[50:].any()  # empty cells

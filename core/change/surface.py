@@ -192,9 +192,7 @@ def roof_cell_density(cells: np.ndarray, z: np.ndarray) -> tuple[float, int]:
     key += cells[:, 1] - lo[1]
     keys, inverse = np.unique(key, return_inverse=True)
     del key
-    top = np.full(len(keys), -np.inf)
-    np.maximum.at(top, inverse, z)
-    counts = np.bincount(inverse[z >= top[inverse] - ROOF_BAND_M], minlength=len(keys))
+    counts = _top_band_counts(inverse, z, len(keys))
     interior = np.ones(len(keys), bool)
     for dx in (-1, 0, 1):
         for dy in (-1, 0, 1):
@@ -227,10 +225,15 @@ def planimetric_density(xyz: np.ndarray, where: np.ndarray | None = None) -> flo
         return d
     keys, inverse = np.unique(cells[:, 0] * (int(cells[:, 1].max() - cells[:, 1].min()) + 2)
                               + (cells[:, 1] - cells[:, 1].min()), return_inverse=True)
-    top = np.full(len(keys), -np.inf)
-    np.maximum.at(top, inverse, z)
-    counts = np.bincount(inverse[z >= top[inverse] - ROOF_BAND_M], minlength=len(keys))
-    return float(counts.mean()) / DENSITY_CELL_M ** 2
+    return float(_top_band_counts(inverse, z, len(keys)).mean()) / DENSITY_CELL_M ** 2
+
+
+def _top_band_counts(cell: np.ndarray, z: np.ndarray, n_cells: int) -> np.ndarray:
+    """Per cell the points within ROOF_BAND_M of its highest (compiled: `_cell_kernels`)."""
+    from ._cell_kernels import top_band_counts
+
+    return top_band_counts(np.ascontiguousarray(cell, dtype=np.int64).reshape(-1),
+                           np.ascontiguousarray(z, dtype=np.float64), int(n_cells), float(ROOF_BAND_M))[1]
 
 
 @dataclass

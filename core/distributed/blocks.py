@@ -345,9 +345,10 @@ def blocks_in_box(box: np.ndarray, block_cells: int) -> list[tuple[int, int]]:
     return [(i, j) for i in range(int(a[0]), int(b[0]) + 1) for j in range(int(a[1]), int(b[1]) + 1)]
 
 
-def read_records(folder: Path, keys, buildings_only: bool = False) -> np.ndarray:
+def read_records(folder: Path, keys, buildings_only: bool = False, in_file_order: bool = True) -> np.ndarray:
     """The stored points of the given blocks (`buildings_only`: those with a building ID), in
-    file order (their `index` ascending)."""
+    file order (their `index` ascending; `in_file_order=False`: in no particular order, for
+    what does not depend on it, as the densities: a sort of every point less)."""
     epoch = _epoch_json(folder)
     if epoch.get("file", {}).get("copc"):
         return _copc_block_records(Path(folder), epoch, keys, buildings_only)
@@ -357,8 +358,10 @@ def read_records(folder: Path, keys, buildings_only: bool = False) -> np.ndarray
         for p in block_files(folder, key, n_parts, buildings_only):
             if p.is_file():
                 parts.append(np.fromfile(p, dtype=RECORD))
-    rec = np.concatenate(parts) if parts else np.zeros(0, RECORD)
-    return rec[np.argsort(rec["index"], kind="stable")]
+    if not parts:
+        return np.zeros(0, RECORD)
+    rec = np.concatenate(parts) if len(parts) > 1 else parts[0]
+    return rec[np.argsort(rec["index"], kind="stable")] if in_file_order else rec
 
 
 def read_box(folder: Path, f: EpochFile, origin, box, block_cells: int) -> tuple[np.ndarray, np.ndarray]:

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..change.surface import DENSITY_CELL_M, ROOF_BAND_M
+from ..change.surface import DENSITY_CELL_M
 from .blocks import EpochFile, read_box, read_records
 
 # the eight neighbours a roof cell needs occupied to count as interior (roof_cell_density)
@@ -37,7 +37,7 @@ def group_roof_cells(folder: str, keys, block_cells: int, building_only: bool = 
     from .blocks import block_of
 
     ring = sorted({(k[0] + dx, k[1] + dy) for k in keys for dx in (-1, 0, 1) for dy in (-1, 0, 1)})
-    rec = read_records(Path(folder), ring, buildings_only=building_only)
+    rec = read_records(Path(folder), ring, buildings_only=building_only, in_file_order=False)
     f = EpochFile(**_epoch_file_args(folder))
     xyz = apply_transform(transform, f.local_xyz(rec["X"], rec["Y"], rec["Z"], np.asarray(_origin(folder))))
     moved = block_of(xyz[:, :2], block_cells)
@@ -69,49 +69,47 @@ def block_roof_cells(folder: str, key, block_cells: int, building_only: bool = T
     key = (int(key[0]), int(key[1]))
     if transform is not None:  # the alignment moves points across block edges (by less than a block)
         return group_roof_cells(folder, [key], block_cells, building_only, transform)[0]
-    rec = read_records(Path(folder), [key], buildings_only=building_only)
+    rec = read_records(Path(folder), [key], buildings_only=building_only, in_file_order=False)
     f = EpochFile(**_epoch_file_args(folder))
     return _roof_cells(f.local_xyz(rec["X"], rec["Y"], rec["Z"], np.asarray(_origin(folder))), key, block_cells)
 
 
 def _roof_cells(xyz: np.ndarray, key, block_cells: int) -> dict:
-    """`block_roof_cells` of the points `xyz` (local frame) that lie in block `key`."""
-    out = {"key": list(key), "hist": {}, "edge": [], "sum": 0, "cells": 0}
+    """`block_roof_cells` of the points `xyz` (local frame) that lie in block `key`: the
+    block's cells as a dense grid, each cell's top-band count compiled (`_top_band_counts`),
+    its neighbours looked up by shifting the grid."""
+    from ..change.surface import _top_band_counts
+
+    out = {"key": list(key), "hist": {}, "edge": [], "sum": 0, "cells": 0, "occupied_edge": []}
     if not len(xyz):
         return out
     cells = np.floor(xyz[:, :2] / DENSITY_CELL_M).astype(np.int64)
-    lo = cells.min(axis=0) - 1
-    span = int(cells[:, 1].max() - lo[1]) + 2
-    keys, inverse = np.unique((cells[:, 0] - lo[0]) * span + (cells[:, 1] - lo[1]), return_inverse=True)
-    top = np.full(len(keys), -np.inf)
-    np.maximum.at(top, inverse, xyz[:, 2])
-    counts = np.bincount(inverse[xyz[:, 2] >= top[inverse] - ROOF_BAND_M], minlength=len(keys))
-    ci, cj = keys // span + lo[0], keys % span + lo[1]
     b0 = np.asarray(key, dtype=np.int64) * int(block_cells)
     b1 = b0 + int(block_cells) - 1
-    occupied = set(zip(ci.tolist(), cj.tolist()))
-    hist: dict[int, int] = {}
-    for i, j, c in zip(ci.tolist(), cj.tolist(), counts.tolist()):
-        outside = []
-        inside_ok = True
-        for dx, dy in NEIGHBOURS:
-            ni, nj = i + dx, j + dy
-            if b0[0] <= ni <= b1[0] and b0[1] <= nj <= b1[1]:
-                if (ni, nj) not in occupied:
-                    inside_ok = False
-                    break
-            else:
-                outside.append((ni, nj))
-        if not inside_ok:
-            continue
-        if outside:
-            out["edge"].append([i, j, c, outside])
-        else:
-            hist[c] = hist.get(c, 0) + 1
-    out["hist"] = hist
-    out["sum"], out["cells"] = int(counts.sum()), int(len(counts))
-    out["occupied_edge"] = [[i, j] for i, j in zip(ci.tolist(), cj.tolist())
-                            if i in (b0[0], b1[0]) or j in (b0[1], b1[1])]
+    lo = np.minimum(cells.min(axis=0), b0)  # a block's points lie in its cells; the grid holds any that do not
+    sx, sy = (np.maximum(cells.max(axis=0), b1) - lo + 1).tolist()
+    counts = _top_band_counts((cells[:, 0] - lo[0]) * sy + (cells[:, 1] - lo[1]), xyz[:, 2], sx * sy)
+    counts = counts.reshape(sx, sy)
+    occupied = counts > 0
+    gi, gj = np.arange(sx) + lo[0], np.arange(sy) + lo[1]
+    in_block = ((gi >= b0[0]) & (gi <= b1[0]))[:, None] & ((gj >= b0[1]) & (gj <= b1[1]))[None, :]
+    occ_p, in_p = np.pad(occupied, 1), np.pad(in_block, 1)
+    ok = occupied.copy()  # every neighbour inside the block occupied
+    outside_any = np.zeros_like(occupied)
+    for dx, dy in NEIGHBOURS:
+        nb_in = in_p[1 + dx:1 + dx + sx, 1 + dy:1 + dy + sy]
+        ok &= ~nb_in | occ_p[1 + dx:1 + dx + sx, 1 + dy:1 + dy + sy]
+        outside_any |= ~nb_in
+    values, n = np.unique(counts[ok & ~outside_any], return_counts=True)
+    out["hist"] = dict(zip(values.tolist(), n.tolist()))
+    for a, b in zip(*np.nonzero(ok & outside_any)):
+        i, j = int(gi[a]), int(gj[b])
+        outside = [(i + dx, j + dy) for dx, dy in NEIGHBOURS
+                   if not (b0[0] <= i + dx <= b1[0] and b0[1] <= j + dy <= b1[1])]
+        out["edge"].append([i, j, int(counts[a, b]), outside])
+    out["sum"], out["cells"] = int(counts[occupied].sum()), int(occupied.sum())
+    rim = np.isin(gi, (b0[0], b1[0]))[:, None] | np.isin(gj, (b0[1], b1[1]))[None, :]
+    out["occupied_edge"] = [[int(gi[a]), int(gj[b])] for a, b in zip(*np.nonzero(occupied & rim))]
     return out
 
 
