@@ -67,6 +67,12 @@ def test_a_box_read_from_the_copc_file_is_the_box_read_from_block_files(box_copc
     for only in (False, True):
         np.testing.assert_array_equal(blocks.read_records(tmp_path / "copc", keys, only),
                                       blocks.read_records(tmp_path / "blocks", keys, only))
+    # the densities' roof cells of a group of blocks: the group's box read from the file once
+    from quakescan.distributed.tasks import group_roof_cells
+
+    group = [tuple(k) for k in stats["copc"].blocks[:16]]
+    assert group_roof_cells(str(tmp_path / "copc"), group, cells) == \
+        group_roof_cells(str(tmp_path / "blocks"), group, cells)
 
 
 @pytest.mark.realdata

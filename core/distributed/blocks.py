@@ -247,7 +247,7 @@ def stream_epoch(f: EpochFile, origin: np.ndarray, folder: Path, *, block_cells:
                 maps.append(xyz[index % map_step == 0, :2])
             keys = block_of(xyz[:, :2], block_cells)
             if f.copc:  # read back by bounds from the file itself (`read_box`): no block files
-                blocks.update(map(tuple, np.unique(keys, axis=0).tolist()))
+                blocks.update(_unique_keys(keys))
             else:
                 rec = np.empty(n, RECORD)
                 rec["index"], rec["X"], rec["Y"], rec["Z"] = index, X, Y, Z
@@ -263,6 +263,16 @@ def stream_epoch(f: EpochFile, origin: np.ndarray, folder: Path, *, block_cells:
     stats.map_xy = np.vstack(maps) if maps else np.zeros((0, 2))
     stats.hulls = hulls.vertices if hulls is not None else {}
     return stats
+
+
+def _unique_keys(keys: np.ndarray) -> list[tuple[int, int]]:
+    """The distinct (bx, by) rows of `keys` (a flat code each: np.unique by rows sorts 25x slower)."""
+    if not len(keys):
+        return []
+    lo = keys.min(axis=0)
+    span = int(keys[:, 1].max() - lo[1]) + 1
+    codes = np.unique((keys[:, 0] - lo[0]) * span + (keys[:, 1] - lo[1]))
+    return [(int(c // span + lo[0]), int(c % span + lo[1])) for c in codes]
 
 
 def _add_building_stats(stats: EpochStats, ids: np.ndarray, xy: np.ndarray) -> None:
@@ -427,9 +437,11 @@ def _copc_block_records(folder: Path, epoch: dict, keys, buildings_only: bool) -
     k = np.asarray(keys, dtype=np.float64)
     box = np.array([k.min(axis=0) * side, (k.max(axis=0) + 1) * side])
     rec, xyz = _copc_box(folder, f, origin, box)
-    wanted = set(keys)
-    keep = np.array([tuple(b) in wanted for b in block_of(xyz[:, :2], int(epoch["block_cells"])).tolist()],
-                    dtype=bool).reshape(-1)
+    lo = np.asarray(keys, dtype=np.int64).min(axis=0)
+    span = int(np.asarray(keys, dtype=np.int64)[:, 1].max() - lo[1]) + 1
+    b = block_of(xyz[:, :2], int(epoch["block_cells"])) - lo  # every point's block lies in the keys' box
+    wanted = np.array([(i - lo[0]) * span + (j - lo[1]) for i, j in keys], dtype=np.int64)
+    keep = np.isin(b[:, 0] * span + b[:, 1], wanted)
     if buildings_only:
         keep &= rec["building_id"] > 0
     return rec[keep]

@@ -29,17 +29,23 @@ class TileReachError(Exception):
 def group_roof_cells(folder: str, keys, block_cells: int, building_only: bool = True, transform=None) -> list:
     """`block_roof_cells` of several blocks in one task: with an alignment, whose points cross
     block edges, the ring of blocks around the group is read once for all of them (a 4 × 4
-    group reads 6 × 6 blocks, where one block at a time read 3 × 3 for each)."""
+    group reads 6 × 6 blocks, where one block at a time read 3 × 3 for each); from a COPC
+    file, the group's box is read once."""
     keys = [(int(k[0]), int(k[1])) for k in keys]
-    if transform is None:
+    f = EpochFile(**_epoch_file_args(folder))
+    if transform is None and not f.copc:
         return [block_roof_cells(folder, k, block_cells, building_only) for k in keys]
-    from ..change.align import apply_transform
     from .blocks import block_of
 
-    ring = sorted({(k[0] + dx, k[1] + dy) for k in keys for dx in (-1, 0, 1) for dy in (-1, 0, 1)})
+    # a COPC epoch: the group's box read from the file once (its coarse octree levels span every block)
+    ring = keys if transform is None else sorted({(k[0] + dx, k[1] + dy) for k in keys
+                                                  for dx in (-1, 0, 1) for dy in (-1, 0, 1)})
     rec = read_records(Path(folder), ring, buildings_only=building_only, in_file_order=False)
-    f = EpochFile(**_epoch_file_args(folder))
-    xyz = apply_transform(transform, f.local_xyz(rec["X"], rec["Y"], rec["Z"], np.asarray(_origin(folder))))
+    xyz = f.local_xyz(rec["X"], rec["Y"], rec["Z"], np.asarray(_origin(folder)))
+    if transform is not None:
+        from ..change.align import apply_transform
+
+        xyz = apply_transform(transform, xyz)
     moved = block_of(xyz[:, :2], block_cells)
     if not len(xyz):
         return [_roof_cells(xyz, k, block_cells) for k in keys]
