@@ -124,3 +124,15 @@ def test_a_range_of_a_copc_file_reads_the_points_reading_it_whole_gives(box_copc
         np.testing.assert_array_equal(got, np.asarray(whole.points.array[dim])[start:stop], err_msg=dim)
     np.testing.assert_array_equal(np.concatenate([np.asarray(p.classification) for p in parts]),
                                   np.asarray(whole.classification)[start:stop])
+
+
+def test_a_geometry_read_decompresses_only_coordinates_class_and_extra_dimensions(box_copc):
+    from quakescan.formats.copc import copc_index
+
+    index = copc_index(box_copc[0])
+    every, a = index.points_in_nodes(index.nodes[:5])
+    some, b = index.points_in_nodes(index.nodes[:5], fields="geometry")
+    np.testing.assert_array_equal(a, b)
+    for dim in ("X", "Y", "Z", "classification", "building_id", "grade"):
+        np.testing.assert_array_equal(every[dim], some[dim], err_msg=dim)
+    assert not np.array_equal(every["gps_time"], some["gps_time"])  # left out: not the file's values

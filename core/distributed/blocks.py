@@ -420,7 +420,8 @@ def _copc_box(folder: Path, f: EpochFile, origin: np.ndarray, box: np.ndarray) -
 
     margin = np.array([[-1.0], [1.0]])  # nodes chosen in world coordinates, points kept in local ones
     index = copc_index(f.path)
-    packed, where = index.points_in_nodes(index.nodes_in_box(box + origin[:2] + margin))
+    # a record keeps x, y, z, class and building ID: the other fields are not decompressed
+    packed, where = index.points_in_nodes(index.nodes_in_box(box + origin[:2] + margin), fields="geometry")
     xyz = f.local_xyz(packed["X"], packed["Y"], packed["Z"], origin)
     inside = np.all((xyz[:, :2] >= box[0]) & (xyz[:, :2] <= box[1]), axis=1)
     return _copc_records(folder, f, origin, packed[inside], where[inside], xyz[inside]), xyz[inside]

@@ -70,9 +70,12 @@ class CopcIndex:
         hit = np.all((self._mins <= box[1]) & (self._maxs >= box[0]), axis=1)
         return [self.nodes[i] for i in np.flatnonzero(hit)]
 
-    def points_in_nodes(self, nodes: list[CopcNode]) -> tuple[np.ndarray, np.ndarray]:
+    def points_in_nodes(self, nodes: list[CopcNode], fields: str = "all") -> tuple[np.ndarray, np.ndarray]:
         """(the nodes' point records as the file's structured array, each point's index in
-        the file), in file order."""
+        the file), in file order. `fields` "geometry": only x, y, z, classification and the
+        extra dimensions are decompressed (LAZ 1.4 compresses each field in a layer of its
+        own); the others are not decoded and hold no meaningful values (a chunk's first
+        point's, stored raw)."""
         import lazrs
 
         nodes = sorted(nodes, key=lambda n: n.offset)
@@ -88,9 +91,12 @@ class CopcIndex:
                     if fh.readinto(view[at:at + n.byte_size]) != n.byte_size:
                         raise PointCloudError(f"{self.path}: a COPC chunk at byte {n.offset} is cut short")
                     at += n.byte_size
+            which = lazrs.SELECTIVE_DECOMPRESS_ALL if fields == "all" else (
+                lazrs.SELECTIVE_DECOMPRESS_XY_RETURNS_CHANNEL | lazrs.SELECTIVE_DECOMPRESS_Z
+                | lazrs.SELECTIVE_DECOMPRESS_CLASSIFICATION | lazrs.SELECTIVE_DECOMPRESS_ALL_EXTRA_BYTES)
             lazrs.decompress_points_with_chunk_table(bytes(compressed), self.laszip_record, out,
                                                      [(n.count, n.byte_size) for n in nodes],
-                                                     lazrs.DecompressionSelection(lazrs.SELECTIVE_DECOMPRESS_ALL))
+                                                     lazrs.DecompressionSelection(which))
         records = out.view(fmt.dtype())
         index = (np.concatenate([np.arange(n.first, n.first + n.count, dtype=np.int64) for n in nodes])
                  if nodes else np.zeros(0, np.int64))
