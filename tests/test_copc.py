@@ -136,3 +136,17 @@ def test_a_geometry_read_decompresses_only_coordinates_class_and_extra_dimension
     for dim in ("X", "Y", "Z", "classification", "building_id", "grade"):
         np.testing.assert_array_equal(every[dim], some[dim], err_msg=dim)
     assert not np.array_equal(every["gps_time"], some["gps_time"])  # left out: not the file's values
+
+
+def test_a_range_of_a_copc_file_held_in_memory_is_read_from_its_start(box_copc):
+    """No file to read chunks from (an in-memory stream): the points before the range are
+    decompressed and dropped, the range is still the file's."""
+    import io
+
+    from quakescan.formats.pointcloud import read_point_range
+
+    path, _ = box_copc
+    whole = laspy.read(path)
+    with laspy.open(io.BytesIO(path.read_bytes())) as reader:
+        got = np.concatenate([np.asarray(p.array["X"]) for p in read_point_range(reader, 30_000, 90_000, 7_000)])
+    np.testing.assert_array_equal(got, np.asarray(whole.points.array["X"])[30_000:90_000])

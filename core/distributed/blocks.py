@@ -435,13 +435,12 @@ def _copc_block_records(folder: Path, epoch: dict, keys, buildings_only: bool) -
     f = EpochFile(**epoch["file"])
     origin = np.asarray(epoch["origin"], dtype=np.float64)
     side = float(epoch.get("block_cells", 0)) * DENSITY_CELL_M
-    k = np.asarray(keys, dtype=np.float64)
-    box = np.array([k.min(axis=0) * side, (k.max(axis=0) + 1) * side])
-    rec, xyz = _copc_box(folder, f, origin, box)
-    lo = np.asarray(keys, dtype=np.int64).min(axis=0)
-    span = int(np.asarray(keys, dtype=np.int64)[:, 1].max() - lo[1]) + 1
+    k = np.asarray(keys, dtype=np.int64)
+    lo, hi = k.min(axis=0), k.max(axis=0)
+    rec, xyz = _copc_box(folder, f, origin, np.array([lo * side, (hi + 1) * side]))
+    span = int(hi[1] - lo[1]) + 1
     b = block_of(xyz[:, :2], int(epoch["block_cells"])) - lo  # every point's block lies in the keys' box
-    wanted = np.array([(i - lo[0]) * span + (j - lo[1]) for i, j in keys], dtype=np.int64)
+    wanted = (k[:, 0] - lo[0]) * span + (k[:, 1] - lo[1])
     keep = np.isin(b[:, 0] * span + b[:, 1], wanted)
     if buildings_only:
         keep &= rec["building_id"] > 0

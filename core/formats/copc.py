@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .pointcloud import PointCloudError
+from .pointcloud import PointCloudError, read_laz_chunks
 
 
 def is_copc(header) -> bool:
@@ -76,28 +76,9 @@ class CopcIndex:
         extra dimensions are decompressed (LAZ 1.4 compresses each field in a layer of its
         own); the others are not decoded and hold no meaningful values (a chunk's first
         point's, stored raw)."""
-        import lazrs
-
         nodes = sorted(nodes, key=lambda n: n.offset)
-        fmt = self.header.point_format
-        n_points = sum(n.count for n in nodes)
-        out = np.zeros(n_points * fmt.size, dtype=np.uint8)
-        if n_points:
-            compressed = bytearray(sum(n.byte_size for n in nodes))
-            view, at = memoryview(compressed), 0
-            with open(self.path, "rb") as fh:
-                for n in nodes:
-                    fh.seek(n.offset)
-                    if fh.readinto(view[at:at + n.byte_size]) != n.byte_size:
-                        raise PointCloudError(f"{self.path}: a COPC chunk at byte {n.offset} is cut short")
-                    at += n.byte_size
-            which = lazrs.SELECTIVE_DECOMPRESS_ALL if fields == "all" else (
-                lazrs.SELECTIVE_DECOMPRESS_XY_RETURNS_CHANNEL | lazrs.SELECTIVE_DECOMPRESS_Z
-                | lazrs.SELECTIVE_DECOMPRESS_CLASSIFICATION | lazrs.SELECTIVE_DECOMPRESS_ALL_EXTRA_BYTES)
-            lazrs.decompress_points_with_chunk_table(bytes(compressed), self.laszip_record, out,
-                                                     [(n.count, n.byte_size) for n in nodes],
-                                                     lazrs.DecompressionSelection(which))
-        records = out.view(fmt.dtype())
+        records = read_laz_chunks(self.path, self.laszip_record, self.header.point_format,
+                                  [(n.offset, n.count, n.byte_size) for n in nodes], fields == "geometry")
         index = (np.concatenate([np.arange(n.first, n.first + n.count, dtype=np.int64) for n in nodes])
                  if nodes else np.zeros(0, np.int64))
         return records, index

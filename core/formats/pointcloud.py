@@ -224,6 +224,11 @@ def read_point_range(reader, start: int, stop: int, chunk_points: int):
         return
     if start:
         reader.seek(start)
+    yield from _read_on(reader, start, stop, chunk_points)
+
+
+def _read_on(reader, start: int, stop: int, chunk_points: int):
+    """The reader's points from where it stands (point `start`) to `stop`, chunk by chunk."""
     while start < stop:
         chunk = reader.read_points(min(chunk_points, stop - start))
         if not len(chunk):
@@ -252,39 +257,53 @@ def _variable_chunk_range(reader, start: int, stop: int, chunk_points: int):
     if not isinstance(name, (str, os.PathLike)) or not Path(name).is_file():
         # no file to read the chunks from: decompress from the start and drop the points before it
         reader.seek(0)
-        skipped = 0
-        while skipped < start:
-            skipped += len(reader.read_points(min(chunk_points, start - skipped)))
-        while start < stop:
-            chunk = reader.read_points(min(chunk_points, stop - start))
-            if not len(chunk):
-                return
-            start += len(chunk)
-            yield chunk
+        for _ in _read_on(reader, 0, start, chunk_points):
+            pass
+        yield from _read_on(reader, start, stop, chunk_points)
         return
     with open(name, "rb") as fh:
         fh.seek(reader.header.offset_to_point_data)
         table = [(int(n), int(b)) for n, b in lazrs.read_chunk_table(fh, vlr)]
-    counts = np.array([n for n, _ in table], dtype=np.int64)
-    firsts = np.concatenate([[0], np.cumsum(counts)])
+    firsts = np.concatenate([[0], np.cumsum([n for n, _ in table])]).astype(np.int64)
     offsets = reader.header.offset_to_point_data + 8 + np.concatenate([[0], np.cumsum([b for _, b in table])])
+    chunks = [(int(o), n, b) for o, (n, b) in zip(offsets, table)]
     c = int(np.searchsorted(firsts, start, side="right")) - 1
-    selection = lazrs.DecompressionSelection(lazrs.SELECTIVE_DECOMPRESS_ALL)
-    with open(name, "rb") as fh:
-        while start < stop and c < len(table):
-            c_end = c + 1
-            while c_end < len(table) and firsts[c_end + 1] - firsts[c] <= chunk_points and firsts[c_end] < stop:
-                c_end += 1
-            fh.seek(int(offsets[c]))
-            data = fh.read(int(offsets[c_end] - offsets[c]))
-            out = np.zeros(int(firsts[c_end] - firsts[c]) * fmt.size, dtype=np.uint8)
-            lazrs.decompress_points_with_chunk_table(data, vlr.record_data(), out, table[c:c_end], selection)
-            points = out.view(fmt.dtype())[start - firsts[c]:min(stop, firsts[c_end]) - firsts[c]]
-            record = laspy.PackedPointRecord(points.copy(), fmt)
-            start = int(min(stop, firsts[c_end]))
-            c = c_end
-            if len(record):
-                yield laspy.ScaleAwarePointRecord(record.array, fmt, reader.header.scales, reader.header.offsets)
+    while start < stop and c < len(table):
+        c_end = c + 1
+        while c_end < len(table) and firsts[c_end + 1] - firsts[c] <= chunk_points and firsts[c_end] < stop:
+            c_end += 1
+        points = read_laz_chunks(name, vlr.record_data(), fmt, chunks[c:c_end])
+        points = points[start - firsts[c]:min(stop, firsts[c_end]) - firsts[c]].copy()
+        start = int(min(stop, firsts[c_end]))
+        c = c_end
+        if len(points):
+            yield laspy.ScaleAwarePointRecord(points, fmt, reader.header.scales, reader.header.offsets)
+
+
+def read_laz_chunks(path, laszip_record: bytes, point_format, chunks, geometry_only: bool = False) -> np.ndarray:
+    """The points of some compressed chunks of a LAZ file, as its structured point records:
+    `chunks` (byte offset, point count, byte size) in the order wanted, each read and
+    decompressed by lazrs. `geometry_only`: only x, y, z, classification and the extra
+    dimensions are decoded (LAZ 1.4 keeps each field in a layer of its own); the other
+    fields then hold no meaningful values (a chunk's first point's, stored raw)."""
+    import lazrs
+
+    out = np.zeros(sum(n for _, n, _ in chunks) * point_format.size, dtype=np.uint8)
+    if len(out):
+        compressed = bytearray(sum(b for _, _, b in chunks))
+        view, at = memoryview(compressed), 0
+        with open(path, "rb") as fh:
+            for offset, _, size in chunks:
+                fh.seek(offset)
+                if fh.readinto(view[at:at + size]) != size:
+                    raise PointCloudError(f"{path}: a LAZ chunk at byte {offset} is cut short")
+                at += size
+        which = lazrs.SELECTIVE_DECOMPRESS_ALL if not geometry_only else (
+            lazrs.SELECTIVE_DECOMPRESS_XY_RETURNS_CHANNEL | lazrs.SELECTIVE_DECOMPRESS_Z
+            | lazrs.SELECTIVE_DECOMPRESS_CLASSIFICATION | lazrs.SELECTIVE_DECOMPRESS_ALL_EXTRA_BYTES)
+        lazrs.decompress_points_with_chunk_table(bytes(compressed), laszip_record, out,
+                                                 [(n, b) for _, n, b in chunks], lazrs.DecompressionSelection(which))
+    return out.view(point_format.dtype())
 
 
 def check_point_cloud_path(path: str | os.PathLike) -> Path:
