@@ -172,6 +172,11 @@ _add(Pattern("facade_topple", "Facade or corner topples", (MASONRY,), (4,), {
     "fan_height": _p(0.5, 2.0, "float", "m", "target height of the debris fan (its reach stays "
                      "within 0.5-1.0 x collapsed wall height)"),
     "solid_fraction": _sf(), "bulking": _bulk(),
+    # the roof and floors bore on the wall that fell (EMS-98 grade 4: "partial structural
+    # failure of roofs and floors"): without it the roof edge floated over the gap
+    "roof_drop": _p(0.3, 2.5, "float", "m", "drop of the roof edge over the fallen wall (hinged strip; "
+                    "at most down to the wall left standing)"),
+    "sag_depth": _p(1.5, 4.0, "float", "m", "depth of the roof strip that hinges down, from the facade"),
 }, stage=1, debris=True))
 _add(Pattern("parapet_loss", "Parapet / cornice loss", (MASONRY, RC), (3,), {
     "length_fraction": _p(0.10, 0.50, "float", "", "share of the roof-edge length"),

@@ -70,7 +70,8 @@ REPO = Path(__file__).resolve().parent.parent
 # Bumped whenever the add-on makes different bundles from the same settings, so that bundles
 # made before are regenerated, not reused (bundle_state). 2: walls another building covers are
 # party walls, pattern draws salted by name (6b9cfbd); physics records name their element source.
-GENERATOR_VERSION = 2
+# 3: a toppled facade takes the roof strip and the floors that bore on it down (roof_drop, sag_depth).
+GENERATOR_VERSION = 3
 # Bumped whenever collapses by physics (--damage physics|both) differ from the same settings:
 # their bundles and part files are then remade, the patterns' bundles stay valid. Absent: 1;
 # 2: a collapse stops early once the shards still moving fast hold 1 % of the volume or less.

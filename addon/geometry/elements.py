@@ -8,8 +8,8 @@ import numpy as np
 from . import debris as dbr
 from . import poly2d
 from .common import PatternNotApplicable, edge, interval_planes, z_above
-from .mesh import (P_CHIMNEY, P_GABLE, P_PARAPET, P_WALL, ROOF, Labels, add_polygon, carve, delete_faces,
-                   faces_area, faces_where)
+from .mesh import (P_CHIMNEY, P_GABLE, P_PARAPET, P_ROOF, P_SLAB, P_WALL, ROOF, Labels, add_polygon, carve,
+                   delete_faces, detach, faces_area, faces_where, verts_of)
 from ..ems98 import WALL_ZONE_DEPTH
 
 
@@ -149,9 +149,11 @@ def gable_fall(bm, spec, rng, building_id, gable_fraction=0.6, fan_height=0.5, s
 
 
 def facade_topple(bm, spec, rng, building_id, facade_fraction=0.5, height_fraction=0.5, fan_height=1.0,
-                  solid_fraction=0.2, bulking=1.5):
+                  solid_fraction=0.2, bulking=1.5, roof_drop=0.0, sag_depth=3.0):
     """Part of one facade (`facade_fraction` of its length, the top `height_fraction` of its
-    storeys, at least one) topples outward; debris fan 0.5-1.0 × wall height long."""
+    storeys, at least one) topples outward; debris fan 0.5-1.0 × wall height long. The roof
+    and floors that rested on the fallen wall lose their support (`_sag_over_fallen_wall`): a
+    strip `sag_depth` deep hinges down, its edge `roof_drop` lower (0: the roof stays)."""
     lab = Labels(bm)
     cands = []
     for i in spec.exposed_edges():
@@ -179,7 +181,53 @@ def facade_topple(bm, spec, rng, building_id, facade_fraction=0.5, height_fracti
     vol = dbr.debris_volume(solid_fraction, bulking, area * WALL_ZONE_DEPTH)
     dv, pk, reach = _fan(bm, lab, rng, building_id, a + d * t0, a + d * t1, n, vol, fan_height,
                          0.5 * hw, 1.0 * hw)
+    sag = _sag_over_fallen_wall(bm, lab, spec, a, d, n, t0, t1, z0, roof_drop, sag_depth)
     return {"facade": i, "facade_fraction": seg / L, "height_fraction": m / ns, "collapsed_storeys": m,
             "removed_area": area, "wall_height": hw, "debris_volume": dv, "fan_height": pk,
             "fan_height_target": fan_height, "fan_reach": reach / hw, "solid_fraction": solid_fraction,
-            "bulking": bulking}
+            "bulking": bulking, **sag}
+
+
+# The sagging roof ends this far above the wall left standing (or the ground): it rests on it.
+SAG_REST_M = 0.1
+
+
+def _sag_over_fallen_wall(bm, lab, spec, a, d, n, t0, t1, z_rest, drop, depth):
+    """The roof over the fallen part of a facade loses the wall it bore on (rafters, a flat
+    roof's slab): the roof strip behind segment [t0, t1] of the facade, `depth` deep, breaks
+    off its neighbours and hinges down about the line `depth` behind the facade, so that its
+    edge at the facade is `drop` lower, never below `z_rest` + SAG_REST_M (the wall left
+    standing). Floors above `z_rest` in the strip spanned onto the same wall and fall (they
+    would otherwise stand above the sagged roof). Returns the record: the drop reached, the
+    depth, the roof area that sagged and the floor area that fell."""
+    out = {"roof_drop": 0.0, "sag_depth": float(depth), "sagged_roof_area": 0.0, "fallen_floor_area": 0.0}
+    if drop <= 0.0:
+        return out
+    span = float(np.max((spec.poly - a) @ (-n)))  # footprint depth behind the facade
+    depth = float(np.clip(depth, 0.5, max(span, 0.5)))
+    out["sag_depth"] = depth
+    eps = 1e-4
+    hinge = a - n * depth
+    planes = interval_planes(a, d, t0 - eps, t1 + eps) + [((float(hinge[0]), float(hinge[1]), 0.0),
+                                                          (float(-n[0]), float(-n[1]), 0.0))]
+    strip = carve(bm, lambda b_: faces_where(b_, lab, parts={P_ROOF}), planes)
+    if not strip:
+        return out
+    strip = detach(bm, strip)
+    vs = verts_of(strip)
+    # 1 at the facade line, 0 at the hinge; an eave overhang (behind < 0) drops further, as a
+    # rigid plate turning about the hinge does
+    weight = [1.0 - float((v.co.x - a[0]) * -n[0] + (v.co.y - a[1]) * -n[1]) / depth for v in vs]
+    room = [(v.co.z - z_rest - SAG_REST_M) / w for v, w in zip(vs, weight) if w > 1e-6]
+    drop = float(np.clip(drop, 0.0, max(0.0, min(room, default=0.0))))
+    for v, w in zip(vs, weight):
+        v.co.z -= drop * max(w, 0.0)
+    bm.normal_update()
+    out["roof_drop"] = drop
+    out["sagged_roof_area"] = faces_area(strip)
+    if drop > 0.0:
+        floors = carve(bm, lambda b_: [f for f in faces_where(b_, lab, parts={P_SLAB})
+                                       if f.calc_center_median().z > z_rest + eps], planes)
+        out["fallen_floor_area"] = faces_area(floors)
+        delete_faces(bm, floors)
+    return out

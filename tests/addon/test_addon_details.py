@@ -32,7 +32,7 @@ PLAN_DIGESTS = {"generic": "e53e798f15141ebd571fc8768307435ce420f5295567102af636
 # the generator version these plans belong to: new digests mean the generator draws other
 # cities from the same settings, so GENERATOR_VERSION must change with them (else bundles
 # made before are reused as if current)
-PLAN_DIGESTS_GENERATOR_VERSION = 2
+PLAN_DIGESTS_GENERATOR_VERSION = 3
 
 
 def test_new_plans_come_with_a_new_generator_version():

@@ -215,6 +215,67 @@ def test_facade_topple():
     assert area(v1, t1, p1 == gm.P_SLAB) == pytest.approx(area(v0, t0, p0 == gm.P_SLAB))
 
 
+def _roof_drop_integral(v0, t0, p0, v1, t1, p1):
+    """∫ (z before − z after) dA over the horizontal projection of a flat roof at one height:
+    the roof volume the sag took away (before: every roof triangle at the same height)."""
+    z_roof = float(v0[t0[p0 == gm.P_ROOF]][..., 2].max())
+    tri = v1[t1[p1 == gm.P_ROOF]]
+    e1, e2 = tri[:, 1, :2] - tri[:, 0, :2], tri[:, 2, :2] - tri[:, 0, :2]
+    proj = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+    return float(np.sum(proj * (z_roof - tri[:, :, 2].mean(axis=1))))
+
+
+def test_facade_topple_roof_sags_over_the_fallen_wall():
+    # flat roof at 9 m, top two storeys fall (z0 = 3 m): the strip 3 m deep behind the fallen
+    # half of the facade hinges down, edge 1.5 m lower; a wedge of 1/2 · 1.5 · 3 · segment
+    spec = masonry_gable(roof="flat", chimney=None, parapet_height=0.5)
+    bm, (v0, t0, s0, b0, p0), (v1, t1, s1, b1, p1), prm = run(spec, "facade_topple", 2, facade_fraction=0.5,
+                                                              height_fraction=0.67, fan_height=1.0,
+                                                              solid_fraction=0.2, bulking=1.5, roof_drop=1.5,
+                                                              sag_depth=3.0)
+    L = 12.0 if prm["facade"] in (0, 2) else 9.0
+    assert prm["roof_drop"] == pytest.approx(1.5)
+    assert prm["sagged_roof_area"] > 0.5 * L * 3.0  # the plate got steeper, so larger than its plan
+    assert _roof_drop_integral(v0, t0, p0, v1, t1, p1) == pytest.approx(0.5 * 1.5 * 3.0 * 0.5 * L, rel=1e-4)
+    roof_z = v1[t1[p1 == gm.P_ROOF]][..., 2]
+    assert roof_z.min() == pytest.approx(9.0 - 1.5)
+    # the floor at 6 m spanned onto the fallen wall: its part in the strip fell; the one at 3 m
+    # (the top of the wall left standing) stays
+    assert prm["fallen_floor_area"] == pytest.approx(0.5 * L * 3.0, rel=1e-4)
+    slab = p1 == gm.P_SLAB
+    assert area(v1, t1, slab) == pytest.approx(area(v0, t0, p0 == gm.P_SLAB) - 0.5 * L * 3.0, rel=1e-4)
+    at_3m = (np.abs(v1[t1][..., 2] - 3.0) < 1e-6).all(axis=1)
+    assert area(v1, t1, slab & at_3m) == pytest.approx(108.0)
+
+
+def test_facade_topple_roof_rests_on_the_wall_left_standing():
+    # one storey falls (z0 = 6 m): a 10 m drop asked, the edge comes to rest 0.1 m above the wall
+    spec = masonry_gable(roof="flat", chimney=None, parapet_height=0.5)
+    _, _, (v1, t1, s1, b1, p1), prm = run(spec, "facade_topple", 4, facade_fraction=1.0, height_fraction=0.2,
+                                          fan_height=1.0, solid_fraction=0.2, bulking=1.5, roof_drop=10.0,
+                                          sag_depth=2.0)
+    assert prm["collapsed_storeys"] == 1
+    assert prm["roof_drop"] == pytest.approx(9.0 - 6.0 - 0.1)
+    assert v1[t1[p1 == gm.P_ROOF]][..., 2].min() == pytest.approx(6.1)
+    assert prm["fallen_floor_area"] == 0.0  # no floor above the wall left standing under a flat roof
+
+
+def test_facade_topple_sag_under_a_pitched_roof():
+    # gable roof, the gable ends party walls (so an eave side falls): the eave over the fallen
+    # part drops as asked, and no floor is left above the sagged roof (the attic floor in the
+    # strip fell with it)
+    spec = masonry_gable(party_walls=[1, 3])
+    for seed in range(4):
+        _, (v0, t0, s0, b0, p0), (v1, t1, s1, b1, p1), prm = run(
+            spec, "facade_topple", seed, facade_fraction=0.6, height_fraction=0.34, fan_height=1.0,
+            solid_fraction=0.2, bulking=1.5, roof_drop=2.0, sag_depth=3.0)
+        assert prm["facade"] in (0, 2) and prm["roof_drop"] == pytest.approx(2.0)
+        assert v1[t1[p1 == gm.P_ROOF]][..., 2].min() == pytest.approx(9.0 - 2.0)
+        attic = (np.abs(v1[t1][..., 2] - 9.0) < 1e-6).all(axis=1) & (p1 == gm.P_SLAB)
+        assert area(v1, t1, attic) == pytest.approx(108.0 - prm["fallen_floor_area"])
+        assert prm["fallen_floor_area"] == pytest.approx(0.6 * 12.0 * 3.0, rel=1e-4)
+
+
 def test_party_walls_are_not_used_for_facades():
     spec = masonry_gable(party_walls=[1, 3])
     for seed in range(5):
