@@ -107,18 +107,21 @@ def test_real_halves_as_copc_with_footprints_classify_on_two_workers_as_one_proc
         np.testing.assert_array_equal(x.points.array[dim], y.points.array[dim], err_msg=dim)
 
 
+@pytest.mark.parametrize("geometry_only", [False, True])
 @pytest.mark.parametrize("start,stop,chunk", [(0, None, 20_000), (1_000, 30_000, 7_000), (30_000, 30_001, 5),
                                               (50_000, None, 100_000), (13_000, 90_000, 3)])
-def test_a_range_of_a_copc_file_reads_the_points_reading_it_whole_gives(box_copc, start, stop, chunk):
+def test_a_range_of_a_copc_file_reads_the_points_reading_it_whole_gives(box_copc, start, stop, chunk, geometry_only):
     """Parts of a file are streamed by point ranges; the LAZ backend's seek lands on other
-    points in a file of variable-size chunks, so those ranges are read by the chunk table."""
+    points in a file of variable-size chunks, so those ranges are read by the chunk table.
+    A geometry-only read (the tiling's summaries of a COPC epoch) gives the same coordinates,
+    classes and extra dimensions."""
     from quakescan.formats.pointcloud import read_point_range
 
     path, _ = box_copc
     whole = laspy.read(path)
     stop = whole.header.point_count if stop is None else stop
     with laspy.open(path) as reader:
-        parts = list(read_point_range(reader, start, stop, chunk))
+        parts = list(read_point_range(reader, start, stop, chunk, geometry_only=geometry_only))
     for dim in ("X", "Y", "Z", "building_id"):
         got = np.concatenate([np.asarray(p.array[dim]) for p in parts])
         np.testing.assert_array_equal(got, np.asarray(whole.points.array[dim])[start:stop], err_msg=dim)

@@ -222,7 +222,8 @@ def stream_epoch(f: EpochFile, origin: np.ndarray, folder: Path, *, block_cells:
         raise PointCloudError(f"{f.path}: cannot read as LAS/LAZ ({e})") from None
     with reader:
         first = start
-        for chunk in read_point_range(reader, start, stop, chunk_points):
+        # a COPC epoch is streamed for its summaries only: x, y, z, class and building IDs
+        for chunk in read_point_range(reader, start, stop, chunk_points, geometry_only=f.copc):
             X, Y, Z = (np.asarray(chunk.array[c]) for c in "XYZ")
             n = len(X)
             xyz = f.local_xyz(X, Y, Z, origin)

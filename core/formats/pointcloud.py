@@ -212,15 +212,18 @@ def pack_points(header, chunk: PointChunk, name="point cloud"):
     return rec
 
 
-def read_point_range(reader, start: int, stop: int, chunk_points: int):
+def read_point_range(reader, start: int, stop: int, chunk_points: int, geometry_only: bool = False):
     """Points start..stop of an open laspy reader, chunk by chunk (at most `chunk_points`
     each): a part of a file streamed without reading the rest (LAZ seeks by its chunk table).
 
     A LAZ file of variable-size chunks (every COPC file) is not seeked by the LAZ backend:
     lazrs 0.8 lands on the wrong points (measured: a COPC file's points 52,148.. read from
-    another place). Its chunks are found in its chunk table and decompressed here."""
-    if start and _variable_size_chunks(reader):
-        yield from _variable_chunk_range(reader, start, stop, chunk_points)
+    another place). Its chunks are found in its chunk table and decompressed here.
+    `geometry_only`: a caller that reads only x, y, z, classification and the extra
+    dimensions says so; such a file's other fields are then not decompressed
+    (`read_laz_chunks`) and hold no meaningful values. Other files are read whole."""
+    if (start or geometry_only) and _variable_size_chunks(reader):
+        yield from _variable_chunk_range(reader, start, stop, chunk_points, geometry_only)
         return
     if start:
         reader.seek(start)
@@ -245,7 +248,7 @@ def _variable_size_chunks(reader) -> bool:
         return False
 
 
-def _variable_chunk_range(reader, start: int, stop: int, chunk_points: int):
+def _variable_chunk_range(reader, start: int, stop: int, chunk_points: int, geometry_only: bool = False):
     """`read_point_range` of a LAZ file of variable-size chunks: the chunks holding points
     start..stop, located by the chunk table and decompressed a few at a time (lazrs), so that
     memory holds about `chunk_points` points at once."""
@@ -272,7 +275,7 @@ def _variable_chunk_range(reader, start: int, stop: int, chunk_points: int):
         c_end = c + 1
         while c_end < len(table) and firsts[c_end + 1] - firsts[c] <= chunk_points and firsts[c_end] < stop:
             c_end += 1
-        points = read_laz_chunks(name, vlr.record_data(), fmt, chunks[c:c_end])
+        points = read_laz_chunks(name, vlr.record_data(), fmt, chunks[c:c_end], geometry_only)
         points = points[start - firsts[c]:min(stop, firsts[c_end]) - firsts[c]].copy()
         start = int(min(stop, firsts[c_end]))
         c = c_end
