@@ -6,22 +6,25 @@ and 2 workers, and on a pair too large for one process, measured side by side in
 
 Rows (issue 16's table):
 
-- single: the 75 M-point pair (`bench_pipeline`'s generic city of 480 buildings, the paper's
-  survey, pre-event vs post_destruction), `quakescan classify` in one process: wall time and
-  peak RSS (target <= 3 min, <= 8 GB);
+- single: the issue's 2 x 75 M-point pair (`bench_pipeline`'s generic city of 480 buildings,
+  the paper's survey, pre-event vs post_destruction, 37.4 M points an epoch, copied twice side
+  by side: 74.9 M points an epoch), `quakescan classify` in one process: wall time and peak
+  RSS (target <= 3 min, <= 8 GB);
 - cluster: the same pair with `--workers 1` and `--workers 2` (LocalCluster, one thread a
   worker): wall time of each, speed-up (target >= 1.8x), the client's and the largest
   worker's peak RSS; `--pairs` (3) runs of 1 and 2 workers in turn, the speed-up the median
   of the pair-by-pair ratios (the machine's drift cancels in a pair), the row that pair's;
+- half: single and cluster on the city itself (2 x 37 M points, half the issue's pair: the
+  rows this benchmark measured before it measured the issue's pair);
 - large: the pair copied side by side (each copy 600 m east of the last, building IDs
   offset) to >= 2 x 250 M points on disk, `--workers 2 --memory-limit 4GB`: it finishes, the
   largest worker's peak (target <= 4 GB), and throughput per worker (points of both epochs
   per second per worker) against the single process's (target >= 0.9x);
 - single also runs the pair with `--threads 1`: one core's throughput, the like-for-like
   reference of a one-thread worker;
-- copc: the pair rewritten as COPC files (compressed, octree nodes of ~100 k points) on 2
+- copc: the half pair rewritten as COPC files (compressed, octree nodes of ~100 k points) on 2
   workers: tiles and densities read by bounds from the files, no block files;
-- graded: the pair classified with the graded cloud (post_grades.las) written, in one
+- graded: the half pair classified with the graded cloud (post_grades.las) written, in one
   process and on 2 workers (whose tasks make its records in parts): the time to write it;
 - trainset: the paper's four states (pre, heavy, extreme, destruction) of 1,000 generic
   buildings generated, acquired and described (`quakescan.learning.trainset.build` on a
@@ -55,7 +58,8 @@ WORK = ROOT / "out" / "bench_scale"
 LARGE_POINTS = 250_000_000  # per epoch, at least
 COPY_STEP_M = 600.0  # the big city is 576 m wide: copies 600 m apart never share a building
 ID_STEP = 100_000  # building IDs of copy k: k * ID_STEP + the source's
-ROWS = ("single", "cluster", "large", "trainset", "graded", "copc")
+ISSUE_PAIR_COPIES = 2  # the city's 37.4 M points an epoch twice: issue 16's "2 x 75 M-point pair"
+ROWS = ("single", "cluster", "half", "large", "trainset", "graded", "copc")
 
 
 class TreeSampler:
@@ -150,15 +154,22 @@ def copc_pair(work: Path, pre: Path, post: Path) -> tuple[Path, Path]:
 
 
 def large_pair(work: Path, pre: Path, post: Path) -> tuple[Path, Path, int]:
-    """The big pair copied side by side until each epoch holds >= LARGE_POINTS, written chunk by
-    chunk (never whole in memory); kept when already there with the right count."""
+    """The big pair copied side by side until each epoch holds >= LARGE_POINTS."""
     import laspy
 
     with laspy.open(pre) as f:
         copies = int(np.ceil(LARGE_POINTS / f.header.point_count))
+    return copied_pair(work, pre, post, copies, "large")
+
+
+def copied_pair(work: Path, pre: Path, post: Path, copies: int, prefix: str) -> tuple[Path, Path, int]:
+    """The big pair copied `copies` times side by side (WORK/PREFIX_NAME.las), written chunk by
+    chunk (never whole in memory); kept when already there with the right count."""
+    import laspy
+
     out = []
     for src in (pre, post):
-        dst = work / f"large_{src.stem}.las"
+        dst = work / f"{prefix}_{src.stem}.las"
         with laspy.open(src) as f:
             want = f.header.point_count * copies
             header = f.header
@@ -248,19 +259,31 @@ def main(argv=None):
     results = json.loads(results_path.read_text()) if results_path.is_file() else {}
     t_all = time.perf_counter()
     pre, post = big_pair()
-    if "single" in rows_wanted:
-        results["single"] = run_classify(pre, post, work / "single", [])
-        results["single1"] = run_classify(pre, post, work / "single1", ["--threads", "1"])
-    if "cluster" in rows_wanted:  # 1 and 2 workers in turn, the ratio pair by pair: the machine's drift cancels
+
+    def single_rows(p, q, suffix=""):
+        results["single" + suffix] = run_classify(p, q, work / f"single{suffix}", [])
+        results["single1" + suffix] = run_classify(p, q, work / f"single1{suffix}", ["--threads", "1"])
+
+    def cluster_rows(p, q, suffix=""):  # 1 and 2 workers in turn, the ratio pair by pair: the drift cancels
         runs: dict[int, list] = {1: [], 2: []}
         for _ in range(a.pairs):
             for n in (1, 2):
-                runs[n].append(run_classify(pre, post, work / f"cluster{n}", ["--workers", str(n)]))
+                runs[n].append(run_classify(p, q, work / f"cluster{n}{suffix}", ["--workers", str(n)]))
         ratios = [r1["wall_s"] / r2["wall_s"] for r1, r2 in zip(runs[1], runs[2])]
         middle = int(np.argsort(ratios)[len(ratios) // 2])  # the pair of the median ratio is the row
         for n in (1, 2):
-            results[f"cluster{n}"] = {**runs[n][middle], "walls_s": [r["wall_s"] for r in runs[n]]}
-        results["cluster2"]["ratios"] = ratios
+            results[f"cluster{n}{suffix}"] = {**runs[n][middle], "walls_s": [r["wall_s"] for r in runs[n]]}
+        results[f"cluster2{suffix}"]["ratios"] = ratios
+
+    if "single" in rows_wanted or "cluster" in rows_wanted:
+        ipre, ipost, _ = copied_pair(work, pre, post, ISSUE_PAIR_COPIES, "x2")
+        if "single" in rows_wanted:
+            single_rows(ipre, ipost)
+        if "cluster" in rows_wanted:
+            cluster_rows(ipre, ipost)
+    if "half" in rows_wanted:
+        single_rows(pre, post, "_half")
+        cluster_rows(pre, post, "_half")
     if "large" in rows_wanted:
         lpre, lpost, copies = large_pair(work, pre, post)
         results["large"] = {**run_classify(lpre, lpost, work / "large", ["--workers", "2", "--memory-limit", "4GB"]),
@@ -279,31 +302,42 @@ def main(argv=None):
         return f"{v:,.0f}"
 
     rows = []
-    s = results.get("single")
-    if s:
-        rows.append(("75 M-point pair, one process", "<= 180 s, <= 8,192 MiB", f"{s['points']:,}",
-                     f"{s['wall_s']:.0f}", f"{s['seconds']['read']:.0f} / {s['seconds']['describe']:.0f}",
-                     mb(s["client_mb"]), "—", f"{s['points'] / s['wall_s'] / 1e6:.3f}", "", s.get("at", "")))
-    s1 = results.get("single1")
-    if s1:
-        rows.append(("same pair, one process, one thread (`--threads 1`)", "", f"{s1['points']:,}",
-                     f"{s1['wall_s']:.0f}", f"{s1['seconds']['read']:.0f} / {s1['seconds']['describe']:.0f}",
-                     mb(s1["client_mb"]), "—", f"{s1['points'] / s1['wall_s'] / 1e6:.3f}",
-                     "one core's throughput: the like-for-like reference of a one-thread worker", s1.get("at", "")))
-    c1, c2 = results.get("cluster1"), results.get("cluster2")
-    for c, n in ((c1, 1), (c2, 2)):
-        if c:
-            speed = f"speed-up {c1['wall_s'] / c2['wall_s']:.2f}x" if (n == 2 and c1) else ""
-            if n == 2 and len(c.get("ratios", [])) > 1:
-                r = sorted(c["ratios"])
-                speed = (f"speed-up {r[len(r) // 2]:.2f}x, the median of {len(r)} pairs run in turn "
-                         f"({r[0]:.2f}-{r[-1]:.2f}x)")
-            if len(c.get("walls_s", [])) > 1:
-                speed += ("; " if speed else "") + "wall s of each run: " + ", ".join(f"{w:.0f}" for w in c["walls_s"])
-            rows.append((f"same pair, LocalCluster {n} worker{'s' if n > 1 else ''}",
-                         ">= 1.8x (2 vs 1)" if n == 2 else "", f"{c['points']:,}", f"{c['wall_s']:.0f}",
-                         f"{c['seconds']['read']:.0f} / {c['seconds']['describe']:.0f}", mb(c["client_mb"]),
-                         mb(c["worker_mb"]), f"{c['points'] / c['wall_s'] / n / 1e6:.3f}", speed, c.get("at", "")))
+
+    def pair_rows(suffix, label, targets):
+        s, s1 = results.get("single" + suffix), results.get("single1" + suffix)
+        if s:
+            rows.append((f"{label}, one process", "<= 180 s, <= 8,192 MiB" if targets else "", f"{s['points']:,}",
+                         f"{s['wall_s']:.0f}", f"{s['seconds']['read']:.0f} / {s['seconds']['describe']:.0f}",
+                         mb(s["client_mb"]), "—", f"{s['points'] / s['wall_s'] / 1e6:.3f}", "", s.get("at", "")))
+        if s1:
+            rows.append(("same pair, one process, one thread (`--threads 1`)", "", f"{s1['points']:,}",
+                         f"{s1['wall_s']:.0f}", f"{s1['seconds']['read']:.0f} / {s1['seconds']['describe']:.0f}",
+                         mb(s1["client_mb"]), "—", f"{s1['points'] / s1['wall_s'] / 1e6:.3f}",
+                         "one core's throughput: the like-for-like reference of a one-thread worker",
+                         s1.get("at", "")))
+        c1, c2 = results.get("cluster1" + suffix), results.get("cluster2" + suffix)
+        for c, n in ((c1, 1), (c2, 2)):
+            if c:
+                speed = f"speed-up {c1['wall_s'] / c2['wall_s']:.2f}x" if (n == 2 and c1) else ""
+                if n == 2 and len(c.get("ratios", [])) > 1:
+                    r = sorted(c["ratios"])
+                    speed = (f"speed-up {r[len(r) // 2]:.2f}x, the median of {len(r)} pairs run in turn "
+                             f"({r[0]:.2f}-{r[-1]:.2f}x)")
+                if len(c.get("walls_s", [])) > 1:
+                    speed += ("; " if speed else "") + "wall s of each run: " + ", ".join(
+                        f"{w:.0f}" for w in c["walls_s"])
+                stages = c["seconds"].get("stages", {})
+                if stages:
+                    speed += "; stages s: " + ", ".join(f"{k} {v:.0f}" for k, v in stages.items())
+                rows.append((f"same pair, LocalCluster {n} worker{'s' if n > 1 else ''}",
+                             ">= 1.8x (2 vs 1)" if (n == 2 and targets) else "", f"{c['points']:,}",
+                             f"{c['wall_s']:.0f}", f"{c['seconds']['read']:.0f} / {c['seconds']['describe']:.0f}",
+                             mb(c["client_mb"]), mb(c["worker_mb"]), f"{c['points'] / c['wall_s'] / n / 1e6:.3f}",
+                             speed, c.get("at", "")))
+
+    pair_rows("", "2 x 75 M-point pair (the city copied twice, 74.9 M points an epoch)", True)
+    pair_rows("_half", "2 x 37 M-point pair (the city itself: half the issue's pair)", False)
+    s, s1 = results.get("single"), results.get("single1")
     lg = results.get("large")
     if lg:
         ratio = ""
@@ -319,7 +353,7 @@ def main(argv=None):
                      mb(lg["worker_mb"]), f"{lg['points'] / lg['wall_s'] / 2 / 1e6:.3f}", ratio, lg.get("at", "")))
     cp = results.get("copc2")
     if cp:
-        rows.append(("same pair as COPC files (LAZ), LocalCluster 2 workers", "", f"{cp['points']:,}",
+        rows.append(("2 x 37 M-point pair as COPC files (LAZ), LocalCluster 2 workers", "", f"{cp['points']:,}",
                      f"{cp['wall_s']:.0f}", f"{cp['seconds']['read']:.0f} / {cp['seconds']['describe']:.0f}",
                      mb(cp["client_mb"]), mb(cp["worker_mb"]), f"{cp['points'] / cp['wall_s'] / 2 / 1e6:.3f}",
                      "tiles read by bounds from the files, no block files; stages s: " + ", ".join(
@@ -332,7 +366,7 @@ def main(argv=None):
     for key, label in (("graded1", "one process"), ("graded2", "LocalCluster 2 workers")):
         g = results.get(key)
         if g:
-            rows.append((f"same pair with the graded cloud (post_grades.las), {label}", "", f"{g['points']:,}",
+            rows.append((f"2 x 37 M-point pair with the graded cloud (post_grades.las), {label}", "", f"{g['points']:,}",
                          f"{g['wall_s']:.0f}", f"{g['seconds']['read']:.0f} / {g['seconds']['describe']:.0f}",
                          mb(g["client_mb"]), mb(g["worker_mb"]) if g.get("dask") else "—",
                          f"{g['points'] / g['wall_s'] / (2 if g.get('dask') else 1) / 1e6:.3f}",
