@@ -117,9 +117,9 @@ def test_las_follows_the_contract(tmp_path):
 def test_same_seed_same_bytes(tmp_path):
     scene = box_city(rows=1, cols=2)
     s = preset("paper").replace(beam="adaptive")
-    scan(scene, s, tmp_path / "a.las", seed=7, threads=2, batch_rays=50_000)
-    scan(scene, s, tmp_path / "b.las", seed=7, threads=1, batch_rays=50_000)
-    scan(scene, s, tmp_path / "c.las", seed=8, threads=2, batch_rays=50_000)
+    scan(scene, s, tmp_path / "a.las", seed=7, workers=2, batch_rays=50_000)
+    scan(scene, s, tmp_path / "b.las", seed=7, workers=1, batch_rays=50_000)
+    scan(scene, s, tmp_path / "c.las", seed=8, workers=2, batch_rays=50_000)
     a, b, c = ((tmp_path / f"{k}.las").read_bytes() for k in "abc")
     assert a == b
     assert a != c
@@ -381,9 +381,9 @@ def test_strip_misalignment_height_steps_have_the_expected_spread(tmp_path):
 def test_strip_misalignment_same_seed_same_bytes_whatever_the_threads(tmp_path):
     scene = box_city(rows=1, cols=2)
     s = preset("paper").replace(pulse_rate_hz=100_000.0, strip_misalignment_m=0.05)
-    scan(scene, s, tmp_path / "a.las", seed=7, threads=2, batch_rays=20_000)
-    scan(scene, s, tmp_path / "b.las", seed=7, threads=1, batch_rays=20_000)
-    scan(scene, s, tmp_path / "c.las", seed=8, threads=2, batch_rays=20_000)
+    scan(scene, s, tmp_path / "a.las", seed=7, workers=2, batch_rays=20_000)
+    scan(scene, s, tmp_path / "b.las", seed=7, workers=1, batch_rays=20_000)
+    scan(scene, s, tmp_path / "c.las", seed=8, workers=2, batch_rays=20_000)
     a, b, c = ((tmp_path / f"{k}.las").read_bytes() for k in "abc")
     assert a == b
     assert a != c

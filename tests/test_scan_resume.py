@@ -54,7 +54,7 @@ def test_a_scan_stopped_after_k_lines_resumes_and_writes_the_same_bytes(tmp_path
     else:  # a LAS's partial file holds them: no second copy
         assert sorted(p.name for p in ck.glob("line_*")) == [f"line_{i:06d}.json" for i in range(k)]
         assert (ck / "partial.las").is_file()
-    resumed = scan(scene, SURVEY, out, seed=5, batch_rays=BATCH, checkpoint=ck, fingerprint="f", threads=1)
+    resumed = scan(scene, SURVEY, out, seed=5, batch_rays=BATCH, checkpoint=ck, fingerprint="f", workers=1)
     assert resumed.lines_resumed == k
     assert out.read_bytes() == (tmp_path / f"whole.{suffix}").read_bytes()
     assert not ck.exists()  # removed once the output is complete
