@@ -45,6 +45,9 @@ def main(argv=None) -> int:
     p.add_argument("--small", action="store_true",
                    help="also the plan's two cities of small buildings (sheds, garages, row houses)")
     p.add_argument("--threads", type=int, default=-1, help="worker threads, or -1 for every core (default)")
+    p.add_argument("--keep-clouds", action="store_true",
+                   help="keep the training clouds (27 GB for the large plan; by default each is removed once "
+                   "its pairs are described: the tables are what the model is made from)")
     p.add_argument("-o", "--output", default=str(DEFAULT_MODEL))
     a = p.parse_args(argv)
     # the library logs its stage messages (training set, classifier comparison) to quakescan.stages
@@ -54,7 +57,7 @@ def main(argv=None) -> int:
     command = "python blender_scripts/make_default_model.py " + shlex.join(argv if argv is not None else sys.argv[1:])
     model, scores, table = make_default_model(Path(a.work), Path(a.output), seed=a.seed, size=a.size,
                                               scenes=a.scenes, damage=a.damage, small=a.small, workers=a.threads,
-                                              command=command.strip())
+                                              command=command.strip(), keep_clouds=a.keep_clouds)
     print(f"{len(table.y)} building rows; {model.provenance['classifier_selection']['chosen']}: cross-validated "
           f"overall accuracy {100 * model.provenance['test_overall_accuracy']:.1f} %; {time.perf_counter() - t0:.0f} s")
     return 0

@@ -101,6 +101,35 @@ def test_tasks_on_two_workers_give_the_table_and_manifest_of_one_process(plan, s
     assert len(list((tmp_path / "clouds").rglob("*.las"))) == 7
 
 
+@slow
+@pytest.mark.parametrize("where", ["here", "dask"])
+def test_clouds_dropped_once_described_give_the_same_table(where, plan, sequential, cluster, tmp_path, monkeypatch):
+    """`keep_clouds=False` removes each cloud after the last pair that reads it: the shared
+    pre-event cloud is still there for its second pair (acquired once), none is left after."""
+    import quakescan.acquisition.acquire as acquisition
+
+    seq_out, seq = sequential
+    found = []
+    real = acquisition.acquire
+
+    def watched(scene, acq, out, **kw):
+        found.append(Path(out).is_file())
+        return real(scene, acq, out, **kw)
+
+    monkeypatch.setattr(acquisition, "acquire", watched)  # seen in this process only (not in Dask workers)
+    table = build(tmp_path, plan, TABLE_SETTINGS, workers=1, client=cluster if where == "dask" else None,
+                  keep_clouds=False)
+    _same_tables(table, seq)
+    assert not list((tmp_path / "clouds").rglob("*.las")) and not list((tmp_path / "clouds").rglob("*.json"))
+    if where == "here":
+        assert found == [False] * 6 + [True, False]  # the last pair's pre-event cloud is the first pair's
+    # a rerun reads the tables and acquires nothing
+    found.clear()
+    again = build(tmp_path, plan, TABLE_SETTINGS, workers=1, keep_clouds=False)
+    _same_tables(again, seq)
+    assert found == []
+
+
 def _copy_scenes_and_tables(src: Path, dst: Path, pairs: list) -> None:
     """dst holds src's scenes and the finished tables (with their fingerprints) of `pairs` only."""
     shutil.copytree(src / "scenes", dst / "scenes")

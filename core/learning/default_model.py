@@ -207,12 +207,14 @@ def fit_default_model(table, plan, config: dict, scores, *, seed: int = 0, comma
 
 @accepts_old_say
 def transfer_training_table(work: Path, *, seed: int = 0, size: str = "full", scenes: str = "both",
-                            damage: str = "patterns", small: bool = False, workers: int = -1):
+                            damage: str = "patterns", small: bool = False, workers: int = -1,
+                            keep_clouds: bool = True):
     """The plan and the descriptor table of the training set under `work`: `scenes` clean (the
     generator's bare scenes, under work/trainset), realistic (the same cities with roof detail,
     trees and cars, labelled through footprints, under work/trainset_realistic) or both;
     `damage` "both" adds the clean plan's physics twins, `small` the small-building cities
-    (`quakescan.learning.trainset.default_plan`)."""
+    (`quakescan.learning.trainset.default_plan`); `keep_clouds` False removes each cloud once
+    its pairs are described (`quakescan.learning.trainset.build`)."""
     from .trainset import TrainingPlan, build, combine_tables, default_plan
 
     if scenes not in ("clean", "realistic", "both"):
@@ -222,7 +224,7 @@ def transfer_training_table(work: Path, *, seed: int = 0, size: str = "full", sc
     for kind in (("clean", "realistic") if scenes == "both" else (scenes,)):
         plan = default_plan(seed, size, kind, damage, small)
         folder = work / ("trainset" if kind == "clean" else "trainset_realistic")
-        parts[kind] = (plan, build(folder, plan, TABLE_SETTINGS, workers=workers))
+        parts[kind] = (plan, build(folder, plan, TABLE_SETTINGS, workers=workers, keep_clouds=keep_clouds))
     if scenes != "both":
         return parts[scenes]
     (clean_plan, clean), (real_plan, real) = parts["clean"], parts["realistic"]
@@ -234,13 +236,15 @@ def transfer_training_table(work: Path, *, seed: int = 0, size: str = "full", sc
 @accepts_old_say
 def make_default_model(work: Path, output: Path, *, seed: int = 0, size: str = "full", scenes: str = "both",
                        damage: str = "both", small: bool = False, workers: int = -1,
-                       command: str = ""):
-    """Build the training set under `work`, choose and fit the classifier, write `output`."""
+                       command: str = "", keep_clouds: bool = False):
+    """Build the training set under `work`, choose and fit the classifier, write `output`.
+    The training clouds are removed once described unless `keep_clouds` (the tables are what
+    the model is made from; the large plan's clouds fill 27 GB)."""
     from .model import save_model
 
     t0 = time.perf_counter()
     plan, table = transfer_training_table(work, seed=seed, size=size, scenes=scenes, damage=damage, small=small,
-                                          workers=workers)
+                                          workers=workers, keep_clouds=keep_clouds)
     full = model_columns(table)
     table = training_rows(full)
     stage_log.info(f"{len(full.y) - len(table.y)} of {len(full.y)} rows left out: damage their acquisition did not see")

@@ -393,7 +393,8 @@ def _grades(scene_dir: Path) -> dict:
     return {int(b["id"]): int(b["grade"]) for b in doc["buildings"]}
 
 
-def pair_table(out_dir, pair: dict, settings: dict, labels: str = "simulator", workers: int = -1) -> dict:
+def pair_table(out_dir, pair: dict, settings: dict, labels: str = "simulator", workers: int = -1,
+               discard: tuple = ()) -> dict:
     """The descriptor table of one pair of the training set under `out_dir`, whose city's
     scenes are made: read when its file is current (fingerprint), else the pair's clouds
     acquired (each reused when its sidecar records the same acquisition), described, and the
@@ -403,7 +404,8 @@ def pair_table(out_dir, pair: dict, settings: dict, labels: str = "simulator", w
     state of the process, so that the sequential `build` and a Dask worker run the same call
     and get the same table; a worker killed while it runs leaves at most temporary files,
     which the task run again replaces. Returns the table's arrays: x, y, building_id,
-    density, cells, seconds (acquisition and description)."""
+    density, cells, seconds (acquisition and description). `discard`: clouds (paths) that no
+    later pair reads, removed with their sidecars once the table is written (or found)."""
     from ..acquisition.acquire import Acquisition, acquire
     from ..change.pipeline import PipelineSettings, describe_pair, descriptor_matrix
     from ..results.evaluation import to_target_grade
@@ -428,6 +430,7 @@ def pair_table(out_dir, pair: dict, settings: dict, labels: str = "simulator", w
             log.warning("%s: unreadable table (%s), discarded: recomputing it", table_path, e)
             table_path.unlink(missing_ok=True)
     if part is not None:
+        _discard_clouds(discard)
         return part
     fingerprint.forget(table_path)
     t = time.perf_counter()
@@ -449,7 +452,31 @@ def pair_table(out_dir, pair: dict, settings: dict, labels: str = "simulator", w
     with open_replacing(table_path, "wb") as f:
         np.savez(f, **part)
     fingerprint.record(table_path, table_fp)
+    _discard_clouds(discard)
     return part
+
+
+def _discard_clouds(paths) -> None:
+    """Remove clouds no later pair reads, sidecar first (a cloud without its sidecar is made
+    again, never trusted)."""
+    from ..acquisition.acquire import sidecar_path
+
+    for p in paths:
+        sidecar_path(p).unlink(missing_ok=True)
+        Path(p).unlink(missing_ok=True)
+
+
+def _last_readers(plan) -> list[list[str]]:
+    """Per pair of the plan, the clouds (paths under the build's folder) it is the last pair
+    to read: pairs share a cloud when they name the same scene, acquisition and seed."""
+    last = {}
+    for i, pair in enumerate(plan.pairs):
+        for p in _cloud_paths(Path(), pair):
+            last[str(p)] = i
+    out = [[] for _ in plan.pairs]
+    for p, i in last.items():
+        out[i].append(p)
+    return out
 
 
 def _epochs(pair: PairSpec) -> tuple:
@@ -469,7 +496,7 @@ def _city_task(out_dir: str, city: dict) -> str:
     return spec.name
 
 
-def _pair_task(after: list, out_dir: str, pair: dict, settings: dict, labels: str) -> dict:
+def _pair_task(after: list, out_dir: str, pair: dict, settings: dict, labels: str, discard: tuple = ()) -> dict:
     """Dask task: `pair_table` on a single-threaded worker. `after` holds the results of the
     tasks it must follow (its city's generation, earlier pairs writing one of its clouds):
     Dask runs it only once they are done. Every numba kernel on one thread: the worker
@@ -477,12 +504,12 @@ def _pair_task(after: list, out_dir: str, pair: dict, settings: dict, labels: st
     from ..runtime.workers import kernel_threads
 
     with kernel_threads(1):
-        return pair_table(out_dir, pair, settings, labels, workers=1)
+        return pair_table(out_dir, pair, settings, labels, workers=1, discard=discard)
 
 
 @accepts_old_say
 def build(out_dir, plan: TrainingPlan, settings, *, workers: int = -1,
-          progress: ProgressCallback | None = None, client=None) -> TransferTable:
+          progress: ProgressCallback | None = None, client=None, keep_clouds: bool = True) -> TransferTable:
     """Generate, acquire and describe everything the plan asks for under out_dir; returns the
     table of all pairs. Resumable and seeded (see the module docstring). `progress(done,
     total)` counts cities generated and pairs acquired and described; the stage messages go to
@@ -491,7 +518,11 @@ def build(out_dir, plan: TrainingPlan, settings, *, workers: int = -1,
     `client` (a dask.distributed Client): the same work as Dask tasks on its cluster, one per
     city (the generator) and one per pair (`pair_table`: acquisition and description, after
     its city), the same table; every worker must reach out_dir. Without, one process, city
-    after city and pair after pair with `workers` threads."""
+    after city and pair after pair with `workers` threads.
+
+    `keep_clouds` False: each cloud is removed once the last pair that reads it has its table
+    (the large plan's clouds fill 27 GB, its tables 30 MB); a resumed build acquires again
+    only the clouds of pairs without a table."""
     out = Path(out_dir)
     for sub in ("scenes", "clouds", "tables"):
         (out / sub).mkdir(parents=True, exist_ok=True)
@@ -504,10 +535,12 @@ def build(out_dir, plan: TrainingPlan, settings, *, workers: int = -1,
     if unknown:
         raise TrainingSetError(f"pairs name cities the plan does not have: {unknown}")
     names = settings.descriptor_names()
+    discard = ([[] for _ in plan.pairs] if keep_clouds
+               else [[str(out / p) for p in paths] for paths in _last_readers(plan)])
     if client is None:
-        parts = _build_here(out, plan, settings, workers, progress)
+        parts = _build_here(out, plan, settings, workers, progress, discard)
     else:
-        parts = _build_on_dask(client, out, plan, settings, progress)
+        parts = _build_on_dask(client, out, plan, settings, progress, discard)
     manifest_pairs = [{"name": pair.name, "rows": int(len(part["y"])),
                        "acquire_s": round(float(part["seconds"][0]), 1),
                        "describe_s": round(float(part["seconds"][1]), 1)} for pair, part in zip(plan.pairs, parts)]
@@ -540,7 +573,7 @@ def _pair_message(k: int, n: int, pair: PairSpec, part: dict) -> str:
             f"(acquire {part['seconds'][0]:.0f} s, describe {part['seconds'][1]:.0f} s)")
 
 
-def _build_here(out: Path, plan: TrainingPlan, settings, workers: int, progress) -> list:
+def _build_here(out: Path, plan: TrainingPlan, settings, workers: int, progress, discard: list) -> list:
     """The tables of every pair, made in this process: every city first, then pair by pair."""
     steps = len(plan.cities) + len(plan.pairs)
     stage_log.info(f"training set 1/3: {len(plan.cities)} cities -> {out / 'scenes'}")
@@ -553,14 +586,14 @@ def _build_here(out: Path, plan: TrainingPlan, settings, workers: int, progress)
     stage_log.info(f"training set 2/3 and 3/3: acquiring and describing {len(plan.pairs)} pairs")
     parts, config = [], settings.to_json()
     for k, pair in enumerate(plan.pairs, 1):
-        parts.append(pair_table(out, asdict(pair), config, plan.labels, workers))
+        parts.append(pair_table(out, asdict(pair), config, plan.labels, workers, tuple(discard[k - 1])))
         stage_log.info(_pair_message(k, len(plan.pairs), pair, parts[-1]))
         if progress:
             progress(len(plan.cities) + k, steps)
     return parts
 
 
-def _build_on_dask(client, out: Path, plan: TrainingPlan, settings, progress) -> list:
+def _build_on_dask(client, out: Path, plan: TrainingPlan, settings, progress, discard: list) -> list:
     """The tables of every pair as Dask tasks on `client`'s cluster: one task per city, one per
     pair after its city's. Tasks take the output folder and the plain specs and return only
     the small table arrays; the scenes and clouds stay on disk and each worker builds its own
@@ -586,11 +619,11 @@ def _build_on_dask(client, out: Path, plan: TrainingPlan, settings, progress) ->
     # a cloud file shared by two pairs (same scene, sensor and seed) is written by the first
     # and reused or rewritten by the next, as one process does: never by two tasks at once
     last_writer, pair_futures = {}, []
-    for pair in plan.pairs:
+    for k, pair in enumerate(plan.pairs):
         record = asdict(pair)
         paths = _cloud_paths(out, pair)
         after = [made[pair.city]] + [last_writer[p] for p in paths if p in last_writer]
-        f = client.submit(_pair_task, after, root, record, config, plan.labels,
+        f = client.submit(_pair_task, after, root, record, config, plan.labels, tuple(discard[k]),
                           key=f"trainset-pair-{pair.name}-{run}")
         for p in paths:
             last_writer[p] = f
