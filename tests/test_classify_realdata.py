@@ -142,7 +142,8 @@ def test_an_unregistered_post_epoch_is_aligned_without_being_asked_and_says_so(a
     """The same tile moved by (0.4, 0, 0.15) m as the post epoch, no --align: the epochs'
     stable ground disagrees by more than the model tolerates, so classify aligns them and
     says so; every building stays undamaged. --no-align takes them as they are (and the
-    offset reads as damage, which is why it is not the default)."""
+    offset reads as damage on some buildings, which is why it is not the default: 21 of 133
+    with the model shipped on 2026-11-27, more than half with the one before)."""
     las_path, fp = ahn3
     las = laspy.read(las_path)
     las.x = np.asarray(las.x) + 0.4
@@ -164,7 +165,7 @@ def test_an_unregistered_post_epoch_is_aligned_without_being_asked_and_says_so(a
     summary = json.loads((tmp_path / "off" / "summary.json").read_text())
     assert summary["registration"] == {"mode": "off", "checked": False} and "alignment" not in summary
     rows = [r for r in _rows(tmp_path / "off" / "buildings.csv").values() if r["assessable"] == "1"]
-    assert sum(r["label"] != "no damage" for r in rows) > 0.5 * len(rows)
+    assert sum(r["label"] != "no damage" for r in rows) > 0.05 * len(rows)
 
 
 def test_registered_epochs_are_checked_and_left_as_they_are(same_tile_result):
