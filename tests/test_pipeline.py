@@ -142,3 +142,85 @@ def test_a_model_for_unknown_features_is_refused():
         PipelineSettings(radius_m=float("nan"))
     with pytest.raises(PipelineError, match="unknown point features"):
         PipelineSettings(point_features=("planarity", "colour"))
+
+
+def _stable_groups(ids, uniq):
+    order = np.argsort(ids, kind="stable")
+    return order, np.searchsorted(ids[order], uniq)
+
+
+@pytest.mark.parametrize("ids", [np.random.default_rng(0).choice([0, 3, 5, 7, -2], 100_003),
+                                 np.random.default_rng(1).choice([0, 5, 10 ** 12], 1_000),  # wide: np.unique path
+                                 np.array([4]), np.zeros(0, np.int64),
+                                 np.random.default_rng(2).integers(0, 300, 50_000).astype(np.int32)])
+def test_id_counts_and_grouping_are_numpys_unique_and_stable_argsort(ids):
+    from quakescan.change.pipeline import grouped_by_id, id_counts
+
+    uniq, counts = id_counts(ids)
+    want_u, want_c = np.unique(ids, return_counts=True)
+    np.testing.assert_array_equal(uniq, want_u)
+    np.testing.assert_array_equal(counts, want_c)
+    assert uniq.dtype == want_u.dtype
+    order, starts = grouped_by_id(ids, uniq)
+    want_o, want_s = _stable_groups(ids, uniq)
+    np.testing.assert_array_equal(order, want_o)
+    np.testing.assert_array_equal(starts, want_s)
+
+
+@pytest.mark.parametrize("offset", [(0.0, 0.0), (500_000.0, 5_000_000.0)])
+def test_grid_index_buckets_are_a_stable_argsort_of_the_cells(offset):
+    """The counting sort behind GridIndex gives the order, cells and starts the numpy
+    expression it replaced gives, at UTM coordinates too (the same float64 operations)."""
+    rng = np.random.default_rng(3)
+    xy = rng.uniform(0, 333, (40_000, 2)) + offset
+    xy[:50] = xy[50]  # points on one spot
+    xy[60] = xy.min(axis=0)  # a point on the lower corner
+    index = GridIndex(xy, 12.5)
+    lo = xy.min(axis=0)
+    ij = np.floor((xy - lo) / 12.5).astype(np.int64)
+    dims = (int(ij[:, 0].max()) + 1, int(ij[:, 1].max()) + 1)
+    key = ij[:, 0] * dims[1] + ij[:, 1]
+    order = np.argsort(key, kind="stable")
+    assert index.dims == dims
+    np.testing.assert_array_equal(index.order, order)
+    np.testing.assert_array_equal(index.starts, np.searchsorted(key[order], np.arange(dims[0] * dims[1] + 1)))
+
+
+def test_tiles_described_side_by_side_give_the_rows_of_one_at_a_time(collapse_pair, monkeypatch):
+    """Tiles run in threads when numba's threading layer allows it; the rows, their order
+    and every descriptor are those of the tiles described one after the other."""
+    import threading
+
+    import numba
+
+    from quakescan.change import pipeline
+
+    pre, post = collapse_pair
+    s = PipelineSettings(tile_m=20.0)  # one building per tile: six tiles
+    threads, describe_tile = set(), pipeline._describe_tile
+
+    def spy(*a, **k):
+        threads.add(threading.get_ident())
+        return describe_tile(*a, **k)
+
+    monkeypatch.setattr(pipeline, "_describe_tile", spy)
+    side_by_side = describe_pair(pre, post, s, workers=2)
+    if numba.threading_layer() in ("tbb", "omp"):
+        assert len(threads) > 1  # the tiles did run in threads
+    monkeypatch.setattr(pipeline, "tile_threads", lambda workers, n: 1)
+    one_at_a_time = describe_pair(pre, post, s, workers=2)
+    assert [r.building_id for r in side_by_side] == [r.building_id for r in one_at_a_time]
+    for a, b in zip(side_by_side, one_at_a_time):
+        assert repr(a.descriptors) == repr(b.descriptors) and a.quality == b.quality
+
+
+def test_tile_threads_follow_workers_and_the_threading_layer(monkeypatch):
+    import numba
+
+    from quakescan.change.pipeline import tile_threads
+
+    monkeypatch.setattr(numba, "threading_layer", lambda: "tbb")
+    assert tile_threads(2, 10) == 2 and tile_threads(1, 10) == 1 and tile_threads(8, 3) == 3
+    assert tile_threads(2, 1) == 1  # one tile: its kernels get the threads
+    monkeypatch.setattr(numba, "threading_layer", lambda: "workqueue")  # not safe from several threads
+    assert tile_threads(2, 10) == 1

@@ -376,3 +376,19 @@ def test_compiled_top_band_counts_are_numpys_to_the_last_bit():
         np.testing.assert_array_equal(top, ref_top)
         np.testing.assert_array_equal(counts, ref_counts)
     assert np.isneginf(top[50:]).all() and not counts[50:].any()  # empty cells
+
+
+@pytest.mark.parametrize("spread, masked", [(300.0, False), (300.0, True), (3.0, True), (1e6, False)])
+def test_planimetric_density_on_a_dense_grid_is_the_sorted_cells_to_the_last_bit(spread, masked, monkeypatch):
+    """The dense-grid count (no per-point arrays) gives the measure of the cells found by
+    sorting, to the last bit: a city, a building too small for an interior cell, and a cloud
+    scattered over 1000 km (which falls back to sorting)."""
+    from quakescan.change import surface
+
+    rng = np.random.default_rng(4)
+    n = 60_000
+    xyz = np.c_[rng.uniform(0, spread, n) + 500_000.0, rng.uniform(0, 200, n) - 100, rng.uniform(0, 20, n)]
+    where = rng.random(n) < 0.6 if masked else None
+    dense = surface.planimetric_density(xyz, where)
+    monkeypatch.setattr(surface, "_dense_planimetric_density", lambda *a: None)
+    assert dense == surface.planimetric_density(xyz, where)

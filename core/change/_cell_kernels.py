@@ -1,10 +1,15 @@
-"""Compiled per-cell reductions for the planimetric density (numba).
+"""Compiled per-cell loops (numba): the planimetric density's reductions and the bucket
+order of a grid index.
 
 `top_band_counts` is `np.maximum.at` of the heights into their cells followed by a count of
 the points within the band below each cell's top: numpy's unbuffered `ufunc.at` takes about
 50 ns a point, this loop a few (the densities of a 2 x 37 M-point pair were mostly that call).
 Same comparisons on the same float64 values, so the same tops and counts to the last bit;
 `top_band_counts_reference` is the numpy version the tests compare it with.
+
+`bucket_order` is a counting sort: the order a stable argsort of the cell keys gives, in
+two passes and without the argsort's 8-byte-a-point index and its copy of the sorted keys
+(a 75 M-point epoch's grid index was 8 s and 1.3 GB of temporaries that way).
 """
 from __future__ import annotations
 
@@ -36,3 +41,99 @@ def top_band_counts_reference(cell, z, n_cells, band):
     np.maximum.at(top, cell, z)
     counts = np.bincount(cell[z >= top[cell] - band], minlength=n_cells).astype(np.int64)
     return top, counts
+
+
+@njit(**_JIT)
+def bucket_order(key, n_keys, order):
+    """Fill `order` with the indices of `key` (0 <= key < n_keys) sorted by key, equal keys in
+    index order (a stable argsort), and return the (n_keys + 1,) start of each key's run."""
+    starts = np.zeros(n_keys + 1, np.int64)
+    for i in range(key.shape[0]):
+        starts[key[i] + 1] += 1
+    for k in range(n_keys):
+        starts[k + 1] += starts[k]
+    fill = starts[:-1].copy()
+    for i in range(key.shape[0]):
+        k = key[i]
+        order[fill[k]] = i
+        fill[k] += 1
+    return starts
+
+
+@njit(**_JIT)
+def cell_span(xyz, mask, cell_m):
+    """(min i, min j, max i, max j, points) of the cells floor(x / cell_m), floor(y / cell_m)
+    of the points where `mask` is set (all points when `mask` is empty)."""
+    lo_i = lo_j = np.iinfo(np.int64).max
+    hi_i = hi_j = np.iinfo(np.int64).min
+    n = 0
+    every = mask.shape[0] == 0
+    for p in range(xyz.shape[0]):
+        if every or mask[p]:
+            i = np.int64(np.floor(xyz[p, 0] / cell_m))
+            j = np.int64(np.floor(xyz[p, 1] / cell_m))
+            lo_i, hi_i = min(lo_i, i), max(hi_i, i)
+            lo_j, hi_j = min(lo_j, j), max(hi_j, j)
+            n += 1
+    return lo_i, lo_j, hi_i, hi_j, n
+
+
+@njit(**_JIT)
+def dense_top_band_counts(xyz, mask, cell_m, lo_i, lo_j, width, n_cells, band):
+    """`top_band_counts` on a dense grid of `width` columns whose cell (0, 0) is (lo_i, lo_j),
+    the cells computed in the loop: no per-point cell or height array is made."""
+    every = mask.shape[0] == 0
+    top = np.full(n_cells, -np.inf)
+    for p in range(xyz.shape[0]):
+        if every or mask[p]:
+            c = (np.int64(np.floor(xyz[p, 0] / cell_m)) - lo_i) * width + np.int64(np.floor(xyz[p, 1] / cell_m)) - lo_j
+            if xyz[p, 2] > top[c]:
+                top[c] = xyz[p, 2]
+    counts = np.zeros(n_cells, np.int64)
+    for p in range(xyz.shape[0]):
+        if every or mask[p]:
+            c = (np.int64(np.floor(xyz[p, 0] / cell_m)) - lo_i) * width + np.int64(np.floor(xyz[p, 1] / cell_m)) - lo_j
+            if xyz[p, 2] >= top[c] - band:
+                counts[c] += 1
+    return counts
+
+
+@njit(**_JIT)
+def grid_keys(xy, lo0, lo1, cell, width, key):
+    """key[p] = floor((x - lo0) / cell) * width + floor((y - lo1) / cell): the same float64
+    operations as numpy's, so the same cells."""
+    for p in range(xy.shape[0]):
+        key[p] = np.int64(np.floor((xy[p, 0] - lo0) / cell)) * width + np.int64(np.floor((xy[p, 1] - lo1) / cell))
+
+
+@njit(**_JIT)
+def column_bounds(a):
+    """(min, max) of every column of a 2-D array in one pass over its rows."""
+    lo = np.full(a.shape[1], np.inf)
+    hi = np.full(a.shape[1], -np.inf)
+    for p in range(a.shape[0]):
+        for k in range(a.shape[1]):
+            v = a[p, k]
+            if v < lo[k]:
+                lo[k] = v
+            if v > hi[k]:
+                hi[k] = v
+    return lo, hi
+
+
+@njit(**_JIT)
+def splitmix_below(start, index, n, threshold):
+    """Whether the splitmix64 hash of each point index is below `threshold`: the indices
+    `start + i` for i < n when `index` is empty, else `index` itself. Unsigned 64-bit
+    arithmetic wraps as numpy's does, so the same bits as the numpy expression."""
+    given = index.shape[0] > 0
+    m = index.shape[0] if given else n
+    out = np.empty(m, np.bool_)
+    for i in range(m):
+        z = np.uint64(index[i]) if given else np.uint64(start + i)
+        z = z + np.uint64(0x9E3779B97F4A7C15)
+        z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+        z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+        z = z ^ (z >> np.uint64(31))
+        out[i] = z < threshold
+    return out

@@ -286,13 +286,18 @@ class GridIndex:
             self.order = np.zeros(0, np.int64)
             self.starts = np.zeros(2, np.int64)
             return
-        self.lo, self.hi = xy.min(axis=0), xy.max(axis=0)
-        ij = np.floor((xy - self.lo) / self.cell).astype(np.int64)
-        self.dims = (int(ij[:, 0].max()) + 1, int(ij[:, 1].max()) + 1)
-        key = ij[:, 0] * self.dims[1] + ij[:, 1]
-        dtype = np.int32 if len(xy) < 2 ** 31 else np.int64  # halves the index of a city-size cloud
-        self.order = np.argsort(key, kind="stable").astype(dtype)
-        self.starts = np.searchsorted(key[self.order], np.arange(self.dims[0] * self.dims[1] + 1))
+        from ._cell_kernels import bucket_order, column_bounds, grid_keys
+
+        self.lo, self.hi = column_bounds(xy)  # one pass: numpy's min and max read the columns strided, four times
+        lo0, lo1 = float(self.lo[0]), float(self.lo[1])
+        self.dims = tuple(int(d) for d in np.floor((self.hi - self.lo) / self.cell).astype(np.int64) + 1)
+        n_cells = self.dims[0] * self.dims[1]
+        # cell keys in a compiled loop: the (n, 2) float temporaries of numpy expressions over
+        # a city-size epoch would be several times the index itself
+        key = np.empty(len(xy), np.int32 if n_cells < 2 ** 31 else np.int64)
+        grid_keys(xy, lo0, lo1, self.cell, self.dims[1], key)
+        self.order = np.empty(len(xy), np.int32 if len(xy) < 2 ** 31 else np.int64)  # halves a city's index
+        self.starts = bucket_order(key, n_cells, self.order)
 
     def query(self, xy: np.ndarray, box: np.ndarray) -> np.ndarray:
         """Sorted indices of the points with box[0] <= xy <= box[1] (box: (2, 2) min/max)."""
@@ -373,22 +378,21 @@ def describe_pair(pre: Epoch, post: Epoch, settings: PipelineSettings, *, worker
         raise PipelineError(f"{post.source}: epochs are in different local frames; read the post epoch "
                             "with the pre epoch's origin")
     pre_ids, post_ids = pre.building_id, post.building_id
-    uniq_pre, n_pre = np.unique(pre_ids, return_counts=True)
-    uniq_post, n_post = np.unique(post_ids, return_counts=True)
+    uniq_pre, n_pre = id_counts(pre_ids)
+    uniq_post, n_post = id_counts(post_ids)
     n_pre_of = dict(zip(uniq_pre.tolist(), n_pre.tolist()))
     n_post_of = dict(zip(uniq_post.tolist(), n_post.tolist()))
     all_ids = sorted(i for i in set(n_pre_of) | set(n_post_of) if i > 0)
     if not all_ids:
         raise PipelineError(f"{pre.source}: no point belongs to a building (all building IDs are 0)")
     rows, ok = rows_by_counts(n_pre_of, n_post_of, settings)
-    order = np.argsort(pre_ids, kind="stable")
-    starts = np.searchsorted(pre_ids[order], uniq_pre)
+    order, starts = grouped_by_id(pre_ids, uniq_pre)
     ends = starts + n_pre
     where = {int(b): (s, t) for b, s, t in zip(uniq_pre, starts, ends)}
     # Points stacked on one spot (a broken export, a sensor stuck on a line) have no geometry:
     # the features of such a building are undefined and "no change" would read as no damage.
-    post_order = np.argsort(post_ids, kind="stable")
-    post_start = dict(zip(uniq_post.tolist(), np.searchsorted(post_ids[post_order], uniq_post).tolist()))
+    post_order, post_starts = grouped_by_id(post_ids, uniq_post)
+    post_start = dict(zip(uniq_post.tolist(), post_starts.tolist()))
     for bid in list(ok):
         s, t = where[bid]
         a = _few_distinct(pre.xyz, order[s:t], settings.min_points_pre)
@@ -419,23 +423,99 @@ def describe_pair(pre: Epoch, post: Epoch, settings: PipelineSettings, *, worker
     total = len(ok)
     done = done or {}
     finished = 0
+    todo = []
     for key in sorted(tiles):
         bids = tiles[key]
         if all(b in done for b in bids):
             for b in bids:
                 rows[b] = done[b]
             finished = _report_buildings(progress, finished, len(bids), total)
-            continue
+        else:
+            todo.append(bids)
+
+    def describe(bids, kernel_workers):
         members = {b: order[where[b][0]:where[b][1]] for b in bids}
-        tile_rows = _describe_tile(pre, post, pre_index, post_index, bids, members, settings, geometry, workers)
+        return _describe_tile(pre, post, pre_index, post_index, bids, members, settings, geometry, kernel_workers)
+
+    def finish(tile_rows):
+        nonlocal finished
         for r in tile_rows:
             r.n_pre, r.n_post = n_pre_of.get(r.building_id, 0), n_post_of.get(r.building_id, 0)
             r.centre_xy = tuple(centres[r.building_id].tolist())
             rows[r.building_id] = r
         if on_tile:
             on_tile(tile_rows)
-        finished = _report_buildings(progress, finished, len(bids), total)
+        finished = _report_buildings(progress, finished, len(tile_rows), total)
+
+    # The first tile alone, its kernels on every thread asked for: it loads numba's threading
+    # layer, which then says whether tiles may run side by side.
+    if todo:
+        finish(describe(todo[0], workers))
+    threads = tile_threads(workers, len(todo) - 1)
+    if threads <= 1:
+        for bids in todo[1:]:
+            finish(describe(bids, workers))
+    else:
+        # Tiles side by side, one kernel thread each: much of a tile's time is numpy outside
+        # the numba kernels, which one thread per tile keeps busy (results do not depend on
+        # the order: rows are keyed by building).
+        from concurrent.futures import ThreadPoolExecutor, as_completed
+
+        with ThreadPoolExecutor(max_workers=threads) as pool:
+            for fut in as_completed([pool.submit(describe, bids, 1) for bids in todo[1:]]):
+                finish(fut.result())
     return [quality_gate(rows[b], settings) for b in all_ids]
+
+
+def tile_threads(workers: int, n_tiles: int) -> int:
+    """Threads that describe tiles side by side: `workers` (-1: every core) at most one per
+    tile, and 1 unless numba's threading layer lets parallel kernels be launched from
+    several threads at once (tbb and omp do; workqueue aborts the process)."""
+    if n_tiles <= 1:
+        return 1
+    try:
+        import numba
+
+        layer = numba.threading_layer()
+    except (ImportError, ValueError):  # ValueError: no parallel kernel has run yet
+        return 1
+    if layer not in ("tbb", "omp"):
+        return 1
+    n = numba.config.NUMBA_NUM_THREADS if workers is None or workers < 1 else int(workers)
+    return max(1, min(n, n_tiles))
+
+
+def id_counts(ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """np.unique(ids, return_counts=True), by counting where the IDs span a range no longer
+    than the array (building IDs do): no sorted copy of a city-size epoch (5 s and 8 bytes a
+    point for 37 M points)."""
+    if len(ids) == 0:
+        return np.unique(ids, return_counts=True)
+    lo, hi = int(ids.min()), int(ids.max())
+    if hi - lo > max(len(ids), 1 << 16):
+        return np.unique(ids, return_counts=True)
+    counts = np.zeros(hi - lo + 1, np.int64)
+    step = 1 << 22
+    for a in range(0, len(ids), step):
+        counts += np.bincount(ids[a:a + step] - lo, minlength=len(counts))
+    present = np.flatnonzero(counts)
+    return (present + lo).astype(ids.dtype), counts[present]
+
+
+def grouped_by_id(ids: np.ndarray, uniq: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(order, starts): the point indices grouped by ID (the IDs `uniq`, ascending, as
+    np.unique gives them; within an ID in point order, as a stable argsort gives them) and
+    where each ID's run starts. A counting sort of the IDs' ranks: a 75 M-point epoch's
+    stable argsort took 8 s and its 8-byte index and sorted copy 1.2 GB."""
+    from ._cell_kernels import bucket_order
+
+    rank = np.empty(len(ids), np.int32 if len(uniq) < 2 ** 31 else np.int64)
+    step = 1 << 22
+    for a in range(0, len(ids), step):
+        rank[a:a + step] = np.searchsorted(uniq, ids[a:a + step])
+    order = np.empty(len(ids), np.int32 if len(ids) < 2 ** 31 else np.int64)
+    starts = bucket_order(rank, len(uniq), order)
+    return order, starts[:-1]
 
 
 def rows_by_counts(n_pre_of: dict, n_post_of: dict, settings: PipelineSettings) -> tuple[dict, list]:

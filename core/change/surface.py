@@ -212,6 +212,9 @@ def planimetric_density(xyz: np.ndarray, where: np.ndarray | None = None) -> flo
     measured without a copy of their coordinates (a column at a time: 0.7 GB less at the
     peak of a 37 M-point epoch)."""
     xyz = np.asarray(xyz, dtype=np.float64)
+    dense = _dense_planimetric_density(xyz, where)
+    if dense is not None:
+        return dense
     idx = slice(None) if where is None else np.flatnonzero(where)
     z = xyz[idx, 2]
     if len(z) == 0:
@@ -226,6 +229,41 @@ def planimetric_density(xyz: np.ndarray, where: np.ndarray | None = None) -> flo
     keys, inverse = np.unique(cells[:, 0] * (int(cells[:, 1].max() - cells[:, 1].min()) + 2)
                               + (cells[:, 1] - cells[:, 1].min()), return_inverse=True)
     return float(_top_band_counts(inverse, z, len(keys)).mean()) / DENSITY_CELL_M ** 2
+
+
+def _dense_planimetric_density(xyz: np.ndarray, where: np.ndarray | None) -> float | None:
+    """`planimetric_density` counted on a dense grid over the points' cells, in compiled
+    loops that make no per-point array: the same cells, counts and measure (the
+    interquartile mean and the mean of integer counts do not depend on their order), at a
+    few bytes per cell instead of about 60 per point (a 75 M-point epoch: 2.6 GB less at the
+    peak). None where the grid would be much larger than the points (scattered clouds)."""
+    from ._cell_kernels import cell_span, dense_top_band_counts
+
+    xyz = np.ascontiguousarray(xyz)
+    mask = np.zeros(0, bool) if where is None else np.ascontiguousarray(where, dtype=bool)
+    lo_i, lo_j, hi_i, hi_j, n = cell_span(xyz, mask, DENSITY_CELL_M)
+    if n == 0:
+        return 0.0
+    # one empty cell of margin all round: every occupied cell has eight neighbours on the grid
+    lo_i, lo_j = lo_i - 1, lo_j - 1
+    rows, width = int(hi_i - lo_i) + 2, int(hi_j - lo_j) + 2
+    if rows * width > max(8 * n, 1 << 20):
+        return None
+    counts = dense_top_band_counts(xyz, mask, DENSITY_CELL_M, lo_i, lo_j, width, rows * width,
+                                   float(ROOF_BAND_M)).reshape(rows, width)
+    occupied = counts > 0
+    interior = occupied.copy()
+    for dx in (-1, 0, 1):
+        for dy in (-1, 0, 1):
+            if dx or dy:
+                interior[1:-1, 1:-1] &= occupied[1 + dx:rows - 1 + dx, 1 + dy:width - 1 + dy]
+    interior[[0, -1], :] = False
+    interior[:, [0, -1]] = False
+    if interior.any():
+        from scipy.stats import trim_mean
+
+        return float(trim_mean(counts[interior], 0.25)) / DENSITY_CELL_M ** 2
+    return float(counts[occupied].mean()) / DENSITY_CELL_M ** 2
 
 
 def _top_band_counts(cell: np.ndarray, z: np.ndarray, n_cells: int) -> np.ndarray:

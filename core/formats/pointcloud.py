@@ -351,7 +351,7 @@ class Epoch:
     xyz: np.ndarray  # (n, 3) float64, relative to origin
     origin: np.ndarray  # (3,) float64
     classification: np.ndarray  # (n,) uint8
-    building_id: np.ndarray | None = None  # (n,) int64, from the file or from footprints
+    building_id: np.ndarray | None = None  # (n,) int32 or int64, from the file or from footprints
     grade: np.ndarray | None = None  # (n,) uint8, simulated data only
     surface: np.ndarray | None = None
     crs: str | None = None
@@ -399,34 +399,89 @@ def check_coordinates_fit_crs(crs: str | None, mins, maxs, what: str, error=Poin
                     "Give the file its real CRS")
 
 
-def read_epoch(path: str | os.PathLike, origin=None) -> Epoch:
+def _id_buffer_dtype(file_dtype) -> np.dtype:
+    """Where a file's building IDs are read: in 4 bytes when the file stores them in 4 or
+    fewer (QuakeScan writes uint32: a city-size epoch holds 4 bytes a point less than int64)."""
+    file_dtype = np.dtype(file_dtype)
+    if file_dtype.kind in "iu" and file_dtype.itemsize <= 4:
+        return np.dtype(np.uint32) if file_dtype.kind == "u" else np.dtype(np.int32)
+    return np.dtype(np.int64)
+
+
+def _signed_ids(ids: np.ndarray) -> np.ndarray:
+    """Building IDs as a signed integer array (code takes differences and -1 marks): unsigned
+    4-byte IDs below 2^31 are the same bits as int32 (a view, no copy), larger ones go to int64."""
+    if ids.dtype == np.uint32:
+        return ids.view(np.int32) if len(ids) == 0 or int(ids.max()) < 2 ** 31 else ids.astype(np.int64)
+    return ids
+
+
+def _header_origin(h) -> np.ndarray:
+    origin = np.asarray(h.offsets, dtype=np.float64)
+    if not np.any(origin) and int(h.point_count):
+        origin = np.floor(np.asarray(h.mins, dtype=np.float64))
+    return origin
+
+
+def epoch_origin(path: str | os.PathLike) -> np.ndarray:
+    """The local frame `read_epoch` gives the file when no origin is asked (from its header
+    alone): a pair's second epoch can be read with it while the first is still being read."""
+    path = check_point_cloud_path(path)
+    try:
+        with laspy.open(path) as reader:
+            return _header_origin(reader.header)
+    except Exception as e:
+        raise PointCloudError(f"{path}: cannot read as LAS/LAZ ({e})") from None
+
+
+def read_epoch(path: str | os.PathLike, origin=None, chunk_points: int = 4_000_000, labels: bool = True) -> Epoch:
     """Read a LAS/LAZ epoch of any point format. Coordinates go from the file's integers to
     float64 relative to `origin` (default: the file's offset, or its minimum corner when
-    the offset is zero) without passing through large absolute values in float32."""
-    path = Path(path)
-    las = read_las(path)
-    h = las.header
-    if origin is None:
-        origin = np.asarray(h.offsets, dtype=np.float64)
-        if not np.any(origin) and len(las.points):
-            origin = np.floor(np.asarray(h.mins, dtype=np.float64))
-    origin = np.asarray(origin, dtype=np.float64)
-    pts = las.points
-    xyz = np.empty((len(pts), 3))
-    for k, c in enumerate("XYZ"):
-        # integers × scale + (offset − origin): the large terms cancel before any rounding
-        xyz[:, k] = np.asarray(pts[c], dtype=np.float64) * h.scales[k] + (h.offsets[k] - origin[k])
-    names = set(las.point_format.dimension_names)
+    the offset is zero) without passing through large absolute values in float32.
 
-    def extra(name, dtype):
-        return np.asarray(las[name], dtype=dtype) if name in names else None
-
+    The file is read `chunk_points` records at a time into the epoch's own arrays: a whole
+    file's raw records (36 bytes a point and more) are never held beside them, which halves
+    the peak of a city-size pair. `labels=False` leaves out the simulator's per-point grade and
+    surface (what only training and evaluation read)."""
+    path = check_point_cloud_path(path)
+    try:
+        with laspy.open(path) as reader:
+            h = reader.header
+            n = int(h.point_count)
+            origin = _header_origin(h) if origin is None else np.asarray(origin, dtype=np.float64)
+            names = set(h.point_format.dimension_names)
+            xyz = np.empty((n, 3))
+            classification = np.empty(n, np.uint8)
+            extras = {name: np.empty(n, dtype) for name, dtype in
+                      (("building_id", _id_buffer_dtype(h.point_format.dimension_by_name("building_id").dtype)
+                        if "building_id" in names else None), ("grade", np.uint8), ("surface", np.uint8))
+                      if name in names and (labels or name == "building_id")}
+            at = 0
+            for chunk in reader.chunk_iterator(chunk_points):
+                m = len(chunk)
+                if at + m > n:
+                    raise PointCloudError(f"{path}: holds more points than its header's {n}")
+                for k, c in enumerate("XYZ"):
+                    # integers × scale + (offset − origin): the large terms cancel before any rounding
+                    xyz[at:at + m, k] = np.asarray(chunk[c], dtype=np.float64) * h.scales[k] + (h.offsets[k]
+                                                                                                 - origin[k])
+                classification[at:at + m] = chunk.classification
+                for name, arr in extras.items():
+                    arr[at:at + m] = chunk[name]
+                at += m
+    except PointCloudError:
+        raise
+    except Exception as e:
+        raise PointCloudError(f"{path}: cannot read as LAS/LAZ ({e})") from None
+    if at != n:
+        raise PointCloudError(f"{path}: holds {at} points, its header says {n} (the file is cut short?)")
+    if "building_id" in extras:
+        extras["building_id"] = _signed_ids(extras["building_id"])
     crs = _crs_of(h, path)
-    if len(xyz):
+    if n:
         check_coordinates_fit_crs(crs, xyz.min(axis=0) + origin, xyz.max(axis=0) + origin, str(path))
-    return Epoch(xyz, origin, np.asarray(las.classification, dtype=np.uint8),
-                 building_id=extra("building_id", np.int64), grade=extra("grade", np.uint8),
-                 surface=extra("surface", np.uint8), crs=crs, source=str(path))
+    return Epoch(xyz, origin, classification, building_id=extras.get("building_id"), grade=extras.get("grade"),
+                 surface=extras.get("surface"), crs=crs, source=str(path))
 
 
 def check_pair(pre: Epoch, post: Epoch) -> None:

@@ -18,6 +18,7 @@ import json
 import logging
 import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -30,7 +31,7 @@ from ..change.pipeline import (
     settings_for_descriptors,
 )
 from ..errors import QuakeScanError, ResultsError
-from ..formats.pointcloud import Epoch, PointCloudError, check_pair, read_epoch
+from ..formats.pointcloud import Epoch, PointCloudError, check_pair, check_point_cloud_path, epoch_origin, read_epoch
 from ..runtime import fingerprint
 from ..runtime.atomic import is_write_failure, write_failure_message, write_json, write_text
 from ..runtime.progress import ProgressCallback
@@ -86,10 +87,17 @@ class PairData:
     footprint_ids_without_points: list = field(default_factory=list)
 
 
-def load_pair(pre_path, post_path, footprints_path=None, id_field: str | None = None) -> PairData:
-    """Both epochs in the pre epoch's local frame, with building IDs."""
-    pre = read_epoch(pre_path)
-    post = read_epoch(post_path, origin=pre.origin)
+def load_pair(pre_path, post_path, footprints_path=None, id_field: str | None = None, labels: bool = True) -> PairData:
+    """Both epochs in the pre epoch's local frame, with building IDs (and, unless `labels` is
+    False, a simulated cloud's per-point grade and surface)."""
+    # both epochs at once, in the pre-event file's frame: decoding and scaling are numpy and
+    # file reads, which run side by side (a 2 x 75 M-point pair in 20 s instead of 26-33 s)
+    origin = epoch_origin(pre_path)
+    check_point_cloud_path(post_path)  # before the pre-event epoch is read, not after
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        pre_job, post_job = (pool.submit(read_epoch, pre_path, origin, labels=labels),
+                              pool.submit(read_epoch, post_path, origin, labels=labels))
+        pre, post = pre_job.result(), post_job.result()
     check_pair(pre, post)
     if footprints_path is None:
         for e in (pre, post):
@@ -250,7 +258,7 @@ def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=N
         return {**done, "up_to_date": True}
     model = load_model(model_path)
     settings = model_settings(model, str(model_path))
-    data = load_pair(pre_path, post_path, footprints_path, id_field)
+    data = load_pair(pre_path, post_path, footprints_path, id_field, labels=False)  # 2 bytes a point less
     pre, post = data.pre, data.post
     summary: dict = {"pre": str(pre_path), "post": str(post_path), "model": str(model_path),
                      "model_provenance": model.provenance, "settings": settings.to_json(),
@@ -372,7 +380,7 @@ def _register(pre, post, settings: PipelineSettings, align: bool | None, summary
     max_points = check_max_points(align)
     samples = []
     for e in (pre, post):
-        keep = stable_mask(e.classification, e.building_id) & sample_mask(np.arange(len(e)), len(e), max_points)
+        keep = stable_mask(e.classification, e.building_id) & sample_mask(range(len(e)), len(e), max_points)
         samples.append(e.xyz[keep])
     return register_samples(samples[0], samples[1], post, settings, align, summary)
 
@@ -430,7 +438,10 @@ def register_samples(pre_sample, post_sample, post, settings: PipelineSettings, 
 def max_displacement_m(a, xyz: np.ndarray) -> float:
     """How far the alignment moves any corner of the cloud's bounding box (translation and
     rotation together: a small rotation moves the far edge of a large tile the most)."""
-    lo, hi = xyz.min(axis=0), xyz.max(axis=0)
+    from ..change._cell_kernels import column_bounds
+
+    lo, hi = column_bounds(xyz) if isinstance(xyz, np.ndarray) and xyz.ndim == 2 and len(xyz) else (
+        np.min(xyz, axis=0), np.max(xyz, axis=0))
     corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
     return float(np.linalg.norm(a.apply(corners) - corners, axis=1).max())
 
