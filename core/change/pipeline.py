@@ -447,6 +447,9 @@ def describe_pair(pre: Epoch, post: Epoch, settings: PipelineSettings, *, worker
             on_tile(tile_rows)
         finished = _report_buildings(progress, finished, len(tile_rows), total)
 
+    # Largest tiles first: two threads then finish together instead of one waiting on the
+    # last big tile (rows are keyed by building: the order changes nothing else).
+    todo.sort(key=lambda bids: -sum(n_pre_of[b] + n_post_of.get(b, 0) for b in bids))
     # The first tile alone, its kernels on every thread asked for: it loads numba's threading
     # layer, which then says whether tiles may run side by side.
     if todo:
@@ -518,6 +521,19 @@ def grouped_by_id(ids: np.ndarray, uniq: np.ndarray) -> tuple[np.ndarray, np.nda
     return order, starts[:-1]
 
 
+def _members_by_id(ids: np.ndarray) -> Callable[[int], np.ndarray]:
+    """bid -> indices of its points, ascending (what a stable argsort's run gives)."""
+    uniq, counts = id_counts(ids)
+    order, starts = grouped_by_id(ids, uniq)
+
+    def members(bid: int) -> np.ndarray:
+        i = int(np.searchsorted(uniq, bid))
+        if i == len(uniq) or uniq[i] != bid:
+            return order[:0]
+        return order[starts[i]:starts[i] + counts[i]]
+    return members
+
+
 def rows_by_counts(n_pre_of: dict, n_post_of: dict, settings: PipelineSettings) -> tuple[dict, list]:
     """({building ID: row} of the buildings with too few points to describe, the IDs of the
     others), from each epoch's {building ID: points}; IDs <= 0 are no building."""
@@ -561,11 +577,9 @@ def describe_tile(pre: Epoch, post: Epoch, bids: Sequence[int], settings: Pipeli
     not assessable, as in `describe_pair`; the others are described together."""
     pre_ids, post_ids = pre.building_id, post.building_id
     rows, ok, members = [], [], {}
-    pre_order, post_order = np.argsort(pre_ids, kind="stable"), np.argsort(post_ids, kind="stable")
-    pre_sorted, post_sorted = pre_ids[pre_order], post_ids[post_order]
+    pre_of, post_of = _members_by_id(pre_ids), _members_by_id(post_ids)
     for bid in sorted(int(b) for b in bids):
-        m = pre_order[np.searchsorted(pre_sorted, bid):np.searchsorted(pre_sorted, bid, side="right")]
-        p = post_order[np.searchsorted(post_sorted, bid):np.searchsorted(post_sorted, bid, side="right")]
+        m, p = pre_of(bid), post_of(bid)
         a = _few_distinct(pre.xyz, m, settings.min_points_pre)
         b = None if a is not None else _few_distinct(post.xyz, p, settings.min_points_post)
         if a is not None:
