@@ -452,10 +452,12 @@ def read_epoch(path: str | os.PathLike, origin=None, chunk_points: int = 4_000_0
             names = set(h.point_format.dimension_names)
             xyz = np.empty((n, 3))
             classification = np.empty(n, np.uint8)
-            extras = {name: np.empty(n, dtype) for name, dtype in
-                      (("building_id", _id_buffer_dtype(h.point_format.dimension_by_name("building_id").dtype)
-                        if "building_id" in names else None), ("grade", np.uint8), ("surface", np.uint8))
-                      if name in names and (labels or name == "building_id")}
+            extras = {}
+            if "building_id" in names:
+                extras["building_id"] = np.empty(n, _id_buffer_dtype(h.point_format.dimension_by_name("building_id").dtype))
+            for name in ("grade", "surface") if labels else ():
+                if name in names:
+                    extras[name] = np.empty(n, np.uint8)
             at = 0
             for chunk in reader.chunk_iterator(chunk_points):
                 m = len(chunk)
@@ -479,7 +481,10 @@ def read_epoch(path: str | os.PathLike, origin=None, chunk_points: int = 4_000_0
         extras["building_id"] = _signed_ids(extras["building_id"])
     crs = _crs_of(h, path)
     if n:
-        check_coordinates_fit_crs(crs, xyz.min(axis=0) + origin, xyz.max(axis=0) + origin, str(path))
+        from ..change._cell_kernels import column_bounds  # one pass, where numpy's min and max read it six times
+
+        lo, hi = column_bounds(xyz)
+        check_coordinates_fit_crs(crs, lo + origin, hi + origin, str(path))
     return Epoch(xyz, origin, classification, building_id=extras.get("building_id"), grade=extras.get("grade"),
                  surface=extras.get("surface"), crs=crs, source=str(path))
 

@@ -440,8 +440,7 @@ def max_displacement_m(a, xyz: np.ndarray) -> float:
     rotation together: a small rotation moves the far edge of a large tile the most)."""
     from ..change._cell_kernels import column_bounds
 
-    lo, hi = column_bounds(xyz) if isinstance(xyz, np.ndarray) and xyz.ndim == 2 and len(xyz) else (
-        np.min(xyz, axis=0), np.max(xyz, axis=0))
+    lo, hi = column_bounds(np.asarray(xyz, dtype=np.float64))
     corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
     return float(np.linalg.norm(a.apply(corners) - corners, axis=1).max())
 
