@@ -308,3 +308,19 @@ def test_an_automatic_alignment_must_fit_the_stable_points_markedly_better(monke
     assert record["applied"] is applied and ("alignment" in summary) is applied
     assert ("unobserved" in record) is (not applied)
     assert 1 - 0.028 / 0.03133 > cl.MIN_FIT_GAIN > 1 - 0.030 / 0.03133
+
+
+def test_outline_points_by_building_are_each_buildings_points_in_order():
+    """The outlines' lazily copied x/y per building (no footprints) are the building's points in
+    point order, as grouping by a stable argsort gives them; no building for IDs <= 0 or absent."""
+    from quakescan.formats.pointcloud import Epoch
+    from quakescan.learning.classification import _XYByBuilding
+
+    rng = np.random.default_rng(8)
+    ids = rng.choice([0, 2, 5, 9, -1], 5_000).astype(np.int32)
+    xyz = rng.uniform(0, 50, (5_000, 3))
+    e = Epoch(xyz, np.zeros(3), np.full(5_000, 6, np.uint8), building_id=ids)
+    by = _XYByBuilding(e)
+    for b in (2, 5, 9):
+        np.testing.assert_array_equal(by.get(b), xyz[ids == b, :2])
+    assert by.get(0) is None and by.get(-1) is None and by.get(7) is None

@@ -167,6 +167,16 @@ def test_id_counts_and_grouping_are_numpys_unique_and_stable_argsort(ids):
     np.testing.assert_array_equal(starts, want_s)
 
 
+@pytest.mark.parametrize("key", [np.random.default_rng(4).integers(-50, 9_000, 20_000),  # counting sort
+                                 np.random.default_rng(5).choice([3, 2 ** 40], 500),  # wide: numpy's sort
+                                 np.random.default_rng(6).integers(0, 9, 1_000).astype(np.int32),
+                                 np.array([7]), np.zeros(0, np.int64)])
+def test_stable_order_is_a_stable_argsort(key):
+    from quakescan.change._cell_kernels import stable_order
+
+    np.testing.assert_array_equal(stable_order(key), np.argsort(key, kind="stable"))
+
+
 @pytest.mark.parametrize("offset", [(0.0, 0.0), (500_000.0, 5_000_000.0)])
 def test_grid_index_buckets_are_a_stable_argsort_of_the_cells(offset):
     """The counting sort behind GridIndex gives the order, cells and starts the numpy

@@ -392,3 +392,36 @@ def test_planimetric_density_on_a_dense_grid_is_the_sorted_cells_to_the_last_bit
     dense = surface.planimetric_density(xyz, where)
     monkeypatch.setattr(surface, "_dense_planimetric_density", lambda *a: None)
     assert dense == surface.planimetric_density(xyz, where)
+
+
+@pytest.mark.parametrize("spacing", [0.5, 1.0, 2.0])
+@pytest.mark.parametrize("table", [True, False])
+def test_compiled_patches_and_neighbour_counts_are_numpys(spacing, table, monkeypatch):
+    """`_patch_kernels` against `_patch_reference` on core points of a roof with holes, a wall
+    and scattered points, several points to some voxels, with the voxel table and with the
+    search of the sorted keys: the same patch sizes, the same coherent points and the same
+    largest patch (labels may be numbered differently)."""
+    from quakescan.change import _patch_kernels as K
+    from quakescan.change import _patch_reference as R
+
+    if not table:
+        monkeypatch.setattr(K, "TABLE_PER_POINT", -10 ** 9)
+    from quakescan.change.surface import _coherence, _patch_sizes
+
+    rng = np.random.default_rng(31)
+    g = np.arange(0, 20, 0.5)
+    roof = np.array([(x, y, 6.0) for x in g for y in g])
+    wall = np.array([(x, 0.0, z) for x in g for z in np.arange(0, 6, 0.5)])
+    xyz = np.vstack([roof, wall, rng.uniform(0, 20, (300, 3)), roof[:200] + 0.01])  # doubled voxels too
+    for share in (0.02, 0.2, 0.6):
+        changed = rng.random(len(xyz)) < share
+        changed[:400] |= (roof[:400, 0] > 5) & (roof[:400, 0] < 8)  # one real patch
+        valid = changed | (rng.random(len(xyz)) < 0.7)
+        np.testing.assert_array_equal(_patch_sizes(xyz, changed, spacing), R.patch_sizes(xyz, changed, spacing))
+        coherent, largest = _coherence(xyz, changed, valid, spacing)
+        want_coherent, want_largest = R.coherence(xyz, changed, valid, spacing)
+        np.testing.assert_array_equal(coherent, want_coherent)
+        assert largest == want_largest >= 2
+    assert (len(K.voxel_keys(xyz, spacing).first) > 0) == table
+    none = np.zeros(len(xyz), bool)
+    assert not _patch_sizes(xyz, none, spacing).any() and _coherence(xyz, none, none, spacing)[1] == 0

@@ -137,3 +137,19 @@ def splitmix_below(start, index, n, threshold):
         z = z ^ (z >> np.uint64(31))
         out[i] = z < threshold
     return out
+
+
+def stable_order(key: np.ndarray) -> np.ndarray:
+    """`np.argsort(key, kind="stable")` of integer keys: a counting sort when their span is
+    within a few times their number (cells of one region, IDs of its buildings), numpy's
+    radix/merge sort otherwise."""
+    key = np.asarray(key)
+    n = len(key)
+    if n == 0:
+        return np.zeros(0, np.int64)
+    lo, hi = int(key.min()), int(key.max())
+    if hi - lo >= 4 * n + 1024:
+        return np.argsort(key, kind="stable")
+    order = np.empty(n, np.int64)
+    bucket_order(key.astype(np.int64) - lo if lo else key.astype(np.int64, copy=False), hi - lo + 1, order)
+    return order

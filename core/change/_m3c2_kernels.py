@@ -26,6 +26,17 @@ def _median_sorted(a, n):
     return 0.5 * (a[n // 2 - 1] + a[n // 2])
 
 
+@njit(**_JIT)
+def _reach(c, a, behind, ahead, r):
+    """Range of one coordinate over the cylinder from `behind` before its centre c to `ahead`
+    after it along the axis (component a), grown by the radius across the axis. One-sided:
+    a post-event cylinder looks 30 m behind the surface and 2 m ahead, and a box symmetric
+    about the centre read twice the columns it needs."""
+    grow = r * math.sqrt(max(0.0, 1.0 - a * a))
+    back, front = -behind * a, ahead * a
+    return c + min(back, front) - grow, c + max(back, front) + grow
+
+
 @njit(parallel=True, **_JIT)
 def cylinder_robust(cx, cy, cz, nx_, ny_, nz_, radius, half_length, behind_length, near_length, px, py, pz, starts,
                     lo_x, lo_y, cell, ncx, ncy, sample, count, median, spread, behind, near, mean, var):
@@ -45,14 +56,13 @@ def cylinder_robust(cx, cy, cz, nx_, ny_, nz_, radius, half_length, behind_lengt
         h = half_length[k]
         hb = max(behind_length[k], h)
         r2 = r * r
-        # x/y/z reach of the segment from -hb to +h along the axis, grown by r
-        ex = abs(ax) * hb + r * math.sqrt(max(0.0, 1.0 - ax * ax))
-        ey = abs(ay) * hb + r * math.sqrt(max(0.0, 1.0 - ay * ay))
-        ez = abs(az) * hb + r * math.sqrt(max(0.0, 1.0 - az * az))
-        i0 = max(int(math.floor((x - ex - lo_x) / cell)), 0)
-        i1 = min(int(math.floor((x + ex - lo_x) / cell)), ncx - 1)
-        j0 = max(int(math.floor((y - ey - lo_y) / cell)), 0)
-        j1 = min(int(math.floor((y + ey - lo_y) / cell)), ncy - 1)
+        x0, x1 = _reach(x, ax, hb, h, r)
+        y0, y1 = _reach(y, ay, hb, h, r)
+        z0, z1 = _reach(z, az, hb, h, r)
+        i0 = max(int(math.floor((x0 - lo_x) / cell)), 0)
+        i1 = min(int(math.floor((x1 - lo_x) / cell)), ncx - 1)
+        j0 = max(int(math.floor((y0 - lo_y) / cell)), 0)
+        j1 = min(int(math.floor((y1 - lo_y) / cell)), ncy - 1)
         n = 0
         nb = 0
         nn = 0
@@ -67,8 +77,8 @@ def cylinder_robust(cx, cy, cz, nx_, ny_, nz_, radius, half_length, behind_lengt
                 b = starts[c + 1]
                 if a == b:
                     continue
-                t = _lower_bound(pz, a, b, z - ez)
-                while t < b and pz[t] <= z + ez:
+                t = _lower_bound(pz, a, b, z0)
+                while t < b and pz[t] <= z1:
                     dx = px[t] - x
                     dy = py[t] - y
                     dz = pz[t] - z

@@ -409,6 +409,7 @@ def describe_pair(pre: Epoch, post: Epoch, settings: PipelineSettings, *, worker
         else:
             continue
         ok.remove(bid)
+    del post_order, post_start  # 4 bytes a post-event point, not needed by the tiles
     centres = {}
     tiles: dict[tuple, list[int]] = {}
     for bid in ok:

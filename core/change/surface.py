@@ -83,6 +83,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from ..errors import QuakeScanError
+from ._cell_kernels import stable_order
 from .m3c2 import ColumnGrid, M3C2Settings, cylinder_radius, m3c2, orient_normals, voxel_core_points
 
 GROUND_CLASS = 2
@@ -312,7 +313,7 @@ class _CellTops:
     def __init__(self, xyz: np.ndarray, lo: np.ndarray, cell: float, width: int, layer_m: float):
         ij = np.floor((xyz[:, :2] - lo) / cell).astype(np.int64)
         key = ij[:, 0] * width + ij[:, 1]
-        order = np.argsort(key, kind="stable")
+        order = stable_order(key)
         k = key[order]
         # the spread of a single point is unknown: take a uniform spread over the layer
         self.unknown_std = layer_m / math.sqrt(12.0)
@@ -454,7 +455,7 @@ def describe_surfaces(pre_xyz: np.ndarray, pre_bid: np.ndarray, pre_ground: np.n
     n3 = _neighbour_offsets(width, 1)
     ring_offsets = _neighbour_offsets(width, int(math.ceil(settings.debris_ring_m / c)), settings.debris_ring_m, c)
 
-    order = np.argsort(pre_bid, kind="stable")
+    order = stable_order(pre_bid)
     sorted_bid = pre_bid[order]
     pre_sorted = _XSorted(pre_xyz)
     interior = _InteriorView(pre_sorted, _XSorted(post_xyz), max(INTERIOR_CELL_M, 0.5 * c))
@@ -857,50 +858,20 @@ def _patch_sizes(xyz, changed, spacing) -> np.ndarray:
     sizes = np.zeros(len(xyz), np.int64)
     if not changed.any():
         return sizes
-    labels, _ = _patches(xyz, changed, spacing)
+    labels = _patches(xyz, changed, spacing)
     sizes[changed] = np.bincount(labels)[labels]
     return sizes
 
 
-def _patches(xyz, changed, spacing):
-    """Connected-component label of every changed point (joined up to two voxels apart)."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
+def _patches(xyz, changed, spacing, keys=None):
+    """Patch label of every changed point (changed points joined up to two voxels apart);
+    `keys`: `_patch_kernels.voxel_keys` of xyz when already at hand."""
+    from . import _patch_kernels as K
 
-    neighbour = _voxel_lookup(xyz, spacing)
-    idx = np.flatnonzero(changed)
-    remap = np.full(len(xyz), -1)
-    remap[idx] = np.arange(len(idx))
-    a, b = [], []
-    for dx in range(-2, 3):
-        for dy in range(-2, 3):
-            for dz in range(-2, 3):
-                if dx == dy == dz == 0:
-                    continue
-                hit, j = neighbour(dx, dy, dz)
-                link = hit & changed & changed[j]
-                a.append(remap[np.flatnonzero(link)])
-                b.append(remap[j[link]])
-    a, b = np.concatenate(a), np.concatenate(b)
-    _, labels = connected_components(coo_matrix((np.ones(len(a)), (a, b)), shape=(len(idx), len(idx))),
-                                     directed=False)
-    return labels, len(idx)
-
-
-def _voxel_lookup(xyz, spacing):
-    """Keys of the core points' voxels and a lookup from a key offset to neighbour indices."""
-    ijk = np.floor((xyz - xyz.min(axis=0)) / spacing).astype(np.int64)
-    dims = ijk.max(axis=0) + 5
-    key = ((ijk[:, 0] + 2) * dims[1] + ijk[:, 1] + 2) * dims[2] + ijk[:, 2] + 2
-    order = np.argsort(key)
-    skey = key[order]
-
-    def neighbour(dx, dy, dz):
-        nk = key + (dx * dims[1] + dy) * dims[2] + dz
-        pos = np.minimum(np.searchsorted(skey, nk), len(skey) - 1)
-        return skey[pos] == nk, order[pos]
-
-    return neighbour
+    v = K.voxel_keys(xyz, spacing) if keys is None else keys
+    roots = K.patch_roots(v.key, v.sorted_key, v.order, v.first, np.ascontiguousarray(changed, bool),
+                          v.offsets_within(2))
+    return roots[changed]
 
 
 def _coherence(xyz, changed, valid, spacing):
@@ -908,19 +879,12 @@ def _coherence(xyz, changed, valid, spacing):
     changed, the size of the largest patch of changed core points). A patch joins changed
     points up to two voxels apart, so that a core point left unobserved in the middle of a
     hole does not cut it in two (sparse epochs leave more such gaps)."""
+    from . import _patch_kernels as K
+
     if not changed.any():
         return np.zeros(len(xyz), bool), 0
-    neighbour = _voxel_lookup(xyz, spacing)
-    n_valid = np.zeros(len(xyz), np.int64)
-    n_changed = np.zeros(len(xyz), np.int64)
-    for dx in (-1, 0, 1):
-        for dy in (-1, 0, 1):
-            for dz in (-1, 0, 1):
-                if dx == dy == dz == 0:
-                    continue
-                hit, j = neighbour(dx, dy, dz)
-                n_valid += hit & valid[j]
-                n_changed += hit & changed[j]
+    v = K.voxel_keys(xyz, spacing)
+    n_valid, n_changed = K.neighbour_counts(v.key, v.sorted_key, v.order, v.first, np.ascontiguousarray(valid, bool),
+                                            np.ascontiguousarray(changed, bool), v.offsets_within(1))
     coherent = changed & (n_valid >= 3) & (2 * n_changed >= n_valid)
-    labels, _ = _patches(xyz, changed, spacing)
-    return coherent, int(np.bincount(labels).max())
+    return coherent, int(np.bincount(_patches(xyz, changed, spacing, v)).max())

@@ -236,14 +236,15 @@ def hull_candidates(xy: np.ndarray) -> np.ndarray:
     return xy[~inside]
 
 
-def building_outlines(rows, footprints=None, xy_by_building: dict | None = None, origin=(0.0, 0.0)
+def building_outlines(rows, footprints=None, xy_by_building=None, origin=(0.0, 0.0)
                       ) -> dict[int, Outline]:
     """{building_id: Outline} in world coordinates for the rows that have one.
 
     The footprint polygon when the footprints know the building (parts with the same ID are
     united); otherwise the convex hull of the building's points, given local in
-    `xy_by_building` and shifted by `origin[:2]`; a building with fewer than 3 distinct points
-    (or all on one line) gets a BUFFER_M buffer around them. No footprint and no points: no outline.
+    `xy_by_building` (anything with `.get(bid)`: a dict) and shifted by `origin[:2]`; a
+    building with fewer than 3 distinct points (or all on one line) gets a BUFFER_M buffer
+    around them. No footprint and no points: no outline.
     """
     import shapely
 
