@@ -77,10 +77,11 @@ def test_two_workers_write_the_files_one_process_writes(pair, single, cluster, t
 
 
 @slow
-def test_an_offset_post_epoch_is_aligned_as_one_process_aligns_it(pair, cluster, tmp_path):
+def test_an_offset_post_epoch_is_aligned_as_one_process_aligns_it(pair, cluster, tmp_path, caplog):
     """0.5 m up (the flat ground shows a vertical offset, not a horizontal one): beyond the
     model's tolerance, so both runs align it; the workers move the points and count the
-    densities in the moved frame."""
+    densities in the moved frame. The check runs in a worker; its warning reaches the
+    client's log all the same."""
     las = laspy.read(pair / "post.las")
     las.z = np.asarray(las.z) + 0.5
     las.write(tmp_path / "post_shifted.las")
@@ -89,8 +90,12 @@ def test_an_offset_post_epoch_is_aligned_as_one_process_aligns_it(pair, cluster,
     assert single["registration"]["applied"]
     from quakescan.distributed.classify import classify_distributed
 
-    dask = classify_distributed(pair / "pre.las", tmp_path / "post_shifted.las", tmp_path / "dask", cluster,
-                                model_path=pair / "model.skops", block_cells=BLOCK_CELLS, chunk_points=50_000)
+    caplog.clear()
+    with caplog.at_level("INFO", logger="quakescan"):
+        dask = classify_distributed(pair / "pre.las", tmp_path / "post_shifted.las", tmp_path / "dask", cluster,
+                                    model_path=pair / "model.skops", block_cells=BLOCK_CELLS, chunk_points=50_000)
+    assert any(r.levelname == "WARNING" and "aligned the post-event epoch" in r.getMessage() for r in caplog.records)
+    assert dask["registration"] == single["registration"]
     assert dask["alignment"]["transform"] == single["alignment"]["transform"]  # ICP rounded: the same in every run
     assert dask["alignment"]["rmse_after_m"] == pytest.approx(single["alignment"]["rmse_after_m"], rel=1e-9)
     _same_outputs(tmp_path / "single", tmp_path / "dask")
@@ -421,3 +426,16 @@ def test_block_densities_merged_are_the_whole_epochs_density_to_the_last_bit(pai
         merged = merge_roof_cells([block_roof_cells(str(folder), k, cells) for k in stats.blocks])
         e = read_epoch(pair / f"{name}.las", origin=origin)
         assert merged == planimetric_density(e.xyz, e.building_id > 0) > 0
+
+
+@pytest.mark.parametrize("runs", [[5, 0, 7, 1], [1], [0, 0], [300] * 40, [2, 50_000, 3]])
+def test_merged_runs_are_in_the_order_a_stable_argsort_gives(runs):
+    """The k-way merge behind read_box: ascending runs (ties within and across runs, empty
+    runs) in the order np.argsort(kind="stable") gives the joined values."""
+    from quakescan.distributed._merge_kernel import merged_order
+
+    rng = np.random.default_rng(len(runs))
+    parts = [np.sort(rng.integers(0, 60, n)) for n in runs]
+    values = np.concatenate(parts) if parts else np.zeros(0, np.int64)
+    starts = np.cumsum([0] + runs)
+    np.testing.assert_array_equal(merged_order(values, starts), np.argsort(values, kind="stable"))

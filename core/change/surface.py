@@ -83,7 +83,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from ..errors import QuakeScanError
-from ._cell_kernels import stable_order
+from ._cell_kernels import column_bounds, stable_order
 from .m3c2 import ColumnGrid, M3C2Settings, cylinder_radius, m3c2, orient_normals, voxel_core_points
 
 GROUND_CLASS = 2
@@ -440,10 +440,14 @@ def describe_surfaces(pre_xyz: np.ndarray, pre_bid: np.ndarray, pre_ground: np.n
 
     bids = [int(b) for b in bids]
     c = geom.cell_m
-    both = np.vstack([pre_xyz[:, :2], post_xyz[:, :2]]) if len(post_xyz) else pre_xyz[:, :2]
+    # the x/y bounds of both epochs in one compiled pass each (no stacked copy of them)
+    lo_xy, hi_xy = (b[:2] for b in column_bounds(np.asarray(pre_xyz, dtype=np.float64)))
+    if len(post_xyz):
+        lo_post, hi_post = column_bounds(np.asarray(post_xyz, dtype=np.float64))
+        lo_xy, hi_xy = np.minimum(lo_xy, lo_post[:2]), np.maximum(hi_xy, hi_post[:2])
     pad = int(math.ceil(settings.debris_ring_m / c)) + 3
-    lo = np.floor(both.min(axis=0) / c) * c - pad * c
-    width = int(math.ceil((both.max(axis=0)[1] - lo[1]) / c)) + 2 * pad + 2
+    lo = np.floor(lo_xy / c) * c - pad * c
+    width = int(math.ceil((hi_xy[1] - lo[1]) / c)) + 2 * pad + 2
     layer = settings.top_layer_cells * c + settings.top_layer_m
     pre_tops = _CellTops(pre_xyz, lo, c, width, layer)
     post_tops = _CellTops(post_xyz, lo, c, width, layer)

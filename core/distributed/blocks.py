@@ -375,18 +375,25 @@ def read_records(folder: Path, keys, buildings_only: bool = False, in_file_order
     return rec[np.argsort(rec["index"], kind="stable")] if in_file_order else rec
 
 
+# what a tile reads of its points besides the coordinates
+BOX_FIELDS = np.dtype([("index", "<i8"), ("classification", "u1"), ("building_id", "<i8")])
+
+
 def read_box(folder: Path, f: EpochFile, origin, box, block_cells: int) -> tuple[np.ndarray, np.ndarray]:
-    """(records, local float64 coordinates) of the stored points inside the x/y `box` ((2, 2):
-    min, max; local frame, edges included), in file order: `read_records` of the blocks the
-    box touches, kept to the box. Each block file is cut to the box as it is read, so the
-    sort by index and the copies see the box's points only (a tile's box covers about half
-    of the blocks it touches) and the coordinates are made once."""
+    """(BOX_FIELDS records, local float64 coordinates) of the stored points inside the x/y
+    `box` ((2, 2): min, max; local frame, edges included), in file order: the blocks the box
+    touches, each file cut to the box as it is read (a tile's box covers about half of the
+    blocks it touches), the coordinates made once. Each file's points lie in file order:
+    merging the files' runs (`_merge_kernel.merged_order`) puts them in file order."""
+    from ._merge_kernel import merged_order
+
     box = np.asarray(box, dtype=np.float64)
     origin = np.asarray(origin, dtype=np.float64)
     if f.copc:
-        return _copc_box(Path(folder), f, origin, box)
+        rec, xyz = _copc_box(Path(folder), f, origin, box)
+        return _box_fields(rec["index"], rec["classification"], rec["building_id"]), xyz
     n_parts = _parts_of(folder)
-    recs, coords = [], []
+    index, cls, bid, coords = [], [], [], []
     for key in blocks_in_box(box, block_cells):
         for p in block_files(folder, key, n_parts):
             if not p.is_file():
@@ -394,17 +401,23 @@ def read_box(folder: Path, f: EpochFile, origin, box, block_cells: int) -> tuple
             rec = np.fromfile(p, dtype=RECORD)
             xyz = f.local_xyz(rec["X"], rec["Y"], rec["Z"], origin)
             inside = np.all((xyz[:, :2] >= box[0]) & (xyz[:, :2] <= box[1]), axis=1)
-            if inside.all():
-                recs.append(rec)
-                coords.append(xyz)
-            elif inside.any():
-                recs.append(rec[inside])
+            if inside.any():
+                index.append(rec["index"][inside])
+                cls.append(rec["classification"][inside])
+                bid.append(rec["building_id"][inside])
                 coords.append(xyz[inside])
-    if not recs:
-        return np.zeros(0, RECORD), np.zeros((0, 3))
-    rec, xyz = np.concatenate(recs), np.concatenate(coords)
-    order = np.argsort(rec["index"], kind="stable")
-    return rec[order], xyz[order]
+    if not index:
+        return np.zeros(0, BOX_FIELDS), np.zeros((0, 3))
+    joined = np.concatenate(index)
+    order = merged_order(joined, np.cumsum([0] + [len(i) for i in index]))
+    return (_box_fields(joined[order], np.concatenate(cls)[order], np.concatenate(bid)[order]),
+            np.concatenate(coords)[order])
+
+
+def _box_fields(index, classification, building_id) -> np.ndarray:
+    out = np.empty(len(index), BOX_FIELDS)
+    out["index"], out["classification"], out["building_id"] = index, classification, building_id
+    return out
 
 
 def _epoch_json(folder: Path) -> dict:

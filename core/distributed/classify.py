@@ -114,13 +114,21 @@ def classify_distributed(pre_path, post_path, out_dir, client, *, model_path=Non
     stage("densities")
     transform, shift = None, 0.0
 
-    def register():  # the client's own work while the workers count the densities
+    def register():  # a task beside the density tasks (the client waits for both)
         nonlocal transform, shift
         if align is False:
             summary["registration"] = {"mode": "off", "checked": False}
             return None
-        summary["registration"] = cl.register_samples(pre_s.stable_sample, post_s.stable_sample, None, settings,
-                                                      align, summary, post_bounds=np.asarray(post_s.bounds))
+        from .tasks import registration_task
+
+        checked = client.submit(registration_task, pre_s.stable_sample, post_s.stable_sample, settings.to_json(),
+                                align, {"pre": summary["pre"], "post": summary["post"]}, post_s.bounds,
+                                pure=False, priority=1).result()
+        for level, message in checked["messages"]:
+            cl.log.log(level, "%s", message)
+        summary["registration"] = checked["record"]
+        if checked["alignment"] is not None:
+            summary["alignment"] = checked["alignment"]
         if summary["registration"].get("applied"):
             transform = summary["alignment"]["transform"]
             shift = float(summary["registration"]["offset_m"])

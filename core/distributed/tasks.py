@@ -256,6 +256,43 @@ def describe_tile_task(store: str, tile: dict, settings_json: dict, geometry: di
     return {"key": tile["key"], "rows": rows}
 
 
+def registration_task(pre_sample: np.ndarray, post_sample: np.ndarray, settings_json: dict, align, names: dict,
+                      post_bounds) -> dict:
+    """`quakescan.learning.classification.register_samples` in a worker: the registration
+    check's ICP is the run's longest single step, and in a worker it runs beside the density
+    tasks instead of holding up the client (a laptop, often). Returns the record, the
+    alignment (or None) and the check's log messages, for the client to show: a worker's log
+    is not the user's console."""
+    import logging
+
+    from ..change.pipeline import PipelineSettings
+    from ..learning import classification as cl
+
+    class Keep(logging.Handler):
+        def __init__(self):
+            super().__init__(logging.INFO)
+            self.messages = []
+
+        def emit(self, record):
+            self.messages.append((record.levelno, record.getMessage()))
+
+    keep = Keep()
+    loggers = [logging.getLogger(cl.__name__), logging.getLogger("quakescan.change.align")]
+    levels = [lg.level for lg in loggers]
+    for lg in loggers:
+        lg.addHandler(keep)
+        lg.setLevel(min(lg.getEffectiveLevel(), logging.INFO))
+    summary = dict(names)
+    try:
+        record = cl.register_samples(pre_sample, post_sample, None, PipelineSettings.from_json(settings_json), align,
+                                     summary, post_bounds=np.asarray(post_bounds, dtype=np.float64))
+    finally:
+        for lg, level in zip(loggers, levels):
+            lg.removeHandler(keep)
+            lg.setLevel(level)
+    return {"record": record, "alignment": summary.get("alignment"), "messages": keep.messages}
+
+
 def add_facing_counts(*parts: dict) -> list:
     """The whole tile's counts from its parts' (integers: the same sum in any order)."""
     return np.sum([np.asarray(p["facing_counts"], dtype=np.int64) for p in parts], axis=0).tolist()
@@ -290,5 +327,4 @@ def _origin(folder) -> list:
 
 
 __all__ = ["TileReachError", "add_facing_counts", "block_roof_cells", "describe_tile_task", "group_roof_cells",
-           "merge_roof_cells",
-           "stream_part"]
+           "merge_roof_cells", "registration_task", "stream_part"]
