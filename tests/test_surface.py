@@ -425,3 +425,49 @@ def test_compiled_patches_and_neighbour_counts_are_numpys(spacing, table, monkey
     assert (len(K.voxel_keys(xyz, spacing).first) > 0) == table
     none = np.zeros(len(xyz), bool)
     assert not _patch_sizes(xyz, none, spacing).any() and _coherence(xyz, none, none, spacing)[1] == 0
+
+
+def _cell_tops_numpy(xyz, lo, cell, width, layer_m):
+    """The numpy code _CellTops was before its loops were compiled (the reference)."""
+    from quakescan.change.surface import _BAND_STRIDE_M
+
+    ij = np.floor((xyz[:, :2] - lo) / cell).astype(np.int64)
+    key = ij[:, 0] * width + ij[:, 1]
+    order = np.argsort(key, kind="stable")
+    k = key[order]
+    starts = np.flatnonzero(np.r_[True, k[1:] != k[:-1]])
+    z = xyz[order, 2]
+    top = np.maximum.reduceat(z, starts)
+    bottom = np.minimum.reduceat(z, starts)
+    cell_of = np.repeat(np.arange(len(starts)), np.diff(np.r_[starts, len(k)]))
+    z0 = -float(z.min())
+    band = np.sort(cell_of * _BAND_STRIDE_M + (z + z0))
+    layer = z >= top[cell_of] - layer_m
+    n = np.bincount(cell_of[layer], minlength=len(starts))
+    mean = np.bincount(cell_of[layer], weights=z[layer], minlength=len(starts)) / n
+    dev = z[layer] - mean[cell_of[layer]]
+    var = np.bincount(cell_of[layer], weights=dev * dev, minlength=len(starts)) / np.maximum(n - 1, 1)
+    return {"keys": k[starts], "top": mean, "bottom": bottom, "n": n, "_band_key": band, "_start": starts,
+            "count": np.diff(np.r_[starts, len(k)]), "std": np.where(n >= 2, np.sqrt(var), layer_m / np.sqrt(12.0)),
+            "_z0": z0}
+
+
+@pytest.mark.parametrize("offset", [0.0, 4.0e5])
+def test_compiled_cell_tops_are_numpys_to_the_last_bit(offset):
+    """_CellTops' compiled loops against the numpy expressions they replaced: a roof, a wall
+    through some cells, ground, single points and a far-off scatter (a sparse key span: the
+    argsort path), at local and at large coordinates."""
+    from quakescan.change.surface import _CellTops
+
+    rng = np.random.default_rng(12)
+    roof = np.column_stack([rng.uniform(0, 30, (20_000, 2)), 8 + 0.1 * rng.normal(size=20_000)])
+    wall = np.column_stack([rng.uniform(0, 30, 3_000), np.full(3_000, 10.2), rng.uniform(0, 8, 3_000)])
+    ground = np.column_stack([rng.uniform(-10, 40, (5_000, 2)), rng.normal(0, 0.02, 5_000)])
+    far = rng.uniform(-3_000, 3_000, (40, 3))
+    for xyz in (np.vstack([roof, wall, ground]), np.vstack([roof, far]), roof[:1]):
+        xyz = xyz + [offset, offset, 0.0]
+        lo = np.floor(xyz[:, :2].min(axis=0) / 0.7) * 0.7 - 7
+        width = int(np.ceil((xyz[:, 1].max() - lo[1]) / 0.7)) + 20
+        got = _CellTops(xyz, lo, 0.7, width, 0.35)
+        for name, want in _cell_tops_numpy(xyz, lo, 0.7, width, 0.35).items():
+            np.testing.assert_array_equal(getattr(got, name), want, err_msg=name)

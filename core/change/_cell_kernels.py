@@ -13,6 +13,8 @@ two passes and without the argsort's 8-byte-a-point index and its copy of the so
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numba import njit
 
@@ -153,3 +155,81 @@ def stable_order(key: np.ndarray) -> np.ndarray:
     order = np.empty(n, np.int64)
     bucket_order(key.astype(np.int64) - lo if lo else key.astype(np.int64, copy=False), hi - lo + 1, order)
     return order
+
+
+@njit(**_JIT)
+def cell_keys(xyz, lo0, lo1, cell, width):
+    """floor((x - lo0) / cell) * width + floor((y - lo1) / cell) per point: numpy's expression
+    over the (n, 2) columns, without its three temporaries."""
+    out = np.empty(xyz.shape[0], np.int64)
+    for p in range(xyz.shape[0]):
+        out[p] = np.int64(math.floor((xyz[p, 0] - lo0) / cell)) * width + np.int64(math.floor((xyz[p, 1] - lo1) / cell))
+    return out
+
+
+@njit(**_JIT)
+def top_layers(key, order, z_all, layer_m, stride):
+    """Per cell (the runs of equal `key` in `order`): the key, the start of its run, its top
+    layer's mean height (points within `layer_m` of the highest), the lowest height, the
+    layer's count and sum of squared deviations, and every point's band key (cell number x
+    `stride` + height above the lowest point), sorted. The sums run over the points in
+    `order`, as numpy's bincount over them adds, so every value is numpy's to the bit."""
+    n = order.shape[0]
+    z = np.empty(n)
+    n_runs = 0
+    zmin = np.inf
+    for p in range(n):
+        z[p] = z_all[order[p]]
+        if z[p] < zmin:
+            zmin = z[p]
+        if p == 0 or key[order[p]] != key[order[p - 1]]:
+            n_runs += 1
+    starts = np.empty(n_runs + 1, np.int64)
+    keys = np.empty(n_runs, np.int64)
+    r = -1
+    for p in range(n):
+        if p == 0 or key[order[p]] != key[order[p - 1]]:
+            r += 1
+            starts[r] = p
+            keys[r] = key[order[p]]
+    starts[n_runs] = n
+    z0 = -zmin
+    mean = np.empty(n_runs)
+    bottom = np.empty(n_runs)
+    layer_n = np.zeros(n_runs, np.int64)
+    sq = np.zeros(n_runs)
+    band = np.empty(n)
+    for r in range(n_runs):
+        a, b = starts[r], starts[r + 1]
+        top = -np.inf
+        low = np.inf
+        for p in range(a, b):
+            if z[p] > top:
+                top = z[p]
+            if z[p] < low:
+                low = z[p]
+            band[p] = r * stride + (z[p] + z0)
+        bottom[r] = low
+        s = 0.0
+        for p in range(a, b):
+            if z[p] >= top - layer_m:
+                layer_n[r] += 1
+                s += z[p]
+        m = s / layer_n[r]
+        mean[r] = m
+        for p in range(a, b):
+            if z[p] >= top - layer_m:
+                d = z[p] - m
+                sq[r] += d * d
+        # the runs' band keys lie apart by the stride: sorting each run sorts them all
+        if b - a <= 48:  # a cell's few points: in place, no array made
+            for p in range(a + 1, b):
+                v = band[p]
+                q = p - 1
+                while q >= a and band[q] > v:
+                    band[q + 1] = band[q]
+                    q -= 1
+                band[q + 1] = v
+        else:
+            band[a:b] = np.sort(band[a:b])
+    return keys, starts, mean, bottom, layer_n, sq, band, z0
