@@ -432,7 +432,7 @@ def test_block_densities_merged_are_the_whole_epochs_density_to_the_last_bit(pai
 def test_merged_runs_are_in_the_order_a_stable_argsort_gives(runs):
     """The k-way merge behind read_box: ascending runs (ties within and across runs, empty
     runs) in the order np.argsort(kind="stable") gives the joined values."""
-    from quakescan.distributed._merge_kernel import merged_order
+    from quakescan.distributed._record_kernels import merged_order
 
     rng = np.random.default_rng(len(runs))
     parts = [np.sort(rng.integers(0, 60, n)) for n in runs]

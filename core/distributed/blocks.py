@@ -169,15 +169,13 @@ class _Hulls:
         self.origin = np.asarray(origin, dtype=np.float64)[:2]
         self.vertices: dict[int, np.ndarray] = {}
 
-    def add(self, ids: np.ndarray, xy: np.ndarray) -> None:
+    def add(self, groups: "_Groups", xy: np.ndarray) -> None:
         import shapely
 
         from ..results.writers import hull_candidates
 
-        order = np.argsort(ids, kind="stable")
-        u, starts = np.unique(ids[order], return_index=True)
-        ends = np.append(starts[1:], len(order))
-        for b, s, t in zip(u.tolist(), starts, ends):
+        order = groups.order
+        for b, s, t in zip(groups.ids.tolist(), groups.starts.tolist(), groups.ends.tolist()):
             if b <= 0:
                 continue
             world = xy[order[s:t]] + self.origin
@@ -201,6 +199,7 @@ def stream_epoch(f: EpochFile, origin: np.ndarray, folder: Path, *, block_cells:
     their stats into the whole epoch's)."""
     import laspy
 
+    from ..change._cell_kernels import column_bounds
     from ..change.align import sample_mask, stable_mask
 
     folder = Path(folder)
@@ -236,11 +235,12 @@ def stream_epoch(f: EpochFile, origin: np.ndarray, folder: Path, *, block_cells:
                 ids = np.asarray(chunk["building_id"], dtype=np.int64)
             index = np.arange(start, start + n, dtype=np.int64)
             if n:
-                lo_all = np.minimum(lo_all, xyz.min(axis=0))
-                hi_all = np.maximum(hi_all, xyz.max(axis=0))
-            _add_building_stats(stats, ids, xyz[:, :2])
+                lo, hi = column_bounds(xyz)
+                lo_all, hi_all = np.minimum(lo_all, lo), np.maximum(hi_all, hi)
+            groups = _Groups.of(ids)
+            _add_building_stats(stats, groups, xyz[:, :2])
             if hulls is not None:
-                hulls.add(ids, xyz[:, :2])
+                hulls.add(groups, xyz[:, :2])
             if sample is not None:
                 keep = stable_mask(cls, ids) & sample_mask(index, *sample)
                 samples.append(xyz[keep])
@@ -250,10 +250,8 @@ def stream_epoch(f: EpochFile, origin: np.ndarray, folder: Path, *, block_cells:
             if f.copc:  # read back by bounds from the file itself (`read_box`): no block files
                 blocks.update(_unique_keys(keys))
             else:
-                rec = np.empty(n, RECORD)
-                rec["index"], rec["X"], rec["Y"], rec["Z"] = index, X, Y, Z
-                rec["classification"], rec["building_id"] = cls, ids
-                _append_blocks(folder, keys, rec, blocks, part)
+                _append_blocks(folder, keys, {"index": index, "X": X, "Y": Y, "Z": Z, "classification": cls,
+                                              "building_id": ids}, blocks, part)
             start += n
             if on_chunk:
                 on_chunk(start - first, stop - first)
@@ -276,15 +274,35 @@ def _unique_keys(keys: np.ndarray) -> list[tuple[int, int]]:
     return [(int(c // span + lo[0]), int(c % span + lo[1])) for c in codes]
 
 
-def _add_building_stats(stats: EpochStats, ids: np.ndarray, xy: np.ndarray) -> None:
-    order = np.argsort(ids, kind="stable")
-    u, starts, counts = np.unique(ids[order], return_index=True, return_counts=True)
-    if not len(u):
+@dataclass
+class _Groups:
+    """A chunk's points grouped by building ID: the IDs (ascending), the point indices in ID
+    then file order (a counting sort: `quakescan.change.pipeline.grouped_by_id`) and each
+    ID's run."""
+
+    ids: np.ndarray
+    order: np.ndarray
+    starts: np.ndarray
+    ends: np.ndarray
+
+    @classmethod
+    def of(cls, ids: np.ndarray) -> "_Groups":
+        from ..change.pipeline import grouped_by_id, id_counts
+
+        u, counts = id_counts(ids)
+        order, starts = grouped_by_id(ids, u)
+        return cls(u, order, starts, starts + counts)
+
+
+def _add_building_stats(stats: EpochStats, groups: _Groups, xy: np.ndarray) -> None:
+    if not len(groups.ids):
         return
-    s = xy[order]
+    s = xy[groups.order]
+    starts = groups.starts
+    counts = groups.ends - groups.starts
     lo = np.column_stack([np.minimum.reduceat(s[:, 0], starts), np.minimum.reduceat(s[:, 1], starts)])
     hi = np.column_stack([np.maximum.reduceat(s[:, 0], starts), np.maximum.reduceat(s[:, 1], starts)])
-    for b, c, a, z in zip(u.tolist(), counts.tolist(), lo.tolist(), hi.tolist()):
+    for b, c, a, z in zip(groups.ids.tolist(), counts.tolist(), lo.tolist(), hi.tolist()):
         if b <= 0:
             continue
         if b in stats.counts:
@@ -296,21 +314,32 @@ def _add_building_stats(stats: EpochStats, ids: np.ndarray, xy: np.ndarray) -> N
             stats.counts[b], stats.lo[b], stats.hi[b] = c, tuple(a), tuple(z)
 
 
-def _append_blocks(folder: Path, keys: np.ndarray, rec: np.ndarray, seen: set, part: int | None = None) -> None:
-    if not len(rec):
+def _append_blocks(folder: Path, keys: np.ndarray, columns: dict, seen: set, part: int | None = None) -> None:
+    """Append the chunk's points (`columns`: RECORD's fields as plain arrays) to their
+    blocks' files. The records are packed in block order (one counting sort, one compiled
+    loop: gathering whole 29-byte records was the stream's slowest step), and each block's
+    run is written as it lies."""
+    from ..change._cell_kernels import stable_order
+    from ._record_kernels import pack_records
+
+    n = len(keys)
+    if not n:
         return
     span = int(keys[:, 1].max() - keys[:, 1].min()) + 1
     flat = (keys[:, 0] - keys[:, 0].min()) * span + (keys[:, 1] - keys[:, 1].min())
     # one stable sort by (block, building or not): a file's points stay in file order
-    flat = 2 * flat + (rec["building_id"] > 0)
-    order = np.argsort(flat, kind="stable")
-    u, starts = np.unique(flat[order], return_index=True)
-    ends = np.append(starts[1:], len(order))
-    for code, s, t in zip(u.tolist(), starts, ends):
+    flat = 2 * flat + (columns["building_id"] > 0)
+    order = stable_order(flat)
+    rec = np.empty(n, RECORD)
+    pack_records(rec, order, *(np.asarray(columns[name], RECORD[name]) for name in RECORD.names))  # views too
+    flat = flat[order]
+    starts = np.flatnonzero(np.r_[True, flat[1:] != flat[:-1]])
+    ends = np.append(starts[1:], n)
+    for code, s, t in zip(flat[starts].tolist(), starts.tolist(), ends.tolist()):
         key = (int(keys[order[s], 0]), int(keys[order[s], 1]))
         seen.add(key)
         with open(block_path(folder, key, part, buildings=bool(code % 2)), "ab") as out:
-            out.write(rec[order[s:t]].tobytes())
+            out.write(rec[s:t].view(np.uint8))
 
 
 def merge_stats(parts: list[EpochStats]) -> EpochStats:
@@ -384,8 +413,8 @@ def read_box(folder: Path, f: EpochFile, origin, box, block_cells: int) -> tuple
     `box` ((2, 2): min, max; local frame, edges included), in file order: the blocks the box
     touches, each file cut to the box as it is read (a tile's box covers about half of the
     blocks it touches), the coordinates made once. Each file's points lie in file order:
-    merging the files' runs (`_merge_kernel.merged_order`) puts them in file order."""
-    from ._merge_kernel import merged_order
+    merging the files' runs (`_record_kernels.merged_order`) puts them in file order."""
+    from ._record_kernels import merged_order
 
     box = np.asarray(box, dtype=np.float64)
     origin = np.asarray(origin, dtype=np.float64)
