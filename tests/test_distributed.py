@@ -439,3 +439,25 @@ def test_merged_runs_are_in_the_order_a_stable_argsort_gives(runs):
     values = np.concatenate(parts) if parts else np.zeros(0, np.int64)
     starts = np.cumsum([0] + runs)
     np.testing.assert_array_equal(merged_order(values, starts), np.argsort(values, kind="stable"))
+
+
+@slow
+def test_the_registration_check_sends_its_samples_as_data_not_a_large_graph(pair, cluster, tmp_path, monkeypatch):
+    """The registration check's samples (up to 500 k stable points an epoch, 2 x 12 MB) are
+    scattered to the workers: passed inside the task, Dask warns of a large graph."""
+    import warnings
+
+    from quakescan.distributed import blocks
+
+    real = blocks.merge_stats
+
+    def big_sample(parts):  # in the client: the box city's stable sample made as large as a city's
+        stats = real(parts)
+        stats.stable_sample = np.tile(stats.stable_sample, (500_000 // len(stats.stable_sample) + 1, 1))
+        return stats
+
+    monkeypatch.setattr(blocks, "merge_stats", big_sample)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        _run(pair, tmp_path / "dask", cluster, write_las=False)
+    assert not [w for w in caught if "large graph" in str(w.message)]

@@ -121,8 +121,11 @@ def classify_distributed(pre_path, post_path, out_dir, client, *, model_path=Non
             return None
         from .tasks import registration_task
 
-        checked = client.submit(registration_task, pre_s.stable_sample, post_s.stable_sample, settings.to_json(),
-                                align, {"pre": summary["pre"], "post": summary["post"]}, post_s.bounds,
+        # the samples (up to 2 x 12 MB) go to the workers as data, not inside the task: Dask
+        # warns of a large graph, and a graph is held by the scheduler
+        samples = client.scatter([pre_s.stable_sample, post_s.stable_sample])
+        checked = client.submit(registration_task, *samples, settings.to_json(), align,
+                                {"pre": summary["pre"], "post": summary["post"]}, post_s.bounds,
                                 pure=False, priority=1).result()
         for level, message in checked["messages"]:
             cl.log.log(level, "%s", message)
