@@ -7,8 +7,7 @@ import numpy as np
 
 
 def patch_sizes(xyz, changed, spacing) -> np.ndarray:
-    """Size of the patch (points joined up to two voxels apart) each changed point belongs to;
-    0 for unchanged points."""
+    """`surface._patch_sizes`."""
     sizes = np.zeros(len(xyz), np.int64)
     if not changed.any():
         return sizes
@@ -59,10 +58,7 @@ def voxel_lookup(xyz, spacing):
 
 
 def coherence(xyz, changed, valid, spacing):
-    """(changed core points with at least half of their (>= 3) valid adjacent core points
-    changed, the size of the largest patch of changed core points). A patch joins changed
-    points up to two voxels apart, so that a core point left unobserved in the middle of a
-    hole does not cut it in two (sparse epochs leave more such gaps)."""
+    """`surface._coherence`."""
     if not changed.any():
         return np.zeros(len(xyz), bool), 0
     neighbour = voxel_lookup(xyz, spacing)

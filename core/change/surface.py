@@ -762,7 +762,10 @@ def _core_change(cxyz, normals, res, lost, seen_through, sl, s: SurfaceSettings,
     changed = sig | lost
     # a 95 % test flags single core points of an unchanged surface at random (on real airborne
     # halves of one scan, isolated points: 33 of 40 buildings with any); damage is areal
-    changed = changed & (_patch_sizes(cxyz, changed, spacing) >= s.min_patch_cores)
+    from . import _patch_kernels as K
+
+    keys = K.voxel_keys(cxyz, spacing) if len(cxyz) else None  # both patch passes look up the same voxels
+    changed = changed & (_patch_sizes(cxyz, changed, spacing, keys) >= s.min_patch_cores)
     sig, lost = sig & changed, lost & changed
     valid = comparable | lost  # the rest was not observed after the event: unknown
     roof = np.abs(normals[:, 2]) >= 0.5
@@ -773,7 +776,7 @@ def _core_change(cxyz, normals, res, lost, seen_through, sl, s: SurfaceSettings,
         k = among.sum()
         return float((mask & among).sum() / k) if k else 0.0
 
-    coherent, largest = _coherence(cxyz, changed, valid, spacing)
+    coherent, largest = _coherence(cxyz, changed, valid, spacing, keys)
     dist = distance[sig]
     out = {
         "m_changed": share(changed, valid),
@@ -853,13 +856,13 @@ def _in_patches(cells: np.ndarray, mask: np.ndarray, width: int, min_cells: int)
     return out
 
 
-def _patch_sizes(xyz, changed, spacing) -> np.ndarray:
+def _patch_sizes(xyz, changed, spacing, keys=None) -> np.ndarray:
     """Size of the patch (points joined up to two voxels apart) each changed point belongs to;
-    0 for unchanged points."""
+    0 for unchanged points. `keys`: `_patch_kernels.voxel_keys` of xyz when already at hand."""
     sizes = np.zeros(len(xyz), np.int64)
     if not changed.any():
         return sizes
-    labels = _patches(xyz, changed, spacing)
+    labels = _patches(xyz, changed, spacing, keys)
     sizes[changed] = np.bincount(labels)[labels]
     return sizes
 
@@ -875,16 +878,16 @@ def _patches(xyz, changed, spacing, keys=None):
     return roots[changed]
 
 
-def _coherence(xyz, changed, valid, spacing):
+def _coherence(xyz, changed, valid, spacing, keys=None):
     """(changed core points with at least half of their (>= 3) valid adjacent core points
     changed, the size of the largest patch of changed core points). A patch joins changed
     points up to two voxels apart, so that a core point left unobserved in the middle of a
-    hole does not cut it in two (sparse epochs leave more such gaps)."""
+    hole does not cut it in two (sparse epochs leave more such gaps). `keys`: as `_patches`."""
     from . import _patch_kernels as K
 
     if not changed.any():
         return np.zeros(len(xyz), bool), 0
-    v = K.voxel_keys(xyz, spacing)
+    v = K.voxel_keys(xyz, spacing) if keys is None else keys
     n_valid, n_changed = K.neighbour_counts(v.key, v.sorted_key, v.order, v.first, np.ascontiguousarray(valid, bool),
                                             np.ascontiguousarray(changed, bool), v.offsets_within(1))
     coherent = changed & (n_valid >= 3) & (2 * n_changed >= n_valid)

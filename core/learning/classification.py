@@ -486,18 +486,14 @@ class _XYByBuilding:
     epoch, with an 8-byte argsort beside it: the run's memory peak)."""
 
     def __init__(self, e: Epoch):
-        from ..change.pipeline import grouped_by_id, id_counts
+        from ..change.pipeline import _members_by_id
 
         self.xyz = e.xyz
-        self.ids, counts = id_counts(e.building_id)
-        self.order, starts = grouped_by_id(e.building_id, self.ids)
-        self.runs = dict(zip(self.ids.tolist(), zip(starts.tolist(), (starts + counts).tolist())))
+        self.members = _members_by_id(e.building_id)
 
     def get(self, bid: int, default=None):
-        if bid <= 0 or bid not in self.runs:
-            return default
-        a, z = self.runs[bid]
-        return self.xyz[self.order[a:z], :2]
+        idx = self.members(bid) if bid > 0 else None
+        return default if idx is None or len(idx) == 0 else self.xyz[idx, :2]
 
 
 __all__ = ["ClassifyError", "PointCloudError", "classify", "default_model_path", "load_pair", "model_settings",
