@@ -441,6 +441,93 @@ def test_merged_runs_are_in_the_order_a_stable_argsort_gives(runs):
     np.testing.assert_array_equal(merged_order(values, starts), np.argsort(values, kind="stable"))
 
 
+def _utm_records(n=20_000, seed=3):
+    """RECORDs of a file whose integers straddle zero about a UTM offset (local coordinates
+    of both signs, block edges crossed), with points on whole metres."""
+    from quakescan.distributed import blocks
+
+    rng = np.random.default_rng(seed)
+    rec = np.empty(n, blocks.RECORD)
+    rec["index"] = np.sort(rng.choice(10 * n, n, replace=False))
+    rec["X"], rec["Y"] = rng.integers(-90_000, 90_000, n), rng.integers(-90_000, 90_000, n)
+    rec["X"][:50] = 7_000  # 7.000 m: on a block edge and on the box's edge below
+    rec["Z"] = rng.integers(-5_000, 40_000, n)
+    rec["classification"] = rng.integers(0, 7, n)
+    rec["building_id"] = np.where(rng.random(n) < 0.4, rng.integers(1, 30, n), 0)
+    f = blocks.EpochFile("utm.las", n, [0.001, 0.001, 0.001], [500_000.25, 5_200_000.5, 100.0], [0] * 3, [0] * 3,
+                         None, [])
+    return f, np.array([499_990.0, 5_200_010.0, 0.0]), rec
+
+
+def test_chunk_frame_makes_the_coordinates_bounds_and_blocks_numpy_makes():
+    """The streamed chunk's compiled frame: coordinates equal to EpochFile.local_xyz to the
+    bit at UTM offsets, blocks as block_of floors them (negative cells included), the
+    bounds, and block codes that order blocks, other points before building points."""
+    from quakescan.distributed import blocks
+    from quakescan.distributed._record_kernels import block_codes, chunk_frame
+
+    f, origin, rec = _utm_records()
+    n = len(rec)
+    xyz, keys = np.empty((n, 3)), np.empty((n, 2), np.int64)
+    scales = np.asarray(f.scales)
+    shifts = np.array([f.offsets[k] - origin[k] for k in range(3)])
+    lo, hi, klo, khi = chunk_frame(rec["X"], rec["Y"], rec["Z"], scales, shifts, 1.0, BLOCK_CELLS, xyz, keys)
+    want = f.local_xyz(rec["X"], rec["Y"], rec["Z"], origin)
+    np.testing.assert_array_equal(xyz, want)
+    want_keys = blocks.block_of(want[:, :2], BLOCK_CELLS)
+    np.testing.assert_array_equal(keys, want_keys)
+    assert (keys < 0).any() and (keys > 0).any()
+    np.testing.assert_array_equal(lo, want.min(axis=0))
+    np.testing.assert_array_equal(hi, want.max(axis=0))
+    np.testing.assert_array_equal(klo, want_keys.min(axis=0))
+    np.testing.assert_array_equal(khi, want_keys.max(axis=0))
+    codes = block_codes(keys, klo, int(khi[1] - klo[1]) + 1, rec["building_id"])
+    flat = (want_keys[:, 0] - klo[0]) * (khi[1] - klo[1] + 1) + (want_keys[:, 1] - klo[1])
+    np.testing.assert_array_equal(codes, 2 * flat + (rec["building_id"] > 0))
+
+
+def test_group_boxes_are_the_x_y_extent_of_each_group():
+    from quakescan.change.pipeline import grouped_by_id, id_counts
+    from quakescan.distributed._record_kernels import group_boxes
+
+    rng = np.random.default_rng(5)
+    xyz = rng.normal(0, 1e5, (5_000, 3)) + [5e5, 5.2e6, 0]
+    ids = rng.integers(0, 40, 5_000)
+    u, counts = id_counts(ids)
+    order, starts = grouped_by_id(ids, u)
+    lo, hi = group_boxes(xyz, order, starts, starts + counts)
+    for g, b in enumerate(u):
+        np.testing.assert_array_equal(lo[g], xyz[ids == b, :2].min(axis=0))
+        np.testing.assert_array_equal(hi[g], xyz[ids == b, :2].max(axis=0))
+
+
+def test_keep_in_box_keeps_what_the_numpy_mask_keeps_edges_included():
+    """The compiled cut of a block file to a box: the records numpy's mask of local_xyz
+    keeps (UTM offsets, points on the box's edge), appended after the rows already filled."""
+    from quakescan.distributed import blocks
+    from quakescan.distributed._record_kernels import keep_in_box
+
+    f, origin, rec = _utm_records()
+    want = f.local_xyz(rec["X"], rec["Y"], rec["Z"], origin)
+    box = np.array([[want[0, 0], -20.0], [want[:50, 0].max() + 30.0, 35.5]])
+    box[0, 0] = want[:50, 0].min()  # the 50 points on x = 7.000 m - the shift lie on the edge
+    inside = np.all((want[:, :2] >= box[0]) & (want[:, :2] <= box[1]), axis=1)
+    assert inside[:50].any()
+    n = len(rec) + 7
+    index, cls, bid, xyz = np.zeros(n, np.int64), np.zeros(n, np.uint8), np.zeros(n, np.int64), np.zeros((n, 3))
+    scales = np.asarray(f.scales)
+    shifts = np.array([f.offsets[k] - origin[k] for k in range(3)])
+    m = keep_in_box(rec, scales, shifts, box, index, cls, bid, xyz, 7)
+    assert m == 7 + inside.sum()
+    np.testing.assert_array_equal(xyz[7:m], want[inside])
+    np.testing.assert_array_equal(index[7:m], rec["index"][inside])
+    np.testing.assert_array_equal(cls[7:m], rec["classification"][inside])
+    np.testing.assert_array_equal(bid[7:m], rec["building_id"][inside])
+    assert not index[:7].any()
+    assert keep_in_box(rec, scales, shifts, box + 1e6, index, cls, bid, xyz, 0) == 0
+    assert blocks.RECORD.itemsize == 29  # packed records: the kernel reads them unaligned
+
+
 @slow
 def test_the_registration_check_sends_its_samples_as_data_not_a_large_graph(pair, cluster, tmp_path, monkeypatch):
     """The registration check's samples (up to 500 k stable points an epoch, 2 x 12 MB) are

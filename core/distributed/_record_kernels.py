@@ -1,17 +1,64 @@
-"""Compiled loops over the block files' records (numba): the order of ascending runs merged
-into one, for `blocks.read_box`, and records packed in a given order, for `blocks.stream_epoch`.
+"""Compiled loops over the block files' records (numba): the records of a box kept as they
+are read and the order of ascending runs merged into one, for `blocks.read_box`, and records
+packed in a given order, for `blocks.stream_epoch`.
 
 A tile's box is read from block files whose points each lie in file order; the tile needs
 them all in file order. A stable argsort of the joined indices and a gather of 29-byte
 records took a third of a second a tile epoch; a k-way merge of the runs gives the same
 order in a pass over the points, and the plain arrays gathered by it are read nearly in
-sequence. Writing the 29-byte records field by field from numpy was the slowest step of
+sequence. Streaming a chunk, numpy made its coordinates, bounds, blocks and block codes
+in a dozen passes and (n, 2) temporaries; `chunk_frame` and `block_codes` make them in two.
+Cutting each file to the box with numpy (coordinates of every record, a mask,
+four gathers) took more than the merge; one loop makes a record's coordinates and keeps it
+or not. Writing the 29-byte records field by field from numpy was the slowest step of
 streaming a chunk into blocks; one loop fills each record whole.
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numba import njit
+
+
+@njit(nogil=True, cache=True)
+def keep_in_box(rec, scales, shifts, box, index, classification, building_id, xyz, n):
+    """Append the records whose local x/y lie in `box` ((2, 2): min, max, edges included) to
+    the outputs from row `n`; return the rows filled. A coordinate is made as
+    `blocks.EpochFile.local_xyz` makes it: the integer as float64 × scale + shift (offset −
+    origin), two roundings, so it is equal to the last bit."""
+    x0, y0, x1, y1 = box[0, 0], box[0, 1], box[1, 0], box[1, 1]
+    for i in range(rec.shape[0]):
+        r = rec[i]
+        x = np.float64(r.X) * scales[0] + shifts[0]
+        if x < x0 or x > x1:
+            continue
+        y = np.float64(r.Y) * scales[1] + shifts[1]
+        if y < y0 or y > y1:
+            continue
+        xyz[n, 0] = x
+        xyz[n, 1] = y
+        xyz[n, 2] = np.float64(r.Z) * scales[2] + shifts[2]
+        index[n] = r.index
+        classification[n] = r.classification
+        building_id[n] = r.building_id
+        n += 1
+    return n
+
+
+@njit(nogil=True, cache=True)
+def gather_box(order, index, classification, building_id, xyz, out, out_xyz):
+    """out[i] (BOX_FIELDS record) and out_xyz[i] = point order[i]: one pass, where numpy's
+    four gathers and a structured assignment each walked the points again."""
+    for i in range(order.shape[0]):
+        j = order[i]
+        r = out[i]
+        r.index = index[j]
+        r.classification = classification[j]
+        r.building_id = building_id[j]
+        out_xyz[i, 0] = xyz[j, 0]
+        out_xyz[i, 1] = xyz[j, 1]
+        out_xyz[i, 2] = xyz[j, 2]
 
 
 @njit(nogil=True, cache=True)
@@ -86,3 +133,64 @@ def pack_records(rec, order, index, X, Y, Z, classification, building_id):
         r.Z = Z[j]
         r.classification = classification[j]
         r.building_id = building_id[j]
+
+
+@njit(nogil=True, cache=True)
+def chunk_frame(X, Y, Z, scales, shifts, cell, block_cells, xyz, keys):
+    """A streamed chunk's local coordinates, blocks and bounds in one pass: xyz[i] as
+    `blocks.EpochFile.local_xyz` makes it (integer as float64 × scale + shift, two roundings:
+    the same bits), keys[i] as `blocks.block_of` (the cell floor(x / cell) floor-divided by
+    the block's cells). Returns the (3,) minimum and maximum of xyz and the (2,) minimum and
+    maximum block."""
+    lo = np.full(3, np.inf)
+    hi = np.full(3, -np.inf)
+    klo = np.full(2, np.iinfo(np.int64).max)
+    khi = np.full(2, np.iinfo(np.int64).min)
+    for i in range(X.shape[0]):
+        xyz[i, 0] = np.float64(X[i]) * scales[0] + shifts[0]
+        xyz[i, 1] = np.float64(Y[i]) * scales[1] + shifts[1]
+        xyz[i, 2] = np.float64(Z[i]) * scales[2] + shifts[2]
+        for k in range(3):
+            v = xyz[i, k]
+            if v < lo[k]:
+                lo[k] = v
+            if v > hi[k]:
+                hi[k] = v
+        for k in range(2):
+            b = np.int64(math.floor(xyz[i, k] / cell)) // block_cells
+            keys[i, k] = b
+            if b < klo[k]:
+                klo[k] = b
+            if b > khi[k]:
+                khi[k] = b
+    return lo, hi, klo, khi
+
+
+@njit(nogil=True, cache=True)
+def block_codes(keys, klo, span, building_id):
+    """2 × the block's code ((bx − klo) × span + (by − klo)) + 1 for a building point: one
+    sort by the codes orders a chunk by block, and each block's other points before its
+    building points."""
+    out = np.empty(keys.shape[0], np.int64)
+    for i in range(keys.shape[0]):
+        flat = (keys[i, 0] - klo[0]) * span + (keys[i, 1] - klo[1])
+        out[i] = 2 * flat + (1 if building_id[i] > 0 else 0)
+    return out
+
+
+@njit(nogil=True, cache=True)
+def group_boxes(xyz, order, starts, ends):
+    """(g, 2) x/y minimum and maximum of each group's points order[starts[g]:ends[g]]."""
+    g = starts.shape[0]
+    lo = np.full((g, 2), np.inf)
+    hi = np.full((g, 2), -np.inf)
+    for k in range(g):
+        for t in range(starts[k], ends[k]):
+            j = order[t]
+            for c in range(2):
+                v = xyz[j, c]
+                if v < lo[k, c]:
+                    lo[k, c] = v
+                if v > hi[k, c]:
+                    hi[k, c] = v
+    return lo, hi

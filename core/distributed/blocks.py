@@ -199,8 +199,8 @@ def stream_epoch(f: EpochFile, origin: np.ndarray, folder: Path, *, block_cells:
     their stats into the whole epoch's)."""
     import laspy
 
-    from ..change._cell_kernels import column_bounds
     from ..change.align import sample_mask, stable_mask
+    from ._record_kernels import block_codes, chunk_frame
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
@@ -209,6 +209,8 @@ def stream_epoch(f: EpochFile, origin: np.ndarray, folder: Path, *, block_cells:
         old.unlink()
     stop = f.n if stop is None else min(int(stop), f.n)
     stats = EpochStats(n=0)
+    scales = np.asarray(f.scales, dtype=np.float64)
+    shifts = np.array([f.offsets[k] - origin[k] for k in range(3)], dtype=np.float64)
     hulls = _Hulls(origin) if with_hulls else None
     lo_all, hi_all = np.full(3, np.inf), np.full(3, -np.inf)
     samples, maps, blocks = [], [], set()
@@ -223,9 +225,11 @@ def stream_epoch(f: EpochFile, origin: np.ndarray, folder: Path, *, block_cells:
         first = start
         # a COPC epoch is streamed for its summaries only: x, y, z, class and building IDs
         for chunk in read_point_range(reader, start, stop, chunk_points, geometry_only=f.copc):
-            X, Y, Z = (np.asarray(chunk.array[c]) for c in "XYZ")
+            X, Y, Z = (chunk.array[c] for c in "XYZ")
             n = len(X)
-            xyz = f.local_xyz(X, Y, Z, origin)
+            xyz, keys = np.empty((n, 3)), np.empty((n, 2), np.int64)
+            lo, hi, klo, khi = chunk_frame(X, Y, Z, scales, shifts, DENSITY_CELL_M, int(block_cells), xyz, keys)
+            lo_all, hi_all = np.minimum(lo_all, lo), np.maximum(hi_all, hi)
             cls = np.asarray(chunk.classification, dtype=np.uint8)
             if footprints is not None:
                 from ..formats.footprints import assign_buildings
@@ -233,25 +237,24 @@ def stream_epoch(f: EpochFile, origin: np.ndarray, folder: Path, *, block_cells:
                 ids = assign_buildings(xyz[:, 0] + origin[0], xyz[:, 1] + origin[1], footprints)
             else:
                 ids = np.asarray(chunk["building_id"], dtype=np.int64)
-            index = np.arange(start, start + n, dtype=np.int64)
-            if n:
-                lo, hi = column_bounds(xyz)
-                lo_all, hi_all = np.minimum(lo_all, lo), np.maximum(hi_all, hi)
             groups = _Groups.of(ids)
-            _add_building_stats(stats, groups, xyz[:, :2])
+            _add_building_stats(stats, groups, xyz)
             if hulls is not None:
                 hulls.add(groups, xyz[:, :2])
             if sample is not None:
-                keep = stable_mask(cls, ids) & sample_mask(index, *sample)
+                # the hash first: it keeps a few hundred thousand of an epoch's points
+                keep = sample_mask(range(start, start + n), *sample)
+                keep[keep] = stable_mask(cls[keep], ids[keep])
                 samples.append(xyz[keep])
             if map_step:
-                maps.append(xyz[index % map_step == 0, :2])
-            keys = block_of(xyz[:, :2], block_cells)
+                maps.append(xyz[(start + np.arange(n)) % map_step == 0, :2])
             if f.copc:  # read back by bounds from the file itself (`read_box`): no block files
                 blocks.update(_unique_keys(keys))
-            else:
-                _append_blocks(folder, keys, {"index": index, "X": X, "Y": Y, "Z": Z, "classification": cls,
-                                              "building_id": ids}, blocks, part)
+            elif n:
+                codes = block_codes(keys, klo, int(khi[1] - klo[1]) + 1, ids)
+                _append_blocks(folder, keys, codes, {"index": np.arange(start, start + n, dtype=np.int64), "X": X,
+                                                     "Y": Y, "Z": Z, "classification": cls, "building_id": ids},
+                               blocks, part)
             start += n
             if on_chunk:
                 on_chunk(start - first, stop - first)
@@ -294,14 +297,13 @@ class _Groups:
         return cls(u, order, starts, starts + counts)
 
 
-def _add_building_stats(stats: EpochStats, groups: _Groups, xy: np.ndarray) -> None:
+def _add_building_stats(stats: EpochStats, groups: _Groups, xyz: np.ndarray) -> None:
     if not len(groups.ids):
         return
-    s = xy[groups.order]
-    starts = groups.starts
+    from ._record_kernels import group_boxes
+
+    lo, hi = group_boxes(xyz, groups.order, groups.starts, groups.ends)
     counts = groups.ends - groups.starts
-    lo = np.column_stack([np.minimum.reduceat(s[:, 0], starts), np.minimum.reduceat(s[:, 1], starts)])
-    hi = np.column_stack([np.maximum.reduceat(s[:, 0], starts), np.maximum.reduceat(s[:, 1], starts)])
     for b, c, a, z in zip(groups.ids.tolist(), counts.tolist(), lo.tolist(), hi.tolist()):
         if b <= 0:
             continue
@@ -314,28 +316,26 @@ def _add_building_stats(stats: EpochStats, groups: _Groups, xy: np.ndarray) -> N
             stats.counts[b], stats.lo[b], stats.hi[b] = c, tuple(a), tuple(z)
 
 
-def _append_blocks(folder: Path, keys: np.ndarray, columns: dict, seen: set, part: int | None = None) -> None:
-    """Append the chunk's points (`columns`: RECORD's fields as plain arrays) to their
-    blocks' files. The records are packed in block order (one counting sort, one compiled
-    loop: gathering whole 29-byte records was the stream's slowest step), and each block's
-    run is written as it lies."""
+def _append_blocks(folder: Path, keys: np.ndarray, codes: np.ndarray, columns: dict, seen: set,
+                   part: int | None = None) -> None:
+    """Append the chunk's points (`columns`: RECORD's fields as arrays; `keys`: their blocks;
+    `codes`: `_record_kernels.block_codes`) to their blocks' files. The records are packed in
+    block order (one counting sort, one compiled loop: gathering whole 29-byte records was
+    the stream's slowest step), and each block's run is written as it lies."""
     from ..change._cell_kernels import stable_order
     from ._record_kernels import pack_records
 
     n = len(keys)
     if not n:
         return
-    span = int(keys[:, 1].max() - keys[:, 1].min()) + 1
-    flat = (keys[:, 0] - keys[:, 0].min()) * span + (keys[:, 1] - keys[:, 1].min())
     # one stable sort by (block, building or not): a file's points stay in file order
-    flat = 2 * flat + (columns["building_id"] > 0)
-    order = stable_order(flat)
+    order = stable_order(codes)
     rec = np.empty(n, RECORD)
     pack_records(rec, order, *(np.asarray(columns[name], RECORD[name]) for name in RECORD.names))  # views too
-    flat = flat[order]
-    starts = np.flatnonzero(np.r_[True, flat[1:] != flat[:-1]])
+    codes = codes[order]
+    starts = np.flatnonzero(np.r_[True, codes[1:] != codes[:-1]])
     ends = np.append(starts[1:], n)
-    for code, s, t in zip(flat[starts].tolist(), starts.tolist(), ends.tolist()):
+    for code, s, t in zip(codes[starts].tolist(), starts.tolist(), ends.tolist()):
         key = (int(keys[order[s], 0]), int(keys[order[s], 1]))
         seen.add(key)
         with open(block_path(folder, key, part, buildings=bool(code % 2)), "ab") as out:
@@ -414,7 +414,7 @@ def read_box(folder: Path, f: EpochFile, origin, box, block_cells: int) -> tuple
     touches, each file cut to the box as it is read (a tile's box covers about half of the
     blocks it touches), the coordinates made once. Each file's points lie in file order:
     merging the files' runs (`_record_kernels.merged_order`) puts them in file order."""
-    from ._record_kernels import merged_order
+    from ._record_kernels import gather_box, keep_in_box, merged_order
 
     box = np.asarray(box, dtype=np.float64)
     origin = np.asarray(origin, dtype=np.float64)
@@ -422,25 +422,21 @@ def read_box(folder: Path, f: EpochFile, origin, box, block_cells: int) -> tuple
         rec, xyz = _copc_box(Path(folder), f, origin, box)
         return _box_fields(rec["index"], rec["classification"], rec["building_id"]), xyz
     n_parts = _parts_of(folder)
-    index, cls, bid, coords = [], [], [], []
-    for key in blocks_in_box(box, block_cells):
-        for p in block_files(folder, key, n_parts):
-            if not p.is_file():
-                continue
-            rec = np.fromfile(p, dtype=RECORD)
-            xyz = f.local_xyz(rec["X"], rec["Y"], rec["Z"], origin)
-            inside = np.all((xyz[:, :2] >= box[0]) & (xyz[:, :2] <= box[1]), axis=1)
-            if inside.any():
-                index.append(rec["index"][inside])
-                cls.append(rec["classification"][inside])
-                bid.append(rec["building_id"][inside])
-                coords.append(xyz[inside])
-    if not index:
-        return np.zeros(0, BOX_FIELDS), np.zeros((0, 3))
-    joined = np.concatenate(index)
-    order = merged_order(joined, np.cumsum([0] + [len(i) for i in index]))
-    return (_box_fields(joined[order], np.concatenate(cls)[order], np.concatenate(bid)[order]),
-            np.concatenate(coords)[order])
+    files = [np.fromfile(p, dtype=RECORD) for key in blocks_in_box(box, block_cells)
+             for p in block_files(folder, key, n_parts) if p.is_file()]
+    capacity = sum(len(r) for r in files)
+    index, cls = np.empty(capacity, np.int64), np.empty(capacity, np.uint8)
+    bid, xyz = np.empty(capacity, np.int64), np.empty((capacity, 3))
+    scales = np.asarray(f.scales, dtype=np.float64)
+    shifts = np.array([f.offsets[k] - origin[k] for k in range(3)], dtype=np.float64)
+    starts = [0]
+    for rec in files:
+        starts.append(keep_in_box(rec, scales, shifts, box, index, cls, bid, xyz, starts[-1]))
+    n = starts[-1]
+    order = merged_order(index[:n], np.asarray(starts, dtype=np.int64))
+    out, out_xyz = np.empty(n, BOX_FIELDS), np.empty((n, 3))
+    gather_box(order, index, cls, bid, xyz, out, out_xyz)
+    return out, out_xyz
 
 
 def _box_fields(index, classification, building_id) -> np.ndarray:
