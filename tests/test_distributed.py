@@ -98,7 +98,9 @@ def test_an_offset_post_epoch_is_aligned_as_one_process_aligns_it(pair, cluster,
     assert dask["registration"] == single["registration"]
     assert dask["alignment"]["transform"] == single["alignment"]["transform"]  # ICP rounded: the same in every run
     assert dask["alignment"]["rmse_after_m"] == pytest.approx(single["alignment"]["rmse_after_m"], rel=1e-9)
+    # the tiles started unmoved before the check answered were described again, moved
     _same_outputs(tmp_path / "single", tmp_path / "dask")
+    assert not list((tmp_path / "dask").glob(".checkpoint*"))
 
 
 class _DieOnce(distributed.WorkerPlugin):
@@ -158,6 +160,60 @@ def test_an_interrupted_client_resumes_from_its_finished_tiles_and_blocks(pair, 
     summary = _run(pair, out, cluster)
     assert summary["resumed_buildings"] >= 2
     _same_outputs(single[0], out)
+
+
+class _SlowRegistration(distributed.WorkerPlugin):
+    """Makes the registration check of its workers answer `seconds` late."""
+
+    def __init__(self, seconds: float):
+        self.seconds = seconds
+
+    def setup(self, worker):
+        import time
+
+        from quakescan.distributed import tasks
+
+        check, seconds = tasks.registration_task, self.seconds
+        if getattr(check, "slowed", False):
+            return
+
+        def late(*a, **k):
+            time.sleep(seconds)
+            return check(*a, **k)
+        late.slowed = True
+        tasks.registration_task = late  # a task names its function: the workers look it up here
+
+
+@slow
+def test_tiles_finished_before_the_registration_check_answers_are_kept_for_a_resumed_run(pair, single, tmp_path):
+    """The tiles start unmoved while the check runs. A client interrupted before it answers
+    keeps their rows (a checkpoint of their own), and the resumed run uses them once its own
+    check finds no alignment: the files one process writes."""
+    from quakescan.distributed.classify import UNMOVED_CHECKPOINT
+
+    out = tmp_path / "dask"
+    calls = []
+
+    def stop_after_two(done, total, stage=""):
+        if not stage:
+            calls.append(done)
+            if len(calls) == 2:
+                raise KeyboardInterrupt
+
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0",
+                                  memory_limit="2GB") as c, distributed.Client(c) as client:
+        client.register_plugin(_SlowRegistration(60.0))
+        with pytest.raises(KeyboardInterrupt):
+            _run(pair, out, client, progress=stop_after_two)
+    lines = (out / UNMOVED_CHECKPOINT).read_text().splitlines()
+    assert len(lines) >= 3  # the fingerprint and the rows of two buildings
+    assert len((out / ".checkpoint.jsonl").read_text().splitlines()) == 1  # no row: the check had not answered
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0",
+                                  memory_limit="2GB") as c, distributed.Client(c) as client:
+        summary = _run(pair, out, client)
+    assert summary["resumed_buildings"] >= 2
+    _same_outputs(single[0], out)
+    assert not list(out.glob(".checkpoint*"))
 
 
 @slow

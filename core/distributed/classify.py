@@ -35,6 +35,7 @@ log = logging.getLogger(__name__)
 
 BLOCK_CELLS = 50  # a block is 50 × 50 density cells (50 m): a 150 m tile reads about 5 × 5 of them
 MANIFEST = "manifest.json"
+UNMOVED_CHECKPOINT = ".checkpoint.unmoved.jsonl"
 HALO_STEP_M = 10.0  # a tile whose nearest neighbours reach beyond its halo asks again with this much more
 # What a tile task holds at its peak, per point: the records of every block it reads (their
 # bytes, the index sort and the sorted copy) and, per point inside its box, the coordinates,
@@ -48,6 +49,8 @@ DESCRIBE_BYTES_PER_POINT = 200
 TILE_MEMORY_SHARE = 0.5
 DENSITY_GROUP = 4  # blocks counted 4 × 4 a task: an aligned epoch's ring of blocks is read once a group
 PART_POINTS = 16_000_000  # points of one epoch streamed by one task at most: a few tasks a worker to balance
+# the registration check before any density or tile task: the tiles wait on its answer
+REGISTRATION_PRIORITY = 10 ** 9
 MAX_SPLIT_DEPTH = 12  # quarters of a 150 m tile down to 4 cm: buildings sharing one centre stay together
 
 
@@ -112,36 +115,54 @@ def classify_distributed(pre_path, post_path, out_dir, client, *, model_path=Non
                      "points": {"pre": pre_s.n, "post": post_s.n}, "crs": crs}
     t_read = time.perf_counter()
     stage("densities")
-    transform, shift = None, 0.0
-
-    def register():  # a task beside the density tasks (the client waits for both)
-        nonlocal transform, shift
-        if align is False:
-            summary["registration"] = {"mode": "off", "checked": False}
-            return None
+    registration = None
+    if align is False:
+        summary["registration"] = {"mode": "off", "checked": False}
+    else:
         from .tasks import registration_task
 
         # the samples (up to 2 x 12 MB) go to the workers as data, not inside the task: Dask
-        # warns of a large graph, and a graph is held by the scheduler
+        # warns of a large graph, and a graph is held by the scheduler. The check runs first
+        # (its priority), beside the density tasks and then the tiles.
         samples = client.scatter([pre_s.stable_sample, post_s.stable_sample])
-        checked = client.submit(registration_task, *samples, settings.to_json(), align,
-                                {"pre": summary["pre"], "post": summary["post"]}, post_s.bounds,
-                                pure=False, priority=1).result()
+        registration = client.submit(registration_task, *samples, settings.to_json(), align,
+                                     {"pre": summary["pre"], "post": summary["post"]}, post_s.bounds,
+                                     pure=False, priority=REGISTRATION_PRIORITY)
+
+    def settle(checked) -> list | None:
+        """The registration check's answer into the summary and the log: the alignment's
+        transform when one is applied, else None."""
         for level, message in checked["messages"]:
             cl.log.log(level, "%s", message)
         summary["registration"] = checked["record"]
         if checked["alignment"] is not None:
             summary["alignment"] = checked["alignment"]
         if summary["registration"].get("applied"):
-            transform = summary["alignment"]["transform"]
-            shift = float(summary["registration"]["offset_m"])
-        return transform
+            return summary["alignment"]["transform"]
+        return None
 
-    geometry = _pair_geometry(client, store, pre_s, post_s, settings, block_cells, register)
-    stage("tiles")
-    budget = tile_memory_budget(client)
-    rows, resumed, widened, split = _describe_tiles(client, store, pre_s, post_s, settings, geometry, block_cells,
-                                                    transform, shift, out, run_fp.digest, progress, budget)
+    # The tiles start before the check has answered, as if the epochs were aligned (almost
+    # always: an alignment is applied only past `MIN_FIT_GAIN`): on two workers the check's
+    # seconds no longer hold up the tiles. When it applies an alignment, they are cancelled
+    # and described again from the moved post-event epoch.
+    transform, shift = None, 0.0
+    try:
+        geometry = _pair_geometry(client, store, pre_s, post_s, settings, block_cells, None)
+        stage("tiles")
+        budget = tile_memory_budget(client)
+        rows, resumed, widened, split = _describe_tiles(client, store, pre_s, post_s, settings, geometry,
+                                                        block_cells, None, 0.0, out, run_fp.digest, progress,
+                                                        budget, pending=registration, settle=settle)
+    except _Realign as moved:
+        transform, shift = moved.transform, float(summary["registration"]["offset_m"])
+        geometry = _pair_geometry(client, store, pre_s, post_s, settings, block_cells, transform)
+        rows, resumed, widened, split = _describe_tiles(client, store, pre_s, post_s, settings, geometry,
+                                                        block_cells, transform, shift, out, run_fp.digest,
+                                                        progress, budget)
+    except BaseException:
+        if registration is not None:
+            client.cancel([registration])
+        raise
     if fp is not None:
         hit = set(pre_s.counts) | set(post_s.counts)
         rows += [cl.BuildingRow(int(b), 0, 0, False, "no point inside the footprint")
@@ -184,7 +205,8 @@ def classify_distributed(pre_path, post_path, out_dir, client, *, model_path=Non
     from ..runtime.atomic import write_text
 
     write_text(out / "summary.json", json.dumps(summary, indent=1, default=cl._json_default))
-    (out / ".checkpoint.jsonl").unlink(missing_ok=True)
+    for done_with in (".checkpoint.jsonl", UNMOVED_CHECKPOINT):
+        (out / done_with).unlink(missing_ok=True)
     shutil.rmtree(store, ignore_errors=True)
     return summary
 
@@ -321,12 +343,9 @@ def part_bounds(n: int, n_workers: int, chunk_points: int) -> list[int]:
     return [round(k * n / parts) for k in range(parts + 1)]
 
 
-def _pair_geometry(client, store, pre_s, post_s, settings, block_cells, register):
-    """The surface descriptors' grid and cylinder sizes, from the densities the workers count.
-
-    `register()` (the registration check, in the client) runs while the workers count, and
-    returns the post epoch's alignment or None: the post epoch's densities are counted again,
-    moved, only when an alignment is applied (rare: `MIN_FIT_GAIN`)."""
+def _pair_geometry(client, store, pre_s, post_s, settings, block_cells, transform):
+    """The surface descriptors' grid and cylinder sizes, from the densities the workers count
+    (`transform`: the post epoch's alignment, or None)."""
     from .tasks import group_roof_cells, merge_roof_cells
 
     def submit(name, stats, building_only, moved):
@@ -343,27 +362,37 @@ def _pair_geometry(client, store, pre_s, post_s, settings, block_cells, register
         return merge_roof_cells([part for parts in client.gather(futures) for part in parts])
 
     if settings.surface is None:
-        register()
         return None
     from ..change.surface import SurfaceGeometry
 
-    pre_jobs, post_jobs = submit("pre", pre_s, True, None), submit("post", post_s, True, None)
+    pre_jobs, post_jobs = submit("pre", pre_s, True, None), submit("post", post_s, True, transform)
     try:
-        transform = register()
+        d_pre, d_post = density(pre_jobs), density(post_jobs)
     except BaseException:
         client.cancel(pre_jobs + post_jobs)
         raise
-    if transform is not None:
-        client.cancel(post_jobs)
-        post_jobs = submit("post", post_s, True, transform)
-    d_pre, d_post = density(pre_jobs), density(post_jobs)
     if d_post == 0.0:
         d_post = density(submit("post", post_s, False, transform))
     return SurfaceGeometry.for_pair(settings.surface, d_pre, d_post)
 
 
+class _Realign(Exception):
+    """The registration check applied an alignment after the tiles had started unmoved."""
+
+    def __init__(self, transform):
+        super().__init__("the post-event epoch is aligned: its tiles are described again")
+        self.transform = transform
+
+
 def _describe_tiles(client, store, pre_s, post_s, settings, geometry, block_cells, transform, shift, out, digest,
-                    progress, budget):
+                    progress, budget, pending=None, settle=None):
+    """Rows of every building, its tile described by a worker; finished tiles are checkpointed.
+
+    `pending`: the registration check's future, when the tiles start before it answers (as
+    if no alignment were applied); `settle(result)` returns its transform or None. Until it
+    answers, finished rows go to a checkpoint of their own (UNMOVED_CHECKPOINT), which a
+    resumed run reads while it, too, waits; a transform discards it, cancels the tiles and
+    raises _Realign."""
     from dask.distributed import as_completed
 
     from ..change.pipeline import quality_gate, rows_by_counts, tile_key
@@ -375,6 +404,9 @@ def _describe_tiles(client, store, pre_s, post_s, settings, geometry, block_cell
     for b in ok:
         tiles.setdefault(tile_key(pre_s.lo[b], pre_s.hi[b], settings.tile_m), []).append(b)
     ckpt = cl._Checkpoint(out / ".checkpoint.jsonl", digest)
+    # rows described before the registration check answered, unmoved: valid unless it aligns
+    unmoved = cl._Checkpoint(out / UNMOVED_CHECKPOINT, digest) if pending is not None else None
+    known = {**unmoved.rows, **ckpt.rows} if unmoved is not None else ckpt.rows
     resumed = 0
     total, finished = len(ok), 0
     settings_json = settings.to_json()
@@ -413,9 +445,9 @@ def _describe_tiles(client, store, pre_s, post_s, settings, geometry, block_cell
 
     for key in sorted(tiles):
         bids = tiles[key]
-        if all(b in ckpt.rows for b in bids):
+        if all(b in known for b in bids):
             for b in bids:
-                rows[b] = ckpt.rows[b]
+                rows[b] = known[b]
             resumed += len(bids)
             finished += len(bids)
             if progress:
@@ -435,8 +467,20 @@ def _describe_tiles(client, store, pre_s, post_s, settings, geometry, block_cell
                 submit({**s, "count_facing": True, "group": list(key)}, name=f"count-{name}-{run}")
             else:
                 submit(s, name=f"tile-{name}-{run}")
-    queue = as_completed(list(futures))
+    queue = as_completed(list(futures) + ([pending] if pending is not None else []))
     for fut in queue:
+        if fut is pending:
+            try:
+                moved = settle(fut.result())
+            except BaseException:
+                client.cancel(list(futures))
+                raise
+            if moved is not None:
+                client.cancel(list(futures))
+                unmoved.path.unlink(missing_ok=True)
+                raise _Realign(moved)
+            unmoved = None  # its rows stand; the next go to the checkpoint
+            continue
         s, facing = futures.pop(fut)
         try:
             result = fut.result()
@@ -459,7 +503,7 @@ def _describe_tiles(client, store, pre_s, post_s, settings, geometry, block_cell
         for r in tile_rows:
             r.n_pre, r.n_post = pre_s.counts.get(r.building_id, 0), post_s.counts.get(r.building_id, 0)
             rows[r.building_id] = r
-        ckpt.add([r for r in tile_rows if r.assessable])
+        (ckpt if unmoved is None else unmoved).add([r for r in tile_rows if r.assessable])
         finished += len(s["bids"])
         if progress:
             progress(finished, total)

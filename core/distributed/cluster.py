@@ -23,6 +23,12 @@ class ClusterError(QuakeScanError):
 TRIM_VARIABLE = "MALLOC_TRIM_THRESHOLD_"
 DASK_TRIM_VALUE = "65536"
 WORKER_ENVIRON = {f"distributed.nanny.pre-spawn-environ.{TRIM_VARIABLE}": None}
+# Every event loop (the scheduler's in this process, each worker's) wakes every 20 ms by
+# default to measure how long it was blocked. On a laptop's cores that is CPU taken from the
+# workers: the client's threads used 0.92 s of CPU over 20 s of tasks on two workers, 0.58 s
+# with a 500 ms tick (measured side by side). The tick only times the loop; it schedules
+# nothing.
+LOOP_TICK = {"distributed.admin.tick.interval": "500ms"}
 
 
 @contextlib.contextmanager
@@ -67,7 +73,7 @@ def dask_client(n_workers: int | None = None, scheduler: str | None = None, memo
     # spawns see it, and the workers a nanny restarts later must not.
     if os.environ.get(TRIM_VARIABLE) == DASK_TRIM_VALUE:
         del os.environ[TRIM_VARIABLE]
-    with dask.config.set(WORKER_ENVIRON):
+    with dask.config.set({**WORKER_ENVIRON, **LOOP_TICK}):
         cluster = LocalCluster(n_workers=int(n_workers), threads_per_worker=1, processes=True,
                                memory_limit=memory_limit, dashboard_address=":0")
     client = Client(cluster)
