@@ -470,7 +470,7 @@ def test_block_densities_merged_are_the_whole_epochs_density_to_the_last_bit(pai
     point at once, exactly."""
     from quakescan.change.surface import planimetric_density
     from quakescan.distributed import blocks
-    from quakescan.distributed.tasks import block_roof_cells, merge_roof_cells
+    from quakescan.distributed.tasks import _roof_cells, block_roof_cells, merge_roof_cells
     from quakescan.formats.pointcloud import read_epoch
 
     for name in ("pre", "post"):
@@ -479,9 +479,38 @@ def test_block_densities_merged_are_the_whole_epochs_density_to_the_last_bit(pai
         folder = tmp_path / f"{name}{cells}"
         stats = blocks.stream_epoch(f, origin, folder, block_cells=cells, chunk_points=50_000)
         (folder / "epoch.json").write_text(json.dumps({"file": f.to_json(), "origin": origin.tolist(), "parts": 0}))
-        merged = merge_roof_cells([block_roof_cells(str(folder), k, cells) for k in stats.blocks])
+        parts = [block_roof_cells(str(folder), k, cells) for k in stats.blocks]
+        merged = merge_roof_cells(parts)
         e = read_epoch(pair / f"{name}.las", origin=origin)
         assert merged == planimetric_density(e.xyz, e.building_id > 0) > 0
+        # the compiled cells of the records: each block's share as numpy's coordinates give it
+        for k, part in zip(stats.blocks, parts):
+            rec = blocks.read_records(folder, [tuple(k)], buildings_only=True)
+            assert part == _roof_cells(f.local_xyz(rec["X"], rec["Y"], rec["Z"], origin), tuple(k), cells)
+
+
+def test_a_blocks_roof_cells_from_its_records_at_utm_offsets(tmp_path):
+    """Cells and heights made from the stored records (one loop) give the counts numpy's
+    coordinates give, at UTM offsets with cells of both signs, over two parts' files."""
+    from quakescan.distributed import blocks
+    from quakescan.distributed.tasks import _roof_cells, block_roof_cells
+
+    f, origin, rec = _utm_records(30_000, seed=11)
+    rec["X"] = rec["X"] % 40_000 - 20_000  # local x in -9.75..30.25 m: cells of both signs, two blocks of 50 m
+    rec["Y"] = rec["Y"] % 40_000 - 20_000  # local y in -29.5..10.5 m
+    xyz = f.local_xyz(rec["X"], rec["Y"], rec["Z"], origin)
+    key = tuple(blocks.block_of(xyz[:1, :2], 50)[0].tolist())
+    inside = (blocks.block_of(xyz[:, :2], 50) == key).all(axis=1) & (rec["building_id"] > 0)
+    assert inside.sum() > 1000
+    folder = tmp_path / "pre"
+    folder.mkdir()
+    kept = rec[inside]
+    for part, half in enumerate((kept[::2], kept[1::2])):
+        half.tofile(blocks.block_path(folder, key, part, buildings=True))
+    (folder / "epoch.json").write_text(json.dumps({"file": f.to_json(), "origin": origin.tolist(), "parts": 2}))
+    want = _roof_cells(xyz[inside], key, 50)
+    assert want["cells"] > 100
+    assert block_roof_cells(str(folder), key, 50) == want
 
 
 @pytest.mark.parametrize("runs", [[5, 0, 7, 1], [1], [0, 0], [300] * 40, [2, 50_000, 3]])

@@ -75,26 +75,52 @@ def block_roof_cells(folder: str, key, block_cells: int, building_only: bool = T
     key = (int(key[0]), int(key[1]))
     if transform is not None:  # the alignment moves points across block edges (by less than a block)
         return group_roof_cells(folder, [key], block_cells, building_only, transform)[0]
-    rec = read_records(Path(folder), [key], buildings_only=building_only, in_file_order=False)
     f = EpochFile(**_epoch_file_args(folder))
-    return _roof_cells(f.local_xyz(rec["X"], rec["Y"], rec["Z"], np.asarray(_origin(folder))), key, block_cells)
+    origin = np.asarray(_origin(folder))
+    if f.copc:
+        rec = read_records(Path(folder), [key], buildings_only=building_only, in_file_order=False)
+        return _roof_cells(f.local_xyz(rec["X"], rec["Y"], rec["Z"], origin), key, block_cells)
+    from ._record_kernels import cells_and_heights
+    from .blocks import RECORD, block_files
+
+    files = [np.fromfile(p, dtype=RECORD) for p in block_files(Path(folder), key, buildings_only=building_only)
+             if p.is_file()]
+    n = sum(len(r) for r in files)
+    ci, cj, z = np.empty(n, np.int64), np.empty(n, np.int64), np.empty(n)
+    span = np.array([np.iinfo(np.int64).max] * 2 + [np.iinfo(np.int64).min] * 2, dtype=np.int64)
+    scales = np.asarray(f.scales, dtype=np.float64)
+    shifts = np.array([f.offsets[k] - origin[k] for k in range(3)], dtype=np.float64)
+    filled = 0
+    for rec in files:
+        filled = cells_and_heights(rec, scales, shifts, DENSITY_CELL_M, ci, cj, z, filled, span)
+    return _roof_cells_of(ci, cj, z, span, key, block_cells)
 
 
 def _roof_cells(xyz: np.ndarray, key, block_cells: int) -> dict:
-    """`block_roof_cells` of the points `xyz` (local frame) that lie in block `key`: the
-    block's cells as a dense grid, each cell's top-band count compiled (`_top_band_counts`),
-    its neighbours looked up by shifting the grid."""
+    """`block_roof_cells` of the points `xyz` (local frame) that lie in block `key`."""
+    if not len(xyz):
+        return _roof_cells_of(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), None, key, block_cells)
+    cells = np.floor(xyz[:, :2] / DENSITY_CELL_M).astype(np.int64)
+    span = np.concatenate([cells.min(axis=0), cells.max(axis=0)])
+    return _roof_cells_of(cells[:, 0], cells[:, 1], xyz[:, 2], span, key, block_cells)
+
+
+def _roof_cells_of(ci, cj, z, span, key, block_cells: int) -> dict:
+    """`block_roof_cells` of points given by their density cells (ci, cj) and heights z
+    (`span`: the cells' min i, min j, max i, max j): the block's cells as a dense grid, each
+    cell's top-band count compiled (`_top_band_counts`), its neighbours looked up by
+    shifting the grid."""
     from ..change.surface import _top_band_counts
 
     out = {"key": list(key), "hist": {}, "edge": [], "sum": 0, "cells": 0, "occupied_edge": []}
-    if not len(xyz):
+    if not len(z):
         return out
-    cells = np.floor(xyz[:, :2] / DENSITY_CELL_M).astype(np.int64)
     b0 = np.asarray(key, dtype=np.int64) * int(block_cells)
     b1 = b0 + int(block_cells) - 1
-    lo = np.minimum(cells.min(axis=0), b0)  # a block's points lie in its cells; the grid holds any that do not
-    sx, sy = (np.maximum(cells.max(axis=0), b1) - lo + 1).tolist()
-    counts = _top_band_counts((cells[:, 0] - lo[0]) * sy + (cells[:, 1] - lo[1]), xyz[:, 2], sx * sy)
+    span = np.asarray(span, dtype=np.int64)
+    lo = np.minimum(span[:2], b0)  # a block's points lie in its cells; the grid holds any that do not
+    sx, sy = (np.maximum(span[2:], b1) - lo + 1).tolist()
+    counts = _top_band_counts((ci - lo[0]) * sy + (cj - lo[1]), z, sx * sy)
     counts = counts.reshape(sx, sy)
     occupied = counts > 0
     gi, gj = np.arange(sx) + lo[0], np.arange(sy) + lo[1]
