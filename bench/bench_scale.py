@@ -382,7 +382,7 @@ def main(argv=None):
         "are kept from WORK/results.json, with the time each was measured). `quakescan classify "
         "--no-las --force` in a fresh process each (the graded LAS left out but in the rows that say so); \"read\" is reading the epochs and the registration check (one process) or streaming them "
         "into blocks (Dask: the workers, a part of the file each, while the client reads the model), \"describe\" "
-        "the descriptors (with Dask: the densities and the registration check as tasks in the workers (the registration in the client before 2026-11-28 04:00), then "
+        "the descriptors (with Dask: the densities and the registration check as tasks in the workers, the check beside the tiles from 2026-11-28 07:11 (in the client before 04:00), then "
         "the tiles). Peak RSS sampled every 0.2 s: "
         "the command's own process (client) and the largest of its worker processes. Throughput: points of both "
         "epochs per second per worker (per process for the single run).",
