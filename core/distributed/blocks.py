@@ -59,10 +59,18 @@ class EpochFile:
 
     def local_xyz(self, X, Y, Z, origin) -> np.ndarray:
         """float64 coordinates relative to `origin`, computed as `read_epoch` does."""
+        scales, shifts = self.frame(origin)
         xyz = np.empty((len(X), 3))
         for k, ints in enumerate((X, Y, Z)):
-            xyz[:, k] = np.asarray(ints, dtype=np.float64) * self.scales[k] + (self.offsets[k] - origin[k])
+            xyz[:, k] = np.asarray(ints, dtype=np.float64) * scales[k] + shifts[k]
         return xyz
+
+    def frame(self, origin) -> tuple[np.ndarray, np.ndarray]:
+        """(scales, shifts): a local coordinate is the integer as float64 × scale + shift
+        (offset − origin), two roundings; the compiled record loops take these."""
+        origin = np.asarray(origin, dtype=np.float64)
+        return (np.asarray(self.scales, dtype=np.float64),
+                np.array([self.offsets[k] - origin[k] for k in range(3)], dtype=np.float64))
 
     def to_json(self) -> dict:
         return dict(self.__dict__)
@@ -209,8 +217,7 @@ def stream_epoch(f: EpochFile, origin: np.ndarray, folder: Path, *, block_cells:
         old.unlink()
     stop = f.n if stop is None else min(int(stop), f.n)
     stats = EpochStats(n=0)
-    scales = np.asarray(f.scales, dtype=np.float64)
-    shifts = np.array([f.offsets[k] - origin[k] for k in range(3)], dtype=np.float64)
+    scales, shifts = f.frame(origin)
     hulls = _Hulls(origin) if with_hulls else None
     lo_all, hi_all = np.full(3, np.inf), np.full(3, -np.inf)
     samples, maps, blocks = [], [], set()
@@ -427,8 +434,7 @@ def read_box(folder: Path, f: EpochFile, origin, box, block_cells: int) -> tuple
     capacity = sum(len(r) for r in files)
     index, cls = np.empty(capacity, np.int64), np.empty(capacity, np.uint8)
     bid, xyz = np.empty(capacity, np.int64), np.empty((capacity, 3))
-    scales = np.asarray(f.scales, dtype=np.float64)
-    shifts = np.array([f.offsets[k] - origin[k] for k in range(3)], dtype=np.float64)
+    scales, shifts = f.frame(origin)
     starts = [0]
     for rec in files:
         starts.append(keep_in_box(rec, scales, shifts, box, index, cls, bid, xyz, starts[-1]))

@@ -88,8 +88,7 @@ def block_roof_cells(folder: str, key, block_cells: int, building_only: bool = T
     n = sum(len(r) for r in files)
     ci, cj, z = np.empty(n, np.int64), np.empty(n, np.int64), np.empty(n)
     span = np.array([np.iinfo(np.int64).max] * 2 + [np.iinfo(np.int64).min] * 2, dtype=np.int64)
-    scales = np.asarray(f.scales, dtype=np.float64)
-    shifts = np.array([f.offsets[k] - origin[k] for k in range(3)], dtype=np.float64)
+    scales, shifts = f.frame(origin)
     filled = 0
     for rec in files:
         filled = cells_and_heights(rec, scales, shifts, DENSITY_CELL_M, ci, cj, z, filled, span)
