@@ -393,18 +393,22 @@ def load_model(path: str | os.PathLike) -> DamageModel:
     if not path.is_file():
         raise ModelError(f"{path}: model file does not exist")
     _check_archive_size(path)
-    try:
-        untrusted = sio.get_untrusted_types(file=path)
-    except Exception as e:
-        raise ModelError(f"{path}: not a QuakeScan model file ({e})") from None
-    unexpected = sorted(set(untrusted) - set(TRUSTED_TYPES))
-    if unexpected:
-        raise ModelError(f"{path}: refused: the file asks to build types {unexpected} that a damage model "
-                         "never contains (tampered or foreign file); nothing was executed")
+    from skops.io.exceptions import UntrustedTypesFoundException
+
+    # skops audits the whole tree against `trusted` before it builds any object, so one walk
+    # both checks and loads: asking get_untrusted_types first walked the tree twice (0.44 s of
+    # the shipped model's 1.35 s). It is asked only to name the types of a refused file.
     try:
         obj = sio.load(path, trusted=TRUSTED_TYPES)
+    except UntrustedTypesFoundException:
+        try:
+            unexpected = sorted(set(sio.get_untrusted_types(file=path)) - set(TRUSTED_TYPES))
+        except Exception as e:
+            raise ModelError(f"{path}: not a QuakeScan model file ({e})") from None
+        raise ModelError(f"{path}: refused: the file asks to build types {unexpected} that a damage model "
+                         "never contains (tampered or foreign file); nothing was executed") from None
     except Exception as e:
-        raise ModelError(f"{path}: cannot load the model ({e})") from None
+        raise ModelError(f"{path}: {_load_failure(path, e)}") from None
     if not isinstance(obj, dict) or not isinstance(obj.get("meta"), dict):
         raise ModelError(f"{path}: not a QuakeScan model file (no metadata)")
     meta = obj["meta"]
@@ -447,6 +451,18 @@ def load_model(path: str | os.PathLike) -> DamageModel:
 # (a 2 MB file can declare gigabytes: 7.5 GB of memory before any other check).
 MAX_MODEL_UNCOMPRESSED_BYTES = 1 << 30
 MAX_MODEL_MEMBERS = 200_000
+
+
+def _load_failure(path: Path, error: Exception) -> str:
+    """Why skops could not load `path`: not a model file at all (no skops schema) or a model
+    file it cannot build."""
+    import skops.io as sio
+
+    try:
+        sio.get_untrusted_types(file=path)
+    except Exception as e:
+        return f"not a QuakeScan model file ({e})"
+    return f"cannot load the model ({error})"
 
 
 def _check_archive_size(path: Path) -> None:
