@@ -20,10 +20,11 @@ Rows (issue 16's table):
   offset) to >= 2 x 250 M points on disk, `--workers 2 --memory-limit 4GB`: it finishes, the
   largest worker's peak (target <= 4 GB), and throughput per worker (points of both epochs
   per second per worker) against the single process's (target >= 0.9x): per core of the
-  single run (its two threads on the same two cores) and against the one-thread run (one
-  core, the other idle);
+  single run (its two threads on the same two cores), against the one-thread run (one
+  core, the other idle) and against a one-thread run beside another (both cores busy);
 - single also runs the pair with `--threads 1`: one core's throughput, the like-for-like
-  reference of a one-thread worker;
+  reference of a one-thread worker; and two such processes at once (their mean wall time):
+  a core's throughput while the other core works too, as each of two workers' does;
 - copc: the half pair rewritten as COPC files (compressed, octree nodes of ~100 k points) on 2
   workers: tiles and densities read by bounds from the files, no block files;
 - graded: the half pair classified with the graded cloud (post_grades.las) written, in one
@@ -108,11 +109,22 @@ class TreeSampler:
 
 
 def run_classify(pre: Path, post: Path, out: Path, extra: list, las: bool = False) -> dict:
-    cmd = [str(Path(sys.executable).with_name("quakescan")), "classify", "--pre", str(pre), "--post", str(post),
-           "-o", str(out), "--force", *([] if las else ["--no-las"]), *extra]
-    t0 = time.perf_counter()
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    sampler = TreeSampler(proc.pid)
+    return run_side_by_side([(pre, post, out, extra)], las)[0]
+
+
+def run_side_by_side(runs: list, las: bool = False) -> list[dict]:
+    """`quakescan classify` of each (pre, post, out, extra) in `runs`, all started at once: one
+    run alone, or several sharing the machine's cores as a cluster's workers do."""
+    procs = []
+    for pre, post, out, extra in runs:
+        cmd = [str(Path(sys.executable).with_name("quakescan")), "classify", "--pre", str(pre), "--post",
+               str(post), "-o", str(out), "--force", *([] if las else ["--no-las"]), *extra]
+        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        procs.append((cmd, out, proc, TreeSampler(proc.pid), time.perf_counter()))
+    return [_finished_run(*p) for p in procs]
+
+
+def _finished_run(cmd: list, out: Path, proc, sampler, t0: float) -> dict:
     stdout, stderr = proc.communicate()
     wall = time.perf_counter() - t0
     mem = sampler.stop()
@@ -265,6 +277,10 @@ def main(argv=None):
     def single_rows(p, q, suffix=""):
         results["single" + suffix] = run_classify(p, q, work / f"single{suffix}", [])
         results["single1" + suffix] = run_classify(p, q, work / f"single1{suffix}", ["--threads", "1"])
+        # two one-thread processes at once: each core busy, as under two one-thread workers
+        both = run_side_by_side([(p, q, work / f"single1_{k}{suffix}", ["--threads", "1"]) for k in (0, 1)])
+        results["single1x2" + suffix] = {**both[0], "walls_s": [r["wall_s"] for r in both],
+                                         "wall_s": float(np.mean([r["wall_s"] for r in both]))}
 
     def cluster_rows(p, q, suffix=""):  # 1 and 2 workers in turn, the ratio pair by pair: the drift cancels
         runs: dict[int, list] = {1: [], 2: []}
@@ -317,6 +333,13 @@ def main(argv=None):
                          mb(s1["client_mb"]), "—", f"{s1['points'] / s1['wall_s'] / 1e6:.3f}",
                          "one core's throughput: the like-for-like reference of a one-thread worker",
                          s1.get("at", "")))
+        s2 = results.get("single1x2" + suffix)
+        if s2:
+            rows.append(("same pair, two one-thread processes at once (each as above)", "", f"{s2['points']:,}",
+                         f"{s2['wall_s']:.0f}", f"{s2['seconds']['read']:.0f} / {s2['seconds']['describe']:.0f}",
+                         mb(s2["client_mb"]), "—", f"{s2['points'] / s2['wall_s'] / 1e6:.3f}",
+                         "a core's throughput with the other core busy too, as beside a second worker; wall s of "
+                         "each: " + ", ".join(f"{w:.0f}" for w in s2["walls_s"]), s2.get("at", "")))
         c1, c2 = results.get("cluster1" + suffix), results.get("cluster2" + suffix)
         for c, n in ((c1, 1), (c2, 2)):
             if c:
@@ -348,6 +371,9 @@ def main(argv=None):
             ratio = f"{per_worker / (s['points'] / s['wall_s'] / 2):.2f}x the single process per core (2 threads); "
         if s1:  # one thread with the other core idle: no neighbour shares its memory bandwidth
             ratio += f"{per_worker / (s1['points'] / s1['wall_s']):.2f}x the one-thread process; "
+        s2 = results.get("single1x2")
+        if s2:  # both cores busy, as under the two workers
+            ratio += f"{per_worker / (s2['points'] / s2['wall_s']):.2f}x a one-thread process beside another; "
         ratio += f"tiles split {lg['dask'].get('tiles_split', 0)}"
         rows.append((f"2 x {lg['points'] // 2 / 1e6:.0f} M points ({lg['copies']} copies), 2 workers, 4 GB each",
                      "finishes; worker <= 4,096 MiB; >= 0.9x per worker", f"{lg['points']:,}", f"{lg['wall_s']:.0f}",

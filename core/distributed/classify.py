@@ -33,7 +33,11 @@ from .cluster import dashboard_address, dask_client  # noqa: F401  (moved; still
 
 log = logging.getLogger(__name__)
 
-BLOCK_CELLS = 50  # a block is 50 × 50 density cells (50 m): a 150 m tile reads about 5 × 5 of them
+# A block is 25 × 25 density cells (25 m): a 150 m tile with its halo (~174 m) reads 8 × 8 or
+# 9 × 9 of them, 1.3-1.7 times its box, where 50 m blocks (4 × 4 or 5 × 5) read 1.3-2.1
+# times it; the pair's tiles ran 2.5-4 % faster (12 tiles side by side, the same
+# rows), and streaming into four times as many files was no slower.
+BLOCK_CELLS = 25
 MANIFEST = "manifest.json"
 UNMOVED_CHECKPOINT = ".checkpoint.unmoved.jsonl"
 HALO_STEP_M = 10.0  # a tile whose nearest neighbours reach beyond its halo asks again with this much more
@@ -47,7 +51,7 @@ DESCRIBE_BYTES_PER_POINT = 200
 # A tile is split when its estimate passes this share of the smallest worker's memory limit:
 # Dask's nanny pauses a worker at 80 % and kills it at 95 %, and the estimate is an average
 TILE_MEMORY_SHARE = 0.5
-DENSITY_GROUP = 4  # blocks counted 4 × 4 a task: an aligned epoch's ring of blocks is read once a group
+DENSITY_GROUP_M = 200.0  # blocks counted in squares of 200 m a task: an aligned epoch's ring of blocks is read once a group
 PART_POINTS = 16_000_000  # points of one epoch streamed by one task at most: a few tasks a worker to balance
 # the registration check before any density or tile task: the tiles wait on its answer
 REGISTRATION_PRIORITY = 10 ** 9
@@ -353,8 +357,9 @@ def _pair_geometry(client, store, pre_s, post_s, settings, block_cells, transfor
         if moved is not None:  # a block empty before the alignment may hold points after it
             keys = {(k[0] + dx, k[1] + dy) for k in keys for dx in (-1, 0, 1) for dy in (-1, 0, 1)}
         groups: dict[tuple, list] = {}
+        per_group = max(1, round(DENSITY_GROUP_M / bk.block_m(block_cells)))
         for k in sorted(keys):
-            groups.setdefault((k[0] // DENSITY_GROUP, k[1] // DENSITY_GROUP), []).append(k)
+            groups.setdefault((k[0] // per_group, k[1] // per_group), []).append(k)
         return [client.submit(group_roof_cells, str(store / name), g, block_cells, building_only, moved,
                               pure=False) for g in groups.values()]
 
