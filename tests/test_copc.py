@@ -73,6 +73,10 @@ def test_a_box_read_from_the_copc_file_is_the_box_read_from_block_files(box_copc
     group = [tuple(k) for k in stats["copc"].blocks[:16]]
     assert group_roof_cells(str(tmp_path / "copc"), group, cells) == \
         group_roof_cells(str(tmp_path / "blocks"), group, cells)
+    # and a square of blocks counted as one part
+    square = [k for k in group if k[0] // 4 == group[0][0] // 4 and k[1] // 4 == group[0][1] // 4]
+    assert group_roof_cells(str(tmp_path / "copc"), square, cells, square_cells=4 * cells) == \
+        group_roof_cells(str(tmp_path / "blocks"), square, cells, square_cells=4 * cells)
 
 
 @pytest.mark.realdata

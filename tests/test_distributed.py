@@ -470,7 +470,7 @@ def test_block_densities_merged_are_the_whole_epochs_density_to_the_last_bit(pai
     point at once, exactly."""
     from quakescan.change.surface import planimetric_density
     from quakescan.distributed import blocks
-    from quakescan.distributed.tasks import _roof_cells, block_roof_cells, merge_roof_cells
+    from quakescan.distributed.tasks import _roof_cells, block_roof_cells, group_roof_cells, merge_roof_cells
     from quakescan.formats.pointcloud import read_epoch
 
     for name in ("pre", "post"):
@@ -487,6 +487,26 @@ def test_block_densities_merged_are_the_whole_epochs_density_to_the_last_bit(pai
         for k, part in zip(stats.blocks, parts):
             rec = blocks.read_records(folder, [tuple(k)], buildings_only=True)
             assert part == _roof_cells(f.local_xyz(rec["X"], rec["Y"], rec["Z"], origin), tuple(k), cells)
+        # a square of 3 × 3 blocks counted as one part (as the client groups them): the same density,
+        # unmoved and moved by an alignment (the blocks around the epoch's asked too, as the client does)
+        a = np.deg2rad(0.7)
+        moved = [[np.cos(a), -np.sin(a), 0, 1.3], [np.sin(a), np.cos(a), 0, -2.1], [0, 0, 1, 0.2], [0, 0, 0, 1]]
+        for transform in (None, moved):
+            keys = {tuple(k) for k in stats.blocks}
+            if transform is not None:
+                keys = {(i + di, j + dj) for i, j in keys for di in (-1, 0, 1) for dj in (-1, 0, 1)}
+            squares: dict = {}
+            for k in sorted(keys):
+                squares.setdefault((k[0] // 3, k[1] // 3), []).append(k)
+            by_block = [p for g in squares.values() for p in group_roof_cells(str(folder), g, cells, True, transform)]
+            by_square = [p for g in squares.values()
+                         for p in group_roof_cells(str(folder), g, cells, True, transform, 3 * cells)]
+            assert len(by_square) == len(squares) < len(by_block)
+            assert merge_roof_cells(by_square) == merge_roof_cells(by_block) > 0
+            if transform is None:
+                assert merge_roof_cells(by_square) == merged
+    with pytest.raises(ValueError, match="do not lie in one square"):
+        group_roof_cells(str(folder), [(0, 0), (3, 0)], cells, square_cells=3 * cells)
 
 
 def test_a_blocks_roof_cells_from_its_records_at_utm_offsets(tmp_path):

@@ -33,11 +33,12 @@ from .cluster import dashboard_address, dask_client  # noqa: F401  (moved; still
 
 log = logging.getLogger(__name__)
 
-# A block is 25 × 25 density cells (25 m): a 150 m tile with its halo (~174 m) reads 8 × 8 or
-# 9 × 9 of them, 1.3-1.7 times its box, where 50 m blocks (4 × 4 or 5 × 5) read 1.3-2.1
-# times it; the pair's tiles ran 2.5-4 % faster (12 tiles side by side, the same
-# rows), and streaming into four times as many files was no slower.
-BLOCK_CELLS = 25
+# A block is 50 × 50 density cells (50 m): a 150 m tile with its halo (~174 m) reads 4 × 4 or
+# 5 × 5 of them, 1.3-2.1 times its box. 25 m blocks (1.3-1.7 times) made the pair's
+# tiles 2.5-4 % faster on one worker, but a tile reads a file per block and part: on the
+# 2 × 262 M pair (17 parts an epoch, its blocks beyond the page cache) the tiles took 358 s
+# against 324 s, the run 455 s against 410 s.
+BLOCK_CELLS = 50
 MANIFEST = "manifest.json"
 UNMOVED_CHECKPOINT = ".checkpoint.unmoved.jsonl"
 HALO_STEP_M = 10.0  # a tile whose nearest neighbours reach beyond its halo asks again with this much more
@@ -51,7 +52,10 @@ DESCRIBE_BYTES_PER_POINT = 200
 # A tile is split when its estimate passes this share of the smallest worker's memory limit:
 # Dask's nanny pauses a worker at 80 % and kills it at 95 %, and the estimate is an average
 TILE_MEMORY_SHARE = 0.5
-DENSITY_GROUP_M = 200.0  # blocks counted in squares of 200 m a task: an aligned epoch's ring of blocks is read once a group
+# The densities are counted a square of 200 m (4 × 4 blocks) a task, each square as one part
+# (an aligned epoch's ring of blocks is read once a square): counted one part a block, every
+# block's rim cells went back to the client undecided, as Python lists it merged alone.
+DENSITY_GROUP_M = 200.0
 PART_POINTS = 16_000_000  # points of one epoch streamed by one task at most: a few tasks a worker to balance
 # the registration check before any density or tile task: the tiles wait on its answer
 REGISTRATION_PRIORITY = 10 ** 9
@@ -361,7 +365,7 @@ def _pair_geometry(client, store, pre_s, post_s, settings, block_cells, transfor
         for k in sorted(keys):
             groups.setdefault((k[0] // per_group, k[1] // per_group), []).append(k)
         return [client.submit(group_roof_cells, str(store / name), g, block_cells, building_only, moved,
-                              pure=False) for g in groups.values()]
+                              per_group * block_cells, pure=False) for g in groups.values()]
 
     def density(futures):
         return merge_roof_cells([part for parts in client.gather(futures) for part in parts])

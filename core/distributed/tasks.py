@@ -26,15 +26,30 @@ class TileReachError(Exception):
         self.needed_m = float(needed_m)
 
 
-def group_roof_cells(folder: str, keys, block_cells: int, building_only: bool = True, transform=None) -> list:
+def group_roof_cells(folder: str, keys, block_cells: int, building_only: bool = True, transform=None,
+                     square_cells: int | None = None) -> list:
     """`block_roof_cells` of several blocks in one task: with an alignment, whose points cross
     block edges, the ring of blocks around the group is read once for all of them (a 4 × 4
     group reads 6 × 6 blocks, where one block at a time read 3 × 3 for each); from a COPC
-    file, the group's box is read once."""
+    file, the group's box is read once.
+
+    `square_cells`: the blocks all lie in one square of this many density cells (a multiple
+    of `block_cells`), which is counted as one block of that size: one part instead of one a
+    block. Only cells on a part's rim go back to the client undecided, as Python lists it
+    merges alone, and 25 m blocks have twice the share of rim cells of 50 m ones."""
     keys = [(int(k[0]), int(k[1])) for k in keys]
     f = EpochFile(**_epoch_file_args(folder))
+    square = None
+    if square_cells is not None:
+        per = int(square_cells) // int(block_cells)
+        squares = {(k[0] // per, k[1] // per) for k in keys}
+        if per * int(block_cells) != int(square_cells) or len(squares) > 1:
+            raise ValueError(f"blocks {keys} of {block_cells} cells do not lie in one square of {square_cells} cells")
+        square = squares.pop() if squares else (0, 0)
     if transform is None and not f.copc:
-        return [block_roof_cells(folder, k, block_cells, building_only) for k in keys]
+        if square is None:
+            return [block_roof_cells(folder, k, block_cells, building_only) for k in keys]
+        return [_stored_roof_cells(folder, f, keys, square, int(square_cells), building_only)]
     from .blocks import block_of
 
     # a COPC epoch: the group's box read from the file once (its coarse octree levels span every block)
@@ -47,6 +62,11 @@ def group_roof_cells(folder: str, keys, block_cells: int, building_only: bool = 
 
         xyz = apply_transform(transform, xyz)
     moved = block_of(xyz[:, :2], block_cells)
+    if square is not None:  # the points now in one of the group's blocks
+        wanted = np.array(keys, dtype=np.int64).reshape(-1, 2)
+        inside = (np.isin(moved[:, 0] * (1 << 32) + moved[:, 1], wanted[:, 0] * (1 << 32) + wanted[:, 1])
+                  if len(xyz) else np.zeros(0, bool))
+        return [_roof_cells(xyz[inside], square, int(square_cells))]
     if not len(xyz):
         return [_roof_cells(xyz, k, block_cells) for k in keys]
     # each block's moved points in file order: one stable sort by block, a slice a block
@@ -76,23 +96,29 @@ def block_roof_cells(folder: str, key, block_cells: int, building_only: bool = T
     if transform is not None:  # the alignment moves points across block edges (by less than a block)
         return group_roof_cells(folder, [key], block_cells, building_only, transform)[0]
     f = EpochFile(**_epoch_file_args(folder))
-    origin = np.asarray(_origin(folder))
     if f.copc:
         rec = read_records(Path(folder), [key], buildings_only=building_only, in_file_order=False)
-        return _roof_cells(f.local_xyz(rec["X"], rec["Y"], rec["Z"], origin), key, block_cells)
+        return _roof_cells(f.local_xyz(rec["X"], rec["Y"], rec["Z"], np.asarray(_origin(folder))), key, block_cells)
+    return _stored_roof_cells(folder, f, [key], key, block_cells, building_only)
+
+
+def _stored_roof_cells(folder: str, f: EpochFile, keys, square, square_cells: int, building_only: bool) -> dict:
+    """`block_roof_cells` of the square `square` of `square_cells` cells from the block files
+    of `keys` (the blocks in it): each record's cell and height in one compiled loop, no
+    coordinates made."""
     from ._record_kernels import cells_and_heights
     from .blocks import RECORD, block_files
 
-    files = [np.fromfile(p, dtype=RECORD) for p in block_files(Path(folder), key, buildings_only=building_only)
-             if p.is_file()]
+    files = [np.fromfile(p, dtype=RECORD) for k in keys
+             for p in block_files(Path(folder), k, buildings_only=building_only) if p.is_file()]
     n = sum(len(r) for r in files)
     ci, cj, z = np.empty(n, np.int64), np.empty(n, np.int64), np.empty(n)
     span = np.array([np.iinfo(np.int64).max] * 2 + [np.iinfo(np.int64).min] * 2, dtype=np.int64)
-    scales, shifts = f.frame(origin)
+    scales, shifts = f.frame(np.asarray(_origin(folder)))
     filled = 0
     for rec in files:
         filled = cells_and_heights(rec, scales, shifts, DENSITY_CELL_M, ci, cj, z, filled, span)
-    return _roof_cells_of(ci, cj, z, span, key, block_cells)
+    return _roof_cells_of(ci, cj, z, span, square, square_cells)
 
 
 def _roof_cells(xyz: np.ndarray, key, block_cells: int) -> dict:
