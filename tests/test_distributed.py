@@ -464,7 +464,7 @@ def test_a_model_file_that_does_not_load_stops_the_tiling_and_is_named(pair, clu
 
 
 @pytest.mark.parametrize("cells", [7, 50])
-def test_block_densities_merged_are_the_whole_epochs_density_to_the_last_bit(pair, tmp_path, cells):
+def test_block_densities_merged_are_the_whole_epochs_density_to_the_last_bit(pair, tmp_path, cells, monkeypatch):
     """Each block's roof cells counted on its own (a dense grid, neighbours by shifting it),
     merged by the client: the planimetric density one process computes from every building
     point at once, exactly."""
@@ -505,6 +505,17 @@ def test_block_densities_merged_are_the_whole_epochs_density_to_the_last_bit(pai
             assert merge_roof_cells(by_square) == merge_roof_cells(by_block) > 0
             if transform is None:
                 assert merge_roof_cells(by_square) == merged
+        # a square denser than SQUARE_POINTS is counted a block at a time: the same density
+        import quakescan.distributed.tasks as tasks
+
+        squares = {}
+        for k in stats.blocks:
+            squares.setdefault((k[0] // 3, k[1] // 3), []).append(tuple(k))
+        biggest = max(squares.values(), key=lambda g: tasks._stored_points(str(folder), g, True))
+        monkeypatch.setattr(tasks, "SQUARE_POINTS", tasks._stored_points(str(folder), biggest, True) - 1)
+        mixed = [p for g in squares.values() for p in group_roof_cells(str(folder), g, cells, square_cells=3 * cells)]
+        assert len(squares) < len(mixed) and merge_roof_cells(mixed) == merged
+        monkeypatch.undo()
     with pytest.raises(ValueError, match="do not lie in one square"):
         group_roof_cells(str(folder), [(0, 0), (3, 0)], cells, square_cells=3 * cells)
 

@@ -26,6 +26,12 @@ class TileReachError(Exception):
         self.needed_m = float(needed_m)
 
 
+# A square of blocks is counted at once up to this many points (about 0.5 GB of records,
+# cells and heights; a 200 m square of building points at 200 points/m²); a denser one is
+# counted a block at a time, as the worker's memory allows.
+SQUARE_POINTS = 8_000_000
+
+
 def group_roof_cells(folder: str, keys, block_cells: int, building_only: bool = True, transform=None,
                      square_cells: int | None = None) -> list:
     """`block_roof_cells` of several blocks in one task: with an alignment, whose points cross
@@ -47,7 +53,7 @@ def group_roof_cells(folder: str, keys, block_cells: int, building_only: bool = 
             raise ValueError(f"blocks {keys} of {block_cells} cells do not lie in one square of {square_cells} cells")
         square = squares.pop() if squares else (0, 0)
     if transform is None and not f.copc:
-        if square is None:
+        if square is None or _stored_points(folder, keys, building_only) > SQUARE_POINTS:
             return [block_roof_cells(folder, k, block_cells, building_only) for k in keys]
         return [_stored_roof_cells(folder, f, keys, square, int(square_cells), building_only)]
     from .blocks import block_of
@@ -100,6 +106,14 @@ def block_roof_cells(folder: str, key, block_cells: int, building_only: bool = T
         rec = read_records(Path(folder), [key], buildings_only=building_only, in_file_order=False)
         return _roof_cells(f.local_xyz(rec["X"], rec["Y"], rec["Z"], np.asarray(_origin(folder))), key, block_cells)
     return _stored_roof_cells(folder, f, [key], key, block_cells, building_only)
+
+
+def _stored_points(folder: str, keys, building_only: bool) -> int:
+    """Points stored in the block files of `keys` (their sizes, nothing read)."""
+    from .blocks import RECORD, block_files
+
+    return sum(p.stat().st_size for k in keys for p in block_files(Path(folder), k, buildings_only=building_only)
+               if p.is_file()) // RECORD.itemsize
 
 
 def _stored_roof_cells(folder: str, f: EpochFile, keys, square, square_cells: int, building_only: bool) -> dict:
