@@ -511,8 +511,10 @@ def test_block_densities_merged_are_the_whole_epochs_density_to_the_last_bit(pai
         squares = {}
         for k in stats.blocks:
             squares.setdefault((k[0] // 3, k[1] // 3), []).append(tuple(k))
-        biggest = max(squares.values(), key=lambda g: tasks._stored_points(str(folder), g, True))
-        monkeypatch.setattr(tasks, "SQUARE_POINTS", tasks._stored_points(str(folder), biggest, True) - 1)
+        def stored(g):
+            return sum(p.stat().st_size for p in tasks._stored_files(str(folder), g, True)) // blocks.RECORD.itemsize
+
+        monkeypatch.setattr(tasks, "SQUARE_POINTS", max(stored(g) for g in squares.values()) - 1)
         mixed = [p for g in squares.values() for p in group_roof_cells(str(folder), g, cells, square_cells=3 * cells)]
         assert len(squares) < len(mixed) and merge_roof_cells(mixed) == merged
         monkeypatch.undo()

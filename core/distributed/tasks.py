@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from ..change.surface import DENSITY_CELL_M
-from .blocks import EpochFile, read_box, read_records
+from .blocks import RECORD, EpochFile, read_box, read_records
 
 # the eight neighbours a roof cell needs occupied to count as interior (roof_cell_density)
 NEIGHBOURS = [(dx, dy) for dx in (-1, 0, 1) for dy in (-1, 0, 1) if dx or dy]
@@ -42,7 +42,7 @@ def group_roof_cells(folder: str, keys, block_cells: int, building_only: bool = 
     `square_cells`: the blocks all lie in one square of this many density cells (a multiple
     of `block_cells`), which is counted as one block of that size: one part instead of one a
     block. Only cells on a part's rim go back to the client undecided, as Python lists it
-    merges alone, and 25 m blocks have twice the share of rim cells of 50 m ones."""
+    merges alone."""
     keys = [(int(k[0]), int(k[1])) for k in keys]
     f = EpochFile(**_epoch_file_args(folder))
     square = None
@@ -53,9 +53,10 @@ def group_roof_cells(folder: str, keys, block_cells: int, building_only: bool = 
             raise ValueError(f"blocks {keys} of {block_cells} cells do not lie in one square of {square_cells} cells")
         square = squares.pop() if squares else (0, 0)
     if transform is None and not f.copc:
-        if square is None or _stored_points(folder, keys, building_only) > SQUARE_POINTS:
+        paths = _stored_files(folder, keys, building_only) if square is not None else []
+        if square is None or sum(p.stat().st_size for p in paths) // RECORD.itemsize > SQUARE_POINTS:
             return [block_roof_cells(folder, k, block_cells, building_only) for k in keys]
-        return [_stored_roof_cells(folder, f, keys, square, int(square_cells), building_only)]
+        return [_stored_roof_cells(folder, f, paths, square, int(square_cells))]
     from .blocks import block_of
 
     # a COPC epoch: the group's box read from the file once (its coarse octree levels span every block)
@@ -105,26 +106,23 @@ def block_roof_cells(folder: str, key, block_cells: int, building_only: bool = T
     if f.copc:
         rec = read_records(Path(folder), [key], buildings_only=building_only, in_file_order=False)
         return _roof_cells(f.local_xyz(rec["X"], rec["Y"], rec["Z"], np.asarray(_origin(folder))), key, block_cells)
-    return _stored_roof_cells(folder, f, [key], key, block_cells, building_only)
+    return _stored_roof_cells(folder, f, _stored_files(folder, [key], building_only), key, block_cells)
 
 
-def _stored_points(folder: str, keys, building_only: bool) -> int:
-    """Points stored in the block files of `keys` (their sizes, nothing read)."""
-    from .blocks import RECORD, block_files
+def _stored_files(folder: str, keys, building_only: bool) -> list[Path]:
+    """The block files of `keys` that exist (every part's)."""
+    from .blocks import block_files
 
-    return sum(p.stat().st_size for k in keys for p in block_files(Path(folder), k, buildings_only=building_only)
-               if p.is_file()) // RECORD.itemsize
+    return [p for k in keys for p in block_files(Path(folder), k, buildings_only=building_only) if p.is_file()]
 
 
-def _stored_roof_cells(folder: str, f: EpochFile, keys, square, square_cells: int, building_only: bool) -> dict:
+def _stored_roof_cells(folder: str, f: EpochFile, paths: list, square, square_cells: int) -> dict:
     """`block_roof_cells` of the square `square` of `square_cells` cells from the block files
-    of `keys` (the blocks in it): each record's cell and height in one compiled loop, no
-    coordinates made."""
+    `paths` (those of the blocks in it): each record's cell and height in one compiled loop,
+    no coordinates made."""
     from ._record_kernels import cells_and_heights
-    from .blocks import RECORD, block_files
 
-    files = [np.fromfile(p, dtype=RECORD) for k in keys
-             for p in block_files(Path(folder), k, buildings_only=building_only) if p.is_file()]
+    files = [np.fromfile(p, dtype=RECORD) for p in paths]
     n = sum(len(r) for r in files)
     ci, cj, z = np.empty(n, np.int64), np.empty(n, np.int64), np.empty(n)
     span = np.array([np.iinfo(np.int64).max] * 2 + [np.iinfo(np.int64).min] * 2, dtype=np.int64)
