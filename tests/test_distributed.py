@@ -310,12 +310,15 @@ def test_blocks_hold_every_point_once_and_read_back_in_file_order(pair, tmp_path
     only = blocks.read_records(tmp_path / "pre", keys, buildings_only=True)
     np.testing.assert_array_equal(only, rec[rec["building_id"] > 0])
     assert 0 < len(only) < len(rec)
-    for k in keys:
-        kept, rest = (blocks.block_path(tmp_path / "pre", k, buildings=b) for b in (True, False))
-        if kept.is_file():
-            assert (np.fromfile(kept, dtype=blocks.RECORD)["building_id"] > 0).all()
-        if rest.is_file():
-            assert (np.fromfile(rest, dtype=blocks.RECORD)["building_id"] <= 0).all()
+    # one file for the epoch streamed whole; each block's two kinds are runs of their own in it
+    assert sorted(p.name for p in (tmp_path / "pre").iterdir()) == ["blocks.index.npy", "part0.bin"]
+    index = np.load(tmp_path / "pre" / "blocks.index.npy")
+    assert index.flags.f_contiguous and (np.diff(index[:, 0]) > 0).all()  # one run a block and kind
+    assert index[:, 3].sum() == f.n and blocks.stored_points(tmp_path / "pre", keys) == f.n
+    stored = np.fromfile(tmp_path / "pre" / "part0.bin", dtype=blocks.RECORD)
+    for key, _, offset, count in index.tolist():
+        run = stored[offset:offset + count]
+        assert ((run["building_id"] > 0) == bool(key % 2)).all() and (np.diff(run["index"]) > 0).all()
     # a box read (what a tile task reads): exactly the points inside it, edges included, in file order
     box = np.array([np.quantile(e.xyz[:, :2], 0.3, axis=0), np.quantile(e.xyz[:, :2], 0.6, axis=0)])
     box[0, 0] = e.xyz[123, 0]  # a point on the edge is kept
@@ -382,9 +385,54 @@ def test_tiles_too_large_for_the_workers_memory_are_split_and_give_the_same_file
     _same_outputs(tmp_path / "single", tmp_path / "dask")
 
 
+def test_block_runs_read_back_exactly_and_a_cut_stream_leaves_nothing(pair, tmp_path):
+    """Runs of two parts read in any grouping give the records at their offsets; runs that
+    follow on in a file are one read. A part file shorter than its index is named, and a
+    stream cut mid-way leaves neither a part file nor an index."""
+    from quakescan.distributed import blocks
+    from quakescan.formats.pointcloud import PointCloudError
+
+    f = blocks.open_epoch_file(pair / "pre.las")
+    origin = blocks.default_origin(f)
+    folder = tmp_path / "parts"
+    half = f.n // 2
+    for part, (a, b) in enumerate(((0, half), (half, f.n))):
+        blocks.stream_epoch(f, origin, folder, block_cells=BLOCK_CELLS, chunk_points=25_000, part=part,
+                            start=a, stop=b, segment_points=60_000)
+    blocks.join_part_indexes(folder, 2)
+    index = np.load(folder / blocks.INDEX_NAME)
+    files = [np.fromfile(blocks.part_path(folder, p), dtype=blocks.RECORD) for p in (0, 1)]
+    assert index[:, 3].sum() == f.n == sum(len(x) for x in files)
+    rng = np.random.default_rng(3)
+    for pick in (np.arange(len(index)), rng.choice(len(index), 9, replace=False), np.zeros(0, int)):
+        runs = index[np.sort(pick)][:, 1:4]
+        rec, starts = blocks.read_runs(folder, runs)
+        assert len(starts) == len(runs) + 1 and starts[-1] == len(rec) == runs[:, 2].sum()
+        for (part, offset, count), a in zip(runs.tolist(), starts[:-1].tolist()):
+            np.testing.assert_array_equal(rec[a:a + count], files[part][offset:offset + count])
+    # a part's file cut short (a disk that filled up behind the manifest): named, not read as garbage
+    with open(blocks.part_path(folder, 1), "r+b") as fh:
+        fh.truncate(blocks.RECORD.itemsize * (len(files[1]) - 5))
+    ones = index[index[:, 1] == 1]
+    last = ones[np.argmax(ones[:, 2])][None, 1:4]  # the run at the file's end
+    with pytest.raises(PointCloudError, match=r"part1\.bin: block file ends 145 bytes early"):
+        blocks.read_runs(folder, last)
+    with pytest.raises(FileNotFoundError, match="no block index"):
+        blocks.block_runs(tmp_path / "nowhere", [(0, 0)])
+
+    def cut(done, total):
+        if done > 50_000:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        blocks.stream_epoch(f, origin, tmp_path / "cut", block_cells=BLOCK_CELLS, chunk_points=25_000, on_chunk=cut)
+    assert list((tmp_path / "cut").iterdir()) == []
+
+
 def test_an_epoch_streamed_in_parts_is_the_epoch_streamed_whole(pair, tmp_path):
-    """Three ranges of the file's points, each into its own part files: the same records in
-    every block, in the same order, and the same stats (counts, boxes, samples, map, hulls)."""
+    """Three ranges of the file's points, each into its own part file of several segments:
+    the same records in every block, in the same order, and the same stats (counts, boxes,
+    samples, map, hulls)."""
     from quakescan.distributed import blocks
     from quakescan.distributed.classify import part_bounds
 
@@ -396,8 +444,12 @@ def test_an_epoch_streamed_in_parts_is_the_epoch_streamed_whole(pair, tmp_path):
     assert bounds[0] == 0 and bounds[-1] == f.n and len(bounds) >= 3
     (tmp_path / "parts").mkdir()
     (tmp_path / "parts" / "epoch.json").write_text('{"parts": %d}' % (len(bounds) - 1))
-    parts = [blocks.stream_epoch(f, origin, tmp_path / "parts", part=k, start=a, stop=b, **kw)
+    # parts of several segments each (a segment every two chunks): a block has runs in several places
+    parts = [blocks.stream_epoch(f, origin, tmp_path / "parts", part=k, start=a, stop=b, segment_points=30_000, **kw)
              for k, (a, b) in enumerate(zip(bounds[:-1], bounds[1:]))]
+    blocks.join_part_indexes(tmp_path / "parts", len(parts))
+    assert len(blocks.block_runs(tmp_path / "parts", [tuple(k) for k in whole.blocks])) > 2 * len(
+        blocks.block_runs(tmp_path / "whole", [tuple(k) for k in whole.blocks]))
     merged = blocks.merge_stats(parts)
     assert merged.n == whole.n == f.n and merged.counts == whole.counts
     assert merged.lo == whole.lo and merged.hi == whole.hi and merged.bounds == whole.bounds
@@ -512,11 +564,16 @@ def test_block_densities_merged_are_the_whole_epochs_density_to_the_last_bit(pai
         for k in stats.blocks:
             squares.setdefault((k[0] // 3, k[1] // 3), []).append(tuple(k))
         def stored(g):
-            return sum(p.stat().st_size for p in tasks._stored_files(str(folder), g, True)) // blocks.RECORD.itemsize
+            return blocks.stored_points(folder, g, buildings_only=True)
 
+        moved_whole = merge_roof_cells([p for g in squares.values()
+                                        for p in group_roof_cells(str(folder), g, cells, True, moved, 3 * cells)])
         monkeypatch.setattr(tasks, "SQUARE_POINTS", max(stored(g) for g in squares.values()) - 1)
         mixed = [p for g in squares.values() for p in group_roof_cells(str(folder), g, cells, square_cells=3 * cells)]
         assert len(squares) < len(mixed) and merge_roof_cells(mixed) == merged
+        # moved: a square whose ring is over the bound is counted block by block, each with its own ring
+        mixed = [p for g in squares.values() for p in group_roof_cells(str(folder), g, cells, True, moved, 3 * cells)]
+        assert len(squares) < len(mixed) and merge_roof_cells(mixed) == moved_whole > 0
         monkeypatch.undo()
     with pytest.raises(ValueError, match="do not lie in one square"):
         group_roof_cells(str(folder), [(0, 0), (3, 0)], cells, square_cells=3 * cells)
@@ -539,7 +596,9 @@ def test_a_blocks_roof_cells_from_its_records_at_utm_offsets(tmp_path):
     folder.mkdir()
     kept = rec[inside]
     for part, half in enumerate((kept[::2], kept[1::2])):
-        half.tofile(blocks.block_path(folder, key, part, buildings=True))
+        half.tofile(blocks.part_path(folder, part))
+        np.save(blocks.part_index_path(folder, part), np.array([[blocks.run_keys(*key, 1), part, 0, len(half)]]))
+    blocks.join_part_indexes(folder, 2)
     (folder / "epoch.json").write_text(json.dumps({"file": f.to_json(), "origin": origin.tolist(), "parts": 2}))
     want = _roof_cells(xyz[inside], key, 50)
     assert want["cells"] > 100

@@ -1,8 +1,8 @@
-"""Compiled loops over the block files' records (numba): the records of a box kept as they
+"""Compiled loops over the stored blocks' records (numba): the records of a box kept as they
 are read and the order of ascending runs merged into one, for `blocks.read_box`, and records
 packed in a given order, for `blocks.stream_epoch`.
 
-A tile's box is read from block files whose points each lie in file order; the tile needs
+A tile's box is read from block runs whose points each lie in file order; the tile needs
 them all in file order. A stable argsort of the joined indices and a gather of 29-byte
 records took a third of a second a tile epoch; a k-way merge of the runs gives the same
 order in a pass over the points, and the plain arrays gathered by it are read nearly in

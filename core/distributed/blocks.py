@@ -7,9 +7,17 @@ block: a square of `block_cells` density cells (1 m, `quakescan.change.surface.D
 in the pair's local frame. A block holds each point once; the halo a tile needs is read
 from the blocks around it when the tile is described, so one tiling serves every halo.
 
-A block's points with a building ID and the rest are kept in two files: the densities of
-the surface descriptors read building points only, half of an epoch or less. A point is
-stored as its file's integers (X, Y, Z), its classification, building ID and its
+Each task that streams a part of the file (a range of its points) writes one file,
+`part<k>.bin`, in which every block's points lie together: a block's points with a building
+ID and the rest are two runs (the densities of the surface descriptors read building points
+only, half of an epoch or less), and `part<k>.index.npy` says where each run lies. The part
+buffers up to SEGMENT_POINTS points, sorts them by block and writes them as one segment, so a
+block has one run a segment. The client joins the parts' indexes into `blocks.index.npy`
+(`join_part_indexes`), which every reader looks its blocks up in: an epoch streamed in
+625 parts (10 B points) is 1,250 files, not one per block, kind and part (25 M), and a tile
+reads its blocks' runs from each part's file with one system call per contiguous stretch.
+
+A point is stored as its file's integers (X, Y, Z), its classification, building ID and its
 index in the file. Reading a box turns the integers into the same float64 coordinates
 `quakescan.formats.pointcloud.read_epoch` makes (integers × scale + (offset − origin), one
 operation per element) and sorts the points by their index: a worker sees exactly the
@@ -23,6 +31,7 @@ hull of each building's pre-event points (the outline of a building without a fo
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 from dataclasses import dataclass, field
@@ -37,14 +46,18 @@ from ..formats.pointcloud import PointCloudError, read_point_range
 RECORD = np.dtype([("index", "<i8"), ("X", "<i4"), ("Y", "<i4"), ("Z", "<i4"), ("classification", "u1"),
                    ("building_id", "<i8")])
 # Bumped whenever the block files change: a store tiled by an earlier layout is tiled again
-# (2: building points in files of their own)
-LAYOUT = 2
+# (2: building points in files of their own; 3: one file a part, its runs in an index)
+LAYOUT = 3
 # Points per chunk read from a LAS/LAZ file. Every array of a chunk this size (the LAS
 # records, ~19 MB; coordinates, 12 MB) stays under glibc's 32 MiB mmap ceiling, so its memory
 # is reused chunk after chunk; at 2 M points each array was mapped anew and its pages faulted
 # in again (150 k faults a 16 M-point part): streaming 16 M points took 3.2-4.1 s, at 500 k
 # 2.1-2.3 s (one thread, side by side), 75 M points an epoch on 2 workers 13.9-14.2 s -> 11.4-12.8 s.
 CHUNK_POINTS = 500_000
+# Points a streaming part buffers before it writes them, sorted by block, as a segment of its
+# file (~230 MB of records): a block has one run a segment, and a part (at most
+# classify.PART_POINTS, 16 M) at most two segments.
+SEGMENT_POINTS = 8_000_000
 MAP_POINTS = 200_000  # points of the pre-event epoch drawn under the damage map (as classify does)
 
 
@@ -145,31 +158,144 @@ def block_of(xy: np.ndarray, block_cells: int) -> np.ndarray:
     return cells // int(block_cells)
 
 
-def block_path(folder: Path, key, part: int | None = None, buildings: bool = False) -> Path:
-    """A block's file, or the file of one part of the epoch's points in that block (an epoch
-    streamed in parts, one task each: every part writes its own files); `buildings`: the
-    file of the block's points with a building ID (prefix "b"), else of the others."""
-    tail = ".bin" if part is None else f".{int(part)}.bin"
-    return Path(folder) / f"{'b' if buildings else ''}{int(key[0])}_{int(key[1])}{tail}"
+# A run's row in an index: its sort key (block, then kind: `run_keys`), the part whose file
+# holds it, where it begins (in records) and how many records it has. Stored column by column
+# (Fortran order), so the sort keys are one contiguous column that a memory-mapped index is
+# searched in without reading the rest.
+INDEX_NAME = "blocks.index.npy"
 
 
-def block_files(folder: Path, key, parts: int | None = None, buildings_only: bool = False) -> list[Path]:
-    """The files holding a block's points (`buildings_only`: its points with a building ID):
-    one of each kind, or one of each kind per part of an epoch streamed in parts."""
-    if parts is None:
-        parts = _parts_of(folder)
-    kinds = (True,) if buildings_only else (True, False)
-    if not parts:
-        return [block_path(folder, key, None, b) for b in kinds]
-    return [block_path(folder, key, p, b) for p in range(parts) for b in kinds]
+def part_path(folder: Path, part: int | None) -> Path:
+    """The file of one streaming part's points (`part` None: an epoch streamed whole, part 0)."""
+    return Path(folder) / f"part{int(part or 0)}.bin"
 
 
-def _parts_of(folder: Path) -> int:
-    """How many parts the epoch in `folder` was streamed in (its epoch.json; 0: streamed whole)."""
+def part_index_path(folder: Path, part: int | None) -> Path:
+    return Path(folder) / f"part{int(part or 0)}.index.npy"
+
+
+def run_keys(bx, by, buildings) -> np.ndarray:
+    """The sort key of a block's run: block x, then block y, then kind (1: building points),
+    so a block's two runs are neighbours and its building run comes second."""
+    bx, by = np.asarray(bx, dtype=np.int64), np.asarray(by, dtype=np.int64)
+    return ((bx << 32) + (by + (1 << 31))) * 2 + np.asarray(buildings, dtype=np.int64)
+
+
+def join_part_indexes(folder: Path, parts: int) -> None:
+    """Join the indexes of an epoch streamed in `parts` parts into the epoch's index, sorted
+    by run key, part and offset (a block's runs in file order), written atomically."""
+    rows = [np.load(part_index_path(folder, p)) for p in range(int(parts))]
+    _save_index(Path(folder) / INDEX_NAME, np.vstack(rows) if rows else np.zeros((0, 4), np.int64))
+
+
+def _save_index(path: Path, rows: np.ndarray) -> None:
+    from ..runtime.atomic import open_replacing
+
+    rows = rows[np.lexsort((rows[:, 2], rows[:, 1], rows[:, 0]))] if len(rows) else rows.reshape(0, 4)
+    with open_replacing(path, "wb") as out:
+        np.save(out, np.asfortranarray(rows, dtype=np.int64))
+
+
+def block_runs(folder: Path, keys, buildings_only: bool = False) -> np.ndarray:
+    """(r, 3) rows [part, offset, count] of the runs holding the points of blocks `keys`
+    (`buildings_only`: their points with a building ID), in the order of their files."""
+    path = Path(folder) / INDEX_NAME
     try:
-        return int(json.loads((Path(folder) / "epoch.json").read_text()).get("parts", 0))
-    except (OSError, ValueError):
-        return 0
+        index = np.load(path, mmap_mode="r")
+    except OSError:
+        raise FileNotFoundError(f"{path}: no block index (the epoch was not streamed into {folder}, "
+                                "or its parts' indexes were not joined: join_part_indexes)") from None
+    keys = np.asarray([(int(k[0]), int(k[1])) for k in keys], dtype=np.int64).reshape(-1, 2)
+    if not len(keys) or not len(index):
+        return np.zeros((0, 3), np.int64)
+    column = index[:, 0]
+    lo = np.searchsorted(column, run_keys(keys[:, 0], keys[:, 1], 1 if buildings_only else 0), side="left")
+    hi = np.searchsorted(column, run_keys(keys[:, 0], keys[:, 1], 1), side="right")
+    runs = np.vstack([np.asarray(index[a:b, 1:4]) for a, b in zip(lo.tolist(), hi.tolist()) if b > a]
+                     or [np.zeros((0, 3), np.int64)])
+    return runs[np.lexsort((runs[:, 1], runs[:, 0]))] if len(runs) else runs
+
+
+def read_runs(folder: Path, runs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(records, starts): the records of `runs` (`block_runs`) one after another, run r in
+    records[starts[r]:starts[r + 1]]. Each part's file is opened once and read with one
+    system call per stretch of runs that lie end to end in it."""
+    runs = np.asarray(runs, dtype=np.int64).reshape(-1, 3)
+    starts = np.zeros(len(runs) + 1, np.int64)
+    np.cumsum(runs[:, 2], out=starts[1:])
+    out = np.empty(int(starts[-1]), RECORD)
+    raw = out.view(np.uint8)
+    size = RECORD.itemsize
+    r = 0
+    while r < len(runs):
+        part = int(runs[r, 0])
+        path = part_path(folder, part)
+        fd = os.open(path, os.O_RDONLY)
+        try:
+            while r < len(runs) and runs[r, 0] == part:
+                e = r + 1  # runs that follow on in the file and in `out`: one read
+                while e < len(runs) and runs[e, 0] == part and runs[e, 1] == runs[e - 1, 1] + runs[e - 1, 2]:
+                    e += 1
+                _read_exactly(fd, path, raw[starts[r] * size:starts[e] * size], int(runs[r, 1]) * size)
+                r = e
+        finally:
+            os.close(fd)
+    return out, starts
+
+
+def _read_exactly(fd: int, path: Path, view: np.ndarray, offset: int) -> None:
+    done = 0
+    while done < len(view):
+        got = os.preadv(fd, [view[done:]], offset + done)
+        if got <= 0:
+            raise PointCloudError(f"{path}: block file ends {len(view) - done} bytes early at byte "
+                                  f"{offset + done}; delete the folder and stream the epoch again")
+        done += got
+
+
+def stored_points(folder: Path, keys, buildings_only: bool = False) -> int:
+    """How many points the blocks `keys` hold (from the index: no file is read)."""
+    return int(block_runs(folder, keys, buildings_only)[:, 2].sum())
+
+
+class _PartFile:
+    """A streaming part's file: the chunks' points, sorted by block and kind, buffered up to
+    `segment_points` and written as one segment (each block's runs of every buffered chunk
+    one after another, in the chunks' order, so a run's points stay in file order)."""
+
+    def __init__(self, out, part: int | None, segment_points: int):
+        self.out, self.part, self.segment_points = out, int(part or 0), int(segment_points)
+        self.chunks: list = []  # (records in run order, run keys, run starts, run ends)
+        self.buffered = self.written = 0
+        self.rows: list = []
+
+    def add(self, rec: np.ndarray, keys: np.ndarray, starts: np.ndarray, ends: np.ndarray) -> None:
+        self.chunks.append((rec, keys, starts, ends))
+        self.buffered += len(rec)
+        if self.buffered >= self.segment_points:
+            self.flush()
+
+    def flush(self) -> None:
+        if not self.chunks:
+            return
+        keys = np.concatenate([c[1] for c in self.chunks])
+        which = np.concatenate([np.full(len(c[1]), i) for i, c in enumerate(self.chunks)])
+        starts = np.concatenate([c[2] for c in self.chunks])
+        ends = np.concatenate([c[3] for c in self.chunks])
+        order = np.lexsort((which, keys))
+        keys, which, starts, ends = keys[order], which[order], starts[order], ends[order]
+        first = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]])
+        counts = np.add.reduceat(ends - starts, first) if len(first) else np.zeros(0, np.int64)
+        offsets = self.written + np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
+        for c, s, t in zip(which.tolist(), starts.tolist(), ends.tolist()):
+            self.out.write(self.chunks[c][0][s:t].view(np.uint8))
+        self.rows.append(np.column_stack([keys[first], np.full(len(first), self.part), offsets, counts]))
+        self.written += int(counts.sum())
+        self.chunks, self.buffered = [], 0
+
+    def index(self) -> np.ndarray:
+        self.flush()
+        return np.vstack(self.rows).astype(np.int64) if self.rows else np.zeros((0, 4), np.int64)
 
 
 class _Hulls:
@@ -201,25 +327,25 @@ class _Hulls:
 def stream_epoch(f: EpochFile, origin: np.ndarray, folder: Path, *, block_cells: int, footprints=None,
                  with_hulls: bool = False, sample: tuple | None = None, map_step: int | None = None,
                  chunk_points: int = CHUNK_POINTS, on_chunk=None, part: int | None = None, start: int = 0,
-                 stop: int | None = None) -> EpochStats:
-    """Write the epoch's points into block files under `folder` and return its EpochStats.
+                 stop: int | None = None, segment_points: int = SEGMENT_POINTS) -> EpochStats:
+    """Write the epoch's points into block runs under `folder` and return its EpochStats.
 
     `footprints`: give building IDs by footprint (else the file's `building_id`);
     `sample`: (n_total, max_points) of the registration check's sample (`sample_mask`);
     `map_step`: keep every k-th point for the map; `with_hulls`: hull every building.
-    `part`, `start`, `stop`: stream only the file's points start..stop into the files of that
-    part (`block_path`), for one of several tasks streaming an epoch (`merge_stats` joins
-    their stats into the whole epoch's)."""
+    `part`, `start`, `stop`: stream only the file's points start..stop into the file of that
+    part (`part_path`) and its index, for one of several tasks streaming an epoch
+    (`merge_stats` joins their stats into the whole epoch's, `join_part_indexes` their
+    indexes); without `part`, the epoch's index is written too.
+    `segment_points`: points buffered before they are written sorted by block."""
     import laspy
 
     from ..change.align import sample_mask, stable_mask
+    from ..runtime.atomic import open_replacing
     from ._record_kernels import block_codes, chunk_frame
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    # a cut earlier stream: its blocks would be appended to
-    for old in folder.glob("*.bin" if part is None else f"*.{int(part)}.bin"):
-        old.unlink()
     stop = f.n if stop is None else min(int(stop), f.n)
     stats = EpochStats(n=0)
     scales, shifts = f.frame(origin)
@@ -233,7 +359,10 @@ def stream_epoch(f: EpochFile, origin: np.ndarray, folder: Path, *, block_cells:
         reader = laspy.open(f.path)
     except Exception as e:
         raise PointCloudError(f"{f.path}: cannot read as LAS/LAZ ({e})") from None
-    with reader:
+    # a COPC epoch is read back by bounds from the file itself (`read_box`): no block files
+    out = contextlib.nullcontext() if f.copc else open_replacing(part_path(folder, part), "wb")
+    with reader, out as stream:
+        written = None if f.copc else _PartFile(stream, part, segment_points)
         first = start
         # a COPC epoch is streamed for its summaries only: x, y, z, class and building IDs
         for chunk in read_point_range(reader, start, stop, chunk_points, geometry_only=f.copc):
@@ -260,16 +389,23 @@ def stream_epoch(f: EpochFile, origin: np.ndarray, folder: Path, *, block_cells:
                 samples.append(xyz[keep])
             if map_step:
                 maps.append(xyz[(start + np.arange(n)) % map_step == 0, :2])
-            if f.copc:  # read back by bounds from the file itself (`read_box`): no block files
+            if f.copc:
                 blocks.update(_unique_keys(keys))
             elif n:
                 codes = block_codes(keys, klo, int(khi[1] - klo[1]) + 1, ids)
-                _append_blocks(folder, keys, codes, {"index": np.arange(start, start + n, dtype=np.int64), "X": X,
-                                                     "Y": Y, "Z": Z, "classification": cls, "building_id": ids},
-                               blocks, part)
+                written.add(*_sorted_runs(keys, codes, {"index": np.arange(start, start + n, dtype=np.int64),
+                                                        "X": X, "Y": Y, "Z": Z, "classification": cls,
+                                                        "building_id": ids}, blocks))
             start += n
             if on_chunk:
                 on_chunk(start - first, stop - first)
+        rows = None if f.copc else written.index()
+    if rows is not None:
+        # written after the part's file is complete: an index never points past its file
+        if part is None:
+            _save_index(folder / INDEX_NAME, rows)
+        else:
+            _save_index(part_index_path(folder, part), rows)
     stats.n = start - first
     stats.bounds = [lo_all.tolist(), hi_all.tolist()] if start > first else None
     stats.blocks = sorted([list(b) for b in blocks])
@@ -328,30 +464,26 @@ def _add_building_stats(stats: EpochStats, groups: _Groups, xyz: np.ndarray) -> 
             stats.counts[b], stats.lo[b], stats.hi[b] = c, tuple(a), tuple(z)
 
 
-def _append_blocks(folder: Path, keys: np.ndarray, codes: np.ndarray, columns: dict, seen: set,
-                   part: int | None = None) -> None:
-    """Append the chunk's points (`columns`: RECORD's fields as arrays; `keys`: their blocks;
-    `codes`: `_record_kernels.block_codes`) to their blocks' files. The records are packed in
-    block order (one counting sort, one compiled loop: gathering whole 29-byte records was
-    the stream's slowest step), and each block's run is written as it lies."""
+def _sorted_runs(keys: np.ndarray, codes: np.ndarray, columns: dict, seen: set):
+    """The chunk's points (`columns`: RECORD's fields as arrays; `keys`: their blocks;
+    `codes`: `_record_kernels.block_codes`) as records sorted by block and kind, with each
+    run's key (`run_keys`), start and end. The records are packed in block order (one
+    counting sort, one compiled loop: gathering whole 29-byte records was the stream's
+    slowest step)."""
     from ..change._cell_kernels import stable_order
     from ._record_kernels import pack_records
 
     n = len(keys)
-    if not n:
-        return
-    # one stable sort by (block, building or not): a file's points stay in file order
+    # one stable sort by (block, building or not): a run's points stay in file order
     order = stable_order(codes)
     rec = np.empty(n, RECORD)
     pack_records(rec, order, *(np.asarray(columns[name], RECORD[name]) for name in RECORD.names))  # views too
     codes = codes[order]
     starts = np.flatnonzero(np.r_[True, codes[1:] != codes[:-1]])
     ends = np.append(starts[1:], n)
-    for code, s, t in zip(codes[starts].tolist(), starts.tolist(), ends.tolist()):
-        key = (int(keys[order[s], 0]), int(keys[order[s], 1]))
-        seen.add(key)
-        with open(block_path(folder, key, part, buildings=bool(code % 2)), "ab") as out:
-            out.write(rec[s:t].view(np.uint8))
+    heads = keys[order[starts]]
+    seen.update(zip(heads[:, 0].tolist(), heads[:, 1].tolist()))
+    return rec, run_keys(heads[:, 0], heads[:, 1], codes[starts] % 2), starts, ends
 
 
 def merge_stats(parts: list[EpochStats]) -> EpochStats:
@@ -404,16 +536,8 @@ def read_records(folder: Path, keys, buildings_only: bool = False, in_file_order
     epoch = _epoch_json(folder)
     if epoch.get("file", {}).get("copc"):
         return _copc_block_records(Path(folder), epoch, keys, buildings_only)
-    parts = []
-    n_parts = _parts_of(folder)
-    for key in keys:
-        for p in block_files(folder, key, n_parts, buildings_only):
-            if p.is_file():
-                parts.append(np.fromfile(p, dtype=RECORD))
-    if not parts:
-        return np.zeros(0, RECORD)
-    rec = np.concatenate(parts) if len(parts) > 1 else parts[0]
-    return rec[np.argsort(rec["index"], kind="stable")] if in_file_order else rec
+    rec, _ = read_runs(folder, block_runs(folder, keys, buildings_only))
+    return rec[np.argsort(rec["index"], kind="stable")] if in_file_order and len(rec) else rec
 
 
 # what a tile reads of its points besides the coordinates
@@ -423,9 +547,9 @@ BOX_FIELDS = np.dtype([("index", "<i8"), ("classification", "u1"), ("building_id
 def read_box(folder: Path, f: EpochFile, origin, box, block_cells: int) -> tuple[np.ndarray, np.ndarray]:
     """(BOX_FIELDS records, local float64 coordinates) of the stored points inside the x/y
     `box` ((2, 2): min, max; local frame, edges included), in file order: the blocks the box
-    touches, each file cut to the box as it is read (a tile's box covers about half of the
-    blocks it touches), the coordinates made once. Each file's points lie in file order:
-    merging the files' runs (`_record_kernels.merged_order`) puts them in file order."""
+    touches, each run cut to the box (a tile's box covers about half of the blocks it
+    touches), the coordinates made once. Each run's points lie in file order: merging the
+    runs (`_record_kernels.merged_order`) puts them in file order."""
     from ._record_kernels import gather_box, keep_in_box, merged_order
 
     box = np.asarray(box, dtype=np.float64)
@@ -433,16 +557,14 @@ def read_box(folder: Path, f: EpochFile, origin, box, block_cells: int) -> tuple
     if f.copc:
         rec, xyz = _copc_box(Path(folder), f, origin, box)
         return _box_fields(rec["index"], rec["classification"], rec["building_id"]), xyz
-    n_parts = _parts_of(folder)
-    files = [np.fromfile(p, dtype=RECORD) for key in blocks_in_box(box, block_cells)
-             for p in block_files(folder, key, n_parts) if p.is_file()]
-    capacity = sum(len(r) for r in files)
+    records, runs = read_runs(folder, block_runs(folder, blocks_in_box(box, block_cells)))
+    capacity = len(records)
     index, cls = np.empty(capacity, np.int64), np.empty(capacity, np.uint8)
     bid, xyz = np.empty(capacity, np.int64), np.empty((capacity, 3))
     scales, shifts = f.frame(origin)
     starts = [0]
-    for rec in files:
-        starts.append(keep_in_box(rec, scales, shifts, box, index, cls, bid, xyz, starts[-1]))
+    for a, b in zip(runs[:-1].tolist(), runs[1:].tolist()):
+        starts.append(keep_in_box(records[a:b], scales, shifts, box, index, cls, bid, xyz, starts[-1]))
     n = starts[-1]
     order = merged_order(index[:n], np.asarray(starts, dtype=np.int64))
     out, out_xyz = np.empty(n, BOX_FIELDS), np.empty((n, 3))
@@ -541,13 +663,10 @@ def save_arrays(path: Path, arrays: dict) -> None:
     os.replace(tmp, path)
 
 
-def folder_size_bytes(folder: Path) -> int:
-    return sum(p.stat().st_size for p in Path(folder).glob("*.bin"))
-
-
 def block_m(block_cells: int) -> float:
     return float(block_cells) * DENSITY_CELL_M
 
 
-__all__ = ["CHUNK_POINTS", "EpochFile", "EpochStats", "RECORD", "block_files", "block_of", "blocks_in_box",
-           "default_origin", "merge_stats", "open_epoch_file", "read_box", "read_records", "stream_epoch"]
+__all__ = ["CHUNK_POINTS", "EpochFile", "EpochStats", "RECORD", "block_of", "block_runs", "blocks_in_box",
+           "default_origin", "join_part_indexes", "merge_stats", "open_epoch_file", "read_box", "read_records",
+           "read_runs", "stored_points", "stream_epoch"]

@@ -35,8 +35,8 @@ log = logging.getLogger(__name__)
 
 # A block is 50 × 50 density cells (50 m): a 150 m tile with its halo (~174 m) reads 4 × 4 or
 # 5 × 5 of them, 1.3-2.1 times its box. 25 m blocks (1.3-1.7 times) made the issue's pair's
-# tiles 2.5-4 % faster on one worker, but a tile reads a file per block and part: on the
-# 2 × 262 M pair (17 parts an epoch, its blocks beyond the page cache) the tiles took 358 s
+# tiles 2.5-4 % faster on one worker, but a tile then read a file per block and part (the
+# layout before one file a part): on the 2 × 262 M pair (17 parts an epoch, its blocks beyond the page cache) the tiles took 358 s
 # against 324 s, the run 455 s against 410 s.
 BLOCK_CELLS = 50
 MANIFEST = "manifest.json"
@@ -309,7 +309,9 @@ def _tiled_epochs(client, store: Path, digest: str, pre_f, post_f, origin, fp, f
         if progress:
             progress(done[name], (pre_f if name == "pre" else post_f).n, f"tiling {name}")
     stats = {}
-    for name in ("pre", "post"):
+    for name, f in (("pre", pre_f), ("post", post_f)):
+        if not f.copc:
+            bk.join_part_indexes(store / name, len(parts[name]))
         s = bk.merge_stats([parts[name][k] for k in sorted(parts[name])])
         arrays = {"stable_sample": s.stable_sample, "map_xy": s.map_xy}
         arrays.update({f"hull_{b}": v for b, v in s.hulls.items()})
@@ -433,7 +435,7 @@ def _describe_tiles(client, store, pre_s, post_s, settings, geometry, block_cell
 
     estimates: dict = {}
 
-    def estimate(s):  # asked when splitting, warning and submitting: the block files are statted once
+    def estimate(s):  # asked when splitting, warning and submitting: each tile's blocks looked up once
         key = (tuple(s["bids"]), s["halo"])
         if key not in estimates:
             estimates[key] = tile_memory_bytes(store, s, block_cells)
@@ -544,10 +546,10 @@ def tile_memory_budget(client) -> float:
 
 
 def tile_memory_bytes(store: Path, tile: dict, block_cells: int) -> float:
-    """The peak memory of `describe_tile_task` on `tile`, estimated from the sizes of the block
-    files it reads: every point of those blocks is read, the share of them inside the tile's
+    """The peak memory of `describe_tile_task` on `tile`, estimated from the points of the blocks
+    it reads: every point of those blocks is read, the share of them inside the tile's
     box is described (a COPC epoch: the points of the file's nodes the box overlaps)."""
-    from .blocks import RECORD, block_files, blocks_in_box
+    from .blocks import blocks_in_box, stored_points
 
     box = np.asarray(tile["box"], dtype=np.float64)
     area = float(np.prod(np.maximum(box[1] - box[0], 0.0)))
@@ -564,8 +566,7 @@ def tile_memory_bytes(store: Path, tile: dict, block_cells: int) -> float:
             read += n
             inside += n_inside
             continue
-        n = sum(f.stat().st_size for k in keys for f in block_files(Path(store) / name, k) if f.is_file())
-        n /= RECORD.itemsize
+        n = stored_points(Path(store) / name, keys)
         read += n
         inside += n * min(1.0, area / (len(keys) * side * side)) if keys else 0.0
     return read * READ_BYTES_PER_POINT + inside * DESCRIBE_BYTES_PER_POINT

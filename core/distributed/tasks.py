@@ -1,7 +1,7 @@
 """What a Dask worker runs: one block's roof-cell counts, one tile's building rows.
 
 Plain functions of plain arguments (paths, lists, dicts, settings as JSON): a task pickles
-in a few hundred bytes and a worker reads its points from the block files itself, so no
+in a few hundred bytes and a worker reads its points from the stored blocks itself, so no
 point cloud ever travels through the scheduler.
 """
 from __future__ import annotations
@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from ..change.surface import DENSITY_CELL_M
-from .blocks import RECORD, EpochFile, read_box, read_records
+from .blocks import EpochFile, block_runs, read_box, read_records, read_runs
 
 # the eight neighbours a roof cell needs occupied to count as interior (roof_cell_density)
 NEIGHBOURS = [(dx, dy) for dx in (-1, 0, 1) for dy in (-1, 0, 1) if dx or dy]
@@ -26,9 +26,10 @@ class TileReachError(Exception):
         self.needed_m = float(needed_m)
 
 
-# A square of blocks is counted at once up to this many points (about 0.5 GB of records,
-# cells and heights; a 200 m square of building points at 200 points/m²); a denser one is
-# counted a block at a time, as the worker's memory allows.
+# A square of blocks (with an alignment, the ring of blocks around it) is counted at once up
+# to this many points (about 0.5 GB of records, cells and heights; a 200 m square of building
+# points at 200 points/m²); a denser one is counted a block at a time, as the worker's memory
+# allows.
 SQUARE_POINTS = 8_000_000
 
 
@@ -53,15 +54,19 @@ def group_roof_cells(folder: str, keys, block_cells: int, building_only: bool = 
             raise ValueError(f"blocks {keys} of {block_cells} cells do not lie in one square of {square_cells} cells")
         square = squares.pop() if squares else (0, 0)
     if transform is None and not f.copc:
-        paths = _stored_files(folder, keys, building_only) if square is not None else []
-        if square is None or sum(p.stat().st_size for p in paths) // RECORD.itemsize > SQUARE_POINTS:
+        runs = block_runs(Path(folder), keys, building_only) if square is not None else None
+        if square is None or runs[:, 2].sum() > SQUARE_POINTS:
             return [block_roof_cells(folder, k, block_cells, building_only) for k in keys]
-        return [_stored_roof_cells(folder, f, paths, square, int(square_cells))]
+        return [_stored_roof_cells(folder, f, runs, square, int(square_cells))]
     from .blocks import block_of
 
     # a COPC epoch: the group's box read from the file once (its coarse octree levels span every block)
     ring = keys if transform is None else sorted({(k[0] + dx, k[1] + dy) for k in keys
                                                   for dx in (-1, 0, 1) for dy in (-1, 0, 1)})
+    if (transform is not None and not f.copc and len(keys) > 1
+            and block_runs(Path(folder), ring, building_only)[:, 2].sum() > SQUARE_POINTS):
+        # a ring too dense to hold at once: each block with its own 3 × 3 ring
+        return [block_roof_cells(folder, k, block_cells, building_only, transform) for k in keys]
     rec = read_records(Path(folder), ring, buildings_only=building_only, in_file_order=False)
     xyz = f.local_xyz(rec["X"], rec["Y"], rec["Z"], np.asarray(_origin(folder)))
     if transform is not None:
@@ -106,30 +111,21 @@ def block_roof_cells(folder: str, key, block_cells: int, building_only: bool = T
     if f.copc:
         rec = read_records(Path(folder), [key], buildings_only=building_only, in_file_order=False)
         return _roof_cells(f.local_xyz(rec["X"], rec["Y"], rec["Z"], np.asarray(_origin(folder))), key, block_cells)
-    return _stored_roof_cells(folder, f, _stored_files(folder, [key], building_only), key, block_cells)
+    return _stored_roof_cells(folder, f, block_runs(Path(folder), [key], building_only), key, block_cells)
 
 
-def _stored_files(folder: str, keys, building_only: bool) -> list[Path]:
-    """The block files of `keys` that exist (every part's)."""
-    from .blocks import block_files
-
-    return [p for k in keys for p in block_files(Path(folder), k, buildings_only=building_only) if p.is_file()]
-
-
-def _stored_roof_cells(folder: str, f: EpochFile, paths: list, square, square_cells: int) -> dict:
-    """`block_roof_cells` of the square `square` of `square_cells` cells from the block files
-    `paths` (those of the blocks in it): each record's cell and height in one compiled loop,
-    no coordinates made."""
+def _stored_roof_cells(folder: str, f: EpochFile, runs: np.ndarray, square, square_cells: int) -> dict:
+    """`block_roof_cells` of the square `square` of `square_cells` cells from the stored runs
+    `runs` (`blocks.block_runs` of the blocks in it): each record's cell and height in one
+    compiled loop, no coordinates made."""
     from ._record_kernels import cells_and_heights
 
-    files = [np.fromfile(p, dtype=RECORD) for p in paths]
-    n = sum(len(r) for r in files)
+    rec, _ = read_runs(Path(folder), runs)
+    n = len(rec)
     ci, cj, z = np.empty(n, np.int64), np.empty(n, np.int64), np.empty(n)
     span = np.array([np.iinfo(np.int64).max] * 2 + [np.iinfo(np.int64).min] * 2, dtype=np.int64)
     scales, shifts = f.frame(np.asarray(_origin(folder)))
-    filled = 0
-    for rec in files:
-        filled = cells_and_heights(rec, scales, shifts, DENSITY_CELL_M, ci, cj, z, filled, span)
+    cells_and_heights(rec, scales, shifts, DENSITY_CELL_M, ci, cj, z, 0, span)
     return _roof_cells_of(ci, cj, z, span, square, square_cells)
 
 
@@ -184,7 +180,7 @@ def _roof_cells_of(ci, cj, z, span, key, block_cells: int) -> dict:
 
 def stream_part(folder: str, epoch_json: dict, origin: list, part: int, start: int, stop: int, block_cells: int,
                 footprints: dict | None, with_hulls: bool, sample, map_step: int | None, chunk_points: int):
-    """Points start..stop of an epoch's file streamed into the block files of `part` under
+    """Points start..stop of an epoch's file streamed into the file and index of `part` under
     `folder` (`quakescan.distributed.blocks.stream_epoch`): one of the tasks that tile an
     epoch in parallel. `footprints`: {"path", "id_field"} read here (building IDs by
     footprint), or None (the file's building_id). Returns the part's EpochStats."""
