@@ -319,23 +319,23 @@ def main(argv=None):
     def mb(v):
         return f"{v:,.0f}"
 
-    rows = []
+    rows: dict[str, tuple] = {}  # slot (a results.json key) -> its row
 
     def pair_rows(suffix, label, targets):
         s, s1 = results.get("single" + suffix), results.get("single1" + suffix)
         if s:
-            rows.append((f"{label}, one process", "<= 180 s, <= 8,192 MiB" if targets else "", f"{s['points']:,}",
+            rows["single" + suffix] = ((f"{label}, one process", "<= 180 s, <= 8,192 MiB" if targets else "", f"{s['points']:,}",
                          f"{s['wall_s']:.0f}", f"{s['seconds']['read']:.0f} / {s['seconds']['describe']:.0f}",
                          mb(s["client_mb"]), "—", f"{s['points'] / s['wall_s'] / 1e6:.3f}", "", s.get("at", "")))
         if s1:
-            rows.append(("same pair, one process, one thread (`--threads 1`)", "", f"{s1['points']:,}",
+            rows["single1" + suffix] = (("same pair, one process, one thread (`--threads 1`)", "", f"{s1['points']:,}",
                          f"{s1['wall_s']:.0f}", f"{s1['seconds']['read']:.0f} / {s1['seconds']['describe']:.0f}",
                          mb(s1["client_mb"]), "—", f"{s1['points'] / s1['wall_s'] / 1e6:.3f}",
                          "one core's throughput: the like-for-like reference of a one-thread worker",
                          s1.get("at", "")))
         s2 = results.get("single1x2" + suffix)
         if s2:
-            rows.append(("same pair, two one-thread processes at once (each as above)", "", f"{s2['points']:,}",
+            rows["single1x2" + suffix] = (("same pair, two one-thread processes at once (each as above)", "", f"{s2['points']:,}",
                          f"{s2['wall_s']:.0f}", f"{s2['seconds']['read']:.0f} / {s2['seconds']['describe']:.0f}",
                          mb(s2["client_mb"]), "—", f"{s2['points'] / s2['wall_s'] / 1e6:.3f}",
                          "a core's throughput with the other core busy too, as beside a second worker; wall s of "
@@ -354,7 +354,7 @@ def main(argv=None):
                 stages = c["seconds"].get("stages", {})
                 if stages:
                     speed += "; stages s: " + ", ".join(f"{k} {v:.0f}" for k, v in stages.items())
-                rows.append((f"same pair, LocalCluster {n} worker{'s' if n > 1 else ''}",
+                rows[f"cluster{n}{suffix}"] = ((f"same pair, LocalCluster {n} worker{'s' if n > 1 else ''}",
                              ">= 1.8x (2 vs 1)" if (n == 2 and targets) else "", f"{c['points']:,}",
                              f"{c['wall_s']:.0f}", f"{c['seconds']['read']:.0f} / {c['seconds']['describe']:.0f}",
                              mb(c["client_mb"]), mb(c["worker_mb"]), f"{c['points'] / c['wall_s'] / n / 1e6:.3f}",
@@ -375,26 +375,26 @@ def main(argv=None):
         if s2:  # both cores busy, as under the two workers
             ratio += f"{per_worker / (s2['points'] / s2['wall_s']):.2f}x a one-thread process beside another; "
         ratio += f"tiles split {lg['dask'].get('tiles_split', 0)}"
-        rows.append((f"2 x {lg['points'] // 2 / 1e6:.0f} M points ({lg['copies']} copies), 2 workers, 4 GB each",
+        rows["large"] = ((f"2 x {lg['points'] // 2 / 1e6:.0f} M points ({lg['copies']} copies), 2 workers, 4 GB each",
                      "finishes; worker <= 4,096 MiB; >= 0.9x per worker", f"{lg['points']:,}", f"{lg['wall_s']:.0f}",
                      f"{lg['seconds']['read']:.0f} / {lg['seconds']['describe']:.0f}", mb(lg["client_mb"]),
                      mb(lg["worker_mb"]), f"{lg['points'] / lg['wall_s'] / 2 / 1e6:.3f}", ratio, lg.get("at", "")))
     cp = results.get("copc2")
     if cp:
-        rows.append(("2 x 37 M-point pair as COPC files (LAZ), LocalCluster 2 workers", "", f"{cp['points']:,}",
+        rows["copc2"] = (("2 x 37 M-point pair as COPC files (LAZ), LocalCluster 2 workers", "", f"{cp['points']:,}",
                      f"{cp['wall_s']:.0f}", f"{cp['seconds']['read']:.0f} / {cp['seconds']['describe']:.0f}",
                      mb(cp["client_mb"]), mb(cp["worker_mb"]), f"{cp['points'] / cp['wall_s'] / 2 / 1e6:.3f}",
                      "tiles read by bounds from the files, no block files; stages s: " + ", ".join(
                          f"{k} {v:.0f}" for k, v in cp["seconds"].get("stages", {}).items()), cp.get("at", "")))
     ts = results.get("trainset")
     if ts:
-        rows.append((f"training set: {ts['buildings']:,} buildings x 4 states ({ts['pairs']} pairs), 2 workers",
+        rows["trainset"] = ((f"training set: {ts['buildings']:,} buildings x 4 states ({ts['pairs']} pairs), 2 workers",
                      "<= 1,800 s, resumable", f"{ts['rows']:,} rows", f"{ts['wall_s']:.0f}", "—", "—", "—", "—",
                      f"resumed in {ts['resume_s']:.0f} s", ts.get("at", "")))
     for key, label in (("graded1", "one process"), ("graded2", "LocalCluster 2 workers")):
         g = results.get(key)
         if g:
-            rows.append((f"2 x 37 M-point pair with the graded cloud (post_grades.las), {label}", "", f"{g['points']:,}",
+            rows[key] = ((f"2 x 37 M-point pair with the graded cloud (post_grades.las), {label}", "", f"{g['points']:,}",
                          f"{g['wall_s']:.0f}", f"{g['seconds']['read']:.0f} / {g['seconds']['describe']:.0f}",
                          mb(g["client_mb"]), mb(g["worker_mb"]) if g.get("dask") else "—",
                          f"{g['points'] / g['wall_s'] / (2 if g.get('dask') else 1) / 1e6:.3f}",
@@ -405,18 +405,65 @@ def main(argv=None):
         f"Machine: {machine()}. Command: `.venv/bin/python bench/bench_scale.py`; "
         f"the last run: rows {', '.join(rows_wanted) or 'none (the table rewritten)'}, "
         f"{time.perf_counter() - t_all:.0f} s (rows of earlier runs "
-        "are kept from WORK/results.json, with the time each was measured). `quakescan classify "
+        "are kept from WORK/results.json, or, where it lacks them, as BENCHMARKS.md had them, with the time "
+        "each was measured). `quakescan classify "
         "--no-las --force` in a fresh process each (the graded LAS left out but in the rows that say so); \"read\" is reading the epochs and the registration check (one process) or streaming them "
         "into blocks (Dask: the workers, a part of the file each, while the client reads the model), \"describe\" "
         "the descriptors (with Dask: the densities and the registration check as tasks in the workers, the check beside the tiles from 2026-11-28 07:11 (in the client before 04:00), then "
         "the tiles). Peak RSS sampled every 0.2 s: "
         "the command's own process (client) and the largest of its worker processes. Throughput: points of both "
         "epochs per second per worker (per process for the single run).",
-        table(["case", "target", "points", "wall s", "read / describe s", "client peak MiB",
-               "worker peak MiB", "M points/s per worker", "result", "measured (UTC)"], rows),
+        with_earlier_rows(table(["case", "target", "points", "wall s", "read / describe s", "client peak MiB",
+                                 "worker peak MiB", "M points/s per worker", "result", "measured (UTC)"],
+                                [rows[k] for k in SLOTS if k in rows]), rows),
     ])
     print("\n" + text)
     write_section("bench_scale", text)
+
+
+# The table's rows in order, by their key in results.json
+SLOTS = ("single", "single1", "single1x2", "cluster1", "cluster2", "single_half", "single1_half", "single1x2_half",
+         "cluster1_half", "cluster2_half", "large", "copc2", "trainset", "graded1", "graded2")
+
+
+def slot_of(case: str, suffix: str) -> tuple[str | None, str]:
+    """(slot, pair suffix) of a row of the table in BENCHMARKS.md, from its case and the pair
+    its "same pair" rows follow."""
+    if case.startswith("2 x 75 M-point pair"):
+        return "single", ""
+    if case.startswith("2 x 37 M-point pair (the city itself"):
+        return "single_half", "_half"
+    for head, slot in (("same pair, one process, one thread", "single1"), ("same pair, two one-thread", "single1x2"),
+                       ("same pair, LocalCluster 1 worker", "cluster1"), ("same pair, LocalCluster 2", "cluster2")):
+        if case.startswith(head):
+            return slot + suffix, suffix
+    if "copies)" in case:
+        return "large", suffix
+    if "as COPC" in case:
+        return "copc2", suffix
+    if case.startswith("training set"):
+        return "trainset", suffix
+    if "graded cloud" in case:
+        return ("graded1" if "one process" in case else "graded2"), suffix
+    return None, suffix
+
+
+def with_earlier_rows(new_table: str, rows: dict) -> str:
+    """`new_table` with the rows this run and WORK/results.json lack taken from the section in
+    BENCHMARKS.md (each keeps its measured time): a fresh checkout reruns some rows only."""
+    from _report import BENCHMARKS
+
+    text = BENCHMARKS.read_text() if BENCHMARKS.exists() else ""
+    section = text[text.find("<!-- bench_scale start -->"):text.find("<!-- bench_scale end -->")]
+    earlier, suffix = {}, ""
+    for line in section.splitlines():
+        if line.startswith("| ") and not line.startswith("| case |"):
+            slot, suffix = slot_of(line[2:].split(" | ")[0], suffix)
+            if slot:
+                earlier[slot] = line
+    lines = new_table.splitlines()
+    head, fresh = lines[:2], iter(lines[2:])
+    return "\n".join(head + [next(fresh) if k in rows else earlier[k] for k in SLOTS if k in rows or k in earlier])
 
 
 if __name__ == "__main__":
