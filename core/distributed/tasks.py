@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from ..change.surface import DENSITY_CELL_M
-from .blocks import EpochFile, block_runs, read_box, read_records, read_runs
+from .blocks import EpochFile, block_runs, read_box, read_records, read_runs, stored_points
 
 # the eight neighbours a roof cell needs occupied to count as interior (roof_cell_density)
 NEIGHBOURS = [(dx, dy) for dx in (-1, 0, 1) for dy in (-1, 0, 1) if dx or dy]
@@ -64,7 +64,7 @@ def group_roof_cells(folder: str, keys, block_cells: int, building_only: bool = 
     ring = keys if transform is None else sorted({(k[0] + dx, k[1] + dy) for k in keys
                                                   for dx in (-1, 0, 1) for dy in (-1, 0, 1)})
     if (transform is not None and not f.copc and len(keys) > 1
-            and block_runs(Path(folder), ring, building_only)[:, 2].sum() > SQUARE_POINTS):
+            and stored_points(Path(folder), ring, building_only) > SQUARE_POINTS):
         # a ring too dense to hold at once: each block with its own 3 × 3 ring
         return [block_roof_cells(folder, k, block_cells, building_only, transform) for k in keys]
     rec = read_records(Path(folder), ring, buildings_only=building_only, in_file_order=False)
