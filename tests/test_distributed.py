@@ -246,13 +246,34 @@ def test_a_paper_descriptor_tile_whose_nearest_points_lie_beyond_its_halo_is_wid
 
 @slow
 def test_the_cli_runs_on_a_local_cluster_and_names_its_dashboard(pair, single, tmp_path, capsys):
+    """... and keeps Dask's housekeeping (scheduler started, workers registered, closed: INFO
+    records of the `distributed` logger, which writes them to stderr with a handler of its
+    own) out of the run unless -v asks for details."""
+    import logging
+
     from quakescan.cli import main
 
-    out = tmp_path / "cli"
-    assert main(["classify", "--pre", str(pair / "pre.las"), "--post", str(pair / "post.las"), "--model",
-                 str(pair / "model.skops"), "--workers", "2", "--memory-limit", "1GB", "-o", str(out)]) == 0
+    class Keep(logging.Handler):
+        def __init__(self):
+            super().__init__(logging.DEBUG)
+            self.records = []
+
+        def emit(self, record):
+            self.records.append(record)
+
+    keep, dask_log = Keep(), logging.getLogger("distributed")
+    level = dask_log.level
+    dask_log.addHandler(keep)
+    try:
+        out = tmp_path / "cli"
+        assert main(["classify", "--pre", str(pair / "pre.las"), "--post", str(pair / "post.las"), "--model",
+                     str(pair / "model.skops"), "--workers", "2", "--memory-limit", "1GB", "-o", str(out)]) == 0
+    finally:
+        dask_log.removeHandler(keep)
     printed = capsys.readouterr().out
     assert "Dask: a LocalCluster of 2 workers; dashboard http" in printed
+    assert [r.getMessage() for r in keep.records if r.levelno < logging.WARNING] == []
+    assert dask_log.level == level  # as it was, once the command ends
     _same_outputs(single[0], out)
 
 

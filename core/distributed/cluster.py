@@ -32,14 +32,41 @@ LOOP_TICK = {"distributed.admin.tick.interval": "500ms"}
 
 
 @contextlib.contextmanager
+def _dask_logs_at_warning():
+    """Dask's own INFO lines (scheduler and nanny start, workers registered, closed: some 30
+    a run) are the cluster's housekeeping, not the user's: with distributed 2026.8 they reach
+    stderr from this process whatever LocalCluster's `silence_logs` says, even under `-q`.
+    Shown with `-v` (the root logger at INFO); warnings and errors (a worker lost, memory)
+    always. The level is put back on leaving: tests run many commands in one process."""
+    import logging
+
+    dask_log = logging.getLogger("distributed")
+    level = dask_log.level
+    if logging.getLogger().getEffectiveLevel() > logging.INFO:
+        dask_log.setLevel(logging.WARNING)
+    try:
+        yield
+    finally:
+        dask_log.setLevel(level)
+
+
+@contextlib.contextmanager
 def dask_client(n_workers: int | None = None, scheduler: str | None = None, memory_limit: str | None = "auto"):
     """A Dask client: on an existing scheduler's cluster, or on a LocalCluster of `n_workers`
     single-threaded processes started here and closed on leaving (Dask's name: `workers` is
     the library's thread count everywhere else)."""
     try:
-        from dask.distributed import Client, LocalCluster
+        import dask.distributed  # noqa: F401
     except ImportError as e:  # pragma: no cover - dask is a dependency
         raise ClusterError(f"--workers/--scheduler need dask.distributed ({e})") from None
+    with _dask_logs_at_warning():
+        yield from _client(n_workers, scheduler, memory_limit)
+
+
+def _client(n_workers, scheduler, memory_limit):
+    """`dask_client`'s body: a generator yielding the client once."""
+    from dask.distributed import Client, LocalCluster
+
     if scheduler:
         why = None
         try:
