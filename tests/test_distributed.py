@@ -352,16 +352,24 @@ def test_blocks_hold_every_point_once_and_read_back_in_file_order(pair, tmp_path
 
 
 @slow
-def test_local_cluster_workers_allocate_like_one_process(monkeypatch):
+def test_local_cluster_workers_allocate_like_one_process_and_run_no_profiler(monkeypatch):
     """Dask's MALLOC_TRIM_THRESHOLD_ (which fixes glibc's mmap threshold and made tiles 14 %
     slower in a worker) is not passed to our workers, even where an earlier LocalCluster of
-    this process left it in the environment."""
+    this process left it in the environment; and no worker samples its task's stack for
+    Dask's profiler (CPU taken from the other worker on two cores): a task of half a second
+    leaves no sample (some 50 with the profiler on) once the profile's 1 s cycle has passed."""
+    import time
+
     from quakescan.distributed.cluster import dask_client
 
     monkeypatch.setenv("MALLOC_TRIM_THRESHOLD_", "65536")
     with dask_client(1, memory_limit="1GB") as client:
         seen = client.run(os.environ.get, "MALLOC_TRIM_THRESHOLD_")
+        client.submit(time.sleep, 0.5, pure=False).result()
+        time.sleep(1.2)
+        samples = client.profile()["count"]
     assert list(seen.values()) == [None]
+    assert samples == 0
 
 
 def test_a_tile_over_the_memory_budget_is_split_into_quarters_by_building_centre():
