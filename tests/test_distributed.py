@@ -352,7 +352,7 @@ def test_blocks_hold_every_point_once_and_read_back_in_file_order(pair, tmp_path
 
 
 @slow
-def test_local_cluster_workers_allocate_like_one_process_and_run_no_profiler(monkeypatch):
+def test_local_cluster_workers_allocate_like_one_process_run_no_profiler_and_close_quietly(monkeypatch):
     """Dask's MALLOC_TRIM_THRESHOLD_ (which fixes glibc's mmap threshold and made tiles 14 %
     slower in a worker) is not passed to our workers, even where an earlier LocalCluster of
     this process left it in the environment; and no worker samples its task's stack for
@@ -360,7 +360,9 @@ def test_local_cluster_workers_allocate_like_one_process_and_run_no_profiler(mon
     leaves no sample (some 50 with the profiler on) once the profile's 1 s cycle has passed."""
     import time
 
-    from quakescan.distributed.cluster import dask_client
+    import logging
+
+    from quakescan.distributed.cluster import dask_client, quiet_workers_for_shutdown
 
     monkeypatch.setenv("MALLOC_TRIM_THRESHOLD_", "65536")
     with dask_client(1, memory_limit="1GB") as client:
@@ -368,8 +370,12 @@ def test_local_cluster_workers_allocate_like_one_process_and_run_no_profiler(mon
         client.submit(time.sleep, 0.5, pure=False).result()
         time.sleep(1.2)
         samples = client.profile()["count"]
+        quiet_workers_for_shutdown(client)
+        levels = client.run(lambda: logging.getLogger("distributed").level)
     assert list(seen.values()) == [None]
     assert samples == 0
+    # the cluster's closing says nothing: no worker logs even an error once it is asked to close
+    assert set(levels.values()) == {logging.CRITICAL + 1}
 
 
 def test_a_tile_over_the_memory_budget_is_split_into_quarters_by_building_centre():

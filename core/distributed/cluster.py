@@ -114,8 +114,27 @@ def _client(n_workers, scheduler, memory_limit):
     try:
         yield client
     finally:
+        quiet_workers_for_shutdown(client)
         client.close()
         cluster.close()
+
+
+def quiet_workers_for_shutdown(client) -> None:
+    """Silence the workers' Dask logs of a LocalCluster about to close: its scheduler may go
+    before a worker's heartbeat lands, and that worker then prints a 30-line CommClosedError
+    traceback ("Failed to communicate with scheduler during heartbeat") after the command's
+    results are written (seen on a busy machine). Nothing a worker says while its cluster
+    closes concerns the run; workers already gone are left as they are."""
+    try:
+        client.run(_silence_dask_logs)
+    except Exception:  # a worker lost or a cluster already closing: nothing left to silence
+        pass
+
+
+def _silence_dask_logs() -> None:
+    import logging
+
+    logging.getLogger("distributed").setLevel(logging.CRITICAL + 1)
 
 
 def describe_cluster(client, n_workers: int | None, scheduler: str | None) -> str:
@@ -132,4 +151,5 @@ def dashboard_address(client) -> str | None:
         return None
 
 
-__all__ = ["WORKER_ENVIRON", "ClusterError", "dashboard_address", "dask_client", "describe_cluster"]
+__all__ = ["WORKER_ENVIRON", "ClusterError", "dashboard_address", "dask_client", "describe_cluster",
+           "quiet_workers_for_shutdown"]
