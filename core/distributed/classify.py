@@ -36,8 +36,8 @@ log = logging.getLogger(__name__)
 # A block is 50 × 50 density cells (50 m): a 150 m tile with its halo (~174 m) reads 4 × 4 or
 # 5 × 5 of them, 1.3-2.1 times its box. 25 m blocks (1.3-1.7 times) made the pair's
 # tiles 2.5-4 % faster on one worker, but a tile then read a file per block and part (the
-# layout before one file a part): on the 2 × 262 M pair (17 parts an epoch, its blocks beyond the page cache) the tiles took 358 s
-# against 324 s, the run 455 s against 410 s.
+# layout before one file a part): on the 2 × 262 M pair (17 parts an epoch, its blocks beyond
+# the page cache) the tiles took 358 s against 324 s, the run 455 s against 410 s.
 BLOCK_CELLS = 50
 MANIFEST = "manifest.json"
 UNMOVED_CHECKPOINT = ".checkpoint.unmoved.jsonl"

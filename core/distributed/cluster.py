@@ -66,12 +66,13 @@ def dask_client(n_workers: int | None = None, scheduler: str | None = None, memo
         import dask.distributed  # noqa: F401
     except ImportError as e:  # pragma: no cover - dask is a dependency
         raise ClusterError(f"--workers/--scheduler need dask.distributed ({e})") from None
-    with _dask_logs_at_warning():
-        yield from _client(n_workers, scheduler, memory_limit)
+    with _dask_logs_at_warning(), _client(n_workers, scheduler, memory_limit) as client:
+        yield client
 
 
+@contextlib.contextmanager
 def _client(n_workers, scheduler, memory_limit):
-    """`dask_client`'s body: a generator yielding the client once."""
+    """`dask_client` without its logging: the client, and the LocalCluster it may start."""
     from dask.distributed import Client, LocalCluster
 
     if scheduler:
@@ -125,10 +126,9 @@ def quiet_workers_for_shutdown(client) -> None:
     traceback ("Failed to communicate with scheduler during heartbeat") after the command's
     results are written (seen on a busy machine). Nothing a worker says while its cluster
     closes concerns the run; workers already gone are left as they are."""
-    try:
+    # a worker lost or a cluster already closing: nothing left to silence
+    with contextlib.suppress(Exception):
         client.run(_silence_dask_logs)
-    except Exception:  # a worker lost or a cluster already closing: nothing left to silence
-        pass
 
 
 def _silence_dask_logs() -> None:
