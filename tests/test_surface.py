@@ -333,6 +333,49 @@ def test_the_interior_seen_through_a_wall_opening_is_the_share_of_its_inner_cell
         assert intact["s_interior_seen"] == 0.0, depth
 
 
+def _grid(spacing, x0, y0, x1, y1, z):
+    """Points on a regular grid of `spacing`, at the centres of its squares: 1/spacing² per m²."""
+    xs, ys = np.meshgrid(np.arange(x0 + spacing / 2, x1, spacing), np.arange(y0 + spacing / 2, y1, spacing))
+    return np.column_stack([xs.ravel(), ys.ravel(), np.full(xs.size, float(z))])
+
+
+@pytest.mark.parametrize("spacing", [0.5, 0.25])
+def test_an_interior_patch_counts_only_where_the_pre_event_density_would_have_seen_it(spacing):
+    """A sparse airborne pair with no change: both epochs sample a flat 10 x 10 m roof 6 m up on
+    a regular grid (4 pts/m² at 0.5 m, 16 at 0.25 m), and the post-event epoch alone reaches the
+    floor of a light well in its middle, 1.5 m² (2 x 3 cells of the 0.5 m grid) or 2 m²
+    (2 x 4). Had the well been in view before, the pre-event epoch would have put Poisson
+    density x area points on it: none with chance exp(-6) = 0.0025 and exp(-8) = 0.00034 at
+    4 pts/m², at most exp(-24) at 16. Kept below 1e-3 (MISSED_CHANCE): at 4 pts/m² only the
+    2 m² well, as 8 of the footprint's 400 cells; at 16 pts/m² both."""
+    from quakescan.change.surface import MISSED_CHANCE, chance_missed
+
+    assert chance_missed(np.array([1.5, 2.0]), 4.0) == pytest.approx(np.exp([-6.0, -8.0]))
+    assert MISSED_CHANCE == 1e-3
+    density = 1 / spacing ** 2
+    ground = _grid(spacing, -15, -15, 15, 15, 0.0)
+    ground = ground[~((np.abs(ground[:, 0]) < 5) & (np.abs(ground[:, 1]) < 5))]
+    shares = {}
+    for width in (1.5, 2.0):
+        roof = _grid(spacing, -5, -5, 5, 5, 6.0)
+        well = (np.abs(roof[:, 0]) < 0.5) & (roof[:, 1] >= 0) & (roof[:, 1] < width)
+        pre_xyz = np.vstack([ground, roof[~well]])
+        post_xyz = np.vstack([ground, roof[~well], roof[well] * [1, 1, 0]])
+        assert planimetric_density(roof[~well]) == pytest.approx(density)
+
+        def epoch_of(xyz):
+            building = (np.abs(xyz[:, 0]) < 5) & (np.abs(xyz[:, 1]) < 5)
+            return xyz, building.astype(np.int64), np.where(building, 6, 2).astype(np.uint8)
+
+        d, geom = describe(epoch_of(pre_xyz), epoch_of(post_xyz), density, density)
+        assert geom.cell_m <= 1.0  # so the interior grid is 0.5 m
+        shares[width] = d["s_interior_seen"]
+    if spacing == 0.5:
+        assert shares == {1.5: 0.0, 2.0: pytest.approx(8 / 400)}
+    else:
+        assert shares == {1.5: pytest.approx(6 / 400), 2.0: pytest.approx(8 / 400)}
+
+
 def test_the_m3c2_kernels_run_on_the_threads_asked_for_with_the_same_descriptors(monkeypatch):
     """A Dask worker describes with one thread (its process is the parallelism): the cylinder
     kernel must not take every core beside the other workers. Same numbers either way."""

@@ -37,7 +37,9 @@ compared directly, so a hole of one or two cells is not smoothed away.
 - `s_interior_seen`: share of the footprint where the post-event epoch saw *inside* the
   building: points at least `INTERIOR_DEPTH_M` in from the outline and `SEE_THROUGH_M`
   below every pre-event point within `INTERIOR_NEIGHBOURHOOD_M`, on a fine grid (0.5 m or
-  the sparser epoch's point spacing), in patches of at least `min_patch_cells`. A wall hole,
+  the sparser epoch's point spacing), in patches of at least `min_patch_cells` and large
+  enough that the pre-event epoch, at the building's roof density, would have hit the patch
+  had it been in view (`MISSED_CHANCE`). A wall hole,
   a blown-out infill panel or a toppled facade under an intact roof opens the floors behind
   it to an oblique view only a metre or two deep: `s_see_through`'s inset on the coarse
   raster misses that, and an airborne archive never saw the wall, so its core points
@@ -94,7 +96,7 @@ _BAND_STRIDE_M = 1.0e4
 LOWER_SURFACE_SHARE = 0.2
 # Bumped whenever a descriptor's computation changes: cached training tables made with another
 # version are not reused (quakescan.learning.trainset), and a model records the version it was trained on.
-DESCRIPTOR_VERSION = 15
+DESCRIPTOR_VERSION = 16
 RASTER_DESCRIPTORS = ("s_lowered_1m", "s_lowered_storey", "s_lowered_half", "s_raised", "s_volume_loss",
                       "s_volume_gain", "s_height_ratio_mean", "s_height_ratio_p10", "s_post_gap",
                       "s_debris_ring", "s_debris_volume", "s_see_through", "s_interior_seen")
@@ -108,6 +110,12 @@ SEE_THROUGH_INSET_M = 1.5
 INTERIOR_DEPTH_M = 1.0
 INTERIOR_CELL_M = 0.5
 INTERIOR_NEIGHBOURHOOD_M = 1.0
+# An interior patch counts only when the pre-event epoch, at the building's roof density
+# (`planimetric_density`), had a chance below this of putting no point on a surface of the patch's area
+# (`chance_missed`): the two epochs of a sparse airborne pair each miss small low surfaces (a
+# light well, a gap between roofs) the other hit a few times. At 4 pts/m² a patch needs
+# 1.7 m² (7 cells of 0.5 m); from 9 pts/m² up, 3 cells, as every patch does.
+MISSED_CHANCE = 1e-3
 CORE_DESCRIPTORS = ("m_changed", "m_lost", "m_roof_changed", "m_wall_changed", "m_holes", "m_wall_holes",
                     "m_upper_changed",
                     "m_lower_changed", "m_inward", "m_outward", "m_coherent", "m_largest_patch", "m_distance_p10",
@@ -573,8 +581,17 @@ class _InteriorView:
         # a single stray point (a bird, multipath) is no opening; what is seen through one is areal
         labels, n = ndimage.label(seen, np.ones((3, 3), bool))
         sizes = np.bincount(labels.ravel())
-        kept = int(sizes[1:][sizes[1:] >= min_patch_cells].sum())
+        patches = sizes[1:]
+        missed = chance_missed(patches * f * f, planimetric_density(own_xyz))
+        kept = int(patches[(patches >= min_patch_cells) & (missed < MISSED_CHANCE)].sum())
         return kept / int(footprint.sum())
+
+
+def chance_missed(area_m2, pre_density: float):
+    """Chance that the pre-event epoch, sampling at `pre_density` (pts/m²), put no point on a
+    surface of `area_m2` that was there and in view: its hits there are Poisson with mean
+    area x density, exp(-mean) of them zero."""
+    return np.exp(-np.asarray(area_m2, dtype=np.float64) * pre_density)
 
 
 class _GroundFinder:
