@@ -376,6 +376,23 @@ def test_an_interior_patch_counts_only_where_the_pre_event_density_would_have_se
         assert shares == {1.5: pytest.approx(6 / 400), 2.0: pytest.approx(8 / 400)}
 
 
+def test_the_chance_a_sparse_epoch_missed_a_surface_is_poisson_and_has_no_extreme_failures():
+    """exp(-area x density): the smallest patch (3 cells of 0.5 m, 0.75 m²) is kept only above
+    ln(1000) / 0.75 = 9.21 pts/m²; no area or no density is a certain miss; a large area at any
+    real density underflows to 0 without a warning, not to NaN."""
+    import warnings
+
+    from quakescan.change.surface import MISSED_CHANCE, chance_missed
+
+    boundary = np.log(1 / MISSED_CHANCE) / 0.75
+    assert boundary == pytest.approx(9.2103, abs=1e-4)
+    assert chance_missed(0.75, boundary * 0.999) > MISSED_CHANCE > chance_missed(0.75, boundary * 1.001)
+    assert chance_missed(0.0, 50.0) == 1.0 and chance_missed(5.0, 0.0) == 1.0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert chance_missed(np.array([1e4, 1e6]), 1e3).tolist() == [0.0, 0.0]
+
+
 def test_the_m3c2_kernels_run_on_the_threads_asked_for_with_the_same_descriptors(monkeypatch):
     """A Dask worker describes with one thread (its process is the parallelism): the cylinder
     kernel must not take every core beside the other workers. Same numbers either way."""

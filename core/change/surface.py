@@ -114,7 +114,7 @@ INTERIOR_NEIGHBOURHOOD_M = 1.0
 # (`planimetric_density`), had a chance below this of putting no point on a surface of the patch's area
 # (`chance_missed`): the two epochs of a sparse airborne pair each miss small low surfaces (a
 # light well, a gap between roofs) the other hit a few times. At 4 pts/m² a patch needs
-# 1.7 m² (7 cells of 0.5 m); from 9 pts/m² up, 3 cells, as every patch does.
+# 1.7 m² (7 cells of 0.5 m); above ln(1000) / 0.75 m² = 9.2 pts/m², 3 cells, as every patch does.
 MISSED_CHANCE = 1e-3
 CORE_DESCRIPTORS = ("m_changed", "m_lost", "m_roof_changed", "m_wall_changed", "m_holes", "m_wall_holes",
                     "m_upper_changed",
