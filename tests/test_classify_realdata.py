@@ -254,8 +254,8 @@ def test_random_halves_of_a_real_tile_see_no_interior_by_chance(ahn3, tmp_path, 
     las, fp = ahn3
     settings = settings_for_descriptors(surface.SURFACE_DESCRIPTORS, 1.5)
     seen = {}
+    n = laspy.open(las).header.point_count
     for seed in (0, 2, 5):
-        n = laspy.open(las).header.point_count
         first = np.zeros(n, bool)
         first[np.random.default_rng(seed).permutation(n)[: n // 2]] = True
         (tmp_path / str(seed)).mkdir()
