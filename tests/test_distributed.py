@@ -332,11 +332,15 @@ def test_blocks_hold_every_point_once_and_read_back_in_file_order(pair, tmp_path
     np.testing.assert_array_equal(only, rec[rec["building_id"] > 0])
     assert 0 < len(only) < len(rec)
     # one file for the epoch streamed whole; each block's two kinds are runs of their own in it
-    assert sorted(p.name for p in (tmp_path / "pre").iterdir()) == ["blocks.index.npy", "part0.bin"]
+    assert sorted(p.name for p in (tmp_path / "pre").iterdir()) == ["blocks.index.npy", "part0.bin", "record.json"]
     index = np.load(tmp_path / "pre" / "blocks.index.npy")
     assert index.flags.f_contiguous and (np.diff(index[:, 0]) > 0).all()  # one run a block and kind
     assert index[:, 3].sum() == f.n and blocks.stored_points(tmp_path / "pre", keys) == f.n
-    stored = np.fromfile(tmp_path / "pre" / "part0.bin", dtype=blocks.RECORD)
+    # the pair's IDs are uint32 (as QuakeScan writes them): 21-byte records, the IDs' bits kept
+    record = blocks.stored_record(tmp_path / "pre")
+    assert record.itemsize == 21 and record["building_id"] == np.uint32 and record["index"] == np.uint32
+    stored = np.fromfile(tmp_path / "pre" / "part0.bin", dtype=record)
+    assert (tmp_path / "pre" / "part0.bin").stat().st_size == 21 * f.n
     for key, _, offset, count in index.tolist():
         run = stored[offset:offset + count]
         assert ((run["building_id"] > 0) == bool(key % 2)).all() and (np.diff(run["index"]) > 0).all()
@@ -436,7 +440,8 @@ def test_block_runs_read_back_exactly_and_a_cut_stream_leaves_nothing(pair, tmp_
                             start=a, stop=b, segment_points=60_000)
     blocks.join_part_indexes(folder, 2)
     index = np.load(folder / blocks.INDEX_NAME)
-    files = [np.fromfile(blocks.part_path(folder, p), dtype=blocks.RECORD) for p in (0, 1)]
+    record = blocks.stored_record(folder)
+    files = [np.fromfile(blocks.part_path(folder, p), dtype=record) for p in (0, 1)]
     assert index[:, 3].sum() == f.n == sum(len(x) for x in files)
     rng = np.random.default_rng(3)
     for pick in (np.arange(len(index)), rng.choice(len(index), 9, replace=False), np.zeros(0, int)):
@@ -447,10 +452,10 @@ def test_block_runs_read_back_exactly_and_a_cut_stream_leaves_nothing(pair, tmp_
             np.testing.assert_array_equal(rec[a:a + count], files[part][offset:offset + count])
     # a part's file cut short (a disk that filled up behind the manifest): named, not read as garbage
     with open(blocks.part_path(folder, 1), "r+b") as fh:
-        fh.truncate(blocks.RECORD.itemsize * (len(files[1]) - 5))
+        fh.truncate(record.itemsize * (len(files[1]) - 5))
     ones = index[index[:, 1] == 1]
     last = ones[np.argmax(ones[:, 2])][None, 1:4]  # the run at the file's end
-    with pytest.raises(PointCloudError, match=r"part1\.bin: block file ends 145 bytes early"):
+    with pytest.raises(PointCloudError, match=r"part1\.bin: block file ends 105 bytes early"):
         blocks.read_runs(folder, last)
     with pytest.raises(FileNotFoundError, match="no block index"):
         blocks.block_runs(tmp_path / "nowhere", [(0, 0)])
@@ -653,13 +658,13 @@ def test_merged_runs_are_in_the_order_a_stable_argsort_gives(runs):
     np.testing.assert_array_equal(merged_order(values, starts), np.argsort(values, kind="stable"))
 
 
-def _utm_records(n=20_000, seed=3):
-    """RECORDs of a file whose integers straddle zero about a UTM offset (local coordinates
-    of both signs, block edges crossed), with points on whole metres."""
+def _utm_records(n=20_000, seed=3, record=None):
+    """Records (RECORD, or `record`) of a file whose integers straddle zero about a UTM offset
+    (local coordinates of both signs, block edges crossed), with points on whole metres."""
     from quakescan.distributed import blocks
 
     rng = np.random.default_rng(seed)
-    rec = np.empty(n, blocks.RECORD)
+    rec = np.empty(n, blocks.RECORD if record is None else record)
     rec["index"] = np.sort(rng.choice(10 * n, n, replace=False))
     rec["X"], rec["Y"] = rng.integers(-90_000, 90_000, n), rng.integers(-90_000, 90_000, n)
     rec["X"][:50] = 7_000  # 7.000 m: on a block edge and on the box's edge below
@@ -712,13 +717,16 @@ def test_group_boxes_are_the_x_y_extent_of_each_group():
         np.testing.assert_array_equal(hi[g], xyz[ids == b, :2].max(axis=0))
 
 
-def test_keep_in_box_keeps_what_the_numpy_mask_keeps_edges_included():
+@pytest.mark.parametrize("narrow", [False, True])
+def test_keep_in_box_keeps_what_the_numpy_mask_keeps_edges_included(narrow):
     """The compiled cut of a block file to a box: the records numpy's mask of local_xyz
-    keeps (UTM offsets, points on the box's edge), appended after the rows already filled."""
+    keeps (UTM offsets, points on the box's edge), appended after the rows already filled;
+    from the widest record and from the 21-byte one (unaligned fields either way)."""
     from quakescan.distributed import blocks
     from quakescan.distributed._record_kernels import keep_in_box
 
-    f, origin, rec = _utm_records()
+    record = blocks.record_dtype(20_000, "<u4") if narrow else blocks.RECORD
+    f, origin, rec = _utm_records(record=record)
     want = f.local_xyz(rec["X"], rec["Y"], rec["Z"], origin)
     box = np.array([[want[0, 0], -20.0], [want[:50, 0].max() + 30.0, 35.5]])
     box[0, 0] = want[:50, 0].min()  # the 50 points on x = 7.000 m - the shift lie on the edge
@@ -735,7 +743,72 @@ def test_keep_in_box_keeps_what_the_numpy_mask_keeps_edges_included():
     np.testing.assert_array_equal(bid[7:m], rec["building_id"][inside])
     assert not index[:7].any()
     assert keep_in_box(rec, scales, shifts, box + 1e6, index, cls, bid, xyz, 0) == 0
-    assert blocks.RECORD.itemsize == 29  # packed records: the kernel reads them unaligned
+    assert rec.dtype.itemsize == (21 if narrow else 29)  # packed records: the kernel reads them unaligned
+
+
+def test_records_are_as_narrow_as_the_file_allows():
+    """A stored point's index and building ID take 4 bytes where every value fits: a file's
+    point count up to 2^32 (an index is below it), building IDs of 4 bytes or fewer in the
+    file (their signedness kept), footprint IDs in int32's range; 8 bytes otherwise."""
+    from quakescan.distributed.blocks import RECORD, record_dtype
+
+    def widths(d):
+        return d["index"].str, d["building_id"].str, d.itemsize
+
+    assert widths(record_dtype(75_000_000, "<u4")) == ("<u4", "<u4", 21)
+    assert widths(record_dtype(2 ** 32, np.uint16)) == ("<u4", "<u4", 21)
+    assert widths(record_dtype(2 ** 32 + 1, "<u4")) == ("<i8", "<u4", 25)  # LAS 1.4 counts go past 2^32
+    assert widths(record_dtype(10, "<i2")) == ("<u4", "<i4", 21)
+    assert widths(record_dtype(10, "<u8")) == ("<u4", "<i8", 25)
+    assert widths(record_dtype(10, RECORD["building_id"])) == ("<u4", "<i8", 25)
+    assert widths(record_dtype(10, np.array([-2 ** 31, 0, 2 ** 31 - 1]))) == ("<u4", "<i4", 21)
+    assert widths(record_dtype(10, np.array([1, 2 ** 31]))) == ("<u4", "<i8", 25)  # e.g. OSM way IDs
+    assert widths(record_dtype(10, np.array([-2 ** 31 - 1]))) == ("<u4", "<i8", 25)
+    assert widths(record_dtype(0, np.zeros(0, np.int64))) == ("<u4", "<i4", 21)
+    assert record_dtype(10, "<u4").names == RECORD.names
+
+
+@pytest.mark.parametrize("ids_from", ["file", "footprints"])
+def test_building_ids_beyond_int32_are_stored_and_read_back_exactly(tmp_path, ids_from):
+    """IDs at the ends of what a file's uint32 holds (2^32 - 1 reads back as such, not -1)
+    and footprint IDs past int32 (int64 records) come back from the blocks as one process
+    reads them."""
+    import shapely
+
+    from quakescan.distributed import blocks
+    from quakescan.formats.footprints import Footprints
+    from quakescan.formats.pointcloud import read_epoch
+
+    rng = np.random.default_rng(2)
+    n = 4_000
+    x, y = rng.uniform(0, 40, n), rng.uniform(0, 20, n)
+    big = [2 ** 31 - 1, 2 ** 31, 2 ** 32 - 1] if ids_from == "file" else [7, 2 ** 31, 2 ** 40]
+    ids = np.select([x < 10, x < 20, x < 30], big[:3], 0)
+    header = laspy.LasHeader(point_format=6, version="1.4")
+    header.offsets, header.scales = [500_000.0, 5_200_000.0, 0.0], [0.001] * 3
+    if ids_from == "file":
+        header.add_extra_dim(laspy.ExtraBytesParams("building_id", np.uint32))
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = x + 500_000, y + 5_200_000, rng.uniform(0, 9, n)
+    if ids_from == "file":
+        las.building_id = ids.astype(np.uint32)
+    las.write(tmp_path / "pre.las")
+    fp = None
+    if ids_from == "footprints":
+        fp = Footprints(np.array(big, dtype=np.int64),
+                        [shapely.box(500_000 + 10 * k, 5_200_000, 500_010 + 10 * k, 5_200_020) for k in range(3)])
+    f = blocks.open_epoch_file(tmp_path / "pre.las")
+    origin = blocks.default_origin(f)
+    stats = blocks.stream_epoch(f, origin, tmp_path / "blocks", block_cells=7, chunk_points=999, footprints=fp)
+    record = blocks.stored_record(tmp_path / "blocks")
+    assert record["building_id"].str == ("<u4" if ids_from == "file" else "<i8")
+    rec = blocks.read_records(tmp_path / "blocks", [tuple(k) for k in stats.blocks])
+    want = read_epoch(tmp_path / "pre.las").building_id if ids_from == "file" else ids
+    np.testing.assert_array_equal(rec["index"], np.arange(n))
+    np.testing.assert_array_equal(rec["building_id"].astype(np.int64), want)
+    assert set(stats.counts) == {b for b in big if (want == b).any()}
+    box, xyz = blocks.read_box(tmp_path / "blocks", f, origin, np.array([[-1.0, -1.0], [50.0, 30.0]]), 7)
+    np.testing.assert_array_equal(box["building_id"], want)
 
 
 @slow

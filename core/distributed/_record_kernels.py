@@ -3,7 +3,7 @@ are read and the order of ascending runs merged into one, for `blocks.read_box`,
 packed in a given order, for `blocks.stream_epoch`.
 
 A tile's box is read from block runs whose points each lie in file order; the tile needs
-them all in file order. A stable argsort of the joined indices and a gather of 29-byte
+them all in file order. A stable argsort of the joined indices and a gather of (then 29-byte)
 records took a third of a second a tile epoch; a k-way merge of the runs gives the same
 order in a pass over the points, and the plain arrays gathered by it are read nearly in
 sequence. Streaming a chunk, numpy made its coordinates, bounds, blocks and block codes
