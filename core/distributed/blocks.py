@@ -355,7 +355,7 @@ def record_dtype(n_points: int, ids) -> np.dtype:
                      ("building_id", building)])
 
 
-def stored_record(folder: Path) -> np.ndarray:
+def stored_record(folder: Path) -> np.dtype:
     """The record the blocks under `folder` store (`record_dtype`; RECORD where no part says)."""
     try:
         descr = json.loads((Path(folder) / RECORD_NAME).read_text())
@@ -368,16 +368,9 @@ def _write_record(folder: Path, dtype: np.dtype, part: int | None) -> None:
     """`RECORD_NAME` under `folder`. Every part of an epoch, on any worker, writes the same
     text: each under a temporary name of its own, renamed into place (a reader sees one
     whole file or none)."""
-    text = json.dumps([[name, dtype[name].str] for name in dtype.names])
-    path = Path(folder) / RECORD_NAME
-    try:
-        if path.read_text() == text:
-            return
-    except OSError:
-        pass
     tmp = Path(folder) / f".{RECORD_NAME}.part{int(part or 0)}.{os.getpid()}"
-    tmp.write_text(text)
-    os.replace(tmp, path)
+    tmp.write_text(json.dumps([[name, dtype[name].str] for name in dtype.names]))
+    os.replace(tmp, Path(folder) / RECORD_NAME)
 
 
 def stream_epoch(f: EpochFile, origin: np.ndarray, folder: Path, *, block_cells: int, footprints=None,
