@@ -177,6 +177,34 @@ def test_stable_order_is_a_stable_argsort(key):
     np.testing.assert_array_equal(stable_order(key), np.argsort(key, kind="stable"))
 
 
+_UTM = np.random.default_rng(8).uniform(0, 400, (3_000, 3)) + (500_000.0, 5_000_000.0, 300.0)
+
+
+@pytest.mark.parametrize("a", [_UTM, _UTM[:, :2], _UTM.astype(np.float32)[:, :2], np.floor(_UTM).astype(np.int64),
+                               _UTM[:1], np.array([[-0.0, 3.0], [0.0, -np.inf], [np.inf, 2.0]])])
+def test_row_bounds_are_numpys_min_and_max_down_the_rows(a):
+    """Strided views, float32, integers, one row, infinities: numpy's values and dtype."""
+    from quakescan.change._cell_kernels import row_bounds
+
+    lo, hi = row_bounds(a)
+    assert lo.dtype == a.dtype and hi.dtype == a.dtype
+    np.testing.assert_array_equal(lo, a.min(axis=0))
+    np.testing.assert_array_equal(hi, a.max(axis=0))
+
+
+@pytest.mark.parametrize("row", [0, 1, 2999])
+def test_row_bounds_propagate_nan_and_refuse_no_rows(row):
+    from quakescan.change._cell_kernels import row_bounds
+
+    a = _UTM.copy()
+    a[row, 1] = np.nan
+    lo, hi = row_bounds(a)
+    assert np.isnan(lo[1]) and np.isnan(hi[1])
+    np.testing.assert_array_equal(lo[[0, 2]], _UTM[:, [0, 2]].min(axis=0))
+    with pytest.raises(ValueError, match="zero-size"):
+        row_bounds(np.zeros((0, 3)))
+
+
 @pytest.mark.parametrize("offset", [(0.0, 0.0), (500_000.0, 5_000_000.0)])
 def test_grid_index_buckets_are_a_stable_argsort_of_the_cells(offset):
     """The counting sort behind GridIndex gives the order, cells and starts the numpy

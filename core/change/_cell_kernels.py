@@ -123,6 +123,30 @@ def column_bounds(a):
     return lo, hi
 
 
+def row_bounds(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`(a.min(axis=0), a.max(axis=0))` of a 2-D array in one compiled pass over its rows:
+    the same dtype and values, NaN propagating, and numpy's ValueError for no rows. numpy
+    reduces an (n, 2) or (n, 3) array down its rows a few elements an inner loop (about
+    20 ns a row for a strided x/y view): the bounds were a tenth of a tile's description."""
+    if a.ndim != 2 or a.shape[0] == 0:
+        return a.min(axis=0), a.max(axis=0)  # numpy's own answer or error
+    lo, hi = a[0].copy(), a[0].copy()
+    _row_bounds_from(a, lo, hi)
+    return lo, hi
+
+
+@njit(**_JIT)
+def _row_bounds_from(a, lo, hi):
+    """Widen lo/hi (each starting as row 0) over the other rows; a NaN, once met, stays."""
+    for p in range(1, a.shape[0]):
+        for k in range(a.shape[1]):
+            v = a[p, k]
+            if v < lo[k] or v != v:  # a NaN bound compares False with anything after it
+                lo[k] = v
+            if v > hi[k] or v != v:
+                hi[k] = v
+
+
 @njit(**_JIT)
 def splitmix_below(start, index, n, threshold):
     """Whether the splitmix64 hash of each point index is below `threshold`: the indices

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
+from ._cell_kernels import row_bounds
 from ._feature_kernels import _lower_bound
 
 _JIT = dict(nogil=True, cache=True, error_model="numpy")
@@ -48,8 +49,8 @@ class VoxelKeys:
 
 
 def voxel_keys(xyz: np.ndarray, spacing: float) -> VoxelKeys:
-    ijk = np.floor((xyz - xyz.min(axis=0)) / spacing).astype(np.int64)
-    dims = ijk.max(axis=0) + 5  # two voxels of margin each side: no offset leaves the box or wraps
+    ijk = np.floor((xyz - row_bounds(xyz)[0]) / spacing).astype(np.int64)
+    dims = row_bounds(ijk)[1] + 5  # two voxels of margin each side: no offset leaves the box or wraps
     key = ((ijk[:, 0] + 2) * dims[1] + ijk[:, 1] + 2) * dims[2] + ijk[:, 2] + 2
     order = np.argsort(key)
     sorted_key = key[order]

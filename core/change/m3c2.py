@@ -247,7 +247,9 @@ class ColumnGrid:
             self.starts = np.zeros(2, np.int64)
             self.px = self.py = self.pz = np.zeros(0)
             return
-        lo, hi = xyz[:, :2].min(axis=0), xyz[:, :2].max(axis=0)
+        from ._cell_kernels import row_bounds
+
+        lo, hi = row_bounds(xyz[:, :2])
         span = np.maximum(hi - lo, 1e-9)
         cell = float(cell)
         nx, ny = int(span[0] // cell) + 1, int(span[1] // cell) + 1
@@ -357,9 +359,11 @@ def voxel_core_points(xyz: np.ndarray, spacing_m: float) -> np.ndarray:
         return np.zeros(0, np.int64)
     if not (math.isfinite(spacing_m) and spacing_m > 0):
         raise M3C2Error(f"core point spacing must be a positive number of metres, got {spacing_m!r}")
-    lo = xyz.min(axis=0)
+    from ._cell_kernels import row_bounds
+
+    lo = row_bounds(xyz)[0]
     ijk = np.floor((xyz - lo) / spacing_m).astype(np.int64)
-    dims = ijk.max(axis=0) + 1
+    dims = row_bounds(ijk)[1] + 1
     key = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
     off = np.sum((xyz - lo - (ijk + 0.5) * spacing_m) ** 2, axis=1)
     order = np.lexsort((np.arange(len(xyz)), off, key))

@@ -29,6 +29,7 @@ import numpy as np
 from ..errors import QuakeScanError
 from ..formats.pointcloud import Epoch
 from ..runtime.progress import ProgressCallback
+from ._cell_kernels import row_bounds
 from .features import FEATURES, compute_features
 from .split import STATISTICS, SplitSettings, building_changes, nearest_neighbours
 from .surface import SURFACE_DESCRIPTORS, SurfaceSettings
@@ -316,7 +317,8 @@ class GridIndex:
 
 
 def _box(xy: np.ndarray, margin: float) -> np.ndarray:
-    return np.array([xy.min(axis=0) - margin, xy.max(axis=0) + margin])
+    lo, hi = row_bounds(xy)
+    return np.array([lo - margin, hi + margin])
 
 
 def _exact_nearest(pre_q: np.ndarray, post: Epoch, post_index: GridIndex, box: np.ndarray, workers: int):

@@ -51,8 +51,10 @@ def morton_order(xyz: np.ndarray, bits: int = 16) -> np.ndarray:
     on a million points)."""
     if len(xyz) == 0:
         return np.zeros(0, np.int64)
-    lo = xyz.min(axis=0)
-    span = np.maximum(xyz.max(axis=0) - lo, 1e-9)
+    from ._cell_kernels import row_bounds
+
+    lo, hi = row_bounds(xyz)
+    span = np.maximum(hi - lo, 1e-9)
     q = ((xyz - lo) / span * ((1 << bits) - 1)).astype(np.uint64)
     code = np.zeros(len(xyz), np.uint64)
     for b in range(bits):

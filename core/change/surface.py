@@ -85,7 +85,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from ..errors import QuakeScanError
-from ._cell_kernels import column_bounds, stable_order
+from ._cell_kernels import column_bounds, row_bounds, stable_order
 from .m3c2 import ColumnGrid, M3C2Settings, cylinder_radius, m3c2, orient_normals, voxel_core_points
 
 GROUND_CLASS = 2
@@ -552,8 +552,9 @@ class _InteriorView:
         f = self.cell
         near = int(math.ceil(INTERIOR_NEIGHBOURHOOD_M / f))
         pad = near + 3
-        lo = np.floor(own_xyz[:, :2].min(axis=0) / f) * f - pad * f
-        shape = tuple(np.floor((own_xyz[:, :2].max(axis=0) - lo) / f).astype(int) + pad + 1)
+        own_lo, own_hi = row_bounds(own_xyz[:, :2])
+        lo = np.floor(own_lo / f) * f - pad * f
+        shape = tuple(np.floor((own_hi - lo) / f).astype(int) + pad + 1)
         hi = lo + np.array(shape) * f
 
         def cells(xyz):  # clipped: a point a rounding error short of `hi` stays on the grid
@@ -605,7 +606,8 @@ class _GroundFinder:
             + [(every, True)]
 
     def height(self, pts: np.ndarray) -> float:
-        lo, hi = pts[:, :2].min(axis=0) - self.search, pts[:, :2].max(axis=0) + self.search
+        lo, hi = row_bounds(pts[:, :2])
+        lo, hi = lo - self.search, hi + self.search
         for sorted_pts, is_all in self.sets:
             cand = sorted_pts.in_box(lo, hi)
             if is_all:
