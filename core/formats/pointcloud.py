@@ -364,7 +364,9 @@ class Epoch:
         """(2, 2) world min/max of x and y."""
         if len(self.xyz) == 0:
             return np.full((2, 2), np.nan)
-        return np.array([self.xyz[:, :2].min(axis=0), self.xyz[:, :2].max(axis=0)]) + self.origin[:2]
+        from ..change._cell_kernels import row_bounds  # one pass: numpy's took 3 s over a 75 M-point epoch
+
+        return np.array(row_bounds(self.xyz[:, :2])) + self.origin[:2]
 
 
 def _crs_of(header, path) -> str | None:
