@@ -35,14 +35,16 @@ Rows (issue 16's table):
 
 Peak RSS per process is sampled every 0.2 s over the command's process tree (psutil): the
 client is the command's own process, the workers are its other descendants. Every run is a
-fresh process; nothing is skipped as up to date (`--force`). Writes the table to stdout and to
-BENCHMARKS.md (section "bench_scale"), the raw figures to WORK/results.json.
+fresh process writing into an emptied output folder: nothing is skipped as up to date or
+resumed. Writes the table to stdout and to BENCHMARKS.md (section "bench_scale"), the raw
+figures to WORK/results.json.
 """
 from __future__ import annotations
 
 import argparse
 import copy
 import json
+import shutil
 import subprocess
 import sys
 import threading
@@ -117,6 +119,9 @@ def run_side_by_side(runs: list, las: bool = False) -> list[dict]:
     run alone, or several sharing the machine's cores as a cluster's workers do."""
     procs = []
     for pre, post, out, extra in runs:
+        # --force redoes a finished run but resumes an interrupted one: a bench killed mid-row
+        # left its checkpoint, and the next run measured 260 of 480 buildings as resumed
+        shutil.rmtree(out, ignore_errors=True)
         cmd = [str(Path(sys.executable).with_name("quakescan")), "classify", "--pre", str(pre), "--post",
                str(post), "-o", str(out), "--force", *([] if las else ["--no-las"]), *extra]
         proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
@@ -131,6 +136,8 @@ def _finished_run(cmd: list, out: Path, proc, sampler, t0: float) -> dict:
     if proc.returncode != 0:
         raise SystemExit(f"{' '.join(cmd)} failed:\n{stderr[-3000:]}")
     summary = json.loads((out / "summary.json").read_text())
+    if summary.get("resumed_buildings"):
+        raise SystemExit(f"{' '.join(cmd)}: resumed {summary['resumed_buildings']} buildings; not a measurement")
     points = summary["points"]["pre"] + summary["points"]["post"]
     r = {"at": time.strftime("%Y-%m-%d %H:%M", time.gmtime()), "cmd": " ".join(cmd[1:]), "wall_s": wall, "points": points, "buildings": summary["buildings"],
          "seconds": summary["seconds"], "dask": summary.get("dask"), **mem}
@@ -242,6 +249,7 @@ def trainset_row(work: Path, buildings: int = 1000) -> dict:
     plan = paper_plan(buildings)
 
     folder = work / "trainset"
+    shutil.rmtree(folder, ignore_errors=True)  # the first build measured from nothing, not resumed
     t = time.perf_counter()
     with dask_client(n_workers=2, memory_limit="6GB") as client:
         table1 = build(folder, plan, TABLE_SETTINGS, client=client)
