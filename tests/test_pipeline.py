@@ -192,6 +192,16 @@ def test_row_bounds_are_numpys_min_and_max_down_the_rows(a):
     np.testing.assert_array_equal(hi, a.max(axis=0))
 
 
+def test_column_bounds_share_the_row_bounds_pass_as_float64():
+    from quakescan.change._cell_kernels import column_bounds
+
+    lo, hi = column_bounds(_UTM.astype(np.float32)[:, :2])
+    assert lo.dtype == np.float64
+    np.testing.assert_array_equal(lo, _UTM.astype(np.float32)[:, :2].min(axis=0))
+    np.testing.assert_array_equal(hi, _UTM.astype(np.float32)[:, :2].max(axis=0))
+    np.testing.assert_array_equal(column_bounds(np.zeros((0, 3)))[0], [np.inf] * 3)
+
+
 @pytest.mark.parametrize("row", [0, 1, 2999])
 def test_row_bounds_propagate_nan_and_refuse_no_rows(row):
     from quakescan.change._cell_kernels import row_bounds

@@ -108,18 +108,12 @@ def grid_keys(xy, lo0, lo1, cell, width, key):
         key[p] = np.int64(np.floor((xy[p, 0] - lo0) / cell)) * width + np.int64(np.floor((xy[p, 1] - lo1) / cell))
 
 
-@njit(**_JIT)
-def column_bounds(a):
-    """(min, max) of every column of a 2-D array in one pass over its rows."""
+def column_bounds(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(min, max) of every column of a 2-D array in one pass over its rows, as float64; no
+    rows give (inf, -inf), a NaN in a column makes both of its bounds NaN (as numpy's)."""
     lo = np.full(a.shape[1], np.inf)
     hi = np.full(a.shape[1], -np.inf)
-    for p in range(a.shape[0]):
-        for k in range(a.shape[1]):
-            v = a[p, k]
-            if v < lo[k]:
-                lo[k] = v
-            if v > hi[k]:
-                hi[k] = v
+    _widen_bounds(a, lo, hi, 0)
     return lo, hi
 
 
@@ -131,14 +125,14 @@ def row_bounds(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     if a.ndim != 2 or a.shape[0] == 0:
         return a.min(axis=0), a.max(axis=0)  # numpy's own answer or error
     lo, hi = a[0].copy(), a[0].copy()
-    _row_bounds_from(a, lo, hi)
+    _widen_bounds(a, lo, hi, 1)
     return lo, hi
 
 
 @njit(**_JIT)
-def _row_bounds_from(a, lo, hi):
-    """Widen lo/hi (each starting as row 0) over the other rows; a NaN, once met, stays."""
-    for p in range(1, a.shape[0]):
+def _widen_bounds(a, lo, hi, first):
+    """Widen lo/hi over the rows from `first` on; a NaN, once met, stays."""
+    for p in range(first, a.shape[0]):
         for k in range(a.shape[1]):
             v = a[p, k]
             if v < lo[k] or v != v:  # a NaN bound compares False with anything after it
