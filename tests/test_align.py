@@ -7,8 +7,8 @@ import re
 import numpy as np
 import pytest
 
-from quakescan.change.align import (Alignment, AlignmentError, align_epochs, format_alignment, rotation_angle_deg,
-                                    stable_mask)
+from quakescan.change.align import (Alignment, AlignmentError, align_epochs, format_alignment, open3d_threads,
+                                    rotation_angle_deg, stable_mask)
 from quakescan.errors import QuakeScanError
 
 NOISE_M = 0.01
@@ -121,6 +121,25 @@ def test_same_seed_same_transform_when_subsampling(scene):
     assert a.std_after_m == pytest.approx(b.std_after_m, abs=1e-12)
     assert a.n_stable_pre == len(pre)  # counts before subsampling
     assert rotation_angle_deg(a.transform @ MOVE) < 0.05
+
+
+def test_one_thread_gives_the_same_transform_and_restores_open3ds_limit(scene, aligned):
+    import open3d as o3d
+
+    _, pre, post = scene
+    before = o3d.utility.get_max_threads()
+    one = align_epochs(pre, post, everything(pre), everything(post), workers=1)
+    assert o3d.utility.get_max_threads() == before
+    # the transform is rounded to 1e-12: summing over one thread or several lands on it
+    assert np.abs(one.transform - aligned.transform).max() <= 1e-12
+    with open3d_threads(1):
+        assert o3d.utility.get_max_threads() == 1
+        with open3d_threads(-1):  # every core: the limit already set stands
+            assert o3d.utility.get_max_threads() == 1
+    assert o3d.utility.get_max_threads() == before
+    with pytest.raises(RuntimeError), open3d_threads(1):
+        raise RuntimeError("restored on the way out")
+    assert o3d.utility.get_max_threads() == before
 
 
 def test_too_few_stable_points(scene):

@@ -104,30 +104,33 @@ def test_an_offset_post_epoch_is_aligned_as_one_process_aligns_it(pair, cluster,
 
 
 class _DieOnce(distributed.WorkerPlugin):
-    """Kills its worker's process the first time any worker starts a tile task (a marker
-    file makes it once across processes): the nanny starts a new worker and the scheduler
-    gives the lost task to a live one."""
+    """Kills its worker's process the first time any worker starts a task whose key begins
+    with `prefix` (a marker file makes it once across processes): the nanny starts a new
+    worker and the scheduler gives the lost task to a live one."""
 
-    def __init__(self, marker: str):
-        self.marker = marker
+    def __init__(self, marker: str, prefix: str = "tile-"):
+        self.marker, self.prefix = marker, prefix
 
     def setup(self, worker):
         self.worker = worker
 
     def transition(self, key, start, finish, **kwargs):
         name = key if isinstance(key, str) else str(key)
-        if finish == "executing" and name.startswith("tile-") and not os.path.exists(self.marker):
+        if finish == "executing" and name.startswith(self.prefix) and not os.path.exists(self.marker):
             Path(self.marker).write_text(str(os.getpid()))
             os._exit(1)
 
 
 @slow
-def test_a_worker_killed_mid_task_has_its_tile_redone_and_the_result_is_the_same(pair, single, tmp_path):
+@pytest.mark.parametrize("prefix", ["tile-", "registration_task-"])
+def test_a_worker_killed_mid_task_has_its_task_redone_and_the_result_is_the_same(pair, single, tmp_path, prefix):
+    # the registration check reads its samples from the tiling's files: data scattered to a
+    # worker would die with it, and the check's future with it ("already forgotten")
     marker = tmp_path / "killed"
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0",
                                   memory_limit="2GB") as c, distributed.Client(c) as client:
         pids = set(client.run(os.getpid).values())
-        client.register_plugin(_DieOnce(str(marker)))
+        client.register_plugin(_DieOnce(str(marker), prefix))
         _run(pair, tmp_path / "dask", client)
         assert marker.is_file() and int(marker.read_text()) in pids  # a worker did die mid-task
     _same_outputs(single[0], tmp_path / "dask")

@@ -28,6 +28,7 @@ the post points that found a partner (the inlier set of that moment).
 """
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 from dataclasses import dataclass, field
@@ -182,15 +183,35 @@ def _residuals(post_c, pre_tree, pre_c, down_tree, down_normals, max_distance_m)
     return np.einsum("ij,ij->i", post_c[ok] - q, down_normals[k])
 
 
+@contextlib.contextmanager
+def open3d_threads(workers: int = -1):
+    """open3d runs on at most `workers` threads inside (-1 or None: its own default); its limit
+    before is restored after. open3d parallelises with TBB, which neither OMP_NUM_THREADS nor
+    threadpoolctl reaches: a one-thread Dask worker's ICP ran on every core, 2.7 s alone and
+    7.5 s beside a second worker's tile, slowing that tile too."""
+    import open3d as o3d
+
+    if workers is None or workers < 1:
+        yield
+        return
+    old = o3d.utility.get_max_threads()
+    o3d.utility.set_max_threads(min(int(workers), old))
+    try:
+        yield
+    finally:
+        o3d.utility.set_max_threads(old)
+
+
 def align_epochs(pre_xyz, post_xyz, pre_stable, post_stable, max_distance_m: float = 1.0,
                  voxel_m: float = 0.25, max_iterations: int = 50, max_points: int = 2_000_000,
                  seed: int = 0, pre_name: str = "the pre-event epoch",
-                 post_name: str = "the post-event epoch") -> Alignment:
+                 post_name: str = "the post-event epoch", workers: int = -1) -> Alignment:
     """Point-to-plane ICP of the post epoch's stable points onto the pre epoch's (see the module).
 
     Both xyz arrays are float64 (n, 3) in the same local frame; the masks select stable points
     (`stable_mask`). Raises AlignmentError when either side has fewer than 100 stable points
-    or when no correspondence lies within `max_distance_m`."""
+    or when no correspondence lies within `max_distance_m`. `workers`: open3d's threads (-1:
+    every core); the transform does not depend on it beyond its 1e-12 rounding."""
     import open3d as o3d
     from scipy.spatial import cKDTree
 
@@ -216,14 +237,14 @@ def align_epochs(pre_xyz, post_xyz, pre_stable, post_stable, max_distance_m: flo
         normal_radius = 4.0 * voxel_m
     else:
         normal_radius = 1.0
-    target.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=normal_radius, max_nn=30))
-    target.orient_normals_to_align_with_direction(np.array([0.0, 0.0, 1.0]))
-
-    result = o3d.pipelines.registration.registration_icp(
-        source, target, max_distance_m, np.eye(4),
-        o3d.pipelines.registration.TransformationEstimationPointToPlane(),
-        o3d.pipelines.registration.ICPConvergenceCriteria(relative_fitness=1e-7, relative_rmse=1e-7,
-                                                          max_iteration=int(max_iterations)))
+    with open3d_threads(workers):
+        target.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=normal_radius, max_nn=30))
+        target.orient_normals_to_align_with_direction(np.array([0.0, 0.0, 1.0]))
+        result = o3d.pipelines.registration.registration_icp(
+            source, target, max_distance_m, np.eye(4),
+            o3d.pipelines.registration.TransformationEstimationPointToPlane(),
+            o3d.pipelines.registration.ICPConvergenceCriteria(relative_fitness=1e-7, relative_rmse=1e-7,
+                                                              max_iteration=int(max_iterations)))
     if result.fitness <= 0 or len(result.correspondence_set) == 0:
         raise AlignmentError(f"{post_name}: epochs do not overlap within max_distance {max_distance_m} m: "
                              f"no stable point of it lies that close to {pre_name}'s "

@@ -107,6 +107,9 @@ def classify_distributed(pre_path, post_path, out_dir, client, *, model_path=Non
     def load_model():  # the client's own work while the workers stream: the model is read meanwhile
         loaded["model"] = cl.load_model(model_path)
         loaded["settings"] = cl.model_settings(loaded["model"], str(model_path))
+        from ..results.writers import import_map_modules
+
+        import_map_modules()
 
     pre_s, post_s = _tiled_epochs(client, store, run_fp.digest, pre_f, post_f, origin, fp, footprints, block_cells,
                                   sample, chunk_points, progress, meanwhile=load_model)
@@ -123,19 +126,25 @@ def classify_distributed(pre_path, post_path, out_dir, client, *, model_path=Non
                      "points": {"pre": pre_s.n, "post": post_s.n}, "crs": crs}
     t_read = time.perf_counter()
     stage("densities")
-    registration = None
     if align is False:
         summary["registration"] = {"mode": "off", "checked": False}
-    else:
+
+    def check_registration():
+        """The registration check as a task of its own (None when it is off). Submitted after
+        the densities are gathered: its ICP holds a worker's GIL for up to a second at a time
+        (open3d's normal estimation), and a density result kept on that worker waited for it
+        (the densities took 2.5 s on two workers for 0.8 s of tasks)."""
+        if align is False:
+            return None
         from .tasks import registration_task
 
-        # the samples (up to 2 x 12 MB) go to the workers as data, not inside the task: Dask
-        # warns of a large graph, and a graph is held by the scheduler. The check runs first
-        # (its priority), beside the density tasks and then the tiles.
-        samples = client.scatter([pre_s.stable_sample, post_s.stable_sample])
-        registration = client.submit(registration_task, *samples, settings.to_json(), align,
-                                     {"pre": summary["pre"], "post": summary["post"]}, post_s.bounds,
-                                     pure=False, priority=REGISTRATION_PRIORITY)
+        # The samples (up to 2 x 12 MB) are read by the task from the tiling's saved stats: inside
+        # the task they would make a large graph (held by the scheduler), and scattered they
+        # would be lost with the worker holding them. The check runs first (its priority),
+        # beside the tiles. One thread, as a tile: open3d would take every core.
+        return client.submit(registration_task, str(store), settings.to_json(), align,
+                             {"pre": summary["pre"], "post": summary["post"]}, post_s.bounds, 1,
+                             pure=False, priority=REGISTRATION_PRIORITY)
 
     def settle(checked) -> list | None:
         """The registration check's answer into the summary and the log: the alignment's
@@ -154,8 +163,10 @@ def classify_distributed(pre_path, post_path, out_dir, client, *, model_path=Non
     # seconds no longer hold up the tiles. When it applies an alignment, they are cancelled
     # and described again from the moved post-event epoch.
     transform, shift = None, 0.0
+    registration = None
     try:
         geometry = _pair_geometry(client, store, pre_s, post_s, settings, block_cells, None)
+        registration = check_registration()
         stage("tiles")
         budget = tile_memory_budget(client)
         rows, resumed, widened, split = _describe_tiles(client, store, pre_s, post_s, settings, geometry,

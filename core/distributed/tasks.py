@@ -315,13 +315,15 @@ def describe_tile_task(store: str, tile: dict, settings_json: dict, geometry: di
     return {"key": tile["key"], "rows": rows}
 
 
-def registration_task(pre_sample: np.ndarray, post_sample: np.ndarray, settings_json: dict, align, names: dict,
-                      post_bounds) -> dict:
+def registration_task(store: str, settings_json: dict, align, names: dict, post_bounds, workers: int = -1) -> dict:
     """`quakescan.learning.classification.register_samples` in a worker: the registration
     check's ICP is the run's longest single step, and in a worker it runs beside the density
     tasks instead of holding up the client (a laptop, often). Returns the record, the
     alignment (or None) and the check's log messages, for the client to show: a worker's log
-    is not the user's console."""
+    is not the user's console. The epochs' samples are read from the stats the tiling saved
+    under `store` ("pre.npz", "post.npz"), not sent as data: data scattered to a worker is lost
+    with it, a task of files is redone elsewhere. `workers`: the ICP's threads (the client asks
+    for one, as for a tile)."""
     import logging
 
     from ..change.pipeline import PipelineSettings
@@ -342,14 +344,21 @@ def registration_task(pre_sample: np.ndarray, post_sample: np.ndarray, settings_
         lg.addHandler(keep)
         lg.setLevel(min(lg.getEffectiveLevel(), logging.INFO))
     summary = dict(names)
+    pre_sample, post_sample = (stable_sample(Path(store) / f"{name}.npz") for name in ("pre", "post"))
     try:
         record = cl.register_samples(pre_sample, post_sample, None, PipelineSettings.from_json(settings_json), align,
-                                     summary, post_bounds=np.asarray(post_bounds, dtype=np.float64))
+                                     summary, post_bounds=np.asarray(post_bounds, dtype=np.float64), workers=workers)
     finally:
         for lg, level in zip(loggers, levels):
             lg.removeHandler(keep)
             lg.setLevel(level)
     return {"record": record, "alignment": summary.get("alignment"), "messages": keep.messages}
+
+
+def stable_sample(path: Path) -> np.ndarray:
+    """The registration check's points of an epoch from its saved stats (only that array is read)."""
+    with np.load(path) as arrays:
+        return arrays["stable_sample"]
 
 
 def add_facing_counts(*parts: dict) -> list:

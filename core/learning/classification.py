@@ -263,7 +263,7 @@ def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=N
     summary: dict = {"pre": str(pre_path), "post": str(post_path), "model": str(model_path),
                      "model_provenance": model.provenance, "settings": settings.to_json(),
                      "points": {"pre": len(pre), "post": len(post)}, "crs": pre.crs}
-    summary["registration"] = _register(pre, post, settings, align, summary)
+    summary["registration"] = _register(pre, post, settings, align, summary, workers)
     t_read = time.perf_counter()
     ckpt = _Checkpoint(out / ".checkpoint.jsonl", run_fp.digest)
     resumed = len(ckpt.rows)
@@ -370,7 +370,7 @@ def registration_tolerance_m(settings: PipelineSettings) -> float:
     return AUTO_ALIGN_SHARE_OF_LOD * lod
 
 
-def _register(pre, post, settings: PipelineSettings, align: bool | None, summary: dict) -> dict:
+def _register(pre, post, settings: PipelineSettings, align: bool | None, summary: dict, workers: int = -1) -> dict:
     """Check (and, when asked or needed, apply) the rigid alignment of post to pre; moves
     post.xyz in place; returns what was done for the summary."""
     from ..change.align import sample_mask, stable_mask
@@ -382,7 +382,7 @@ def _register(pre, post, settings: PipelineSettings, align: bool | None, summary
     for e in (pre, post):
         keep = stable_mask(e.classification, e.building_id) & sample_mask(range(len(e)), len(e), max_points)
         samples.append(e.xyz[keep])
-    return register_samples(samples[0], samples[1], post, settings, align, summary)
+    return register_samples(samples[0], samples[1], post, settings, align, summary, workers=workers)
 
 
 def check_max_points(align: bool | None) -> int:
@@ -391,7 +391,7 @@ def check_max_points(align: bool | None) -> int:
 
 
 def register_samples(pre_sample, post_sample, post, settings: PipelineSettings, align: bool | None, summary: dict,
-                     post_bounds=None) -> dict:
+                     post_bounds=None, workers: int = -1) -> dict:
     """`_register` on the epochs' sampled stable points (`sample_mask`): a streamed run
     (`quakescan.distributed`) samples the same points chunk by chunk. Moves post.xyz when
     the alignment is applied and `post` is an Epoch; returns the record."""
@@ -402,7 +402,8 @@ def register_samples(pre_sample, post_sample, post, settings: PipelineSettings, 
     pre_name, post_name = str(summary.get("pre", "the pre-event epoch")), str(summary.get("post", "the post-event epoch"))
     try:
         a = align_epochs(pre_sample, post_sample, np.ones(len(pre_sample), bool), np.ones(len(post_sample), bool),
-                         max_points=check_max_points(align), pre_name=pre_name, post_name=post_name)
+                         max_points=check_max_points(align), pre_name=pre_name, post_name=post_name,
+                         workers=workers)
     except AlignmentError as e:
         if mode == "on":
             raise AlignmentError(f"--align: cannot align {post_name} to {pre_name}: {e}") from None
