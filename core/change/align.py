@@ -187,8 +187,9 @@ def _residuals(post_c, pre_tree, pre_c, down_tree, down_normals, max_distance_m)
 def open3d_threads(workers: int = -1):
     """open3d runs on at most `workers` threads inside (-1 or None: its own default); its limit
     before is restored after. open3d parallelises with TBB, which neither OMP_NUM_THREADS nor
-    threadpoolctl reaches: a one-thread Dask worker's ICP ran on every core, 2.7 s alone and
-    7.5 s beside a second worker's tile, slowing that tile too."""
+    threadpoolctl reaches: a one-thread Dask worker's ICP ran on every core and slowed the
+    other worker's tiles (the 2 x 75 M pair's tile compute on two workers: 123.2 s beside it,
+    114.7 s once it kept to one thread)."""
     import open3d as o3d
 
     if workers is None or workers < 1:

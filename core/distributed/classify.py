@@ -57,7 +57,7 @@ TILE_MEMORY_SHARE = 0.5
 # block's rim cells went back to the client undecided, as Python lists it merged alone.
 DENSITY_GROUP_M = 200.0
 PART_POINTS = 16_000_000  # points of one epoch streamed by one task at most: a few tasks a worker to balance
-# the registration check before any density or tile task: the tiles wait on its answer
+# the registration check before any tile task: the tiles' rows stand only once it has answered
 REGISTRATION_PRIORITY = 10 ** 9
 MAX_SPLIT_DEPTH = 12  # quarters of a 150 m tile down to 4 cm: buildings sharing one centre stay together
 

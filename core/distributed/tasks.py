@@ -317,8 +317,8 @@ def describe_tile_task(store: str, tile: dict, settings_json: dict, geometry: di
 
 def registration_task(store: str, settings_json: dict, align, names: dict, post_bounds, workers: int = -1) -> dict:
     """`quakescan.learning.classification.register_samples` in a worker: the registration
-    check's ICP is the run's longest single step, and in a worker it runs beside the density
-    tasks instead of holding up the client (a laptop, often). Returns the record, the
+    check's ICP is the run's longest single step, and in a worker it runs beside the tiles
+    instead of holding up the client (a laptop, often). Returns the record, the
     alignment (or None) and the check's log messages, for the client to show: a worker's log
     is not the user's console. The epochs' samples are read from the stats the tiling saved
     under `store` ("pre.npz", "post.npz"), not sent as data: data scattered to a worker is lost
