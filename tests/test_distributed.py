@@ -122,11 +122,12 @@ class _DieOnce(distributed.WorkerPlugin):
 
 
 @slow
-@pytest.mark.parametrize("prefix", ["stream-", "registration_task-", "tile-", "graded-"])
+@pytest.mark.parametrize("prefix", ["stream-", "group_roof_cells-", "registration_task-", "tile-", "graded-"])
 def test_a_worker_killed_mid_task_has_its_task_redone_and_the_result_is_the_same(pair, single, tmp_path, prefix):
-    # every kind of task the run submits: streaming a part, the registration check (it reads
-    # its samples from the tiling's files: data scattered to a worker would die with it, and
-    # the check's future with it, "already forgotten"), a tile, a part of the graded cloud
+    # every kind of task the run submits: streaming a part, counting densities, the
+    # registration check (it reads its samples from the tiling's files: data scattered to a
+    # worker would die with it, and the check's future with it, "already forgotten"), a tile,
+    # a part of the graded cloud
     marker = tmp_path / "killed"
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0",
                                   memory_limit="2GB") as c, distributed.Client(c) as client:
