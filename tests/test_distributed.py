@@ -77,6 +77,17 @@ def test_two_workers_write_the_files_one_process_writes(pair, single, cluster, t
 
 
 @slow
+def test_no_align_submits_no_registration_check_and_says_so(pair, cluster, tmp_path):
+    summary = _run(pair, tmp_path / "dask", cluster, align=False, write_las=False)
+    assert summary["registration"] == {"mode": "off", "checked": False}
+    single = classify(pair / "pre.las", pair / "post.las", tmp_path / "one", model_path=pair / "model.skops",
+                      align=False, write_las=False)
+    assert single["registration"] == summary["registration"]
+    for name in SAME_FILES:
+        assert filecmp.cmp(tmp_path / "one" / name, tmp_path / "dask" / name, shallow=False), name
+
+
+@slow
 def test_an_offset_post_epoch_is_aligned_as_one_process_aligns_it(pair, cluster, tmp_path, caplog):
     """0.5 m up (the flat ground shows a vertical offset, not a horizontal one): beyond the
     model's tolerance, so both runs align it; the workers move the points and count the

@@ -126,8 +126,6 @@ def classify_distributed(pre_path, post_path, out_dir, client, *, model_path=Non
                      "points": {"pre": pre_s.n, "post": post_s.n}, "crs": crs}
     t_read = time.perf_counter()
     stage("densities")
-    if align is False:
-        summary["registration"] = {"mode": "off", "checked": False}
 
     def check_registration():
         """The registration check as a task of its own (None when it is off). Submitted after
@@ -135,6 +133,7 @@ def classify_distributed(pre_path, post_path, out_dir, client, *, model_path=Non
         (open3d's normal estimation), and a density result kept on that worker waited for it
         (the densities took 2.5 s on two workers for 0.8 s of tasks)."""
         if align is False:
+            summary["registration"] = {"mode": "off", "checked": False}
             return None
         from .tasks import registration_task
 
