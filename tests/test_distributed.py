@@ -521,6 +521,79 @@ def test_an_epoch_streamed_in_parts_is_the_epoch_streamed_whole(pair, tmp_path):
         np.testing.assert_array_equal(a, b)
 
 
+def test_streamed_pages_are_dropped_exactly_once_each_and_change_nothing_stored(pair, tmp_path, monkeypatch):
+    """A pair too large for the page cache: each part tells the kernel to drop exactly the
+    byte range of its points (offset + index x record size), chunk after chunk, and stores
+    the records and stats it stores without. A compressed copy drops nothing: its points'
+    bytes are not a range of their index."""
+    from quakescan.distributed import blocks
+    from quakescan.distributed.tasks import stream_part
+
+    f = blocks.open_epoch_file(pair / "pre.las")
+    origin = blocks.default_origin(f)
+    with laspy.open(pair / "pre.las") as reader:
+        header = reader.header
+    calls = []
+    monkeypatch.setattr(os, "posix_fadvise", lambda fd, offset, length, advice: calls.append((offset, length, advice)),
+                        raising=False)
+    (a, b) = (f.n // 3, f.n - 7)
+    args = (origin.tolist(), 0, a, b, BLOCK_CELLS, None, True, (f.n, 5_000), 7, 9_999)
+    kept = stream_part(str(tmp_path / "kept"), f.to_json(), *args)
+    assert calls == []  # the box city's few MB: the cache holds them
+    dropped = stream_part(str(tmp_path / "dropped"), f.to_json(), *args, pair_bytes=10 ** 15)
+    size, first = header.point_format.size, header.offset_to_point_data
+    assert {c[2] for c in calls} == {os.POSIX_FADV_DONTNEED}
+    assert [c[0] for c in calls] == [first + a * size + sum(c[1] for c in calls[:i]) for i in range(len(calls))]
+    assert sum(c[1] for c in calls) == (b - a) * size and len(calls) == -(-(b - a) // 9_999)
+    assert dropped.counts == kept.counts and dropped.lo == kept.lo and dropped.bounds == kept.bounds
+    np.testing.assert_array_equal(dropped.stable_sample, kept.stable_sample)
+    assert (tmp_path / "kept" / "part0.bin").read_bytes() == (tmp_path / "dropped" / "part0.bin").read_bytes()
+    np.testing.assert_array_equal(np.load(tmp_path / "kept" / "part0.index.npy"),
+                                  np.load(tmp_path / "dropped" / "part0.index.npy"))
+    laz = tmp_path / "pre.laz"
+    laspy.read(pair / "pre.las").write(laz)
+    calls.clear()
+    stream_part(str(tmp_path / "laz"), blocks.open_epoch_file(laz).to_json(), *args, pair_bytes=10 ** 15)
+    assert calls == []
+
+
+def test_the_page_cache_is_said_to_hold_a_pair_up_to_half_the_machines_memory():
+    from quakescan.distributed.blocks import PAGE_CACHE_SHARE, page_cache_cannot_hold
+
+    assert PAGE_CACHE_SHARE == 0.5
+    assert not page_cache_cannot_hold(None) and not page_cache_cannot_hold(0)
+    assert not page_cache_cannot_hold(12, memory_bytes=24) and page_cache_cannot_hold(13, memory_bytes=24)
+    # this machine's memory when not given: a pair of a petabyte does not fit, of a byte it does
+    assert page_cache_cannot_hold(10 ** 15) and not page_cache_cannot_hold(1)
+
+
+def test_blocks_are_deleted_beside_the_results_their_manifest_first(tmp_path, monkeypatch):
+    """Once every tile is described the store goes in a thread; its manifest is gone before
+    the thread starts, so a run interrupted while the rest is deleted tiles again instead of
+    reading blocks half deleted."""
+    import threading
+
+    from quakescan.distributed import classify as dc
+
+    store = tmp_path / ".blocks"
+    (store / "pre").mkdir(parents=True)
+    (store / "pre" / "part0.bin").write_bytes(b"x" * 100)
+    (store / dc.MANIFEST).write_text("{}")
+    release, real = threading.Event(), dc.shutil.rmtree
+
+    def slow_rmtree(path, **kw):
+        release.wait(10)
+        real(path, **kw)
+
+    monkeypatch.setattr(dc.shutil, "rmtree", slow_rmtree)
+    thread = dc._delete_store(store)
+    assert not (store / dc.MANIFEST).exists() and (store / "pre" / "part0.bin").is_file()
+    assert dc.kept_epochs(store, "any", 50) is None
+    release.set()
+    thread.join(10)
+    assert not thread.is_alive() and not store.exists()
+
+
 def test_blocks_of_an_interrupted_run_are_kept_only_for_the_same_inputs_and_layout(tmp_path):
     from quakescan.distributed import blocks
     from quakescan.distributed.classify import MANIFEST, kept_epochs

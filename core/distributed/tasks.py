@@ -179,18 +179,22 @@ def _roof_cells_of(ci, cj, z, span, key, block_cells: int) -> dict:
 
 
 def stream_part(folder: str, epoch_json: dict, origin: list, part: int, start: int, stop: int, block_cells: int,
-                footprints: dict | None, with_hulls: bool, sample, map_step: int | None, chunk_points: int):
+                footprints: dict | None, with_hulls: bool, sample, map_step: int | None, chunk_points: int,
+                pair_bytes: int | None = None):
     """Points start..stop of an epoch's file streamed into the file and index of `part` under
     `folder` (`quakescan.distributed.blocks.stream_epoch`): one of the tasks that tile an
     epoch in parallel. `footprints`: {"path", "id_field"} read here (building IDs by
-    footprint), or None (the file's building_id). Returns the part's EpochStats."""
-    from .blocks import stream_epoch
+    footprint), or None (the file's building_id). `pair_bytes`: both epochs' file sizes,
+    which decide on the worker's own machine whether the streamed pages are dropped from its
+    page cache (`blocks.page_cache_cannot_hold`). Returns the part's EpochStats."""
+    from .blocks import page_cache_cannot_hold, stream_epoch
 
     fp = None if footprints is None else _footprints(footprints["path"], footprints.get("id_field"))
     return stream_epoch(EpochFile(**epoch_json), np.asarray(origin, dtype=np.float64), Path(folder),
                         block_cells=block_cells, footprints=fp, with_hulls=with_hulls,
                         sample=None if sample is None else tuple(sample), map_step=map_step,
-                        chunk_points=chunk_points, part=part, start=start, stop=stop)
+                        chunk_points=chunk_points, part=part, start=start, stop=stop,
+                        drop_read_pages=page_cache_cannot_hold(pair_bytes))
 
 
 def graded_part(out_file: str, epoch_json: dict, origin: list, start: int, stop: int, footprints: dict | None,
