@@ -521,6 +521,7 @@ def test_an_epoch_streamed_in_parts_is_the_epoch_streamed_whole(pair, tmp_path):
         np.testing.assert_array_equal(a, b)
 
 
+@pytest.mark.skipif(not hasattr(os, "POSIX_FADV_DONTNEED"), reason="a system without posix_fadvise drops nothing")
 def test_streamed_pages_are_dropped_exactly_once_each_and_change_nothing_stored(pair, tmp_path, monkeypatch):
     """A pair too large for the page cache: each part tells the kernel to drop exactly the
     byte range of its points (offset + index x record size), chunk after chunk, and stores

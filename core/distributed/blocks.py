@@ -510,7 +510,7 @@ class _ReadPages:
         self.fd = source.fileno()
         self.size = int(header.point_format.size)
         self.offset = int(header.offset_to_point_data)
-        self.usable = hasattr(os, "posix_fadvise") and not header.are_points_compressed
+        self.usable = hasattr(os, "POSIX_FADV_DONTNEED") and not header.are_points_compressed
 
     def drop(self, start: int, n: int) -> None:
         if self.usable and n:
