@@ -372,30 +372,60 @@ def test_blocks_hold_every_point_once_and_read_back_in_file_order(pair, tmp_path
 
 
 @slow
-def test_local_cluster_workers_allocate_like_one_process_run_no_profiler_and_close_quietly(monkeypatch):
-    """Dask's MALLOC_TRIM_THRESHOLD_ (which fixes glibc's mmap threshold and made tiles 14 %
-    slower in a worker) is not passed to our workers, even where an earlier LocalCluster of
-    this process left it in the environment; and no worker samples its task's stack for
-    Dask's profiler (CPU taken from the other worker on two cores): a task of half a second
-    leaves no sample (some 50 with the profiler on) once the profile's 1 s cycle has passed."""
+def test_local_cluster_workers_allocate_like_one_process_run_no_profiler_and_close_quietly_and_quickly(monkeypatch):
+    """Our workers allocate as the command does (`quakescan.runtime.allocator`), not with
+    Dask's MALLOC_TRIM_THRESHOLD_ (which fixes glibc's mmap threshold at 128 KiB and made
+    tiles 14 % slower in a worker), even where an earlier LocalCluster of this process left
+    Dask's value in the environment: a 100 MB array lands in the heap and stays there once
+    freed; and no worker samples its task's stack for Dask's profiler (CPU taken
+    from the other worker on two cores): a task of half a second leaves no sample (some 50
+    with the profiler on) once the profile's 1 s cycle has passed."""
     import time
 
     import logging
 
     from quakescan.distributed.cluster import dask_client, quiet_workers_for_shutdown
+    from quakescan.runtime.allocator import ENVIRON, where_an_array_lands
 
     monkeypatch.setenv("MALLOC_TRIM_THRESHOLD_", "65536")
     with dask_client(1, memory_limit="1GB") as client:
-        seen = client.run(os.environ.get, "MALLOC_TRIM_THRESHOLD_")
+        seen = client.run(lambda: {name: os.environ.get(name) for name in ENVIRON})
+        landed = client.run(where_an_array_lands)
         client.submit(time.sleep, 0.5, pure=False).result()
         time.sleep(1.2)
         samples = client.profile()["count"]
+        still_collecting = client.run(lambda: __import__("gc").get_freeze_count() == 0)
         quiet_workers_for_shutdown(client)
         levels = client.run(lambda: logging.getLogger("distributed").level)
-    assert list(seen.values()) == [None]
+        frozen = client.run(lambda: __import__("gc").get_freeze_count() > 0)
+    assert list(seen.values()) == [ENVIRON]
+    mb = 100 << 20  # in the heap, not a mapping of its own, and still there once freed
+    assert list(landed.values()) == [{"mapped": 0, "kept": pytest.approx(mb, rel=0.05)}]
     assert samples == 0
     # the cluster's closing says nothing: no worker logs even an error once it is asked to close
     assert set(levels.values()) == {logging.CRITICAL + 1}
+    # and its workers end without Python's last collections (0.5 s of each one's core)
+    assert list(still_collecting.values()) == [True] and list(frozen.values()) == [True]
+
+
+def test_an_array_is_mapped_anew_by_default_and_kept_in_the_heap_once_tuned():
+    """The measure the worker test relies on, both ways in fresh processes: glibc's defaults
+    map a 100 MB array on its own and give it back when freed; the command's settings put it
+    in the heap and keep it there."""
+    import subprocess
+    import sys
+
+    probe = "from quakescan.runtime import allocator as a; {tune}print(a.where_an_array_lands())"
+    env = {k: v for k, v in os.environ.items() if not k.startswith("MALLOC_")}
+    landed = {}
+    for name, tune in (("default", ""), ("tuned", "a.tune_allocator(); ")):
+        out = subprocess.run([sys.executable, "-c", probe.format(tune=tune)], capture_output=True, text=True, env=env,
+                             timeout=120)
+        assert out.returncode == 0, out.stderr
+        landed[name] = json.loads(out.stdout.strip().replace("'", '"'))
+    mb = 100 << 20
+    assert landed["default"]["mapped"] == pytest.approx(mb, rel=0.05) and landed["default"]["kept"] < mb / 100
+    assert landed["tuned"] == {"mapped": 0, "kept": pytest.approx(mb, rel=0.05)}
 
 
 def test_a_tile_over_the_memory_budget_is_split_into_quarters_by_building_centre():

@@ -9,6 +9,7 @@ import sys
 
 from .. import __version__
 from ..errors import QuakeScanError
+from ..runtime.allocator import tune_allocator
 from . import acquisition, analysis, scenes, studies, training
 from .options import QUIET_HELP
 from .reporting import drop_stdout, stage_messages
@@ -42,31 +43,37 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def tune_allocator() -> None:
-    """Keep freed batch buffers in the heap (glibc only).
+def skip_exit_collection() -> None:
+    """Have the process leave without Python's last garbage collections (once per process).
 
-    A scan allocates and frees ~100 MB per batch and thread; by default glibc returns such
-    blocks to the OS and the next batch page-faults them back. BENCHMARKS.md compares the
-    single-ray scan with and without it in the same run (the difference is within this
-    machine's run-to-run noise for the fused single-ray loop; it mattered for the older,
-    allocation-heavy path). Done here, in the command, not in the library: it is a
-    process-wide setting."""
-    import ctypes
-    import ctypes.util
+    Python 3.11 clears a module at a time on exit and collects after each: with the modules
+    a command imports (numpy, scipy, sklearn, numba, dask) that was 0.8-0.9 s of one core
+    after a classify had written everything (perf: gc_collect_main, 0.8 s of 1.0 s between
+    the last exit handler and the process's end). Objects left then are moved where the
+    collector never looks (`gc.freeze`); memory goes back with the process. At exit, not at
+    return: tests call `main` many times in one process, whose cycles must still be freed.
+    Nothing left to write depends on it: the outputs are closed (atomic renames) before
+    `main` returns, the exit handlers still run (logging's flush, temporary folders), and
+    Python flushes stdout and stderr itself."""
+    global _exit_collection_skipped
+    if not _exit_collection_skipped:
+        import atexit
+        import gc
 
-    name = ctypes.util.find_library("c")
-    try:
-        libc = ctypes.CDLL(name)
-        m_trim_threshold, m_mmap_threshold = -1, -3
-        libc.mallopt(m_mmap_threshold, 512 << 20)
-        libc.mallopt(m_trim_threshold, 2 << 30)
-    except (OSError, AttributeError, TypeError):
-        pass  # not glibc: keep the default allocator
+        atexit.register(gc.freeze)
+        _exit_collection_skipped = True
+
+
+_exit_collection_skipped = False
 
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
+    # Freed scan batches (~100 MB a thread) and tile arrays stay in the heap instead of being
+    # faulted back in: see quakescan.runtime.allocator. BENCHMARKS.md (bench_scan) compares
+    # the scan with and without it in one run.
     tune_allocator()
+    skip_exit_collection()
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
     try:
