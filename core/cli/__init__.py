@@ -4,6 +4,7 @@ live in this package only."""
 from __future__ import annotations
 
 import argparse
+import functools
 import logging
 import sys
 
@@ -43,6 +44,7 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+@functools.cache  # once a process, however often `main` runs
 def skip_exit_collection() -> None:
     """Have the process leave without Python's last garbage collections (once per process).
 
@@ -55,16 +57,10 @@ def skip_exit_collection() -> None:
     Nothing left to write depends on it: the outputs are closed (atomic renames) before
     `main` returns, the exit handlers still run (logging's flush, temporary folders), and
     Python flushes stdout and stderr itself."""
-    global _exit_collection_skipped
-    if not _exit_collection_skipped:
-        import atexit
-        import gc
+    import atexit
+    import gc
 
-        atexit.register(gc.freeze)
-        _exit_collection_skipped = True
-
-
-_exit_collection_skipped = False
+    atexit.register(gc.freeze)
 
 
 def main(argv=None) -> int:
