@@ -29,6 +29,8 @@ Rows (issue 16's table):
   workers: tiles and densities read by bounds from the files, no block files;
 - graded: the half pair classified with the graded cloud (post_grades.las) written, in one
   process and on 2 workers (whose tasks make its records in parts): the time to write it;
+- model: the shipped model loaded in a fresh process through skops (the cache off) and from
+  the model cache (`quakescan.learning.model_cache`), `--pairs` runs of each in turn;
 - trainset: the paper's four states (pre, heavy, extreme, destruction) of 1,000 generic
   buildings generated, acquired and described (`quakescan.learning.trainset.build` on a
   LocalCluster of 2 workers; target <= 30 min on 2 cores), and the time to resume it.
@@ -36,7 +38,8 @@ Rows (issue 16's table):
 Peak RSS per process is sampled every 0.2 s over the command's process tree (psutil): the
 client is the command's own process, the workers are its other descendants. Every run is a
 fresh process writing into an emptied output folder: nothing is skipped as up to date or
-resumed. Writes the table to stdout and to BENCHMARKS.md (section "bench_scale"), the raw
+resumed. The commands keep models in WORK/cache (`QUAKESCAN_CACHE_DIR`), filled with the
+shipped model before the first row: every command loads it as a user's second command does. Writes the table to stdout and to BENCHMARKS.md (section "bench_scale"), the raw
 figures to WORK/results.json.
 """
 from __future__ import annotations
@@ -64,7 +67,9 @@ LARGE_POINTS = 250_000_000  # per epoch, at least
 COPY_STEP_M = 600.0  # the big city is 576 m wide: copies 600 m apart never share a building
 ID_STEP = 100_000  # building IDs of copy k: k * ID_STEP + the source's
 ISSUE_PAIR_COPIES = 2  # the city's 37.4 M points an epoch twice: issue 16's "2 x 75 M-point pair"
-ROWS = ("single", "cluster", "half", "large", "trainset", "graded", "copc")
+ROWS = ("single", "cluster", "half", "large", "trainset", "graded", "copc", "model")
+LOAD_MODEL = ("import time; from quakescan.learning import classification as cl; t = time.perf_counter(); "
+              "cl.load_model(cl.default_model_path()); print(time.perf_counter() - t)")
 
 
 class TreeSampler:
@@ -124,9 +129,35 @@ def run_side_by_side(runs: list, las: bool = False) -> list[dict]:
         shutil.rmtree(out, ignore_errors=True)
         cmd = [str(Path(sys.executable).with_name("quakescan")), "classify", "--pre", str(pre), "--post",
                str(post), "-o", str(out), "--force", *([] if las else ["--no-las"]), *extra]
-        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=bench_env())
         procs.append((cmd, out, proc, TreeSampler(proc.pid), time.perf_counter()))
     return [_finished_run(*p) for p in procs]
+
+
+def bench_env(cache: str | None = None) -> dict | None:
+    """A command's environment: this one's (the model cache in WORK/cache, set by `main`), or
+    with the cache `cache` ("off")."""
+    import os
+
+    return None if cache is None else {**os.environ, "QUAKESCAN_CACHE_DIR": cache}
+
+
+def model_load_s(cache: str | None = None) -> float:
+    """Seconds a fresh process takes to load the shipped model (imports of QuakeScan's
+    classification module not counted: every command makes them before)."""
+    out = subprocess.run([sys.executable, "-c", LOAD_MODEL], capture_output=True, text=True, check=True,
+                         env=bench_env(cache))
+    return float(out.stdout.split()[-1])
+
+
+def model_row(pairs: int) -> dict:
+    """The shipped model loaded through skops and from the cache, `pairs` times each in turn."""
+    model_load_s()  # the cache filled
+    skops, cached = [], []
+    for _ in range(pairs):
+        skops.append(model_load_s("off"))
+        cached.append(model_load_s())
+    return {"at": time.strftime("%Y-%m-%d %H:%M", time.gmtime()), "skops_s": skops, "cache_s": cached}
 
 
 def _finished_run(cmd: list, out: Path, proc, sampler, t0: float) -> dict:
@@ -280,6 +311,10 @@ def main(argv=None):
     results_path = work / "results.json"
     results = json.loads(results_path.read_text()) if results_path.is_file() else {}
     t_all = time.perf_counter()
+    import os
+
+    os.environ["QUAKESCAN_CACHE_DIR"] = str(work / "cache")  # this process's and every command's
+    model_load_s()  # the cache filled before the first row: every command loads the model as a second one does
     pre, post = big_pair()
 
     def single_rows(p, q, suffix=""):
@@ -319,6 +354,8 @@ def main(argv=None):
     if "copc" in rows_wanted:  # the same pair as COPC files: tiles read by bounds from the files, no blocks
         cpre, cpost = copc_pair(work, pre, post)
         results["copc2"] = run_classify(cpre, cpost, work / "copc2", ["--workers", "2"])
+    if "model" in rows_wanted:
+        results["model"] = model_row(max(a.pairs, 5))
     if "graded" in rows_wanted:  # the graded cloud written too: one process, and made in parts by 2 workers
         results["graded1"] = run_classify(pre, post, work / "graded1", [], las=True)
         results["graded2"] = run_classify(pre, post, work / "graded2", ["--workers", "2"], las=True)
@@ -394,6 +431,14 @@ def main(argv=None):
                      mb(cp["client_mb"]), mb(cp["worker_mb"]), f"{cp['points'] / cp['wall_s'] / 2 / 1e6:.3f}",
                      "tiles read by bounds from the files, no block files; stages s: " + ", ".join(
                          f"{k} {v:.0f}" for k, v in cp["seconds"].get("stages", {}).items()), cp.get("at", "")))
+    md = results.get("model")
+    if md:
+        k, c = float(np.median(md["skops_s"])), float(np.median(md["cache_s"]))
+        rows["model"] = (("the shipped model loaded in a fresh process: through skops / from the model cache", "",
+                          "—", f"{k:.2f} / {c:.2f}", "—", "—", "—", "—",
+                          f"{k / c:.1f}x faster from the cache (medians of {len(md['cache_s'])} in turn; skops "
+                          f"{min(md['skops_s']):.2f}-{max(md['skops_s']):.2f} s, cache {min(md['cache_s']):.2f}-"
+                          f"{max(md['cache_s']):.2f} s)", md.get("at", "")))
     ts = results.get("trainset")
     if ts:
         rows["trainset"] = ((f"training set: {ts['buildings']:,} buildings x 4 states ({ts['pairs']} pairs), 2 workers",
@@ -431,7 +476,7 @@ def main(argv=None):
 
 # The table's rows in order, by their key in results.json
 SLOTS = ("single", "single1", "single1x2", "cluster1", "cluster2", "single_half", "single1_half", "single1x2_half",
-         "cluster1_half", "cluster2_half", "large", "copc2", "trainset", "graded1", "graded2")
+         "cluster1_half", "cluster2_half", "large", "copc2", "model", "trainset", "graded1", "graded2")
 
 
 def slot_of(case: str, suffix: str) -> tuple[str | None, str]:
@@ -451,6 +496,8 @@ def slot_of(case: str, suffix: str) -> tuple[str | None, str]:
         return "copc2", suffix
     if case.startswith("training set"):
         return "trainset", suffix
+    if case.startswith("the shipped model loaded"):
+        return "model", suffix
     if "graded cloud" in case:
         return ("graded1" if "one process" in case else "graded2"), suffix
     return None, suffix

@@ -22,6 +22,15 @@ def pytest_configure(config):
                                 f"run `bash .ci/setup` here and test with {ROOT / '.venv/bin/python'}")
 
 
+@pytest.fixture(scope="session", autouse=True)
+def private_model_cache(tmp_path_factory):
+    """The tests' models are kept in a cache of their own (`quakescan.learning.model_cache`),
+    never in the user's: the commands the tests run in subprocesses inherit it too."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("QUAKESCAN_CACHE_DIR", str(tmp_path_factory.mktemp("quakescan-cache")))
+        yield
+
+
 @pytest.fixture
 def shared_data():
     if not SHARED_DATA.is_dir():
