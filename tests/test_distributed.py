@@ -391,6 +391,7 @@ def test_local_cluster_workers_allocate_like_one_process_run_no_profiler_and_clo
     with dask_client(1, memory_limit="1GB") as client:
         seen = client.run(lambda: {name: os.environ.get(name) for name in ENVIRON})
         landed = client.run(where_an_array_lands)
+        landed_in_a_task = client.submit(where_an_array_lands, pure=False).result()  # the task thread's arena
         client.submit(time.sleep, 0.5, pure=False).result()
         time.sleep(1.2)
         samples = client.profile()["count"]
@@ -401,6 +402,7 @@ def test_local_cluster_workers_allocate_like_one_process_run_no_profiler_and_clo
     assert list(seen.values()) == [ENVIRON]
     mb = 100 << 20  # in the heap, not a mapping of its own, and still there once freed
     assert list(landed.values()) == [{"mapped": 0, "kept": pytest.approx(mb, rel=0.05)}]
+    assert landed_in_a_task["mapped"] == 0
     assert samples == 0
     # the cluster's closing says nothing: no worker logs even an error once it is asked to close
     assert set(levels.values()) == {logging.CRITICAL + 1}
@@ -415,17 +417,26 @@ def test_an_array_is_mapped_anew_by_default_and_kept_in_the_heap_once_tuned():
     import subprocess
     import sys
 
-    probe = "from quakescan.runtime import allocator as a; {tune}print(a.where_an_array_lands())"
+    probe = ("import threading; from quakescan.runtime import allocator as a; {tune}out = {{}}; "
+             "t = threading.Thread(target=lambda: out.update(a.where_an_array_lands())); t.start(); t.join(); "
+             "print(dict(main=a.where_an_array_lands(), thread=out))")
     env = {k: v for k, v in os.environ.items() if not k.startswith("MALLOC_")}
     landed = {}
-    for name, tune in (("default", ""), ("tuned", "a.tune_allocator(); ")):
-        out = subprocess.run([sys.executable, "-c", probe.format(tune=tune)], capture_output=True, text=True, env=env,
-                             timeout=120)
+    for name, tune, extra in (("default", "", {}), ("tuned", "a.tune_allocator(); ", {}),
+                              ("one arena", "a.tune_allocator(); ", {"MALLOC_ARENA_MAX": "1"})):
+        out = subprocess.run([sys.executable, "-c", probe.format(tune=tune)], capture_output=True, text=True,
+                             env={**env, **extra}, timeout=120)
         assert out.returncode == 0, out.stderr
         landed[name] = json.loads(out.stdout.strip().replace("'", '"'))
     mb = 100 << 20
-    assert landed["default"]["mapped"] == pytest.approx(mb, rel=0.05) and landed["default"]["kept"] < mb / 100
-    assert landed["tuned"] == {"mapped": 0, "kept": pytest.approx(mb, rel=0.05)}
+    default, tuned, one_arena = landed["default"], landed["tuned"], landed["one arena"]
+    assert default["main"]["mapped"] == pytest.approx(mb, rel=0.05) and default["main"]["kept"] < mb / 100
+    # run by the thread first, the heap of the main thread still takes it whole
+    assert tuned["main"] == {"mapped": 0, "kept": pytest.approx(mb, rel=0.05)}
+    # a thread's own arena cannot hold it whatever the thresholds: mapped anew, as in a worker's task
+    assert tuned["thread"]["mapped"] == pytest.approx(mb, rel=0.05) and tuned["thread"]["kept"] < mb / 100
+    # with one arena (the workers' `MALLOC_ARENA_MAX`), the thread's array is in the heap and kept
+    assert one_arena["thread"] == {"mapped": 0, "kept": pytest.approx(mb, rel=0.05)}
 
 
 def test_a_tile_over_the_memory_budget_is_split_into_quarters_by_building_centre():
