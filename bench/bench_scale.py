@@ -47,6 +47,7 @@ from __future__ import annotations
 import argparse
 import copy
 import json
+import os
 import shutil
 import subprocess
 import sys
@@ -137,8 +138,6 @@ def run_side_by_side(runs: list, las: bool = False) -> list[dict]:
 def bench_env(cache: str | None = None) -> dict | None:
     """A command's environment: this one's (the model cache in WORK/cache, set by `main`), or
     with the cache `cache` ("off")."""
-    import os
-
     return None if cache is None else {**os.environ, "QUAKESCAN_CACHE_DIR": cache}
 
 
@@ -311,8 +310,6 @@ def main(argv=None):
     results_path = work / "results.json"
     results = json.loads(results_path.read_text()) if results_path.is_file() else {}
     t_all = time.perf_counter()
-    import os
-
     os.environ["QUAKESCAN_CACHE_DIR"] = str(work / "cache")  # this process's and every command's
     model_load_s()  # the cache filled before the first row: every command loads the model as a second one does
     pre, post = big_pair()

@@ -411,9 +411,10 @@ def test_local_cluster_workers_allocate_like_one_process_run_no_profiler_and_clo
 
 
 def test_an_array_is_mapped_anew_by_default_and_kept_in_the_heap_once_tuned():
-    """The measure the worker test relies on, both ways in fresh processes: glibc's defaults
-    map a 100 MB array on its own and give it back when freed; the command's settings put it
-    in the heap and keep it there."""
+    """The measure the worker test relies on, in fresh processes: glibc's defaults map a 100 MB
+    array on its own and give it back when freed; the command's settings put it in the heap
+    and keep it there, but not in a thread (its own arena), unless all threads share one
+    arena (`MALLOC_ARENA_MAX=1`, as the workers do)."""
     import subprocess
     import sys
 

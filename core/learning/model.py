@@ -401,10 +401,11 @@ def load_model(path: str | os.PathLike) -> DamageModel:
         raise ModelError(f"{path}: cannot read the model file ({e.strerror or e})") from None
     from . import model_cache
 
-    model = model_cache.recall(data)
+    name = model_cache.entry_name(data)
+    model = model_cache.recall(name)
     if model is None:
         model = _build_model(path, data)
-        model_cache.remember(data, model)
+        model_cache.remember(name, model)
     return model
 
 
@@ -493,8 +494,9 @@ def _check_archive_size(path: Path) -> None:
     except (zipfile.BadZipFile, OSError, ValueError) as e:
         raise ModelError(f"{path}: not a QuakeScan model file (not a skops archive: {e})") from None
     total = sum(i.file_size for i in infos)
-    if path.stat().st_size > MAX_MODEL_UNCOMPRESSED_BYTES:  # it is read whole: the bytes checked are the bytes built
-        raise ModelError(f"{path}: refused: the file holds {path.stat().st_size / 2 ** 20:,.0f} MiB (a damage "
+    size = path.stat().st_size
+    if size > MAX_MODEL_UNCOMPRESSED_BYTES:  # it is read whole: the bytes checked are the bytes built
+        raise ModelError(f"{path}: refused: the file holds {size / 2 ** 20:,.0f} MiB (a damage "
                          f"model holds at most {MAX_MODEL_UNCOMPRESSED_BYTES / 2 ** 20:,.0f} MiB); nothing was "
                          "loaded")
     if total > MAX_MODEL_UNCOMPRESSED_BYTES or len(infos) > MAX_MODEL_MEMBERS:

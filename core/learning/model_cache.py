@@ -64,12 +64,12 @@ def entry_name(data: bytes) -> str:
     return h.hexdigest() + SUFFIX
 
 
-def recall(data: bytes):
-    """The DamageModel kept for a model file with these bytes, or None."""
+def recall(name: str):
+    """The DamageModel kept under `name` (`entry_name` of a model file's bytes), or None."""
     folder = cache_folder()
     if folder is None or not _private(folder, warn=True):
         return None
-    path = folder / entry_name(data)
+    path = folder / name
     try:
         with open(path, "rb") as f:
             if not _private_file(os.fstat(f.fileno())):
@@ -90,9 +90,9 @@ def recall(data: bytes):
     return model
 
 
-def remember(data: bytes, model) -> None:
-    """Keep `model`, made of a model file with these bytes, for the next load. Never fails
-    the load: a cache that cannot be written is only logged."""
+def remember(name: str, model) -> None:
+    """Keep `model` under `name` (`entry_name` of the bytes it was made of) for the next
+    load. Never fails the load: a cache that cannot be written is only logged."""
     folder = cache_folder()
     if folder is None:
         return
@@ -102,7 +102,7 @@ def remember(data: bytes, model) -> None:
             return
         from ..runtime.atomic import open_replacing
 
-        with open_replacing(folder / entry_name(data), "wb") as f:
+        with open_replacing(folder / name, "wb") as f:
             os.fchmod(f.fileno(), 0o600)
             pickle.dump(model, f, protocol=pickle.HIGHEST_PROTOCOL)
         prune(folder)
