@@ -168,6 +168,9 @@ def parse_args(argv):
     p.add_argument("--grade-mix", type=_grade_mix, default=None,
                    help="--dataset mixed: exact counts per grade instead of random draws, e.g. "
                    "0:35,3:19,4:32,5:35 (the paper's L'Aquila evaluation set); sets --buildings to their sum")
+    p.add_argument("--grades", default=None,
+                   help="--set bundle --dataset mixed: a JSON file {\"building ID\": grade, ...} giving the post-event "
+                   "grade of each listed building (others stay at 0), as `quakescan inject` asks")
     p.add_argument("--seed", type=_seed, default=0, help="random seed (default 0)")
     p.add_argument("--details", choices=("none", "typical"), default="none",
                    help="roof and facade details (dormers, chimneys, skylights, overhangs, balconies, antennas, "
@@ -206,6 +209,11 @@ def parse_args(argv):
         if args.buildings is not None and args.buildings != total:
             p.error(f"--buildings {args.buildings} disagrees with --grade-mix, which sums to {total}")
         args.buildings = total
+    if args.grades is not None:
+        if args.set_name != "bundle" or args.dataset != "mixed":
+            p.error("--grades is only used with --set bundle --dataset mixed")
+        if args.grade_mix is not None:
+            p.error("--grades and --grade-mix both set the grades: give one")
     if args.set_name == "bundle" and (args.origin is not None or args.crs):
         p.error("--origin and --crs are not used with --set bundle: the output keeps the source's")
     if args.set_name != "bundle":
@@ -239,10 +247,35 @@ def _grade_mix(text):
     return mix
 
 
-def scene_list(dataset, ids, seed, grade_mix=None):
+def read_grades(path, ids) -> dict:
+    """{building ID: grade} of a --grades file, every source building present (0 where unlisted).
+    Raises ValueError naming the file and what is wrong."""
+    try:
+        raw = json.loads(Path(path).read_text())
+    except (OSError, ValueError) as e:
+        raise ValueError(f"--grades {path}: cannot read it as JSON ({e})") from None
+    if not isinstance(raw, dict):
+        raise ValueError(f"--grades {path}: expected an object {{\"building ID\": grade}}, got {type(raw).__name__}")
+    grades = {int(i): 0 for i in ids}
+    for key, g in raw.items():
+        try:
+            bid = int(key)
+        except ValueError:
+            raise ValueError(f"--grades {path}: {key!r} is not a building ID") from None
+        if bid not in grades:
+            raise ValueError(f"--grades {path}: building {bid} is not in the --source bundle")
+        if isinstance(g, bool) or not isinstance(g, int) or not 0 <= g <= 5:
+            raise ValueError(f"--grades {path}: building {bid}: grade must be an integer 0-5, got {g!r}")
+        grades[bid] = g
+    return grades
+
+
+def scene_list(dataset, ids, seed, grade_mix=None, grades=None):
     citygen = addon_module("citygen")
     if dataset == "paper":
         return [("pre", None)] + [(name, g) for name, g in citygen.PAPER_SCENES]
+    if grades is not None:
+        return [("pre", None), ("post", grades)]
     if grade_mix:
         return [("pre", None), ("post", citygen.exact_grades(ids, grade_mix, seed))]
     return [("pre", None), ("post", citygen.mixed_grades(ids, seed))]
@@ -255,6 +288,8 @@ def generator_info(args, scene_name):
         info["details"] = args.details
     if getattr(args, "grade_mix", None):
         info["grade_mix"] = {str(g): n for g, n in sorted(args.grade_mix.items())}
+    if getattr(args, "grades_map", None) is not None:  # absent without --grades: older bundles stay valid
+        info["grades"] = {str(b): g for b, g in sorted(args.grades_map.items()) if g}
     if args.set_name == "bundle":
         info["source"] = {"name": Path(args.source).resolve().name, "sha256": getattr(args, "source_sha256", None)}
     if getattr(args, "streetscape", "none") != "none":  # absent with none: older bundles stay valid
@@ -412,10 +447,16 @@ def run(args) -> int:
             return 2
         ids = bundle_ids(args, manifest)
         origin, crs = manifest.get("origin", [0.0, 0.0, 0.0]), manifest.get("crs")
+        if args.grades is not None:
+            try:
+                args.grades_map = read_grades(args.grades, ids)
+            except ValueError as e:
+                log(f"error: {e}")
+                return 2
     else:
         plan = citygen.city_plan(args.set_name, args.buildings, args.seed, details=args.details)
         ids = [b.id for b in plan.buildings]
-    scenes = scene_list(args.dataset, ids, args.seed, args.grade_mix)
+    scenes = scene_list(args.dataset, ids, args.seed, args.grade_mix, getattr(args, "grades_map", None))
     todo = []
     for name, grades in scenes:
         info = generator_info(args, name)

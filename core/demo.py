@@ -57,7 +57,7 @@ def generator_command(args: list[str]) -> list[str]:
 def generate(set_name: str, dataset: str, buildings: int | None, seed: int, out: Path,
              grade_mix: dict | None = None, source: Path | None = None, details: str = "none",
              streetscape: str = "none", origin=None, crs: str | None = None, force: bool = False,
-             damage: str = "patterns") -> None:
+             damage: str = "patterns", grades_file: Path | None = None) -> None:
     """Run the add-on's scene generator; `grade_mix` (grade -> count) fixes a mixed city's grades;
     `source`: the scene bundle whose buildings `set_name` "bundle" damages; `details`: "none" or
     "typical" roof and facade details (dormers, chimneys, balconies, solar panels, ...);
@@ -65,7 +65,8 @@ def generate(set_name: str, dataset: str, buildings: int | None, seed: int, out:
     `origin` (x, y, z) and `crs` place a procedural city in the world; `force` regenerates
     bundles made with other settings (finished ones with the same settings are kept);
     `damage` "physics" or "both" makes grades 4-5 (all, or a seeded half) by rigid-body
-    collapse instead of the parametric patterns."""
+    collapse instead of the parametric patterns; `grades_file` (set "bundle", dataset "mixed"): a JSON
+    {building ID: grade} fixing each listed building's grade (the others 0)."""
     args = ["--set", set_name, "--dataset", dataset, "--seed", str(seed), "--out", str(out)]
     if origin is not None:
         args += ["--origin", ",".join(repr(float(v)) for v in origin)]
@@ -81,6 +82,8 @@ def generate(set_name: str, dataset: str, buildings: int | None, seed: int, out:
         args += ["--source", str(source)]
     if damage != "patterns":  # the generator's default: its command line stays what it was
         args += ["--damage", damage]
+    if grades_file is not None:
+        args += ["--grades", str(grades_file)]
     if grade_mix:
         args += ["--grade-mix", ",".join(f"{g}:{n}" for g, n in sorted(grade_mix.items()))]
     elif buildings is not None:

@@ -267,8 +267,9 @@ class BuildingRow:
     reason: str = ""
     descriptors: dict = field(default_factory=dict)
     centre_xy: tuple = (math.nan, math.nan)  # local frame
-    # density_pre / density_post (pts/m², planimetric, over the building's cells) and
-    # coverage (share of its cells with post-event points), where surfaces were described
+    # density_pre / density_post (pts/m², planimetric, over the building's cells), coverage
+    # (share of its cells with post-event points), cells, area_m2 and lowering_lod_m (what
+    # `quakescan.change.detectability` reads), where surfaces were described
     quality: dict = field(default_factory=dict)
 
     @property

@@ -86,6 +86,7 @@ import numpy as np
 
 from ..errors import QuakeScanError
 from ._cell_kernels import column_bounds, row_bounds, stable_order
+from .detectability import min_lowering_m
 from .m3c2 import ColumnGrid, M3C2Settings, cylinder_radius, m3c2, orient_normals, voxel_core_points
 
 GROUND_CLASS = 2
@@ -427,9 +428,11 @@ def describe_surfaces(pre_xyz: np.ndarray, pre_bid: np.ndarray, pre_ground: np.n
     pre_xyz/post_xyz: (n, 3) local-frame points of the region (every kind of point);
     pre_bid: building ID per pre-event point (0 = none); pre_ground: ground mask (ASPRS 2)
     or None. Returns ({building ID: {descriptor: value}}, {building ID: CoreChange}) and,
-    with `quality`, {building ID: {density_pre, density_post, coverage}}: planimetric
-    densities (pts/m²) of the building's own pre-event points and of the post-event points
-    over its cells, and the share of its cells with post-event points.
+    with `quality`, {building ID: {density_pre, density_post, coverage, cells, area_m2,
+    lowering_lod_m}}: planimetric densities (pts/m²) of the building's own pre-event points and
+    of the post-event points over its cells, the share of its cells with post-event points,
+    its cells and their area (m²), and the smallest lowering it resolves
+    (`quakescan.change.detectability.min_lowering_m`; absent without a comparable core point).
 
     Whether a wall is lost is judged against how well the post-event flight saw walls facing
     the same way among the core points of all of `bids` (`_lost`): `facing_out`, when given,
@@ -483,7 +486,7 @@ def describe_surfaces(pre_xyz: np.ndarray, pre_bid: np.ndarray, pre_ground: np.n
             qual[bid] = {"density_pre": round(planimetric_density(pre_xyz[idx]), 3),
                          "density_post": round(planimetric_density(post_xyz[inside]), 3),
                          "coverage": round(1.0 - descriptors[bid]["s_post_gap"], 4),
-                         "cells": int(len(cells))}
+                         "cells": int(len(cells)), "area_m2": round(len(cells) * c * c, 3)}
         members[bid] = idx
         core_of[bid] = idx[voxel_core_points(pre_xyz[idx], c)]
         outline_core[bid] = np.isin(pre_key[core_of[bid]], edge_keys)
@@ -523,6 +526,9 @@ def describe_surfaces(pre_xyz: np.ndarray, pre_bid: np.ndarray, pre_ground: np.n
         descriptors[bid].update(dm)
         _dead_zone(descriptors[bid], settings.min_share)
         cores[bid] = cc
+        if quality and cc.comparable.any():  # the smallest lowering the building resolves (detectability)
+            qual[bid]["lowering_lod_m"] = round(min_lowering_m(float(np.median(cc.lod[cc.comparable])),
+                                                               settings.lod_floor_m), 4)
     if quality:
         return descriptors, cores, qual
     return descriptors, cores

@@ -11,7 +11,7 @@ import sys
 from .. import __version__
 from ..errors import QuakeScanError
 from ..runtime.allocator import tune_allocator
-from . import acquisition, analysis, scenes, studies, training
+from . import acquisition, analysis, injection, scenes, studies, training
 from .options import QUIET_HELP
 from .reporting import drop_stdout, stage_messages
 
@@ -39,6 +39,7 @@ def build_parser() -> argparse.ArgumentParser:
     training.add_train(sub)
     analysis.add_classify(sub)
     analysis.add_evaluate(sub)
+    injection.add_inject(sub)
     for command in sub.choices.values():  # `quakescan CMD … -q` as well as `quakescan -q CMD …`
         command.add_argument("-q", "--quiet", action="store_true", default=argparse.SUPPRESS, help=QUIET_HELP)
     return p

@@ -211,6 +211,7 @@ def classify_distributed(pre_path, post_path, out_dir, client, *, model_path=Non
     for r in res:
         counts[r.label] = counts.get(r.label, 0) + 1
     summary.update({"buildings": len(res), "by_label": counts, "by_grade_name": cl.counts_by_grade_name(res),
+                    "detectability": cl.detectability_counts(res),
                     "resumed_buildings": resumed,
                     "seconds": {"read": round(t_read - t0, 2), "describe": round(t_describe - t_read, 2),
                                 "graded_cloud": round(t_graded, 2), "total": round(time.perf_counter() - t0, 2),

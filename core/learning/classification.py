@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..change.detectability import of_building
 from ..change.pipeline import (
     BuildingRow,
     PipelineSettings,
@@ -191,7 +192,8 @@ def predict_rows(rows, model: DamageModel, rule: bool | None = None) -> list:
 
     rule: decide buildings without changed points without asking the model (the paper's
     rule); None: as the model was trained (`model.no_change_rule`; True for every model
-    file written before the switch existed)."""
+    file written before the switch existed). Every assessed building carries what its data
+    could resolve (`quakescan.change.detectability.of_building`), where its row says."""
     from ..results.writers import BuildingResult
 
     rule = model.no_change_rule if rule is None else bool(rule)
@@ -205,6 +207,10 @@ def predict_rows(rows, model: DamageModel, rule: bool | None = None) -> list:
         # the paper's share of changed points, or for a surface model its share of changed surface
         share = float(r.descriptors.get("share_changed", r.descriptors.get("m_changed", 0.0)))
         res = BuildingResult(r.building_id, r.n_pre, r.n_post, True, "", share_changed=share)
+        seen = of_building(r.quality)
+        if seen is not None:
+            res.detectable_grade, res.min_opening_m2, res.min_lowering_m = (seen.detectable_grade,
+                                                                            seen.min_opening_m2, seen.min_lowering_m)
         if rule and share == 0.0:
             res.grade = 0
             res.probabilities = {c: float(c == 0) for c in grades}
@@ -297,6 +303,7 @@ def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=N
     for r in res:
         counts[r.label] = counts.get(r.label, 0) + 1
     summary.update({"buildings": len(res), "by_label": counts, "by_grade_name": counts_by_grade_name(res),
+                    "detectability": detectability_counts(res),
                     "resumed_buildings": resumed,
                     "seconds": {"read": round(t_read - t0, 2), "describe": round(t_describe - t_read, 2),
                                 "graded_cloud": round(t_graded, 2), "total": round(time.perf_counter() - t0, 2)}})
@@ -343,6 +350,22 @@ def counts_by_grade_name(res) -> dict:
     if missing:
         out[NOT_ASSESSABLE] = missing
     return out
+
+
+def detectability_counts(res) -> dict:
+    """What the summary says of the assessed buildings' detectability
+    (`quakescan.change.detectability`): how many graded 0 cannot resolve heavy damage (the
+    maps hatch them), and how many resolve each lowest grade ("none": no grade 3-5;
+    "unknown": no detectability, e.g. a model without surface descriptors)."""
+    assessed = [r for r in res if r.assessable and r.grade is not None]
+    by: dict[str, int] = {}
+    for r in assessed:
+        key = ("unknown" if r.min_opening_m2 is None else
+               "none" if r.detectable_grade is None else str(int(r.detectable_grade)))
+        by[key] = by.get(key, 0) + 1
+    order = ["3", "4", "5", "none", "unknown"]
+    return {"no_damage_heavy_unresolved": sum(1 for r in assessed if r.heavy_unresolved),
+            "by_detectable_grade": {k: by[k] for k in order if k in by}}
 
 
 # Epochs whose stable ground disagrees by more than this share of the model's level of

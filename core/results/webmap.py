@@ -17,6 +17,8 @@ from pathlib import Path
 from ..grades import grade_name, long_label, short_name
 from ..runtime.atomic import write_text
 from .writers import (
+    HATCH_COLOUR,
+    HEAVY_UNRESOLVED,
     NOT_ASSESSABLE,
     NOT_ASSESSABLE_COLOUR,
     _sorted,
@@ -66,12 +68,27 @@ def _popup(r, classes, centre, own_id) -> str:
             lines.append(row("decided by", r.decided_by))
         if r.share_changed is not None:
             lines.append(row("share changed", f"{100 * r.share_changed:.1f} %"))
+        lines += _detectability_rows(r, row)
     lines.append(row("points pre / post", f"{int(r.n_pre)} / {int(r.n_post)}"))
     if r.reason:
         lines.append(row("not assessable because", r.reason))
     if centre is not None:
         lines.append(row("centre (E, N)", f"{centre[0]:.1f}, {centre[1]:.1f}"))
     return "<table class='qs-popup'>" + "".join(lines) + "</table>"
+
+
+def _detectability_rows(r, row) -> list[str]:
+    """What the building's data could resolve (quakescan.change.detectability), as popup rows."""
+    if r.min_opening_m2 is None:
+        return []
+    lowest = long_label(r.detectable_grade) if r.detectable_grade is not None else "none of grades 3-5"
+    opening = f"{r.min_opening_m2:.1f} m²" if math.isfinite(r.min_opening_m2) else "none (an epoch has no points)"
+    out = [row("lowest grade resolvable", lowest), row("smallest opening resolvable", opening)]
+    if r.min_lowering_m is not None:
+        out.append(row("smallest lowering resolvable", f"{r.min_lowering_m:.2f} m"))
+    if r.heavy_unresolved:
+        out.append(row("note", HEAVY_UNRESOLVED))
+    return out
 
 
 def map_features(rows, outlines: dict, classes, origin_xy, own_ids: dict | None = None) -> list[dict]:
@@ -94,6 +111,7 @@ def map_features(rows, outlines: dict, classes, origin_xy, own_ids: dict | None 
                       "properties": {"id": bid, "grade": int(r.grade) if ok else None,
                                      "name": grade_name(r.grade) if ok else NOT_ASSESSABLE,
                                      "colour": colour_of(r.grade if ok else None),
+                                     "hatched": r.heavy_unresolved,
                                      "label": bid in labels,
                                      "popup": _popup(r, classes, (at.x, at.y),
                                                      None if not own_ids else own_ids.get(bid))}})
@@ -111,6 +129,10 @@ def legend_entries(rows) -> list[dict]:
     if counts.get(None):
         out.append({"colour": NOT_ASSESSABLE_COLOUR, "text": NOT_ASSESSABLE, "short": NOT_ASSESSABLE,
                     "count": counts[None]})
+    unresolved = sum(1 for r in rows if r.heavy_unresolved)
+    if unresolved:  # right under "0 no damage", which these buildings are counted in too
+        out.insert(1, {"colour": colour_of(0), "text": HEAVY_UNRESOLVED, "short": HEAVY_UNRESOLVED,
+                       "count": unresolved, "hatched": True})
     return out
 
 
@@ -137,9 +159,15 @@ html, body {{ height: 100%; margin: 0; font: 13px/1.35 sans-serif; }}
 .qs-id {{ background: rgba(255,255,255,0.75); border: none; box-shadow: none; padding: 0 2px;
          font-size: 11px; }}
 .qs-popup th {{ text-align: left; padding-right: 8px; font-weight: 600; vertical-align: top; }}
+.qs-legend i.qs-hatch {{ background: {hatch_css}; }}
 </style>
 </head>
 <body>
+<!-- the fill of buildings graded 0 whose data cannot resolve heavy damage (Leaflet draws SVG) -->
+<svg width="0" height="0" style="position: absolute" aria-hidden="true"><defs>
+<pattern id="qs-hatch" patternUnits="userSpaceOnUse" width="8" height="8" patternTransform="rotate(45)">
+<rect width="8" height="8" fill="{no_damage}"></rect><rect width="3" height="8" fill="{hatch}"></rect>
+</pattern></defs></svg>
 <div id="map" data-expected-features="{n_features}"></div>
 <script>
 {leaflet_js}
@@ -150,8 +178,9 @@ html, body {{ height: 100%; margin: 0; font: 13px/1.35 sans-serif; }}
   var map = L.map("map", {{crs: L.CRS.Simple, minZoom: -6, maxZoom: 6, zoomSnap: 0.25, attributionControl: false}});
   var layer = L.geoJSON(data.features, {{
     style: function (f) {{
-      return {{color: "#333333", weight: 1, fillColor: f.properties.colour, fillOpacity: 0.9,
-               className: "qs-building"}};
+      var p = f.properties;
+      return {{color: "#333333", weight: 1, fillColor: p.hatched ? "url(#qs-hatch)" : p.colour, fillOpacity: 0.9,
+               className: p.hatched ? "qs-building qs-heavy-unresolved" : "qs-building"}};
     }},
     onEachFeature: function (f, l) {{
       l.bindPopup(f.properties.popup, {{maxWidth: 420}});
@@ -170,7 +199,8 @@ html, body {{ height: 100%; margin: 0; font: 13px/1.35 sans-serif; }}
     var d = L.DomUtil.create("div", "qs-box qs-legend");
     var h = "<h4>EMS-98 grade (" + data.buildings + " buildings)</h4>";
     data.legend.forEach(function (e) {{
-      h += "<div><i style='background:" + e.colour + "'></i>" + e.text + ": " + e.count + "</div>";
+      h += "<div><i" + (e.hatched ? " class='qs-hatch'" : " style='background:" + e.colour + "'") + "></i>"
+        + e.text + ": " + e.count + "</div>";
     }});
     d.innerHTML = h;
     return d;
@@ -208,8 +238,9 @@ html, body {{ height: 100%; margin: 0; font: 13px/1.35 sans-serif; }}
 def write_map_html(rows, outlines: dict, path, title: str, crs: str | None, classes,
                    own_ids: dict | None = None) -> None:
     """A self-contained HTML map: building outlines coloured by grade (the PNG's colours),
+    striped (an SVG pattern) where a building graded 0 cannot resolve heavy damage,
     a popup per building (ID, grade with its EMS-98 name, class probabilities, confidence,
-    point counts, the reason when not assessable), permanent ID labels as on the PNG, a
+    what its data could resolve, point counts, the reason when not assessable), permanent ID labels as on the PNG, a
     legend with counts, a scale bar and the CRS. Buildings without outline are counted in
     the legend but not drawn."""
     classes = [int(c) for c in classes]
@@ -223,7 +254,8 @@ def write_map_html(rows, outlines: dict, path, title: str, crs: str | None, clas
     page = _PAGE.format(title=html.escape(title), leaflet_version=LEAFLET_VERSION,
                         leaflet_css=_vendored("leaflet.css"), leaflet_js=_vendored("leaflet.js"),
                         data=_script_safe(json.dumps(data, separators=(",", ":"), allow_nan=False)),
-                        n_features=len(feats),
+                        n_features=len(feats), no_damage=colour_of(0), hatch=HATCH_COLOUR,
+                        hatch_css=f"repeating-linear-gradient(45deg, {HATCH_COLOUR} 0 2px, {colour_of(0)} 2px 6px)",
                         leaflet_license=_vendored("LEAFLET_LICENSE").replace("--", "- -"))
     write_text(path, page)
 

@@ -42,7 +42,12 @@ _FIXED = ["building_id", "assessable", "predicted_grade", "label"]
 _TAIL = ["share_changed", "n_pre", "n_post", "decided_by", "reason"]
 # Columns added after the first files: written after all others, optional on reading, so
 # readers that look columns up by name (quakescan.results.evaluation, read_csv) take old and new files.
-_ADDED = ["confidence", "grade_name"]
+_ADDED = ["confidence", "grade_name", "detectable_grade", "min_opening_m2", "min_lowering_m"]
+# Buildings graded 0 whose data cannot resolve heavy damage (`quakescan.change.detectability`):
+# hatched on both maps, with this legend entry
+HEAVY_UNRESOLVED = "no damage seen; heavy damage not resolvable here"
+HATCH = "////"  # the PNG map's hatch of those buildings (matplotlib)
+HATCH_COLOUR = "#333333"  # the outlines' colour: dark stripes on the green of "no damage"
 
 
 @dataclass
@@ -59,6 +64,21 @@ class BuildingResult:
     # probability of the predicted grade (DamageModel.confidence); 1.0 when decided by rule,
     # None when not assessable
     confidence: float | None = None
+    # what the building's data could resolve (quakescan.change.detectability): the lowest
+    # grade among 3, 4, 5 (None: none of them, or unknown), the smallest roof opening (m²; None:
+    # unknown, e.g. not assessable) and lowering (m; None: unknown)
+    detectable_grade: int | None = None
+    min_opening_m2: float | None = None
+    min_lowering_m: float | None = None
+
+    @property
+    def heavy_unresolved(self) -> bool:
+        """Graded 0 on data that cannot resolve heavy damage: "no damage" excludes nothing
+        below the lowest grade it resolves (hatched on the maps, counted in the summary)."""
+        from ..change.detectability import heavy_unresolved
+
+        ok = self.assessable and self.grade is not None
+        return heavy_unresolved(self.grade if ok else None, self.detectable_grade, self.min_opening_m2)
 
     @property
     def label(self) -> str:
@@ -110,6 +130,9 @@ def _sorted(rows) -> list[BuildingResult]:
 
 # ---------------------------------------------------------------------------------------- CSV
 
+_FLOATS = ("share_changed", "min_opening_m2", "min_lowering_m")  # written with `_fmt`, empty when None
+
+
 def csv_columns(classes) -> list[str]:
     return _FIXED + [f"p_{int(c)}" for c in classes] + _TAIL + _ADDED
 
@@ -127,7 +150,17 @@ def _record(r: BuildingResult, classes) -> dict:
                 "reason": r.reason or "",
                 "confidence": float(r.confidence) if ok and r.confidence is not None else None,
                 "grade_name": r.grade_name})
+    known = ok and r.min_opening_m2 is not None  # detectability of an assessed building only
+    rec.update({"detectable_grade": int(r.detectable_grade) if known and r.detectable_grade is not None else None,
+                "min_opening_m2": float(r.min_opening_m2) if known else None,
+                "min_lowering_m": float(r.min_lowering_m) if known and r.min_lowering_m is not None else None})
     return rec
+
+
+def _json_number(v):
+    """JSON has no infinity: an opening no size resolves (an epoch without points over the
+    building) is null in the GeoJSON, "inf" in the CSV."""
+    return None if isinstance(v, float) and not math.isfinite(v) else v
 
 
 def write_csv(rows, path, classes, own_ids: dict | None = None) -> None:
@@ -135,7 +168,11 @@ def write_csv(rows, path, classes, own_ids: dict | None = None) -> None:
     predicted_grade (empty when not assessable), label, p_<grade> per model class (empty when
     not assessable), share_changed, n_pre, n_post, decided_by, reason, confidence (probability
     of the predicted grade; empty when not assessable), grade_name (EMS-98 name, quakescan.grades;
-    "not assessable" without a grade). `quakescan.results.evaluation` reads it. `own_ids`
+    "not assessable" without a grade), detectable_grade (the lowest of 3, 4, 5 the building's
+    data resolve; empty when they resolve none, or when min_opening_m2 is empty too: unknown),
+    min_opening_m2 and min_lowering_m (the smallest roof opening and lowering they resolve;
+    empty when unknown: not assessable, no surface descriptors, or no comparable core point
+    for the lowering). `quakescan.results.evaluation` reads it. `own_ids`
     ({building_id: footprint ID}, for footprints whose IDs are text) adds a last column
     `footprint_id`."""
     classes = [int(c) for c in classes]
@@ -149,7 +186,7 @@ def write_csv(rows, path, classes, own_ids: dict | None = None) -> None:
                 v = rec[col]
                 if col == "assessable":
                     line.append("1" if v else "0")
-                elif isinstance(v, float) or (col.startswith("p_") and v is None) or col == "share_changed":
+                elif isinstance(v, float) or (col.startswith("p_") and v is None) or col in _FLOATS:
                     line.append(_fmt(v))
                 else:
                     line.append("" if v is None else str(v))
@@ -192,10 +229,15 @@ def read_csv(path) -> list[BuildingResult]:
             probs = {k: float(d[c]) for c, k in pcols.items() if d[c].strip()} if ok else {}
             share = d["share_changed"].strip()
             conf = (d.get("confidence") or "").strip()
+            resolved, opening, lowering = ((d.get(c) or "").strip() for c in
+                                           ("detectable_grade", "min_opening_m2", "min_lowering_m"))
             out.append(BuildingResult(int(d["building_id"]), int(d["n_pre"]), int(d["n_post"]), ok,
                                       d["reason"], int(g) if ok and g else None, probs,
                                       float(share) if share else None, d["decided_by"],
-                                      float(conf) if ok and conf else None))
+                                      float(conf) if ok and conf else None,
+                                      int(resolved) if ok and resolved else None,
+                                      float(opening) if ok and opening else None,
+                                      float(lowering) if ok and lowering else None))
         except (ValueError, AttributeError) as e:
             raise ResultsError(f"{path}: line {i}: {e}") from None
     return out
@@ -315,7 +357,7 @@ def write_geojson(rows, outlines: dict, path, crs: str | None, classes, attribut
     classes = [int(c) for c in classes]
     feats = []
     for r in _sorted(rows):
-        props = _record(r, classes)
+        props = {k: _json_number(v) for k, v in _record(r, classes).items()}
         o = outlines.get(int(r.building_id))
         geom = None
         if o is not None:
@@ -483,7 +525,7 @@ def _draw_map(rows, outlines: dict, title: str, points_xy=None, crs: str | None 
             pts = pts[(pts[:, 0] >= x0) & (pts[:, 0] <= x1) & (pts[:, 1] >= y0) & (pts[:, 1] <= y1)]
         ax.scatter(pts[:, 0], pts[:, 1], s=2.0, c=BACKGROUND_COLOUR, marker=".", linewidths=0,
                    rasterized=True, zorder=1)
-    paths, colours = [], []
+    paths, colours, unresolved = [], [], []
     counts: dict = {}
     for r in _sorted(rows):
         key = int(r.grade) if r.assessable and r.grade is not None else None
@@ -493,9 +535,16 @@ def _draw_map(rows, outlines: dict, title: str, points_xy=None, crs: str | None 
         if p is not None:
             paths.append(p)
             colours.append(colour_of(key))
+            if r.heavy_unresolved:
+                unresolved.append(p)
     if paths:
         ax.add_collection(PathCollection(paths, facecolors=colours, edgecolors="#333333", linewidths=0.4,
                                          zorder=2))
+    if unresolved:  # over their green fill: hatching is one setting of a whole collection
+        hatched = PathCollection(unresolved, facecolors="none", edgecolors=HATCH_COLOUR, linewidths=0.0,
+                                 hatch=HATCH, zorder=2.1)
+        hatched.set_gid("heavy-unresolved")
+        ax.add_collection(hatched)
     if frame is not None:
         ax.set_xlim(frame[0], frame[2])
         ax.set_ylim(frame[1], frame[3])
@@ -531,6 +580,10 @@ def _draw_map(rows, outlines: dict, title: str, points_xy=None, crs: str | None 
     shown = [0, 3, 4, 5] + sorted(k for k in counts if k is not None and k not in (0, 3, 4, 5))
     handles = [Patch(facecolor=colour_of(g), edgecolor="#333333", label=f"{long_label(g)}: {counts.get(g, 0)}")
                for g in shown]
+    n_unresolved = sum(1 for r in rows if r.heavy_unresolved)
+    if n_unresolved:  # right under "0 no damage", which these buildings are counted in too
+        handles.insert(1, Patch(facecolor=colour_of(0), edgecolor=HATCH_COLOUR, hatch=HATCH, linewidth=0.0,
+                                label=f"{HEAVY_UNRESOLVED}: {n_unresolved}"))
     if counts.get(None):
         handles.append(Patch(facecolor=NOT_ASSESSABLE_COLOUR, edgecolor="#333333",
                              label=f"{NOT_ASSESSABLE}: {counts[None]}"))
@@ -542,6 +595,7 @@ def _draw_map(rows, outlines: dict, title: str, points_xy=None, crs: str | None 
 def write_map_png(rows, outlines: dict, path, title: str, points_xy=None, crs: str | None = None) -> None:
     """A PNG map framed on the buildings (their outlines plus a margin, `map_frame`):
     outlines filled by grade colour (green / yellow / orange / red; grey = not assessable),
+    hatched where a building graded 0 cannot resolve heavy damage (`HEAVY_UNRESOLVED`),
     building IDs on them (all when few, else the damaged and not assessable: `labelled_ids`;
     as many as can be read, the worst grade first: `legible_labels`),
     a legend with the EMS-98 name and count per class, a scale bar, the CRS, equal aspect,
@@ -747,6 +801,6 @@ def _format7(src):
     return src.points
 
 
-__all__ = ["BACKGROUND_COLOUR", "BuildingResult", "GRADE_COLOURS", "GRADE_NONE", "NOT_ASSESSABLE",
-           "NOT_ASSESSABLE_COLOUR", "Outline", "ResultsError", "building_outlines", "colour_of", "read_csv",
-           "write_csv", "write_geojson", "write_grade_las", "write_grade_las_streamed", "write_map_png"]
+__all__ = ["BACKGROUND_COLOUR", "BuildingResult", "GRADE_COLOURS", "GRADE_NONE", "HEAVY_UNRESOLVED",
+           "NOT_ASSESSABLE", "NOT_ASSESSABLE_COLOUR", "Outline", "ResultsError", "building_outlines", "colour_of",
+           "read_csv", "write_csv", "write_geojson", "write_grade_las", "write_grade_las_streamed", "write_map_png"]
