@@ -77,14 +77,15 @@ def test_confidence_comes_after_the_first_columns_and_old_files_still_read(tmp_p
     confidence column) reads as before, with confidence empty, in read_csv and evaluate."""
     first = ["building_id", "assessable", "predicted_grade", "label", "p_0", "p_3", "p_4", "p_5",
              "share_changed", "n_pre", "n_post", "decided_by", "reason"]
-    assert R.csv_columns(CLASSES) == first + ["confidence", "grade_name"]
+    added = ["confidence", "grade_name", "detectable_grade", "min_opening_m2", "min_lowering_m"]
+    assert R.csv_columns(CLASSES) == first + added
     path = tmp_path / "buildings.csv"
     R.write_csv(_rows(), path, CLASSES)
     old = tmp_path / "old.csv"
     with open(path, newline="") as f, open(old, "w", newline="") as g:
         w = csv.writer(g, lineterminator="\n")
         for line in csv.reader(f):
-            w.writerow(line[:-2])
+            w.writerow(line[:-len(added)])
     back = R.read_csv(old)
     assert [r.confidence for r in back] == [None] * 4 and [r.grade for r in back] == [None, 0, 4, 5]
     truth = tmp_path / "truth.csv"
