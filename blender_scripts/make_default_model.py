@@ -48,16 +48,24 @@ def main(argv=None) -> int:
     p.add_argument("--keep-clouds", action="store_true",
                    help="keep the training clouds (27 GB for the large plan; by default each is removed once "
                    "its pairs are described: the tables are what the model is made from)")
+    p.add_argument("--real-data", default=str(REPO.parent / "shared" / "data"),
+                   help="folder of the real archives whose points get injected damage for training "
+                   "(quakescan.learning.realset; default ../shared/data; skipped where absent)")
+    p.add_argument("--no-real", action="store_true", help="simulated training rows only")
     p.add_argument("-o", "--output", default=str(DEFAULT_MODEL))
     a = p.parse_args(argv)
     # the library logs its stage messages (training set, classifier comparison) to quakescan.stages
     logging.basicConfig(level=logging.WARNING, format="%(message)s")
     logging.getLogger("quakescan.stages").setLevel(logging.INFO)
     t0 = time.perf_counter()
+    real_data = None if a.no_real or not Path(a.real_data).is_dir() else Path(a.real_data)
+    if real_data is None and not a.no_real:
+        print(f"warning: {a.real_data} is absent: the model is trained on simulated rows only", file=sys.stderr)
     command = "python blender_scripts/make_default_model.py " + shlex.join(argv if argv is not None else sys.argv[1:])
     model, scores, table = make_default_model(Path(a.work), Path(a.output), seed=a.seed, size=a.size,
                                               scenes=a.scenes, damage=a.damage, small=a.small, workers=a.threads,
-                                              command=command.strip(), keep_clouds=a.keep_clouds)
+                                              command=command.strip(), keep_clouds=a.keep_clouds,
+                                              real_data=real_data)
     print(f"{len(table.y)} building rows; {model.provenance['classifier_selection']['chosen']}: cross-validated "
           f"overall accuracy {100 * model.provenance['test_overall_accuracy']:.1f} %; {time.perf_counter() - t0:.0f} s")
     return 0

@@ -73,6 +73,13 @@ there (`M3C2Result.displaced`), or when its surface is lost: no post-event point
   comparable core points (0 when none); `m_lod_median`: the typical level of detection
   (how noisy the pair is, so the classifier can discount noise it has seen in training).
 
+**Openings per return** (`quakescan.change.openings`, `o_fallen*`): post-event returns more than
+`SEE_THROUGH_M` below every pre-event return within a radius that holds three pre-event returns
+at the building's density, against the same count with the epochs swapped, and how what fell
+is laid out (one region or scattered openings; down to the ground or to the storey below).
+They see the handful of returns an airborne archive puts into a roof opening, which the
+raster cells and patch sizes above never fill.
+
 The building's ground is the 10th percentile of the pre-event ground points (ASPRS 2)
 within `ground_search_m` of it, or the 2nd percentile of all pre-event points there when
 the cloud has no ground class.
@@ -88,6 +95,7 @@ from ..errors import QuakeScanError
 from ._cell_kernels import column_bounds, row_bounds, stable_order
 from .detectability import min_lowering_m
 from .m3c2 import ColumnGrid, M3C2Settings, cylinder_radius, m3c2, orient_normals, voxel_core_points
+from .openings import OPENING_DESCRIPTORS
 
 GROUND_CLASS = 2
 # cells are numbered apart by this many metres of height when their points are ordered by cell
@@ -97,7 +105,7 @@ _BAND_STRIDE_M = 1.0e4
 LOWER_SURFACE_SHARE = 0.2
 # Bumped whenever a descriptor's computation changes: cached training tables made with another
 # version are not reused (quakescan.learning.trainset), and a model records the version it was trained on.
-DESCRIPTOR_VERSION = 16
+DESCRIPTOR_VERSION = 17
 RASTER_DESCRIPTORS = ("s_lowered_1m", "s_lowered_storey", "s_lowered_half", "s_raised", "s_volume_loss",
                       "s_volume_gain", "s_height_ratio_mean", "s_height_ratio_p10", "s_post_gap",
                       "s_debris_ring", "s_debris_volume", "s_see_through", "s_interior_seen")
@@ -121,7 +129,7 @@ CORE_DESCRIPTORS = ("m_changed", "m_lost", "m_roof_changed", "m_wall_changed", "
                     "m_upper_changed",
                     "m_lower_changed", "m_inward", "m_outward", "m_coherent", "m_largest_patch", "m_distance_p10",
                     "m_distance_median", "m_distance_p90", "m_lod_median")
-SURFACE_DESCRIPTORS = RASTER_DESCRIPTORS + CORE_DESCRIPTORS
+SURFACE_DESCRIPTORS = RASTER_DESCRIPTORS + CORE_DESCRIPTORS + OPENING_DESCRIPTORS
 
 
 class SurfaceError(QuakeScanError):
@@ -480,6 +488,7 @@ def describe_surfaces(pre_xyz: np.ndarray, pre_bid: np.ndarray, pre_ground: np.n
         descriptors[bid], edge_keys = _raster(pre_key[idx], own_tops, pre_tops, post_tops, building_keys, ground,
                                               n3, ring_offsets, settings, c, width)
         descriptors[bid]["s_interior_seen"] = interior.share(pre_xyz[idx], settings.min_patch_cells)
+        descriptors[bid].update(_openings(pre_xyz[idx], pre_key[idx], interior, ground, lo, c, width, settings))
         if quality:
             cells = np.unique(pre_key[idx])
             inside = np.isin(post_key, cells)
@@ -592,6 +601,22 @@ class _InteriorView:
         missed = chance_missed(patches * f * f, planimetric_density(own_xyz))
         kept = int(patches[(patches >= min_patch_cells) & (missed < MISSED_CHANCE)].sum())
         return kept / int(footprint.sum())
+
+
+def _openings(own: np.ndarray, own_keys: np.ndarray, interior: _InteriorView, ground: float, lo, c: float,
+              width: int, settings: SurfaceSettings) -> dict:
+    """`quakescan.change.openings` of one building from the returns around it: the pre-event
+    density of its own returns, the post-event density of the returns over its cells."""
+    from .openings import OPENING_REACH_M, opening_descriptors
+
+    own_lo, own_hi = row_bounds(own[:, :2])
+    pre = interior.pre.in_box(own_lo - OPENING_REACH_M, own_hi + OPENING_REACH_M)
+    post = interior.post.in_box(own_lo - OPENING_REACH_M, own_hi + OPENING_REACH_M)
+    keys = (np.floor((post[:, 0] - lo[0]) / c).astype(np.int64) * width
+            + np.floor((post[:, 1] - lo[1]) / c).astype(np.int64))
+    over = np.isin(keys, np.unique(own_keys))
+    d_post = planimetric_density(post[over]) if over.any() else 0.0
+    return opening_descriptors(own, pre, post, ground, planimetric_density(own), d_post, settings.min_share)
 
 
 def chance_missed(area_m2, pre_density: float):

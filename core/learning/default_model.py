@@ -74,7 +74,7 @@ COVERAGE_QUANTILE = 0.001
 # is damaged teaches it to guess from the faintest noise; they are left out of training, and
 # on real data such a building can only be "no visible damage" anyway.
 EVIDENCE = ("s_lowered_1m", "s_volume_loss", "s_raised", "s_debris_ring", "s_see_through", "s_interior_seen",
-            "m_changed", "m_holes", "m_largest_patch")
+            "m_changed", "m_holes", "m_largest_patch", "o_fallen_excess")
 
 
 def visible_damage(table) -> np.ndarray:
@@ -236,15 +236,25 @@ def transfer_training_table(work: Path, *, seed: int = 0, size: str = "full", sc
 @accepts_old_say
 def make_default_model(work: Path, output: Path, *, seed: int = 0, size: str = "full", scenes: str = "both",
                        damage: str = "both", small: bool = False, workers: int = -1,
-                       command: str = "", keep_clouds: bool = False):
+                       command: str = "", keep_clouds: bool = False, real_data: Path | None = None):
     """Build the training set under `work`, choose and fit the classifier, write `output`.
     The training clouds are removed once described unless `keep_clouds` (the tables are what
-    the model is made from; the large plan's clouds fill 27 GB)."""
+    the model is made from; the large plan's clouds fill 27 GB). `real_data`: the folder of
+    the real archives of `quakescan.learning.realset` (damage injected into their points, rows
+    repeated `REAL_REPEAT` times); None: simulated rows only."""
     from .model import save_model
 
     t0 = time.perf_counter()
     plan, table = transfer_training_table(work, seed=seed, size=size, scenes=scenes, damage=damage, small=small,
                                           workers=workers, keep_clouds=keep_clouds)
+    real_pairs = []
+    if real_data is not None:
+        from .realset import REAL_PLAN, REAL_REPEAT, append_tables, real_table
+
+        stage_log.info(f"real points: {len(REAL_PLAN)} pairs with damage injected (quakescan.learning.realset)")
+        table = append_tables(table, real_table(Path(work) / "realset", Path(real_data), TABLE_SETTINGS,
+                                                workers=workers, repeat=REAL_REPEAT))
+        real_pairs = [p.name for p in REAL_PLAN]
     full = model_columns(table)
     table = training_rows(full)
     stage_log.info(f"{len(full.y) - len(table.y)} of {len(full.y)} rows left out: damage their acquisition did not see")
@@ -260,6 +270,13 @@ def make_default_model(work: Path, output: Path, *, seed: int = 0, size: str = "
     model.provenance["scenes"] = scenes
     model.provenance["damage"] = damage
     model.provenance["small_buildings"] = small
+    if real_pairs:
+        from .realset import REAL_REPEAT
+
+        model.provenance["real_points"] = {"pairs": real_pairs, "repeat": REAL_REPEAT,
+                                           "rows": int(sum(c in real_pairs for c in table.pair_city)),
+                                           "how": "damage injected into real archives by quakescan inject "
+                                                  "(quakescan.learning.realset); AHN3 tile 1 never"}
     model.provenance["rows_left_out"] = {"count": int(len(full.y) - len(table.y)), "of": int(len(full.y)),
                                          "why": "labelled damaged, but no change seen in any of " + ", ".join(EVIDENCE)}
     output = Path(output)

@@ -1,0 +1,189 @@
+"""Openings seen through a roof at any density, and how what came down is laid out.
+
+An airborne archive at 4 pts/m² puts a handful of returns into each roof opening of a
+square metre or two. The raster descriptors of `quakescan.change.surface` need cells, insets
+and patch sizes that such a handful never fills; this module asks the question per return:
+
+**A post-event return has fallen** when it lies more than `SEE_THROUGH_M` below every
+pre-event return within `r` of it, and at least one pre-event return lies within `r` (the
+place was seen before). `r` is set by the pre-event density so that the disc holds
+`EXPECTED_NEIGHBOURS` pre-event returns on average: `pi r² d = K`, `r = sqrt(K / (pi d))`
+(at least `MIN_RADIUS_M`). Then the chance that the pre-event epoch had a surface there but
+put no return on it, which alone makes an unchanged surface look fallen, is the same at every
+density: `exp(-K · a)` for a lower surface covering a share `a` of the disc (Poisson sampling).
+
+**The same question with the epochs swapped** (a pre-event return below every post-event
+return within the post-event `r`) measures that chance on the building itself: on an
+unchanged building both epochs sample the same surfaces and the two shares agree (exactly
+in distribution for random halves of one acquisition); a light well, a terrace, a lower roof
+part inside the outline give both. Damage that opens a roof gives only the first.
+
+Only returns at least `INSET_M` inside the building's outline count (a wall seen by an
+oblique pulse lies on the outline), and only **coherent** ones: a fallen return with another
+fallen return within two post-event point spacings. A stray return (a bird, a multipath
+echo) is alone; what is seen through an opening is areal.
+
+Descriptors (shares are of the building's inner returns; lengths never enter):
+
+- `o_fallen`: share of inner post-event returns fallen (coherent);
+- `o_fallen_null`: the same with the epochs swapped;
+- `o_fallen_excess`: the fallen share beyond what the null explains at 99 % (one-sided
+  binomial bound: `k/n - p0 - z sqrt(p0 (1 - p0) / n)`, `p0` the null share and at least one
+  return in `n`), 0 when not beyond;
+- `o_fallen_ground`: share of the fallen returns within `GROUND_BAND_M` of the ground: a
+  collapse brings the roof down to the ground, an opening shows the storey below;
+- `o_fallen_largest`: the largest patch of fallen returns (cells of 1.5 post-event spacings,
+  8-connected) as a share of the inner returns: one contiguous collapse against many openings;
+- `o_fallen_scatter`: the share of the fallen returns outside the largest patch: 0 for one
+  contiguous region, towards 1 for scattered openings with the roof standing between them.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+OPENING_DESCRIPTORS = ("o_fallen", "o_fallen_null", "o_fallen_excess", "o_fallen_ground", "o_fallen_largest",
+                       "o_fallen_scatter")
+SEE_THROUGH_M = 1.0
+EXPECTED_NEIGHBOURS = 3.0
+MIN_RADIUS_M = 0.5
+MAX_NEIGHBOURS = 24
+INSET_M = 0.75
+# the returns of both epochs read around a building: its neighbourhood radius at the sparsest densities
+OPENING_REACH_M = 3.0
+OUTLINE_CELL_M = 0.5
+GROUND_BAND_M = 1.5
+# one-sided 99 % normal quantile of the binomial bound
+Z_99 = 2.326
+
+
+def neighbourhood_radius(density: float) -> float:
+    """`r` with EXPECTED_NEIGHBOURS returns expected within it at `density` pts/m²."""
+    if not (math.isfinite(density) and density > 0):
+        return MIN_RADIUS_M
+    return max(MIN_RADIUS_M, math.sqrt(EXPECTED_NEIGHBOURS / (math.pi * density)))
+
+
+def sampling_floor() -> float:
+    """The closed-form chance that a return on a surface the other epoch saw falls for want of
+    the other epoch's returns on it: exp(-K)."""
+    return math.exp(-EXPECTED_NEIGHBOURS)
+
+
+def spacing(density: float) -> float:
+    return 1.0 / math.sqrt(density) if math.isfinite(density) and density > 0 else 1.0
+
+
+def zeros() -> dict:
+    return {n: 0.0 for n in OPENING_DESCRIPTORS}
+
+
+def opening_descriptors(own_pre: np.ndarray, pre: np.ndarray, post: np.ndarray, ground_z: float,
+                        density_pre: float, density_post: float, min_share: float = 0.0) -> dict:
+    """The descriptors above for one building: `own_pre` its pre-event returns (footprint),
+    `pre` / `post` every return of each epoch around it (local frame, float64)."""
+    from scipy import ndimage
+
+    out = zeros()
+    if len(own_pre) == 0 or len(post) == 0:
+        return out
+    inner, lo, f = _inner_mask(own_pre, density_pre)
+    if not inner.any():
+        return out
+    post_in = _inside(post, inner, lo, f, ground_z)
+    pre_in = _inside(pre, inner, lo, f, ground_z)
+    if len(post_in) == 0:
+        return out
+    fallen = _fallen(post_in, pre, neighbourhood_radius(density_pre))
+    fallen &= _coherent(post_in[:, :2], fallen, 2.0 * spacing(density_post))
+    swapped = _fallen(pre_in, post, neighbourhood_radius(density_post)) if len(pre_in) else np.zeros(0, bool)
+    if len(pre_in):
+        swapped &= _coherent(pre_in[:, :2], swapped, 2.0 * spacing(density_pre))
+    n, k = len(post_in), int(fallen.sum())
+    share = k / n
+    null = float(swapped.mean()) if len(swapped) else 0.0
+    p0 = max(null, 1.0 / n)  # no building is judged against a null of exactly zero
+    excess = share - p0 - Z_99 * math.sqrt(p0 * (1.0 - p0) / n)
+    out["o_fallen"] = share
+    out["o_fallen_null"] = null
+    out["o_fallen_excess"] = max(0.0, excess)
+    if k:
+        out["o_fallen_ground"] = float(np.mean(post_in[fallen, 2] - ground_z < GROUND_BAND_M))
+        # cells of 1.5 spacings: neighbouring fallen returns of one opening share or touch a cell
+        g = max(OUTLINE_CELL_M, 1.5 * spacing(density_post))
+        cells = np.floor((post_in[fallen, :2] - lo) / g).astype(np.int64)
+        cells -= cells.min(axis=0)
+        grid = np.zeros(tuple(cells.max(axis=0) + 1), np.int32)
+        np.add.at(grid, tuple(cells.T), 1)
+        labels, _ = ndimage.label(grid > 0, np.ones((3, 3), bool))
+        returns = np.bincount(labels.ravel(), weights=grid.ravel())[1:]
+        # measured in returns, not cells: a sparse sampling leaves a share of an opening's cells empty
+        out["o_fallen_largest"] = float(returns.max()) / n
+        out["o_fallen_scatter"] = 1.0 - float(returns.max()) / k
+    if min_share:
+        for name in ("o_fallen_null", "o_fallen_excess", "o_fallen_largest"):
+            if out[name] < min_share:
+                out[name] = 0.0
+        if out["o_fallen"] < min_share:  # no fall at all: nothing to describe the layout of
+            out.update(o_fallen=0.0, o_fallen_excess=0.0, o_fallen_ground=0.0, o_fallen_largest=0.0,
+                       o_fallen_scatter=0.0)
+    return out
+
+
+def _inner_mask(own_pre: np.ndarray, density: float):
+    """Cells (OUTLINE_CELL_M) at least INSET_M inside the outline of the building's pre-event
+    returns (gaps of the sampling closed), and the grid's corner and cell size."""
+    from scipy import ndimage
+
+    f = OUTLINE_CELL_M
+    pad = 4
+    lo = np.floor(own_pre[:, :2].min(axis=0) / f) * f - pad * f
+    shape = tuple(np.floor((own_pre[:, :2].max(axis=0) - lo) / f).astype(int) + pad + 1)
+    grid = np.zeros(shape, bool)
+    ij = np.floor((own_pre[:, :2] - lo) / f).astype(np.int64)
+    grid[tuple(ij.T)] = True
+    reach = max(1, int(math.ceil(spacing(density) / f)))
+    grid = ndimage.binary_closing(grid, np.ones((3, 3), bool), iterations=reach) | grid
+    grid = ndimage.binary_fill_holes(grid)
+    inner = ndimage.distance_transform_edt(grid) * f - 0.5 * f >= INSET_M
+    return inner, lo, f
+
+
+def _inside(xyz: np.ndarray, inner: np.ndarray, lo: np.ndarray, f: float, ground_z: float) -> np.ndarray:
+    ij = np.floor((xyz[:, :2] - lo) / f).astype(np.int64)
+    ok = np.all((ij >= 0) & (ij < np.array(inner.shape)), axis=1)
+    ok[ok] = inner[ij[ok, 0], ij[ok, 1]]
+    ok &= xyz[:, 2] > ground_z - GROUND_BAND_M  # below the ground is noise, not a floor
+    return xyz[ok]
+
+
+def _fallen(query: np.ndarray, reference: np.ndarray, radius: float) -> np.ndarray:
+    """Query returns more than SEE_THROUGH_M below every reference return within `radius`,
+    with at least one there."""
+    from scipy.spatial import cKDTree
+
+    if len(reference) == 0 or len(query) == 0:
+        return np.zeros(len(query), bool)
+    tree = cKDTree(reference[:, :2])
+    k = min(MAX_NEIGHBOURS, len(reference))
+    dist, idx = tree.query(query[:, :2], k=k, distance_upper_bound=radius)
+    dist, idx = dist.reshape(len(query), -1), idx.reshape(len(query), -1)
+    found = np.isfinite(dist)
+    z = np.where(found, reference[np.minimum(idx, len(reference) - 1), 2], np.inf)
+    lowest = z.min(axis=1)
+    return found.any(axis=1) & (query[:, 2] < lowest - SEE_THROUGH_M)
+
+
+def _coherent(xy: np.ndarray, flag: np.ndarray, radius: float) -> np.ndarray:
+    """Flagged returns with another flagged return within `radius`."""
+    from scipy.spatial import cKDTree
+
+    out = np.zeros(len(xy), bool)
+    sel = np.flatnonzero(flag)
+    if len(sel) < 2:
+        return out
+    tree = cKDTree(xy[sel])
+    dist, _ = tree.query(xy[sel], k=2, distance_upper_bound=radius)
+    out[sel] = np.isfinite(dist[:, 1])
+    return out

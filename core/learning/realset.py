@@ -1,0 +1,198 @@
+"""Training rows from real points: damage injected into real archives (`quakescan inject`).
+
+The simulated training set teaches the catalogue's damage on simulated sampling; these rows
+teach it on real sampling: real roofs, real density, real scan pattern and real noise, with
+the catalogue's damage re-cast along the archive's own pulses (`quakescan.injection`).
+
+Sources are real clouds the project may train on: AHN3 tile 2 of Delft with its footprints.
+**AHN3 tile 1 never enters** (it is reserved for evaluation, `bench/bench_real_damage.py`):
+`REAL_PLAN` is checked against `RESERVED` when a table is built. Pairs (`RealPair`), both
+epochs real:
+
+- `halves`: the tile's two random halves (one before, the other after, with damage injected);
+- `thinned`: the whole tile before and a random quarter of it after (an archive at 15
+  pts/m² against a sparse post-event flight), damage injected into the quarter;
+- `rescan`: the halves without damage (real no-change rows: every building grade 0).
+
+Grade mixes, seeds, splits and patterns or rigid-body collapses vary by pair, so no pair
+repeats another's damage. Each pair's rows are cached under WORK/<pair>/ with the fingerprint
+of its inputs, settings and descriptor version; the table of all pairs is a
+`quakescan.learning.trainset.TransferTable` whose "cities" are the sources (a source is held
+out whole in the cross-validation: its buildings' rows of every pair stay on one side).
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import QuakeScanError
+from ..runtime import fingerprint
+from ..runtime.atomic import open_replacing, replacing
+from ..runtime.progress import stage_log
+
+log = logging.getLogger(__name__)
+VERSION = 1
+RESERVED = ("ahn3_cropped_1",)  # evaluation only: never trained or tuned on
+# real rows are few beside the simulated ones (a few hundred against twelve thousand): each is
+# repeated this many times in the shipped model's training table
+REAL_REPEAT = 4
+
+
+class RealSetError(QuakeScanError):
+    """The real-point training rows cannot be built as asked."""
+
+
+@dataclass(frozen=True)
+class RealSource:
+    name: str
+    cloud: str  # file name in the data folder
+    footprints: str
+
+
+@dataclass(frozen=True)
+class RealPair:
+    source: str
+    kind: str  # halves | thinned | rescan
+    split: int  # seed of the random split
+    seed: int  # inject seed
+    mix: tuple = ()  # ((grade, count), ...)
+    damage: str = "patterns"
+    min_points: int = 60
+
+    @property
+    def name(self) -> str:
+        return f"{self.source}_{self.kind}_s{self.split}_i{self.seed}"
+
+
+SOURCES = (RealSource("ahn3_tile2", "ahn3_cropped_2.laz", "ahn3_footprints_rd.geojson"),)
+REAL_PLAN = (
+    RealPair("ahn3_tile2", "halves", 11, 1, ((3, 6), (4, 5), (5, 5))),
+    RealPair("ahn3_tile2", "halves", 12, 2, ((3, 8), (4, 4), (5, 3)), "both"),
+    RealPair("ahn3_tile2", "halves", 13, 3, ((3, 5), (4, 6), (5, 4))),
+    RealPair("ahn3_tile2", "halves", 14, 4, ((3, 7), (4, 4), (5, 4)), "both"),
+    RealPair("ahn3_tile2", "halves", 15, 5, ((3, 10), (4, 3), (5, 2))),
+    RealPair("ahn3_tile2", "thinned", 16, 6, ((3, 6), (4, 5), (5, 5)), min_points=30),
+    RealPair("ahn3_tile2", "thinned", 17, 7, ((3, 8), (4, 4), (5, 3)), "both", min_points=30),
+    RealPair("ahn3_tile2", "rescan", 18, 0),
+    RealPair("ahn3_tile2", "rescan", 19, 0),
+)
+
+
+def check_plan(plan=REAL_PLAN, sources=SOURCES) -> None:
+    by_name = {s.name: s for s in sources}
+    for p in plan:
+        s = by_name.get(p.source)
+        if s is None:
+            raise RealSetError(f"real pair {p.name}: no source {p.source!r}")
+        if any(r in s.cloud for r in RESERVED):
+            raise RealSetError(f"real pair {p.name}: {s.cloud} is reserved for evaluation and never trained on")
+        if p.kind not in ("halves", "thinned", "rescan"):
+            raise RealSetError(f"real pair {p.name}: kind must be halves, thinned or rescan, got {p.kind!r}")
+
+
+def epochs(cloud: Path, pair: RealPair, folder: Path) -> tuple[Path, Path]:
+    """The pair's real pre- and post-event clouds (before injection), written once."""
+    import laspy
+
+    pre, post = folder / "pre.las", folder / "post_real.las"
+    if pre.is_file() and post.is_file():
+        return pre, post
+    las = laspy.read(cloud)
+    n = len(las.points)
+    u = np.random.default_rng(pair.split).random(n)
+    masks = {"halves": (u < 0.5, u >= 0.5), "rescan": (u < 0.5, u >= 0.5),
+             "thinned": (np.ones(n, bool), u < 0.25)}[pair.kind]
+    for path, mask in zip((pre, post), masks):
+        sub = laspy.LasData(las.header)
+        sub.points = las.points[mask]
+        with replacing(path, RealSetError) as tmp:
+            sub.write(tmp)
+    return pre, post
+
+
+def pair_rows(work: Path, data: Path, pair: RealPair, settings, workers: int = -1) -> dict:
+    """x, y, building_id, density, cells of one real pair (cached with its fingerprint)."""
+    from ..change.pipeline import describe_pair, descriptor_matrix
+    from ..change.surface import DESCRIPTOR_VERSION
+    from ..injection.inject import InjectSettings, inject
+    from ..results.evaluation import read_grade_csv, to_target_grade
+    from .classification import load_pair
+
+    source = {s.name: s for s in SOURCES}[pair.source]
+    cloud, footprints = data / source.cloud, data / source.footprints
+    for path in (cloud, footprints):
+        if not path.is_file():
+            raise RealSetError(f"{path}: missing (real pair {pair.name})")
+    folder = work / pair.name
+    table = folder / "rows.npz"
+    fp = fingerprint.make("real-pair", {"cloud": fingerprint.content(cloud), "footprints": fingerprint.content(footprints)},
+                          {"pair": asdict(pair), "pipeline": settings.to_json()},
+                          {"realset": VERSION, "descriptors": DESCRIPTOR_VERSION})
+    if fingerprint.is_current(table, fp):
+        with np.load(table) as d:
+            return {k: d[k] for k in d.files}
+    folder.mkdir(parents=True, exist_ok=True)
+    pre, post = epochs(cloud, pair, folder)
+    if pair.kind == "rescan":
+        post_path, truth = post, {}
+    else:
+        r = inject(post, footprints, folder / "inject",
+                   InjectSettings(seed=pair.seed, grade_mix=dict(pair.mix), damage=pair.damage,
+                                  min_points=pair.min_points))
+        post_path, truth = r.post, read_grade_csv(r.truth, RealSetError)
+    data_pair = load_pair(pre, post_path, footprints_path=footprints)
+    rows = [r for r in describe_pair(data_pair.pre, data_pair.post, settings, workers=workers) if r.assessable]
+    part = {"x": descriptor_matrix(rows, settings.descriptor_names()).reshape(len(rows), -1),
+            "y": to_target_grade(np.array([truth.get(r.building_id, 0) for r in rows], np.int64)),
+            "building_id": np.array([r.building_id for r in rows], np.int64),
+            "density": np.array([[r.quality.get("density_pre", np.nan), r.quality.get("density_post", np.nan)]
+                                 for r in rows], dtype=np.float64).reshape(len(rows), 2),
+            "cells": np.array([r.quality.get("cells", 0) for r in rows], np.int64)}
+    fingerprint.forget(table)
+    with open_replacing(table, "wb", RealSetError) as f:
+        np.savez(f, **part)
+    fingerprint.record(table, fp)
+    return part
+
+
+def real_table(work, data, settings, *, plan=REAL_PLAN, workers: int = -1, repeat: int = 1):
+    """The TransferTable of every pair of `plan` (rows repeated `repeat` times)."""
+    from .trainset import TransferTable
+
+    check_plan(plan)
+    work, data = Path(work), Path(data)
+    names = list(settings.descriptor_names())
+    cities = [s.name for s in SOURCES]
+    parts, city, pair_idx = [], [], []
+    for k, pair in enumerate(plan):
+        stage_log.info(f"real pair {k + 1}/{len(plan)}: {pair.name}")
+        part = pair_rows(work, data, pair, settings, workers=workers)
+        parts.append(part)
+        city.append(np.full(len(part["y"]), cities.index(pair.source), np.int64))
+        pair_idx.append(np.full(len(part["y"]), k, np.int64))
+    cat = {key: np.concatenate([p[key] for p in parts]) for key in ("x", "y", "building_id", "density", "cells")}
+    reps = max(1, int(repeat))
+    tile = (lambda a: np.concatenate([a] * reps)) if reps > 1 else (lambda a: a)
+    return TransferTable(x=tile(cat["x"].reshape(-1, len(names))), y=tile(cat["y"]), names=names,
+                         city=tile(np.concatenate(city)), pair=tile(np.concatenate(pair_idx)),
+                         building_id=tile(cat["building_id"]), density=tile(cat["density"]), cities=cities,
+                         pairs=[p.name for p in plan], sensors=[f"real-{p.kind}" for p in plan],
+                         cells=tile(cat["cells"]))
+
+
+def append_tables(a, b):
+    """Table `b`'s rows after `a`'s, its cities and pairs numbered after a's."""
+    from .trainset import TransferTable
+
+    if a.names != b.names:
+        raise RealSetError("the tables have different descriptor columns")
+    cells = None if a.cells is None or b.cells is None else np.concatenate([a.cells, b.cells])
+    return TransferTable(x=np.vstack([a.x, b.x]), y=np.concatenate([a.y, b.y]), names=list(a.names),
+                         city=np.concatenate([a.city, b.city + len(a.cities)]),
+                         pair=np.concatenate([a.pair, b.pair + len(a.pairs)]),
+                         building_id=np.concatenate([a.building_id, b.building_id]),
+                         density=np.vstack([a.density, b.density]), cities=list(a.cities) + list(b.cities),
+                         pairs=list(a.pairs) + list(b.pairs), sensors=list(a.sensors) + list(b.sensors), cells=cells)

@@ -1,0 +1,100 @@
+"""Openings seen through a roof per return (`quakescan.change.openings`), in closed form.
+
+A 10 x 10 m flat roof 6 m up, sampled by Poisson returns at airborne and drone densities:
+an opening's share of the inner returns is its share of the inner area; a rescan shows
+nothing; a light well both epochs see is explained by the swapped null; scattered openings
+and one collapse to the ground read apart."""
+import math
+
+import numpy as np
+import pytest
+
+from quakescan.change.openings import (INSET_M, OPENING_DESCRIPTORS, neighbourhood_radius, opening_descriptors,
+                                       sampling_floor)
+
+ROOF_Z = 6.0
+INNER_AREA = (10.0 - 2 * INSET_M) ** 2
+
+
+def roof(rng, density, holes=(), floor_z=3.0, wells=()):
+    """Returns on the 10 x 10 m roof; inside each of `holes` (x0, y0, x1, y1) they lie on a
+    floor at `floor_z` instead; inside each of `wells` on the ground (0 m)."""
+    n = rng.poisson(density * 100)
+    xyz = np.c_[rng.uniform(0, 10, (n, 2)), np.full(n, ROOF_Z) + rng.normal(0, 0.02, n)]
+    for boxes, z in ((holes, floor_z), (wells, 0.0)):
+        for x0, y0, x1, y1 in boxes:
+            inside = (xyz[:, 0] > x0) & (xyz[:, 0] < x1) & (xyz[:, 1] > y0) & (xyz[:, 1] < y1)
+            xyz[inside, 2] = z + rng.normal(0, 0.02, inside.sum())
+    return xyz
+
+
+def describe(pre, post, d_pre, d_post):
+    return opening_descriptors(pre, pre, post, 0.0, d_pre, d_post, min_share=0.005)
+
+
+def test_the_neighbourhood_holds_three_pre_event_returns_at_any_density():
+    assert neighbourhood_radius(1.0) == pytest.approx(math.sqrt(3 / math.pi))
+    assert neighbourhood_radius(4.0) == 0.5  # sqrt(3 / 4 pi) = 0.489 < the 0.5 m floor
+    assert neighbourhood_radius(float("nan")) == 0.5
+    assert sampling_floor() == pytest.approx(math.exp(-3))
+
+
+@pytest.mark.parametrize("density", [4.0, 20.0, 200.0])
+def test_an_opening_falls_by_its_share_of_the_inner_area_at_every_density(density):
+    rng = np.random.default_rng(int(density))
+    pre = roof(rng, density)
+    post = roof(rng, density, holes=[(3.5, 3.5, 6.5, 6.5)])
+    d = describe(pre, post, density, density)
+    share = 9.0 / INNER_AREA
+    n = density * INNER_AREA
+    tol = 4 * math.sqrt(share * (1 - share) / n) + 0.02  # sampling spread; the rim within a spacing
+    assert d["o_fallen"] == pytest.approx(share, abs=tol)
+    assert d["o_fallen_null"] == 0.0
+    assert d["o_fallen_excess"] > share - tol - 0.03
+    assert d["o_fallen_ground"] == 0.0  # the storey below, not the ground
+    assert d["o_fallen_largest"] == pytest.approx(d["o_fallen"], abs=0.01)
+    assert d["o_fallen_scatter"] < 0.05
+    assert set(d) == set(OPENING_DESCRIPTORS)
+
+
+@pytest.mark.parametrize("density", [2.0, 4.0, 50.0])
+def test_an_unchanged_rescan_shows_no_fall(density):
+    rng = np.random.default_rng(7)
+    d = describe(roof(rng, density), roof(rng, density), density, density)
+    assert all(v == 0.0 for v in d.values()), d
+
+
+def test_a_light_well_both_epochs_see_is_explained_by_the_swapped_null():
+    rng = np.random.default_rng(8)
+    wells = [(4.0, 4.0, 6.0, 6.0)]
+    d = describe(roof(rng, 4.0, wells=wells), roof(rng, 4.0, wells=wells), 4.0, 4.0)
+    # returns near the well's rim fall for want of a pre-event return on the well within r: both ways
+    assert d["o_fallen_excess"] == 0.0
+    assert abs(d["o_fallen"] - d["o_fallen_null"]) < 0.02
+
+
+def test_scattered_openings_and_one_collapse_to_the_ground_read_apart():
+    rng = np.random.default_rng(9)
+    pre = roof(rng, 4.0)
+    holes = [(1.5, 1.5, 3.0, 3.0), (6.5, 1.5, 8.2, 3.2), (1.5, 6.5, 3.2, 8.2), (6.8, 6.8, 8.5, 8.5),
+             (4.2, 4.2, 5.8, 5.8)]
+    scattered = describe(pre, roof(rng, 4.0, holes=holes), 4.0, 4.0)
+    collapse = describe(pre, roof(rng, 4.0, holes=[(0.0, 0.0, 5.0, 10.0)], floor_z=0.5), 4.0, 4.0)
+    assert scattered["o_fallen_scatter"] > 0.5 and collapse["o_fallen_scatter"] < 0.05
+    assert scattered["o_fallen_ground"] == 0.0 and collapse["o_fallen_ground"] == 1.0
+    assert collapse["o_fallen_largest"] > 2 * scattered["o_fallen_largest"]
+
+
+def test_a_stray_return_below_the_roof_is_no_opening():
+    rng = np.random.default_rng(10)
+    pre = roof(rng, 4.0)
+    post = roof(rng, 4.0)
+    post = np.r_[post, [[5.0, 5.0, 2.0]]]  # a multipath echo 4 m under the roof
+    assert describe(pre, post, 4.0, 4.0)["o_fallen"] == 0.0
+
+
+def test_a_building_without_returns_inside_its_inset_has_zeros():
+    rng = np.random.default_rng(11)
+    tiny = np.c_[rng.uniform(0, 1.2, (20, 2)), np.full(20, ROOF_Z)]
+    assert describe(tiny, tiny, 4.0, 4.0) == {k: 0.0 for k in OPENING_DESCRIPTORS}
+    assert describe(tiny, np.zeros((0, 3)), 4.0, 0.0) == {k: 0.0 for k in OPENING_DESCRIPTORS}
