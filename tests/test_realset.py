@@ -1,0 +1,50 @@
+"""Training rows from real points with injected damage (`quakescan.learning.realset`)."""
+import dataclasses
+
+import numpy as np
+import pytest
+
+from quakescan.learning import realset
+from quakescan.learning.default_model import TABLE_SETTINGS
+
+
+def test_the_plan_never_trains_on_the_tile_reserved_for_evaluation():
+    realset.check_plan()
+    assert all("ahn3_cropped_1" not in s.cloud for s in realset.SOURCES)
+    tile1 = realset.RealSource("ahn3_tile1", "ahn3_cropped_1.laz", "ahn3_footprints_rd.geojson")
+    with pytest.raises(realset.RealSetError, match="reserved for evaluation"):
+        realset.check_plan([realset.RealPair("ahn3_tile1", "halves", 1, 1, ((3, 1),))], realset.SOURCES + (tile1,))
+    with pytest.raises(realset.RealSetError, match="kind must be"):
+        realset.check_plan([realset.RealPair("ahn3_tile2", "mirror", 1, 1)])
+    names = [p.name for p in realset.REAL_PLAN]
+    assert len(set(names)) == len(names)  # every pair its own folder
+
+
+def test_a_real_pair_gives_rows_labelled_by_the_injected_truth_and_is_cached(shared_data, tmp_path):
+    pair = realset.RealPair("ahn3_tile2", "halves", 11, 1, ((3, 3), (5, 3)))
+    a = realset.pair_rows(tmp_path, shared_data, pair, TABLE_SETTINGS, workers=1)
+    assert a["x"].shape == (len(a["y"]), len(TABLE_SETTINGS.descriptor_names()))
+    assert set(np.unique(a["y"]).tolist()) <= {0, 3, 5} and (a["y"] == 5).sum() >= 2
+    names = TABLE_SETTINGS.descriptor_names()
+    destroyed = a["x"][a["y"] == 5]
+    assert (destroyed[:, names.index("s_lowered_1m")] > 0.2).all()  # a heap where the building stood
+    again = realset.pair_rows(tmp_path, shared_data, pair, TABLE_SETTINGS, workers=1)
+    assert all(np.array_equal(a[k], again[k]) for k in a)
+    table = realset.real_table(tmp_path, shared_data, TABLE_SETTINGS, plan=(pair,), repeat=2, workers=1)
+    assert len(table.y) == 2 * len(a["y"]) and table.cities == ["ahn3_tile2"] and table.pairs == [pair.name]
+
+
+def test_tables_append_with_their_cities_and_pairs_numbered_after():
+    from quakescan.learning.trainset import TransferTable
+
+    def t(n, cities, pairs):
+        return TransferTable(x=np.ones((n, 2)), y=np.zeros(n, np.int64), names=["a", "b"],
+                             city=np.zeros(n, np.int64), pair=np.zeros(n, np.int64), building_id=np.arange(n),
+                             density=np.ones((n, 2)), cities=cities, pairs=pairs, sensors=["s"] * len(pairs),
+                             cells=np.ones(n, np.int64))
+
+    c = realset.append_tables(t(3, ["x", "y"], ["p"]), t(2, ["r"], ["q"]))
+    assert c.city.tolist() == [0, 0, 0, 2, 2] and c.pair.tolist() == [0, 0, 0, 1, 1]
+    assert c.cities == ["x", "y", "r"] and c.pairs == ["p", "q"]
+    with pytest.raises(realset.RealSetError, match="different descriptor columns"):
+        realset.append_tables(t(1, ["x"], ["p"]), dataclasses.replace(t(1, ["r"], ["q"]), names=["a", "c"]))
