@@ -17,6 +17,13 @@ damaged buildings reported "no damage" at a confidence of 0.8 or more, and the e
 calibration error of the predicted grade's probability (10 equal bins of confidence over
 the assessable buildings: sum of |accuracy - mean confidence| weighted by the bin's share).
 
+No change across sensors on real shapes: the Rotterdam LoD2 buildings (`rotterdam_subset.json`,
+its densest cluster as the training set takes it) and the Zurich LoD2 model packed into a city
+(`bench_zurich.packed_cityjson`; reserved for evaluation, measured here only), every building
+undamaged, acquired before by one of QuakeScan's preset sensors and after by another (ULS →
+DIM, DIM → ULS, ALS-like → DIM): the share of assessable buildings called damaged (target
+≤ 2 %).
+
 Writes the tables to stdout, BENCHMARKS.md (section "real_damage") and WORK/results.json.
 """
 from __future__ import annotations
@@ -48,6 +55,8 @@ CASES = [
     ("15/15/15, collapses by physics", 8, 404, {3: 15, 4: 15, 5: 15}, "both"),
 ]
 CONFIDENT = 0.8
+CROSS_PAIRS = {"ULS → DIM": ("uls", "dim"), "DIM → ULS": ("dim", "uls"), "ALS-like → DIM": ("als", "dim")}
+CROSS_SEEDS = {"uls": 31, "dim": 32, "als": 33}
 ECE_BINS = 10
 
 
@@ -123,6 +132,57 @@ def expected_calibration_error(confidence: np.ndarray, correct: np.ndarray, bins
     return float(ece)
 
 
+def real_shape_scenes(work: Path) -> dict:
+    """{name: scene bundle folder} of the undamaged real-shape cities."""
+    from bench_zurich import ZURICH, packed_cityjson
+    from quakescan.formats.cityjson import import_cityjson
+    from quakescan.formats.scene import write_scene
+    from quakescan.learning.trainset import densest_cluster
+
+    out = {}
+    rotterdam, zurich = SHARED / "rotterdam_subset.json", ZURICH
+    if rotterdam.is_file():
+        folder = work / "shapes" / "rotterdam"
+        if not (folder / "scene.json").is_file():
+            write_scene(densest_cluster(import_cityjson(rotterdam)), folder)
+        out["Rotterdam"] = folder
+    if zurich.is_file():
+        folder = work / "shapes" / "zurich"
+        if not (folder / "scene.json").is_file():
+            packed_cityjson(zurich, work / "shapes" / "zurich_packed.city.json")
+            write_scene(import_cityjson(work / "shapes" / "zurich_packed.city.json"), folder)
+        out["Zurich"] = folder
+    return out
+
+
+def no_change_across_sensors(work: Path, model: str) -> list:
+    from quakescan.acquisition.acquire import Acquisition, acquire
+    from quakescan.acquisition.dim_settings import preset_dim
+    from quakescan.acquisition.survey import preset
+    from quakescan.learning.classification import classify
+
+    acq = {"uls": Acquisition("uls", preset("paper")), "dim": Acquisition("dim", preset_dim("paper")),
+           "als": Acquisition("als", preset("als"))}
+    rows = []
+    for city, scene in real_shape_scenes(work).items():
+        for name, (a, b) in CROSS_PAIRS.items():
+            clouds = []
+            for role, kind in (("pre", a), ("post", b)):
+                path = work / "shapes" / "clouds" / f"{city}_{role}_{kind}.las"
+                path.parent.mkdir(parents=True, exist_ok=True)
+                acquire(scene, acq[kind], path, seed=CROSS_SEEDS[kind] * 10 + (role == "post"))
+                clouds.append(path)
+            out = work / "shapes" / "results" / f"{city}_{a}_{b}"
+            classify(*clouds, out, model_path=model, write_las=False, force=True)
+            res = list(csv.DictReader(open(out / "buildings.csv")))
+            ok = [r for r in res if r["assessable"] == "1"]
+            flagged = [r for r in ok if int(r["predicted_grade"]) > 0]
+            rows.append({"city": city, "pair": name, "damaged": len(flagged), "assessable": len(ok),
+                         "buildings": len(res), "grades": sorted(int(r["predicted_grade"]) for r in flagged)})
+            print(f"{city} {name}: {len(flagged)} of {len(ok)} assessable called damaged", flush=True)
+    return rows
+
+
 def main(argv=None) -> int:
     from quakescan.injection.inject import InjectSettings, inject
     from quakescan.learning.classification import DEFAULT_MODEL, classify
@@ -132,6 +192,7 @@ def main(argv=None) -> int:
     p.add_argument("--model", default=str(DEFAULT_MODEL))
     p.add_argument("--cases", default=None, help="comma-separated case numbers (1-based) to run (default all)")
     p.add_argument("--no-write", action="store_true", help="do not write BENCHMARKS.md")
+    p.add_argument("--no-shapes", action="store_true", help="skip the no-change rows across sensors on real shapes")
     a = p.parse_args(argv)
     if not TILE.is_file():
         print(f"skipping: {TILE} is missing", file=sys.stderr)
@@ -160,6 +221,8 @@ def main(argv=None) -> int:
         print(f"{name}: F1 {f1}; heavy recall {100 * s['per_grade']['3']['recall']:.0f} %; undamaged called damaged "
               f"{100 * s['undamaged_called_damaged']:.1f} %; quiet misses {len(s['quiet_misses'])}; "
               f"ECE {s['ece']:.3f} (inject {t_inject:.0f} s, classify {t_classify:.0f} s)", flush=True)
+    if not a.no_shapes:
+        results["across_sensors"] = no_change_across_sensors(work, a.model)
     results["seconds"] = round(time.perf_counter() - t_start, 1)
     results["peak_mib"] = round(peak_rss_mb())
     work.mkdir(parents=True, exist_ok=True)
@@ -190,6 +253,13 @@ def report(res: dict) -> str:
                      _pct(g["3"]["recall"]), _pct(s["damaged_found"]), f"{100 * s['undamaged_called_damaged']:.1f} %",
                      len(s["quiet_misses"]), f"{s['ece']:.3f}"])
     lines += [table(head, rows), ""]
+    if res.get("across_sensors"):
+        lines += ["No change across sensors on real shapes (every building undamaged; QuakeScan's preset sensors, "
+                  "one before, another after): assessable buildings called damaged (target ≤ 2 %).", ""]
+        lines += [table(["city", "pair", "called damaged", "grades given"],
+                        [[r["city"], r["pair"], f"{100 * r['damaged'] / max(r['assessable'], 1):.1f} % "
+                          f"({r['damaged']}/{r['assessable']})", ", ".join(map(str, r["grades"])) or "–"]
+                         for r in res["across_sensors"]]), ""]
     for s in res["cases"]:
         lines += [f"**{s['case']}** (split {s['split']}, inject seed {s['seed']}, {s['damage']}; "
                   f"{s['moved']:,} returns moved): truth → predicted", ""]
