@@ -282,3 +282,33 @@ def test_a_damaged_building_changes_only_returns_near_it_and_a_rerun_is_kept(til
         inject(cloud, footprints, tmp_path / "bad", InjectSettings(grades={99999: 3}))
     with pytest.raises(InjectionError, match="only .* have a proxy"):
         inject(cloud, footprints, tmp_path / "bad", InjectSettings(grade_mix={3: 500}))
+
+
+def test_the_command_writes_its_three_files_and_refuses_bad_arguments(tile2, tmp_path, capsys):
+    from quakescan.cli import main
+
+    cloud, footprints = tile2
+    grades = tmp_path / "grades.csv"
+    grades.write_text("building_id,grade\n95,4\n")
+    out = tmp_path / "out"
+    assert main(["inject", str(cloud), "--footprints", str(footprints), "--grades", str(grades), "--seed", "2",
+                 "-o", str(out)]) == 0
+    said = capsys.readouterr().out
+    assert "1 buildings damaged (0 at grade 3, 1 at grade 4, 0 at grade 5)" in said
+    assert sorted(p.name for p in out.iterdir()) == ["inject.json", "post.laz", "scenes", "truth.csv"]
+    truth = {r["building_id"]: r for r in csv.DictReader(open(out / "truth.csv"))}
+    assert truth["95"]["grade"] == "4" and truth["95"]["injected"] == "1" and truth["95"]["patterns"]
+    with pytest.raises(SystemExit):
+        main(["inject", str(cloud), "--footprints", str(footprints), "--grade-mix", "2:3", "-o", str(out)])
+    assert "grades 3, 4 or 5" in capsys.readouterr().err
+    bad = tmp_path / "bad.csv"
+    bad.write_text("building_id,grade\n95,7\n")
+    assert main(["inject", str(cloud), "--footprints", str(footprints), "--grades", str(bad), "-o", str(out)]) == 2
+    assert "grade 7 is not an EMS-98 grade" in capsys.readouterr().err
+    # an output folder holding the input under the output's name is refused, the input untouched
+    twin = tmp_path / "twin"
+    twin.mkdir()
+    (twin / "post.laz").write_bytes(cloud.read_bytes())
+    assert main(["inject", str(twin / "post.laz"), "--footprints", str(footprints), "-o", str(twin)]) == 2
+    assert "is an input of this run" in capsys.readouterr().err
+    assert (twin / "post.laz").read_bytes() == cloud.read_bytes()

@@ -41,6 +41,25 @@ def test_bad_arguments_exit_2(gen, capsys):
     assert "invalid choice: 'town'" in err and "must be at least 1" in err and "--out" in err
 
 
+def test_a_grades_file_fixes_each_listed_building_and_names_what_is_wrong(gen, tmp_path, capsys):
+    f = tmp_path / "g.json"
+    f.write_text('{"3": 4, "5": 0}')
+    assert gen.read_grades(f, [3, 5, 9]) == {3: 4, 5: 0, 9: 0}
+    for text, wanted in (('{"7": 3}', "building 7 is not in the --source bundle"),
+                         ('{"3": 6}', "grade must be an integer 0-5, got 6"), ('{"3": true}', "got True"),
+                         ('[1, 2]', "expected an object"), ('{"x": 1}', "'x' is not a building ID"), ("{", "cannot read")):
+        f.write_text(text)
+        with pytest.raises(ValueError, match=wanted):
+            gen.read_grades(f, [3, 5, 9])
+    for argv in (["--set", "generic", "--dataset", "mixed", "--grades", str(f), "--out", "x"],
+                 ["--set", "bundle", "--source", "s", "--dataset", "mixed", "--grades", str(f), "--grade-mix", "0:1",
+                  "--out", "x"]):
+        with pytest.raises(SystemExit):
+            gen.parse_args(argv)
+    err = capsys.readouterr().err
+    assert "--grades is only used with --set bundle --dataset mixed" in err and "give one" in err
+
+
 def test_blender_style_arguments(gen):
     a = gen.parse_args(gen._script_argv(["blender", "-b", "-P", "x.py", "--", "--set", "region", "--dataset",
                                          "mixed", "--out", "o"]))
