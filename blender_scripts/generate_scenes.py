@@ -235,16 +235,10 @@ def _origin(text):
 
 
 def _grade_mix(text):
-    mix = {}
     try:
-        for part in text.split(","):
-            g, n = part.split(":")
-            mix[int(g)] = int(n)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected GRADE:COUNT,... e.g. 0:35,3:19, got {text!r}") from None
-    if not mix or any(not 0 <= g <= 5 for g in mix) or any(n < 0 for n in mix.values()) or sum(mix.values()) < 1:
-        raise argparse.ArgumentTypeError(f"grades must be 0-5 with counts >= 0 summing to >= 1, got {text!r}")
-    return mix
+        return library_module("grades").parse_grade_counts(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
 
 
 def read_grades(path, ids) -> dict:

@@ -33,3 +33,21 @@ def long_label(grade: int) -> str:
 
 
 __all__ = ["GRADE_NAMES", "GRADE_SHORT_NAMES", "grade_name", "long_label", "short_name"]
+
+
+def parse_grade_counts(text: str, allowed=range(0, 6)) -> dict[int, int]:
+    """{grade: count} of a "GRADE:COUNT,..." text such as "0:35,3:19" (the generator's
+    --grade-mix, inject's --grade-mix); ValueError naming what is wrong. Standard library
+    only: Blender's Python reads it too."""
+    mix = {}
+    try:
+        for part in text.split(","):
+            g, n = part.split(":")
+            mix[int(g)] = int(n)
+    except ValueError:
+        raise ValueError(f"expected GRADE:COUNT,... e.g. 0:35,3:19, got {text!r}") from None
+    allowed = list(allowed)
+    if not mix or any(g not in allowed for g in mix) or any(n < 0 for n in mix.values()) or sum(mix.values()) < 1:
+        raise ValueError(f"grades must be {', '.join(map(str, allowed))} with counts >= 0 summing to >= 1, "
+                         f"got {text!r}")
+    return mix

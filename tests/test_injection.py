@@ -300,7 +300,7 @@ def test_the_command_writes_its_three_files_and_refuses_bad_arguments(tile2, tmp
     assert truth["95"]["grade"] == "4" and truth["95"]["injected"] == "1" and truth["95"]["patterns"]
     with pytest.raises(SystemExit):
         main(["inject", str(cloud), "--footprints", str(footprints), "--grade-mix", "2:3", "-o", str(out)])
-    assert "grades 3, 4 or 5" in capsys.readouterr().err
+    assert "grades must be 3, 4, 5" in capsys.readouterr().err
     bad = tmp_path / "bad.csv"
     bad.write_text("building_id,grade\n95,7\n")
     assert main(["inject", str(cloud), "--footprints", str(footprints), "--grades", str(bad), "-o", str(out)]) == 2

@@ -3,47 +3,26 @@ from __future__ import annotations
 
 import argparse
 
+from .options import check_number, check_seed
 from .reporting import echo
 
 
 def _grade_mix(text: str) -> dict:
-    mix = {}
-    try:
-        for part in text.split(","):
-            g, n = part.split(":")
-            mix[int(g)] = int(n)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected GRADE:COUNT,... e.g. 3:15,4:15,5:15, got {text!r}") from None
-    if not mix or any(g not in (3, 4, 5) for g in mix) or any(n < 0 for n in mix.values()):
-        raise argparse.ArgumentTypeError(f"grades 3, 4 or 5 with counts >= 0 (the other buildings stay 0), got {text!r}")
-    return mix
+    from ..grades import parse_grade_counts
 
-
-def _noise(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        v = float("nan")
-    if not v >= 0 or v == float("inf"):
-        raise argparse.ArgumentTypeError(f"expected a range noise in metres >= 0, got {text!r}")
-    return v
-
-
-def _positive(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        v = 0
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
-    return v
+    try:  # the other buildings stay at 0: a mix counts the damaged ones
+        return parse_grade_counts(text, allowed=(3, 4, 5))
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
 
 
 def cmd_inject(args) -> int:
-    from ..injection.inject import InjectSettings, inject
+    from ..injection.inject import InjectionError, InjectSettings, inject
     from ..results.evaluation import read_grade_csv
-    from ..injection.inject import InjectionError
 
+    check_seed(args.seed)
+    check_number("--min-points", args.min_points, 1, integer=True)
+    check_number("--range-noise", args.range_noise, 0)
     grades = read_grade_csv(args.grades, InjectionError) if args.grades else None
     mix = args.grade_mix if grades is None else None
     if grades is None and mix is None:
@@ -80,7 +59,7 @@ def add_inject(sub) -> None:
                    help="damage this many buildings at each grade, drawn by --seed among those with --min-points "
                    "points (default 3:5,4:5,5:5)")
     c.add_argument("--seed", type=int, default=0, help="random seed: which buildings, which patterns (default 0)")
-    c.add_argument("--min-points", type=_positive, default=200,
+    c.add_argument("--min-points", type=int, default=200,
                    help="--grade-mix: a building needs this many points to be drawn (default 200)")
     c.add_argument("--damage", choices=("patterns", "physics", "both"), default="patterns",
                    help="grades 4-5 by the catalogue's patterns (default), rigid-body collapse, or a seeded half each")
@@ -88,7 +67,7 @@ def add_inject(sub) -> None:
                    help="how the cloud was sampled: lidar re-casts each return along its pulse (trajectory from GPS "
                    "time and scan angle), dim casts from above at the cloud's spacing; auto: lidar when the file has "
                    "GPS times and scan angles (default)")
-    c.add_argument("--range-noise", type=_noise, default=None, metavar="M",
+    c.add_argument("--range-noise", type=float, default=None, metavar="M",
                    help="range noise of new returns in metres (default: estimated from the cloud's ground returns)")
     c.add_argument("--id-field", default=None, help="footprint property holding the building ID (as classify's)")
     c.set_defaults(func=cmd_inject)
