@@ -129,7 +129,8 @@ def describe(pre: PathLike | PairData, post: PathLike | None = None, *, footprin
     list of BuildingRow
         One per building: `building_id`, point counts, `assessable` and its `reason`,
         `descriptors` ({name: value}; shares are dimensionless, lengths in metres) and
-        `quality` (planimetric densities in pts/m², post-event coverage).
+        `quality` (planimetric densities in pts/m², post-event coverage, footprint cells and
+        area in m², lowering resolution in m: what `quakescan.change.detectability` reads).
     """
     pair = pre if isinstance(pre, PairData) else read_pair(pre, _required(post, "post"), footprints)
     settings = model_settings(load_model(model) if not isinstance(model, DamageModel) else model)
@@ -195,7 +196,7 @@ def classify(pre: PathLike, post: PathLike, out_dir: PathLike, *, footprints: Pa
         LAS/LAZ epochs; real ones need `footprints`.
     out_dir : path
         Receives buildings.csv (grade, label, per-grade probabilities, confidence, reason when
-        not assessable), buildings.geojson (+ QGIS style), damage maps, the graded post-event
+        not assessable, what each building's data could resolve), buildings.geojson (+ QGIS style), damage maps, the graded post-event
         cloud and summary.json. Resumable: finished tiles are not redone.
     footprints : path, optional
     model : path, optional

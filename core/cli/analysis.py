@@ -115,6 +115,10 @@ def cmd_classify(args) -> int:
         print(f"registration not checked ({reg.get('reason')}): an offset between the epochs would read as damage")
     labels = ", ".join(f"{k}: {v}" for k, v in summary["by_grade_name"].items())
     print(f"classify: {summary['buildings']} buildings ({labels}) in {summary['seconds']['total']:.1f} s")
+    unresolved = summary.get("detectability", {}).get("no_damage_heavy_unresolved", 0)
+    if unresolved:
+        print(f"classify: {unresolved} of the buildings graded 'no damage' could not have shown heavy damage "
+              "(too sparse for its smallest roof openings): hatched on the maps, `detectable_grade` in the results")
     print(f"results -> {out / 'buildings.csv'}, {out / 'buildings.geojson'} (QGIS style buildings.qml), "
           f"{out / 'damage_map.png'}, {out / 'damage_map.html'} (opens offline)"
           + (f", {summary['post_grades']}" if "post_grades" in summary else ""))

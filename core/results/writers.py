@@ -583,7 +583,7 @@ def _draw_map(rows, outlines: dict, title: str, points_xy=None, crs: str | None 
     n_unresolved = sum(1 for r in rows if r.heavy_unresolved)
     if n_unresolved:  # right under "0 no damage", which these buildings are counted in too
         handles.insert(1, Patch(facecolor=colour_of(0), edgecolor=HATCH_COLOUR, hatch=HATCH, linewidth=0.0,
-                                label=f"{HEAVY_UNRESOLVED}: {n_unresolved}"))
+                                label=HEAVY_UNRESOLVED.replace("; ", ";\n") + f": {n_unresolved}"))  # fits the margin
     if counts.get(None):
         handles.append(Patch(facecolor=NOT_ASSESSABLE_COLOUR, edgecolor="#333333",
                              label=f"{NOT_ASSESSABLE}: {counts[None]}"))
