@@ -34,8 +34,9 @@ def describe(pre, post, d_pre, d_post):
 
 def test_the_neighbourhood_holds_three_pre_event_returns_at_any_density():
     assert neighbourhood_radius(1.0) == pytest.approx(math.sqrt(3 / math.pi))
-    assert neighbourhood_radius(4.0) == 0.5  # sqrt(3 / 4 pi) = 0.489 < the 0.5 m floor
-    assert neighbourhood_radius(float("nan")) == 0.5
+    assert neighbourhood_radius(4.0) == pytest.approx(math.sqrt(3 / (4 * math.pi)))  # 0.489 m
+    assert neighbourhood_radius(100.0) == 0.25  # sqrt(3 / 100 pi) = 0.098 < the 0.25 m floor
+    assert neighbourhood_radius(float("nan")) == 0.25
     assert sampling_floor() == pytest.approx(math.exp(-3))
 
 

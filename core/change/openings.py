@@ -43,11 +43,14 @@ import math
 
 import numpy as np
 
+# Bumped whenever these descriptors' computation changes (with surface.DESCRIPTOR_VERSION in the
+# training tables' keys). 2: courtyards stay outside the inner area, the radius floor 0.5 -> 0.25 m.
+OPENINGS_VERSION = 2
 OPENING_DESCRIPTORS = ("o_fallen", "o_fallen_null", "o_fallen_excess", "o_fallen_ground", "o_fallen_largest",
                        "o_fallen_scatter")
 SEE_THROUGH_M = 1.0
 EXPECTED_NEIGHBOURS = 3.0
-MIN_RADIUS_M = 0.5
+MIN_RADIUS_M = 0.25
 MAX_NEIGHBOURS = 24
 INSET_M = 0.75
 # the returns of both epochs read around a building: its neighbourhood radius at the sparsest densities
@@ -144,8 +147,8 @@ def _inner_mask(own_pre: np.ndarray, density: float):
     ij = np.floor((own_pre[:, :2] - lo) / f).astype(np.int64)
     grid[tuple(ij.T)] = True
     reach = max(1, int(math.ceil(spacing(density) / f)))
+    # single empty cells of a sparse sampling are the building's; a courtyard stays outside
     grid = ndimage.binary_closing(grid, np.ones((3, 3), bool), iterations=reach) | grid
-    grid = ndimage.binary_fill_holes(grid)
     inner = ndimage.distance_transform_edt(grid) * f - 0.5 * f >= INSET_M
     return inner, lo, f
 

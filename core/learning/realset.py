@@ -115,6 +115,7 @@ def epochs(cloud: Path, pair: RealPair, folder: Path) -> tuple[Path, Path]:
 
 def pair_rows(work: Path, data: Path, pair: RealPair, settings, workers: int = -1) -> dict:
     """x, y, building_id, density, cells of one real pair (cached with its fingerprint)."""
+    from ..change.openings import OPENINGS_VERSION
     from ..change.pipeline import describe_pair, descriptor_matrix
     from ..change.surface import DESCRIPTOR_VERSION
     from ..injection.inject import InjectSettings, inject
@@ -130,7 +131,7 @@ def pair_rows(work: Path, data: Path, pair: RealPair, settings, workers: int = -
     table = folder / "rows.npz"
     fp = fingerprint.make("real-pair", {"cloud": fingerprint.content(cloud), "footprints": fingerprint.content(footprints)},
                           {"pair": asdict(pair), "pipeline": settings.to_json()},
-                          {"realset": VERSION, "descriptors": DESCRIPTOR_VERSION})
+                          {"realset": VERSION, "descriptors": DESCRIPTOR_VERSION, "openings": OPENINGS_VERSION})
     if fingerprint.is_current(table, fp):
         with np.load(table) as d:
             return {k: d[k] for k in d.files}

@@ -308,7 +308,9 @@ def _settings_key(settings, labels: str = "simulator") -> str:
     """Tables are reused only for the same settings, labels and descriptor code."""
     from ..change.surface import DESCRIPTOR_VERSION
 
-    doc = {"settings": settings.to_json(), "descriptor_version": DESCRIPTOR_VERSION}
+    from ..change.openings import OPENINGS_VERSION
+
+    doc = {"settings": settings.to_json(), "descriptor_version": DESCRIPTOR_VERSION, "openings": OPENINGS_VERSION}
     if labels != "simulator":  # keeps the keys of tables made before labels were a choice
         doc["labels"] = labels
     return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()[:12]
@@ -325,7 +327,13 @@ def _table_fingerprint(pair: PairSpec, scenes: Path, settings, labels: str):
                             inputs={"pre": fingerprint.content(scenes / "pre" / "scene.json"),
                                     "post": fingerprint.content(scenes / pair.post_scene / "scene.json")},
                             settings={"pair": asdict(pair), "settings": settings.to_json(), "labels": labels},
-                            code={"descriptors": DESCRIPTOR_VERSION})
+                            code={"descriptors": DESCRIPTOR_VERSION, "openings": _openings_version()})
+
+
+def _openings_version() -> int:
+    from ..change.openings import OPENINGS_VERSION
+
+    return OPENINGS_VERSION
 
 
 def generate_city(city: CitySpec, folder: Path) -> None:
