@@ -18,6 +18,12 @@ unchanged building both epochs sample the same surfaces and the two shares agree
 in distribution for random halves of one acquisition); a light well, a terrace, a lower roof
 part inside the outline give both. Damage that opens a roof gives only the first.
 
+**Surrounded by what it fell through**: the pre-event returns above a fallen return (within
+`SURROUND_REACH` radii) must lie all around it, the mean of their unit directions at most
+`SURROUND_MAX` long: a roof surrounds what is seen through an opening in it, while the rim of a
+light well or a recess, which one sensor sees lower down than another, lies on one side of it
+(a half disc gives 2/pi = 0.64).
+
 Only returns at least `INSET_M` inside the building's outline count (a wall seen by an
 oblique pulse lies on the outline), and only **coherent** ones: a fallen return with another
 fallen return within two post-event point spacings. A stray return (a bird, a multipath
@@ -44,14 +50,20 @@ import math
 import numpy as np
 
 # Bumped whenever these descriptors' computation changes (with surface.DESCRIPTOR_VERSION in the
-# training tables' keys). 2: courtyards stay outside the inner area, the radius floor 0.5 -> 0.25 m.
-OPENINGS_VERSION = 2
+# training tables' keys). 2: courtyards stay outside the inner area, the radius floor 0.5 -> 0.25 m;
+# 3: a fallen return must be surrounded by the surface it fell through.
+OPENINGS_VERSION = 3
 OPENING_DESCRIPTORS = ("o_fallen", "o_fallen_null", "o_fallen_excess", "o_fallen_ground", "o_fallen_largest",
                        "o_fallen_scatter")
 SEE_THROUGH_M = 1.0
 EXPECTED_NEIGHBOURS = 3.0
 MIN_RADIUS_M = 0.25
-MAX_NEIGHBOURS = 24
+MAX_NEIGHBOURS = 32
+# the surface a return fell through is looked for within this many radii (12 returns expected),
+# and must surround it: at least this many returns above it whose mean direction is this short
+SURROUND_REACH = 2.0
+SURROUND_MIN_RETURNS = 3
+SURROUND_MAX = 0.5
 INSET_M = 0.75
 # the returns of both epochs read around a building: its neighbourhood radius at the sparsest densities
 OPENING_REACH_M = 3.0
@@ -163,19 +175,38 @@ def _inside(xyz: np.ndarray, inner: np.ndarray, lo: np.ndarray, f: float, ground
 
 def _fallen(query: np.ndarray, reference: np.ndarray, radius: float) -> np.ndarray:
     """Query returns more than SEE_THROUGH_M below every reference return within `radius`,
-    with at least one there."""
+    with at least one there, and surrounded by the surface they fell through (`_surrounded`)."""
     from scipy.spatial import cKDTree
 
     if len(reference) == 0 or len(query) == 0:
         return np.zeros(len(query), bool)
     tree = cKDTree(reference[:, :2])
     k = min(MAX_NEIGHBOURS, len(reference))
-    dist, idx = tree.query(query[:, :2], k=k, distance_upper_bound=radius)
+    dist, idx = tree.query(query[:, :2], k=k, distance_upper_bound=SURROUND_REACH * radius)
     dist, idx = dist.reshape(len(query), -1), idx.reshape(len(query), -1)
+    near = dist <= radius
+    z = np.where(near, reference[np.minimum(idx, len(reference) - 1), 2], np.inf)
+    fell = near.any(axis=1) & (query[:, 2] < z.min(axis=1) - SEE_THROUGH_M)
+    if fell.any():
+        fell[fell] = _surrounded(query[fell], reference, dist[fell], idx[fell])
+    return fell
+
+
+def _surrounded(query: np.ndarray, reference: np.ndarray, dist: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """Whether the reference returns above each query return (by SEE_THROUGH_M, within
+    SURROUND_REACH radii) lie all around it: the mean of their unit directions is short
+    (`SURROUND_MAX`). A roof around an opening surrounds what is seen through it; the rim of a
+    light well or a deep recess, which one sensor sees lower down than another, lies on one side
+    (a half disc gives 2/pi = 0.64)."""
     found = np.isfinite(dist)
-    z = np.where(found, reference[np.minimum(idx, len(reference) - 1), 2], np.inf)
-    lowest = z.min(axis=1)
-    return found.any(axis=1) & (query[:, 2] < lowest - SEE_THROUGH_M)
+    j = np.minimum(idx, len(reference) - 1)
+    above = found & (reference[j, 2] > query[:, 2:3] + SEE_THROUGH_M)
+    d = reference[j, :2] - query[:, None, :2]
+    norm = np.linalg.norm(d, axis=2)
+    unit = np.where((above & (norm > 0))[..., None], d / np.maximum(norm, 1e-12)[..., None], 0.0)
+    n = above.sum(axis=1)
+    mean = np.linalg.norm(unit.sum(axis=1), axis=1) / np.maximum(n, 1)
+    return (n >= SURROUND_MIN_RETURNS) & (mean <= SURROUND_MAX)
 
 
 def _coherent(xy: np.ndarray, flag: np.ndarray, radius: float) -> np.ndarray:
