@@ -17,7 +17,7 @@ _warnings.filterwarnings("ignore", message=r"The TBB threading layer requires TB
 # modules (`quakescan.runtime.fingerprint`, the resume rule of the scene generator) without numpy's
 # stack; and `import quakescan` stays instant for the command line.
 _API = ("acquire", "read_scene", "write_scene", "read_epoch", "read_pair", "describe", "train", "load_model",
-        "save_model", "classify", "evaluate", "sensor_kinds", "Acquired", "BuildingRow", "DamageModel", "Epoch",
+        "save_model", "classify", "evaluate", "inject", "sensor_kinds", "Acquired", "BuildingRow", "DamageModel", "Epoch",
         "Evaluation", "PairData", "Scene")
 __all__ = ["__version__", *_API]
 

@@ -34,7 +34,7 @@ from .results.evaluation import Evaluation, evaluate_files
 from .runtime.workers import accepts_old_threads
 
 __all__ = ["acquire", "read_scene", "write_scene", "read_epoch", "read_pair", "describe", "train",
-           "load_model", "save_model", "classify", "evaluate", "sensor_kinds",
+           "load_model", "save_model", "classify", "evaluate", "inject", "sensor_kinds",
            "Acquired", "BuildingRow", "DamageModel", "Epoch", "Evaluation", "PairData", "Scene"]
 
 PathLike = str | os.PathLike
@@ -234,6 +234,41 @@ def evaluate(result_csv: PathLike, truth: PathLike) -> Evaluation:
         (damaged vs undamaged metrics), `confusion`, `n`, `not_assessable`.
     """
     return evaluate_files(result_csv, truth)
+
+
+def inject(cloud: PathLike, footprints: PathLike, out_dir: PathLike, *, grades: dict | None = None,
+           grade_mix: dict | None = None, seed: int = 0, **settings):
+    """EMS-98 damage injected into a real point cloud (`quakescan.injection.inject.inject`).
+
+    Parameters
+    ----------
+    cloud, footprints : path
+        A real LAS/LAZ cloud and its building footprints (GeoJSON, the cloud's coordinates).
+    out_dir : path
+        Output folder: post.las (post.laz for a compressed input), truth.csv, inject.json, scenes/.
+    grades : dict, optional
+        {building ID: grade 0-5}; the others stay at 0. Or:
+    grade_mix : dict, optional
+        {grade 3/4/5: count} drawn by `seed` among the buildings with `min_points` points
+        (default {3: 5, 4: 5, 5: 5} when neither is given).
+    seed : int
+        Which buildings and which patterns; the same seed gives the same bytes.
+    settings
+        Further `InjectSettings` fields: `min_points`, `damage` ("patterns", "physics",
+        "both"), `kind` ("auto", "lidar", "dim"), `range_noise_m`, `id_field`.
+
+    Returns
+    -------
+    InjectResult
+        `post`, `truth`, `record` paths, `grades` per footprint, `counts` of kept, moved
+        and removed returns, `reused` when an earlier run with the same inputs was kept.
+    """
+    from .injection.inject import InjectSettings, inject as _inject
+
+    if grades is None and grade_mix is None:
+        grade_mix = {3: 5, 4: 5, 5: 5}
+    return _inject(cloud, footprints, out_dir, InjectSettings(seed=seed, grades=grades, grade_mix=grade_mix,
+                                                              **settings))
 
 
 def _required(value, name):

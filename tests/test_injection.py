@@ -312,3 +312,12 @@ def test_the_command_writes_its_three_files_and_refuses_bad_arguments(tile2, tmp
     assert main(["inject", str(twin / "post.laz"), "--footprints", str(footprints), "-o", str(twin)]) == 2
     assert "is an input of this run" in capsys.readouterr().err
     assert (twin / "post.laz").read_bytes() == cloud.read_bytes()
+
+
+def test_the_public_api_injects_as_the_command_does(tile2, tmp_path):
+    import quakescan as qs
+
+    cloud, footprints = tile2
+    r = qs.inject(cloud, footprints, tmp_path / "api", grades={95: 5}, seed=1)
+    again = inject(cloud, footprints, tmp_path / "lib", InjectSettings(grades={95: 5}, seed=1))
+    assert r.post.read_bytes() == again.post.read_bytes() and r.counts == again.counts
