@@ -60,6 +60,8 @@ CASES = [
     ("15/15/15, collapses by physics", 8, 404, {3: 15, 4: 15, 5: 15}, "both"),
 ]
 CONFIDENT = 0.8
+# the catalogue's heavy patterns that change the roof, which an airborne sensor sees from above
+ROOF_PATTERNS = {"roof_holes", "chimney_loss", "parapet_loss"}
 LOW_SEED = 98_001
 LOW_MIX = {0: 20, 3: 20, 4: 20, 5: 20}
 CROSS_PAIRS = {"ULS → DIM": ("uls", "dim"), "DIM → ULS": ("dim", "uls"), "ALS-like → DIM": ("als", "dim")}
@@ -95,6 +97,9 @@ def score(result_csv: Path, truth_csv: Path, every_building: bool = False) -> di
     cols = list(GRADES) + ["n/a"]
     confusion = {g: {c: 0 for c in cols} for g in GRADES}
     conf, correct, quiet_misses = [], [], []
+    # heavy damage that shows on the roof (an airborne sensor can see it) and on walls only
+    truth_rows = {int(r["building_id"]): r for r in csv.DictReader(open(truth_csv))}
+    heavy_seen = {"roof": [0, 0], "walls only": [0, 0]}
     for r in rows:
         b = int(r["building_id"])
         if b not in injected_or_big:  # small buildings the injector never draws: not part of the test
@@ -105,6 +110,10 @@ def score(result_csv: Path, truth_csv: Path, every_building: bool = False) -> di
             continue
         g = int(r["predicted_grade"])
         confusion[t][g if g in GRADES else 0] += 1
+        if t == 3 and "patterns" in truth_rows.get(b, {}):
+            kind = "walls only" if not set(truth_rows[b]["patterns"].split()) & ROOF_PATTERNS else "roof"
+            heavy_seen[kind][0] += g > 0
+            heavy_seen[kind][1] += 1
         c = float(r["confidence"]) if r.get("confidence") else 1.0
         conf.append(c)
         correct.append(g == t)
@@ -127,7 +136,8 @@ def score(result_csv: Path, truth_csv: Path, every_building: bool = False) -> di
             "per_grade": {str(g): v for g, v in per_grade.items()},
             "undamaged_called_damaged": false_alarms / undamaged if undamaged else float("nan"),
             "damaged_found": damaged_found / damaged_true if damaged_true else float("nan"),
-            "quiet_misses": quiet_misses, "ece": expected_calibration_error(np.array(conf), np.array(correct))}
+            "quiet_misses": quiet_misses, "ece": expected_calibration_error(np.array(conf), np.array(correct)),
+            "heavy_seen": heavy_seen}
 
 
 def expected_calibration_error(confidence: np.ndarray, correct: np.ndarray, bins: int = ECE_BINS) -> float:
@@ -291,13 +301,14 @@ def report(res: dict) -> str:
              "`quakescan inject` among buildings with ≥ 200 points; buildings scored: those injected and the "
              "undamaged ones with ≥ 200 points. `bench/bench_real_damage.py`.", ""]
     head = ["case", "F1 0", "F1 3", "F1 4", "F1 5", "heavy recall", "damaged found", "undamaged called damaged",
-            "damaged reported 0 at ≥ 0.8", "ECE"]
+            "damaged reported 0 at ≥ 0.8", "ECE", "heavy graded damaged: roof / walls only"]
     rows = []
     for s in res["cases"]:
         g = s["per_grade"]
         rows.append([s["case"], _pct(g["0"]["f1"]), _pct(g["3"]["f1"]), _pct(g["4"]["f1"]), _pct(g["5"]["f1"]),
                      _pct(g["3"]["recall"]), _pct(s["damaged_found"]), f"{100 * s['undamaged_called_damaged']:.1f} %",
-                     len(s["quiet_misses"]), f"{s['ece']:.3f}"])
+                     len(s["quiet_misses"]), f"{s['ece']:.3f}",
+                     " / ".join(f"{a} of {n}" for a, n in s["heavy_seen"].values())])
     lines += [table(head, rows), ""]
     if res.get("low"):
         lines += [f"Low buildings (the generator's small set: sheds, garages, row houses; seed {LOW_SEED}, mix "
