@@ -13,6 +13,7 @@ from scipy import stats
 from quakescan.change import detectability as D
 from quakescan.results import writers as R
 from quakescan.results.webmap import legend_entries, write_map_html
+from test_maps import _page_data
 
 CLASSES = [0, 3, 4, 5]
 E0, N0 = 367000.0, 4690000.0
@@ -272,12 +273,6 @@ def test_png_map_hatches_the_buildings_graded_0_that_cannot_resolve_heavy(tmp_pa
     fig, ax = R._draw_map(rows[2:], outlines, "plain", None, None)
     assert not [c for c in ax.collections if c.get_gid() == "heavy-unresolved"]
     assert not any(R.HEAVY_UNRESOLVED in t.get_text() for t in ax.get_legend().get_texts())
-
-
-def _page_data(path):
-    text = path.read_text()
-    m = re.search(r"var data = (\{.*?\});\n", text)
-    return text, json.loads(m.group(1).replace("<\\/", "</"))
 
 
 def test_html_map_stripes_them_and_says_why_in_the_popup(tmp_path):

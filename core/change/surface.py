@@ -489,12 +489,14 @@ def describe_surfaces(pre_xyz: np.ndarray, pre_bid: np.ndarray, pre_ground: np.n
         own_tops = _CellTops(pre_xyz[idx], lo, c, width, layer)
         descriptors[bid], edge_keys = _raster(pre_key[idx], own_tops, pre_tops, post_tops, building_keys, ground,
                                               n3, ring_offsets, settings, c, width)
-        descriptors[bid]["s_interior_seen"] = interior.share(pre_xyz[idx], settings.min_patch_cells)
-        descriptors[bid].update(_openings(pre_xyz[idx], pre_key[idx], interior, ground, lo, c, width, settings))
+        own_density = planimetric_density(pre_xyz[idx])  # read by three descriptors: measured once
+        descriptors[bid]["s_interior_seen"] = interior.share(pre_xyz[idx], settings.min_patch_cells, own_density)
+        descriptors[bid].update(_openings(pre_xyz[idx], pre_key[idx], own_density, interior, ground, lo, c, width,
+                                          settings))
         if quality:
             cells = np.unique(pre_key[idx])
             inside = np.isin(post_key, cells)
-            qual[bid] = {"density_pre": round(planimetric_density(pre_xyz[idx]), 3),
+            qual[bid] = {"density_pre": round(own_density, 3),
                          "density_post": round(planimetric_density(post_xyz[inside]), 3),
                          "coverage": round(1.0 - descriptors[bid]["s_post_gap"], 4),
                          "cells": int(len(cells)), "area_m2": round(len(cells) * c * c, 3)}
@@ -563,7 +565,7 @@ class _InteriorView:
     def __init__(self, pre: _XSorted, post: _XSorted, cell: float):
         self.pre, self.post, self.cell = pre, post, cell
 
-    def share(self, own_xyz: np.ndarray, min_patch_cells: int) -> float:
+    def share(self, own_xyz: np.ndarray, min_patch_cells: int, own_density: float) -> float:
         from scipy import ndimage
 
         f = self.cell
@@ -600,13 +602,13 @@ class _InteriorView:
         labels, n = ndimage.label(seen, np.ones((3, 3), bool))
         sizes = np.bincount(labels.ravel())
         patches = sizes[1:]
-        missed = chance_missed(patches * f * f, planimetric_density(own_xyz))
+        missed = chance_missed(patches * f * f, own_density)
         kept = int(patches[(patches >= min_patch_cells) & (missed < MISSED_CHANCE)].sum())
         return kept / int(footprint.sum())
 
 
-def _openings(own: np.ndarray, own_keys: np.ndarray, interior: _InteriorView, ground: float, lo, c: float,
-              width: int, settings: SurfaceSettings) -> dict:
+def _openings(own: np.ndarray, own_keys: np.ndarray, own_density: float, interior: _InteriorView, ground: float,
+              lo, c: float, width: int, settings: SurfaceSettings) -> dict:
     """`quakescan.change.openings` of one building from the returns around it: the pre-event
     density of its own returns, the post-event density of the returns over its cells."""
     from .openings import OPENING_REACH_M, opening_descriptors
@@ -618,7 +620,7 @@ def _openings(own: np.ndarray, own_keys: np.ndarray, interior: _InteriorView, gr
             + np.floor((post[:, 1] - lo[1]) / c).astype(np.int64))
     over = np.isin(keys, np.unique(own_keys))
     d_post = planimetric_density(post[over]) if over.any() else 0.0
-    return opening_descriptors(own, pre, post, ground, planimetric_density(own), d_post, settings.min_share)
+    return opening_descriptors(own, pre, post, ground, own_density, d_post, settings.min_share)
 
 
 def chance_missed(area_m2, pre_density: float):
