@@ -160,9 +160,16 @@ def test_real_areas_match_the_files_polygons(real):
     path, doc, scene = real
     expected = _surface_areas(doc)
     area = triangle_areas(scene.vertices, scene.faces)
-    for code, name in [(GROUND, "GroundSurface"), (ROOF, "RoofSurface"), (WALL, "WallSurface")]:
+    for code, name in [(GROUND, "GroundSurface"), (ROOF, "RoofSurface")]:
         got = area[(scene.face_building > 0) & (scene.face_surface == code)].sum()
         assert got == pytest.approx(expected[name], rel=1e-4), name
+    # walls: the file's, and those that close its open shells (quakescan.formats.shell), vertical
+    walls = (scene.face_building > 0) & (scene.face_surface == WALL)
+    assert area[walls].sum() >= expected["WallSurface"] * (1 - 1e-4)
+    normal, _ = _normals(scene)
+    added = area[walls].sum() - expected["WallSurface"]
+    assert (np.abs(normal[walls, 2]) * area[walls]).sum() < 0.01 * area[walls].sum()
+    assert added < 1.0 * expected["WallSurface"]
 
 
 @pytest.mark.realdata
@@ -334,7 +341,7 @@ def test_solid_box_parts_and_precision(tmp_path):
 
 def test_holes_orientation_and_missing_semantics(tmp_path):
     """A flat roof with a courtyard hole keeps its area and faces up; faces without semantics
-    are labelled by their normal."""
+    are labelled by their normal; the courtyard gets the walls the file does not hold."""
     m = _Model(version="1.1")
     m.vertices = _box_vertices(0, 0, 20, 20, 0, 6) + [[5, 5, 6], [5, 15, 6], [15, 15, 6], [15, 5, 6]]
     walls = [[ring] for ring, t in BOX_FACES if t == "WallSurface"]
@@ -349,7 +356,8 @@ def test_holes_orientation_and_missing_semantics(tmp_path):
     assert area[roof_faces].sum() == pytest.approx(400 - 100)
     assert (normal[roof_faces, 2] > 0.999).all()
     assert area[b & (scene.face_surface == GROUND)].sum() == pytest.approx(400)
-    assert area[b & (scene.face_surface == WALL)].sum() == pytest.approx(4 * 20 * 6)
+    # the outer walls, and the courtyard's, which the file leaves out: they close its shell
+    assert area[b & (scene.face_surface == WALL)].sum() == pytest.approx(4 * 20 * 6 + 4 * 10 * 6)
     assert scene.buildings[0].storeys == 2  # 6 m / 3 m from the geometry
 
 

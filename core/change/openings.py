@@ -24,6 +24,13 @@ part inside the outline give both. Damage that opens a roof gives only the first
 light well or a recess, which one sensor sees lower down than another, lies on one side of it
 (a half disc gives 2/pi = 0.64).
 
+**Not on a wall**: a return with another return of its own epoch within `STACK_RADIUS_M` in
+x/y and `STACK_LOW_M`..`SEE_THROUGH_M` above it lies on a vertical surface (the step between
+two roof parts, a courtyard wall), which a photo flight reconstructs densely and a laser
+barely samples: it is not seen through anything. What is seen through an opening has the
+room's height of empty space above it, and a debris slope steeper than STACK_LOW_M /
+STACK_RADIUS_M (50°) is rare.
+
 Only returns at least `INSET_M` inside the building's outline count (a wall seen by an
 oblique pulse lies on the outline), and only **coherent** ones: a fallen return with another
 fallen return within two post-event point spacings. A stray return (a bird, a multipath
@@ -51,8 +58,8 @@ import numpy as np
 
 # Bumped whenever these descriptors' computation changes (with surface.DESCRIPTOR_VERSION in the
 # training tables' keys). 2: courtyards stay outside the inner area, the radius floor 0.5 -> 0.25 m;
-# 3: a fallen return must be surrounded by the surface it fell through.
-OPENINGS_VERSION = 3
+# 3: a fallen return must be surrounded by the surface it fell through; 4: and not lie on a wall.
+OPENINGS_VERSION = 4
 OPENING_DESCRIPTORS = ("o_fallen", "o_fallen_null", "o_fallen_excess", "o_fallen_ground", "o_fallen_largest",
                        "o_fallen_scatter")
 SEE_THROUGH_M = 1.0
@@ -65,6 +72,8 @@ SURROUND_REACH = 2.0
 SURROUND_MIN_RETURNS = 3
 SURROUND_MAX = 0.5
 INSET_M = 0.75
+STACK_RADIUS_M = 0.25
+STACK_LOW_M = 0.3
 # the returns of both epochs read around a building: its neighbourhood radius at the sparsest densities
 OPENING_REACH_M = 3.0
 OUTLINE_CELL_M = 0.5
@@ -111,9 +120,11 @@ def opening_descriptors(own_pre: np.ndarray, pre: np.ndarray, post: np.ndarray, 
     if len(post_in) == 0:
         return out
     fallen = _fallen(post_in, pre, neighbourhood_radius(density_pre))
+    fallen &= ~_on_a_wall(post_in, post, fallen)
     fallen &= _coherent(post_in[:, :2], fallen, 2.0 * spacing(density_post))
     swapped = _fallen(pre_in, post, neighbourhood_radius(density_post)) if len(pre_in) else np.zeros(0, bool)
     if len(pre_in):
+        swapped &= ~_on_a_wall(pre_in, pre, swapped)
         swapped &= _coherent(pre_in[:, :2], swapped, 2.0 * spacing(density_pre))
     n, k = len(post_in), int(fallen.sum())
     share = k / n
@@ -207,6 +218,22 @@ def _surrounded(query: np.ndarray, reference: np.ndarray, dist: np.ndarray, idx:
     n = above.sum(axis=1)
     mean = np.linalg.norm(unit.sum(axis=1), axis=1) / np.maximum(n, 1)
     return (n >= SURROUND_MIN_RETURNS) & (mean <= SURROUND_MAX)
+
+
+def _on_a_wall(query: np.ndarray, own_epoch: np.ndarray, flag: np.ndarray) -> np.ndarray:
+    """Flagged query returns with a return of their own epoch within STACK_RADIUS_M in x/y and
+    STACK_LOW_M..SEE_THROUGH_M above them (a vertical surface)."""
+    from scipy.spatial import cKDTree
+
+    out = np.zeros(len(query), bool)
+    sel = np.flatnonzero(flag)
+    if not len(sel) or not len(own_epoch):
+        return out
+    tree = cKDTree(own_epoch[:, :2])
+    for i, near in zip(sel, tree.query_ball_point(query[sel, :2], STACK_RADIUS_M)):
+        dz = own_epoch[near, 2] - query[i, 2]
+        out[i] = bool(np.any((dz > STACK_LOW_M) & (dz <= SEE_THROUGH_M)))
+    return out
 
 
 def _coherent(xy: np.ndarray, flag: np.ndarray, radius: float) -> np.ndarray:

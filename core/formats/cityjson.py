@@ -12,7 +12,10 @@
   where a surface carries none;
 - a terrain TIN (building_id 0, surface "ground") is laid through the bottoms of the
   buildings, one patch per cluster of buildings out to the cluster's bounding box plus a
-  margin (`building_clusters`): scattered buildings do not make terrain of the whole extent.
+  margin (`building_clusters`): scattered buildings do not make terrain of the whole extent;
+- a building whose walls leave its shell open (wall polygons missing from the model, a
+  party wall kept only above a neighbour the file does not hold) is closed by vertical walls there (`quakescan.formats.shell`), so that no
+  sensor sees the terrain inside it.
 
 Coordinates are float64 relative to the scene origin (the file's `transform.translate`), so
 projected coordinates of millions of metres keep their millimetres: nothing here goes through
@@ -33,6 +36,7 @@ import numpy as np
 from scipy.spatial import Delaunay, QhullError
 
 from ..errors import SceneError, read_json_file
+from .shell import close_open_edges
 from .scene import (DEGENERATE_AREA_M2, GROUND, INTERIOR, MATERIALS, ROOF, WALL, Building, Scene, check_crs,
                     triangle_areas)
 
@@ -41,6 +45,9 @@ __all__ = ["import_cityjson", "parse_reference_system", "SUPPORTED_VERSIONS"]
 log = logging.getLogger(__name__)
 
 SUPPORTED_VERSIONS = ("1.0", "1.1", "2.0")
+# Bumped whenever the same file imports into another scene (caches of imported scenes key on
+# it). 2: open shells closed (`quakescan.formats.shell`).
+IMPORT_VERSION = 2
 
 # Storey height used to turn a building height into a storey count (typical 2.8–3.2 m).
 STOREY_HEIGHT_M = 3.0
@@ -814,10 +821,14 @@ def _assemble(meshes, objects, verts, origin, margin, counts) -> Scene:
     n = 0
     for bid, mesh in enumerate(meshes, start=1):
         v, f = _compact(verts, mesh.tris)
+        v, f, surface, closing_m2 = close_open_edges(v, f, mesh.surface)
+        if closing_m2:
+            counts["buildings_closed"] += 1
+            counts["closing_wall_m2"] += int(round(closing_m2))
         parts_v.append(v)
         parts_f.append(f + n)
         parts_b.append(np.full(len(f), bid, np.int32))
-        parts_s.append(mesh.surface)
+        parts_s.append(surface)
         n += len(v)
         base.append(_base_points(verts, mesh))
         storeys = _estimate_storeys(objects[mesh.source_id].get("attributes"), verts, mesh)

@@ -44,12 +44,11 @@ from ..runtime.progress import accepts_old_say, stage_log
 # (on an unchanged real roof the few "significant" core points are noise, and their
 # distances and LoD describe the sensor, not the building; bench_transfer measures them).
 TABLE_SETTINGS = PipelineSettings(surface=SurfaceSettings(), paper_descriptors=False)
-# The openings per return (`o_*`, quakescan.change.openings) are in the tables but not yet in the
-# model: a model trained with them (their first definitions, commit 55f1ba4) found heavy damage
-# in real points (bench_real_damage heavy F1 50-72 % against 0-32 %) but called undamaged
-# buildings damaged across sensors (a drone photo flight lower in light wells than a laser saw:
-# Zurich ALS-like -> DIM 21 of 49 against 9) and 2 of 117 AHN3 halves: docs/results.md.
-MODEL_DESCRIPTORS = tuple(n for n in SURFACE_DESCRIPTORS if not n.startswith(("m_distance", "m_lod", "o_")))
+# The openings per return (`o_*`, quakescan.change.openings) are read by the model since
+# openings version 4: earlier definitions found heavy damage in real points but called undamaged
+# buildings damaged across sensors, on walls a photo flight reconstructs and a laser barely
+# samples and through real city models' open shells (docs/results.md).
+MODEL_DESCRIPTORS = tuple(n for n in SURFACE_DESCRIPTORS if not n.startswith(("m_distance", "m_lod")))
 TRANSFER_SETTINGS = PipelineSettings(surface=SurfaceSettings(), paper_descriptors=False,
                                      surface_descriptors=MODEL_DESCRIPTORS)
 CANDIDATES = (

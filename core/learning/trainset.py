@@ -343,7 +343,9 @@ def generate_city(city: CitySpec, folder: Path) -> None:
     from ..demo import generate
 
     if city.source == "rotterdam":
-        source = folder.parent / f"{city.name}_source"
+        from ..formats.cityjson import IMPORT_VERSION
+
+        source = folder.parent / f"{city.name}_source_v{IMPORT_VERSION}"
         if not (source / "scene.json").is_file():
             from ..formats.cityjson import import_cityjson
             from ..formats.scene import write_scene
