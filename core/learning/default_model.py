@@ -238,6 +238,20 @@ def transfer_training_table(work: Path, *, seed: int = 0, size: str = "full", sc
 
 
 @accepts_old_say
+def calibrate_on_real_points(model, table, full, config: dict, real_pairs, *, seed: int = 0) -> dict:
+    """Set `model.temperature` from the real-point rows' out-of-fold probabilities
+    (`quakescan.learning.real_calibration`) and record how in its provenance."""
+    from .real_calibration import real_calibration
+
+    stage_log.info(f"calibrating on real points: {len(real_pairs)} fits, each without one real pair")
+    record = real_calibration(table, full, config, real_pairs, seed=seed)
+    model.temperature = record["temperature"]
+    model.provenance["real_calibration"] = record
+    stage_log.info(f"temperature {record['temperature']}: real rows' log-loss {record['log_loss_before']} -> "
+                   f"{record['log_loss_after']}, ECE {record['ece_before']} -> {record['ece_after']}")
+    return record
+
+
 def make_default_model(work: Path, output: Path, *, seed: int = 0, size: str = "full", scenes: str = "both",
                        damage: str = "both", small: bool = False, workers: int = -1,
                        command: str = "", keep_clouds: bool = False, real_data: Path | None = None):
@@ -283,6 +297,8 @@ def make_default_model(work: Path, output: Path, *, seed: int = 0, size: str = "
                                                   "(quakescan.learning.realset); AHN3 tile 1 never"}
     model.provenance["rows_left_out"] = {"count": int(len(full.y) - len(table.y)), "of": int(len(full.y)),
                                          "why": "labelled damaged, but no change seen in any of " + ", ".join(EVIDENCE)}
+    if real_pairs:
+        calibrate_on_real_points(model, table, full, config, real_pairs, seed=seed)
     output = Path(output)
     output.parent.mkdir(parents=True, exist_ok=True)
     save_model(model, output)

@@ -72,6 +72,9 @@ class DamageModel:
     # (the paper's rule; the estimator was fitted on changed buildings only). False: the
     # estimator was fitted on every row and is asked about every assessable building.
     no_change_rule: bool = True
+    # Probabilities p^(1/T), renormalised: the temperature fitted on real-point rows
+    # (`quakescan.learning.real_calibration`); 1: the estimator's own. Grades do not depend on it.
+    temperature: float = 1.0
 
     @property
     def classes(self) -> list:
@@ -97,7 +100,12 @@ class DamageModel:
             raise ModelError(f"the model needs features {missing} that the data lacks "
                              f"(model features: {self.feature_names})")
         x = np.column_stack([np.asarray(table[f], dtype=np.float64) for f in self.feature_names])
-        return self.estimator.predict_proba(x)
+        proba = self.estimator.predict_proba(x)
+        if self.temperature != 1.0:
+            from .real_calibration import temper
+
+            proba = temper(proba, self.temperature)
+        return proba
 
     def predict(self, table: dict) -> np.ndarray:
         p = self.predict_proba(table)
@@ -357,8 +365,10 @@ def file_version(model: DamageModel) -> int:
 def save_model(model: DamageModel, path: str | os.PathLike) -> None:
     """Write the model (estimator + metadata) to a skops file, atomically.
 
-    Metadata beyond the first files' (both optional on reading): `classifier` ({"kind",
-    "calibration", "params"}, `describe_classifier`) and `no_change_rule` (bool)."""
+    Metadata beyond the first files' (all optional on reading): `classifier` ({"kind",
+    "calibration", "params"}, `describe_classifier`), `no_change_rule` (bool) and
+    `temperature` (written only when not 1; a reader without it gives the same grades with the
+    estimator's own probabilities)."""
     import zipfile
 
     import sklearn
@@ -372,6 +382,10 @@ def save_model(model: DamageModel, path: str | os.PathLike) -> None:
         "created": model.provenance.get("created") or datetime.date.today().isoformat(),
         "classifier": model.classifier, "no_change_rule": bool(model.no_change_rule),
     }
+    if model.temperature != 1.0:
+        from .real_calibration import check_temperature
+
+        meta["temperature"] = check_temperature(model.temperature)
     from ..runtime.atomic import replacing  # a failed write leaves nothing, names the file
 
     with replacing(path) as tmp:
@@ -448,6 +462,12 @@ def _build_model(path: Path, data: bytes) -> DamageModel:
         raise ModelError(f"{path}: no_change_rule must be true or false, got {rule!r}")
     _check_classifier_record(path, meta.get("classifier"), est)
     _check_settings(path, meta)
+    from .real_calibration import check_temperature
+
+    try:
+        temperature = check_temperature(meta.get("temperature", 1.0))
+    except ValueError as e:
+        raise ModelError(f"{path}: {e} (edited or foreign file)") from None
     if not isinstance(meta.get("provenance", {}), dict) or not all(isinstance(n, str) for n in names):
         raise ModelError(f"{path}: provenance must be a dict and feature names texts (edited or foreign file)")
     classes = getattr(est, "classes_", None)
@@ -461,7 +481,7 @@ def _build_model(path: Path, data: bytes) -> DamageModel:
     return DamageModel(est, names, float(meta["radius_m"]), meta.get("split", {}),
                        dict(meta.get("provenance", {}), versions={"quakescan": meta.get("quakescan"),
                                                                    "sklearn": meta.get("sklearn")}),
-                       no_change_rule=rule)
+                       no_change_rule=rule, temperature=temperature)
 
 
 # A model file is a zip archive; skops inflates every member it reads. The shipped model

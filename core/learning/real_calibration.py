@@ -1,0 +1,133 @@
+"""Probabilities calibrated on damage in real points: one temperature fitted out of fold.
+
+The shipped classifier's probabilities are calibrated on simulated rows (its sigmoid maps are
+fitted on folds of whole simulated cities). Real archives differ from every simulator in ways
+no training row shows, and a model sure of itself on simulated cities is over-sure on them: a
+building reported "no damage" at p = 0.9 that is heavily damaged is the worst answer it gives.
+
+The real-point rows (`quakescan.learning.realset`: damage injected into real archives, and their
+no-change rescans) measure that. Every real pair is predicted by the chosen classifier fitted
+without any of that pair's rows (out of fold: it never saw those buildings, nor their repeats),
+on every row of the pair, also those whose damage the acquisition did not show (the rows the
+training leaves out, which a user meets all the same). One temperature T then scales the
+log-probabilities, p_k ∝ p_k^(1/T), chosen to minimise the log-loss of those predictions
+(Guo et al. 2017, "On calibration of modern neural networks": one parameter, so a few hundred
+buildings fit it without overfitting). T > 1 softens over-sure answers, T < 1 sharpens
+under-sure ones; the argmax, and so every grade, is unchanged.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+# The temperature is sought in [1/MAX_TEMPERATURE, MAX_TEMPERATURE] (log-uniform): beyond it
+# the data would say the classifier knows nothing (or everything) on real points.
+MAX_TEMPERATURE = 20.0
+ECE_BINS = 10
+PROBABILITY_FLOOR = 1e-12
+
+
+def temper(proba: np.ndarray, temperature: float) -> np.ndarray:
+    """Probabilities (n, k) scaled by `temperature`: p^(1/T), renormalised per row."""
+    p = np.asarray(proba, dtype=np.float64)
+    if temperature == 1.0 or p.size == 0:
+        return p
+    check_temperature(temperature)
+    logp = np.log(np.clip(p, PROBABILITY_FLOOR, 1.0)) / float(temperature)
+    logp -= logp.max(axis=1, keepdims=True)
+    q = np.exp(logp)
+    return q / q.sum(axis=1, keepdims=True)
+
+
+def check_temperature(t) -> float:
+    if isinstance(t, bool) or not isinstance(t, (int, float)) or not math.isfinite(t) \
+            or not (1.0 / MAX_TEMPERATURE <= t <= MAX_TEMPERATURE):
+        raise ValueError(f"temperature must be a number in [{1 / MAX_TEMPERATURE:g}, {MAX_TEMPERATURE:g}], got {t!r}")
+    return float(t)
+
+
+def log_loss(proba: np.ndarray, truth_index: np.ndarray) -> float:
+    p = np.asarray(proba)[np.arange(len(truth_index)), truth_index]
+    return float(-np.mean(np.log(np.clip(p, PROBABILITY_FLOOR, 1.0))))
+
+
+def expected_calibration_error(proba: np.ndarray, truth_index: np.ndarray, bins: int = ECE_BINS) -> float:
+    """Top-label ECE: the row-weighted mean gap between confidence and accuracy over `bins`
+    equal-width confidence bins."""
+    p = np.asarray(proba)
+    if len(p) == 0:
+        return float("nan")
+    conf = p.max(axis=1)
+    correct = (p.argmax(axis=1) == np.asarray(truth_index)).astype(np.float64)
+    k = np.minimum((conf * bins).astype(int), bins - 1)
+    return float(sum((k == b).mean() * abs(correct[k == b].mean() - conf[k == b].mean())
+                     for b in range(bins) if (k == b).any()))
+
+
+def fit_temperature(proba: np.ndarray, truth_index: np.ndarray) -> float:
+    """The temperature minimising the log-loss of `proba` (n, k) against the true classes'
+    column indices (bounded search on log T)."""
+    from scipy.optimize import minimize_scalar
+
+    proba, truth_index = np.asarray(proba, dtype=np.float64), np.asarray(truth_index)
+    if len(proba) == 0:
+        raise ValueError("no rows to fit a temperature on")
+    bound = math.log(MAX_TEMPERATURE)
+    res = minimize_scalar(lambda s: log_loss(temper(proba, math.exp(s)), truth_index), bounds=(-bound, bound),
+                          method="bounded", options={"xatol": 1e-4})
+    return float(math.exp(res.x))
+
+
+def out_of_fold_real(table, full, config: dict, real_pairs, *, seed: int = 0, fit=None):
+    """Out-of-fold probabilities of every real row (once per building, not per repeat).
+
+    `table`: the rows the model is fitted on (real rows repeated); `full`: every row, also
+    those left out of training; `real_pairs`: the real pairs' names in `table.pairs`. Each real
+    pair is predicted by `config`'s classifier fitted on `table` without that pair's rows.
+    Returns (proba (n, k), truth (n,) grades, classes (k,), pair names (n,))."""
+    from .default_model import cv_groups
+    from .model import fit_classifier
+
+    fit = fit or fit_classifier
+    fit_args = {k: v for k, v in config.items() if k not in ("name", "rule")}
+    probas, truths, where = [], [], []
+    classes = None
+    for name in real_pairs:
+        k_train = table.pairs.index(name)
+        k_full = full.pairs.index(name)
+        test = np.flatnonzero(full.pair == k_full)
+        if not len(test):
+            continue
+        _, first = np.unique(full.building_id[test], return_index=True)
+        test = test[np.sort(first)]  # one row per building: the repeats are copies
+        train = table.subset(table.pair != k_train)
+        groups = cv_groups(train) if fit_args.get("calibration") else None
+        est = fit(train.x, train.y, seed=seed, groups=groups, **fit_args)
+        if classes is None:
+            classes = np.asarray(est.classes_)
+        elif not np.array_equal(classes, est.classes_):
+            raise ValueError(f"the fit without real pair {name} knows grades {list(est.classes_)}, not {list(classes)}")
+        probas.append(est.predict_proba(full.x[test]))
+        truths.append(full.y[test])
+        where += [name] * len(test)
+    if not probas:
+        raise ValueError("no real rows to calibrate on")
+    return np.vstack(probas), np.concatenate(truths), classes, np.array(where)
+
+
+def real_calibration(table, full, config: dict, real_pairs, *, seed: int = 0, fit=None) -> dict:
+    """{"temperature", "rows", "pairs", log-loss and ECE before and after} of the real rows'
+    out-of-fold probabilities (`out_of_fold_real`)."""
+    proba, truth, classes, _ = out_of_fold_real(table, full, config, real_pairs, seed=seed, fit=fit)
+    known = np.isin(truth, classes)
+    proba, truth = proba[known], truth[known]
+    index = np.searchsorted(classes, truth)
+    t = fit_temperature(proba, index)
+    after = temper(proba, t)
+    return {"temperature": round(t, 4), "rows": int(len(truth)), "pairs": list(real_pairs),
+            "log_loss_before": round(log_loss(proba, index), 4), "log_loss_after": round(log_loss(after, index), 4),
+            "ece_before": round(expected_calibration_error(proba, index), 4),
+            "ece_after": round(expected_calibration_error(after, index), 4),
+            "how": "one temperature on the out-of-fold probabilities of every real-point row "
+                   "(quakescan.learning.real_calibration)"}
