@@ -121,6 +121,24 @@ def test_detectable_grade_never_gets_worse_with_density_or_area():
         assert rank == sorted(rank, reverse=True)
 
 
+def test_walls_resolve_heavy_damage_where_two_percent_of_the_facade_holds_the_smallest_hole():
+    """A 40 m x 6 m facade band (240 m²): its 2 % (4.8 m²) must hold the smallest wall opening
+    both epochs resolve. An airborne archive's 0.3 returns per m² of wall (AHN3-like) needs
+    ln(40) / 0.3 = 12.3 m² for one return before: not resolvable; a drone's 20 resolve."""
+    assert D.WALL_HEAVY_SHARE == 0.02
+    sparse = D.min_opening_m2(0.3, 20.0)
+    assert sparse == pytest.approx(math.log(40) / 0.3)
+    assert not D.walls_resolved(240.0, sparse)
+    assert D.walls_resolved(240.0, D.min_opening_m2(20.0, 20.0))
+    assert not D.walls_resolved(0.0, 0.1) and not D.walls_resolved(240.0, math.inf)
+    q = {"density_pre": 30.0, "density_post": 30.0, "area_m2": 100.0}
+    assert D.of_building(q).walls_resolved is None  # no facade record: unknown
+    q.update(wall_density_pre=0.3, wall_density_post=20.0, facade_m2=240.0)
+    seen = D.of_building(q)
+    assert seen.walls_resolved is False and seen.min_wall_opening_m2 == pytest.approx(sparse)
+    assert seen.detectable_grade == 3  # the roofs resolve heavy damage all the same
+
+
 def test_heavy_unresolved_is_a_building_graded_0_that_cannot_resolve_3():
     assert D.heavy_unresolved(0, None, 5.0) and D.heavy_unresolved(0, 4, 5.0)
     assert not D.heavy_unresolved(0, 3, 1.0)
@@ -156,7 +174,15 @@ def test_the_pipeline_measures_each_buildings_area_and_lowering_resolution():
     (res,) = predict_rows([row], Model(), rule=True)
     assert (res.detectable_grade, res.min_opening_m2, res.min_lowering_m) == \
         (seen.detectable_grade, seen.min_opening_m2, seen.min_lowering_m)
-    assert detectability_counts([res]) == {"no_damage_heavy_unresolved": 0, "by_detectable_grade": {"3": 1}}
+    # its walls: 15 pts/m² (half the roof's, test_surface.sample_box) on a 40 m outline, 6 m high
+    assert q["facade_m2"] == pytest.approx(40 * (6.0 - 0.5 - 1.0), rel=0.12)
+    assert q["wall_density_pre"] == pytest.approx(15.0, rel=0.2) and q["wall_density_post"] == pytest.approx(15.0, rel=0.2)
+    assert seen.walls_resolved and seen.min_wall_opening_m2 == pytest.approx(
+        D.min_opening_m2(q["wall_density_pre"], q["wall_density_post"]))
+    assert (res.walls_resolved, res.min_wall_opening_m2) == (seen.walls_resolved, seen.min_wall_opening_m2)
+    assert detectability_counts([res]) == {"no_damage_heavy_unresolved": 0, "by_detectable_grade": {"3": 1},
+                                           "walls_resolve_heavy": {"resolved": 1, "not_resolved": 0, "unknown": 0},
+                                           "no_damage_walls_unresolved": 0}
 
 
 # ------------------------------------------------------------------------------ result files
@@ -167,11 +193,13 @@ def _rows():
     p0 = {0: 0.91, 3: 0.03, 4: 0.03, 5: 0.03}
     return [
         R.BuildingResult(1, 300, 280, True, grade=0, probabilities=p0, share_changed=0.0, decided_by="model",
-                         confidence=0.91, detectable_grade=4, min_opening_m2=3.25, min_lowering_m=0.31),
+                         confidence=0.91, detectable_grade=4, min_opening_m2=3.25, min_lowering_m=0.31,
+                         walls_resolved=False, min_wall_opening_m2=22.5),
         R.BuildingResult(2, 90, 80, True, grade=0, probabilities=p0, share_changed=0.0, decided_by="model",
                          confidence=0.91, detectable_grade=None, min_opening_m2=14.4),
         R.BuildingResult(3, 900, 850, True, grade=0, probabilities=p0, share_changed=0.0, decided_by="model",
-                         confidence=0.91, detectable_grade=3, min_opening_m2=0.9, min_lowering_m=0.22),
+                         confidence=0.91, detectable_grade=3, min_opening_m2=0.9, min_lowering_m=0.22,
+                         walls_resolved=True, min_wall_opening_m2=0.6),
         R.BuildingResult(4, 900, 400, True, grade=5, probabilities={0: 0.1, 3: 0.1, 4: 0.1, 5: 0.7},
                          share_changed=0.6, decided_by="model", confidence=0.7, detectable_grade=3,
                          min_opening_m2=1.2, min_lowering_m=0.25),
@@ -187,7 +215,11 @@ def test_csv_round_trip_of_the_new_columns_and_old_files(tmp_path):
     with open(path, newline="") as f:
         reader = csv.DictReader(f)
         cols, lines = reader.fieldnames, {int(r["building_id"]): r for r in reader}
-    assert cols[-3:] == ["detectable_grade", "min_opening_m2", "min_lowering_m"]
+    assert cols[-5:] == ["detectable_grade", "min_opening_m2", "min_lowering_m", "walls_resolved",
+                         "min_wall_opening_m2"]
+    assert (lines[1]["walls_resolved"], lines[1]["min_wall_opening_m2"]) == ("0", "22.5")
+    assert (lines[3]["walls_resolved"], lines[3]["min_wall_opening_m2"]) == ("1", "0.6")
+    assert lines[2]["walls_resolved"] == lines[5]["walls_resolved"] == ""
     assert (lines[1]["detectable_grade"], lines[1]["min_opening_m2"], lines[1]["min_lowering_m"]) == \
         ("4", "3.25", "0.31")
     assert (lines[2]["detectable_grade"], lines[2]["min_opening_m2"], lines[2]["min_lowering_m"]) == \
@@ -197,8 +229,8 @@ def test_csv_round_trip_of_the_new_columns_and_old_files(tmp_path):
     back = {r.building_id: r for r in R.read_csv(path)}
     for w in _rows():
         r = back[w.building_id]
-        assert (r.detectable_grade, r.min_opening_m2, r.min_lowering_m) == \
-            (w.detectable_grade, w.min_opening_m2, w.min_lowering_m)
+        assert (r.detectable_grade, r.min_opening_m2, r.min_lowering_m, r.walls_resolved, r.min_wall_opening_m2) == \
+            (w.detectable_grade, w.min_opening_m2, w.min_lowering_m, w.walls_resolved, w.min_wall_opening_m2)
         assert r.heavy_unresolved == w.heavy_unresolved
     assert [b for b, r in sorted(back.items()) if r.heavy_unresolved] == [1, 2]
     # a file written before the columns existed reads with them empty
@@ -206,7 +238,7 @@ def test_csv_round_trip_of_the_new_columns_and_old_files(tmp_path):
     with open(path, newline="") as f, open(old, "w", newline="") as g:
         w = csv.writer(g, lineterminator="\n")
         for line in csv.reader(f):
-            w.writerow(line[:-3])
+            w.writerow(line[:-5])
     before = R.read_csv(old)
     assert [r.grade for r in before] == [0, 0, 0, 5, None, 0]
     assert all(r.detectable_grade is None and r.min_opening_m2 is None and not r.heavy_unresolved for r in before)

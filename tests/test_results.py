@@ -77,7 +77,8 @@ def test_confidence_comes_after_the_first_columns_and_old_files_still_read(tmp_p
     confidence column) reads as before, with confidence empty, in read_csv and evaluate."""
     first = ["building_id", "assessable", "predicted_grade", "label", "p_0", "p_3", "p_4", "p_5",
              "share_changed", "n_pre", "n_post", "decided_by", "reason"]
-    added = ["confidence", "grade_name", "detectable_grade", "min_opening_m2", "min_lowering_m"]
+    added = ["confidence", "grade_name", "detectable_grade", "min_opening_m2", "min_lowering_m", "walls_resolved",
+             "min_wall_opening_m2"]
     assert R.csv_columns(CLASSES) == first + added
     path = tmp_path / "buildings.csv"
     R.write_csv(_rows(), path, CLASSES)

@@ -24,11 +24,17 @@ pre- and post-event roof densities (`planimetric_density`, pts/m²):
   footprint opened or lowered, by at least a drop) spans at least `min_opening_m2` of the
   building's footprint and drops by at least `min_lowering_m`; None when none does.
 
+- whether its **walls resolve heavy damage**, `walls_resolved`: the catalogue's smallest
+  heavy damage confined to walls (holes and break-outs over `WALL_HEAVY_SHARE` of a facade)
+  spans at least `min_wall_opening_m2`, the same closed form with each epoch's returns per m²
+  of facade (`quakescan.change.facade_sampling`). An airborne laser's few wall returns resolve
+  no wall holes; a drone's oblique flight does.
+
 These are bounds of the sampling, not of the descriptors: a building may resolve heavy damage
 and still be misread by the model, but one that does not resolve it cannot be read as
-"no damage seen, heavy damage excluded". The pre-event epoch's coverage of walls is not
-used: `detectable_grade` rests on the roof signatures only, so wall-only heavy damage (wall
-holes, a fallen gable) is not counted as resolvable from it.
+"no damage seen, heavy damage excluded". `detectable_grade` rests on the roof signatures
+(what every sensor sees); `walls_resolved` says apart whether wall-only heavy damage could
+have shown.
 """
 from __future__ import annotations
 
@@ -69,6 +75,9 @@ EXTREME = Signature(4, 0.20, 1.0, "partial roof collapse, 20-60 % of the roof dr
 # building's height: at least 60 % of it lowered, 1.8 m for the lowest building, one 3 m storey.
 DESTRUCTION = Signature(5, 0.20, 0.6 * 3.0, "wing collapse, 20-60 % of the footprint becomes a heap")
 SIGNATURES = (HEAVY, EXTREME, DESTRUCTION)
+# Heavy damage confined to walls: 1-4 holes or corner break-outs per facade, 0.5-2 m, over
+# 2-10 % of the facade area (docs/DAMAGE_CATALOGUE.md, masonry); the smallest share is taken.
+WALL_HEAVY_SHARE = 0.02
 
 
 def chance_fewer_than(k: int, area_m2: float, density_pts_m2: float) -> float:
@@ -133,6 +142,12 @@ def detectable_grade(footprint_m2: float, opening_m2: float, lowering_m: float |
     return None
 
 
+def walls_resolved(facade_m2: float, wall_opening_m2: float) -> bool:
+    """Whether facades of `facade_m2` in all resolve the smallest heavy wall damage
+    (`WALL_HEAVY_SHARE` of them) at the smallest wall opening `wall_opening_m2` resolvable."""
+    return bool(math.isfinite(wall_opening_m2) and facade_m2 > 0 and facade_m2 * WALL_HEAVY_SHARE >= wall_opening_m2)
+
+
 @dataclass(frozen=True)
 class Detectability:
     """What one building's data could resolve."""
@@ -140,6 +155,10 @@ class Detectability:
     min_opening_m2: float
     min_lowering_m: float | None
     detectable_grade: int | None  # 3, 4, 5, or None: no grade of damage is resolvable
+    # the smallest hole in a wall both epochs resolve (m²; inf: an epoch has no wall returns)
+    # and whether the walls resolve heavy damage; None: unknown (no facade record, no facade)
+    min_wall_opening_m2: float | None = None
+    walls_resolved: bool | None = None
 
 
 def of_building(quality: dict) -> Detectability | None:
@@ -156,7 +175,15 @@ def of_building(quality: dict) -> Detectability | None:
     opening = min_opening_m2(d_pre, d_post)
     lod = quality.get("lowering_lod_m")
     lowering = None if lod is None else float(lod)
-    return Detectability(opening, lowering, detectable_grade(area, opening, lowering))
+    wall_opening, walls = None, None
+    try:
+        w_pre, w_post, facade = (float(quality[k]) for k in ("wall_density_pre", "wall_density_post", "facade_m2"))
+    except (KeyError, TypeError, ValueError):
+        facade = 0.0
+    if facade > 0 and all(math.isfinite(v) and v >= 0 for v in (w_pre, w_post, facade)):
+        wall_opening = min_opening_m2(w_pre, w_post)
+        walls = walls_resolved(facade, wall_opening)
+    return Detectability(opening, lowering, detectable_grade(area, opening, lowering), wall_opening, walls)
 
 
 def heavy_unresolved(grade: int | None, grade_resolved: int | None, opening_m2: float | None) -> bool:
@@ -181,5 +208,6 @@ def _nonnegative(v, what: str) -> float:
 
 
 __all__ = ["ALPHA", "DESTRUCTION", "Detectability", "EXTREME", "HEAVY", "RETURNS_ON_ROOF_BEFORE",
-           "RETURNS_THROUGH_OPENING", "SIGNATURES", "Signature", "chance_fewer_than", "detectable_grade",
-           "heavy_unresolved", "min_area_m2", "min_lowering_m", "min_opening_m2", "of_building", "resolves"]
+           "RETURNS_THROUGH_OPENING", "SIGNATURES", "Signature", "WALL_HEAVY_SHARE", "chance_fewer_than",
+           "detectable_grade", "heavy_unresolved", "min_area_m2", "min_lowering_m", "min_opening_m2", "of_building",
+           "resolves", "walls_resolved"]

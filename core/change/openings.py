@@ -24,12 +24,13 @@ part inside the outline give both. Damage that opens a roof gives only the first
 light well or a recess, which one sensor sees lower down than another, lies on one side of it
 (a half disc gives 2/pi = 0.64).
 
-**Not on a wall**: a return with another return of its own epoch within `STACK_RADIUS_M` in
-x/y and `STACK_LOW_M`..`SEE_THROUGH_M` above it lies on a vertical surface (the step between
-two roof parts, a courtyard wall), which a photo flight reconstructs densely and a laser
-barely samples: it is not seen through anything. What is seen through an opening has the
-room's height of empty space above it, and a debris slope steeper than STACK_LOW_M /
-STACK_RADIUS_M (50°) is rare.
+**Not on a wall**: a return with another return of its own epoch within one point spacing
+(at least `STACK_RADIUS_M`) in x/y, `STACK_LOW_M`..`STACK_HIGH_M` above it and at least
+`STACK_STEEPNESS` times as far up as across (a surface steeper than 63°) lies on a wall (the
+step between two roof parts, a courtyard wall, a wall a collapse laid open), which a photo
+flight reconstructs densely and a laser barely samples: it is not seen through anything. What
+is seen through an opening has a storey's height of empty space above it, and debris rarely
+lies steeper than its angle of repose (35-40°).
 
 Only returns at least `INSET_M` inside the building's outline count (a wall seen by an
 oblique pulse lies on the outline), and only **coherent** ones: a fallen return with another
@@ -58,8 +59,9 @@ import numpy as np
 
 # Bumped whenever these descriptors' computation changes (with surface.DESCRIPTOR_VERSION in the
 # training tables' keys). 2: courtyards stay outside the inner area, the radius floor 0.5 -> 0.25 m;
-# 3: a fallen return must be surrounded by the surface it fell through; 4: and not lie on a wall.
-OPENINGS_VERSION = 4
+# 3: a fallen return must be surrounded by the surface it fell through; 4: and not lie on a wall;
+# 5: a wall is a surface steeper than 63 deg up to 2 m above, within a point spacing.
+OPENINGS_VERSION = 5
 OPENING_DESCRIPTORS = ("o_fallen", "o_fallen_null", "o_fallen_excess", "o_fallen_ground", "o_fallen_largest",
                        "o_fallen_scatter")
 SEE_THROUGH_M = 1.0
@@ -74,6 +76,8 @@ SURROUND_MAX = 0.5
 INSET_M = 0.75
 STACK_RADIUS_M = 0.25
 STACK_LOW_M = 0.3
+STACK_HIGH_M = 2.0
+STACK_STEEPNESS = 2.0
 # the returns of both epochs read around a building: its neighbourhood radius at the sparsest densities
 OPENING_REACH_M = 3.0
 OUTLINE_CELL_M = 0.5
@@ -120,11 +124,11 @@ def opening_descriptors(own_pre: np.ndarray, pre: np.ndarray, post: np.ndarray, 
     if len(post_in) == 0:
         return out
     fallen = _fallen(post_in, pre, neighbourhood_radius(density_pre))
-    fallen &= ~_on_a_wall(post_in, post, fallen)
+    fallen &= ~_on_a_wall(post_in, post, fallen, spacing(density_post))
     fallen &= _coherent(post_in[:, :2], fallen, 2.0 * spacing(density_post))
     swapped = _fallen(pre_in, post, neighbourhood_radius(density_post)) if len(pre_in) else np.zeros(0, bool)
     if len(pre_in):
-        swapped &= ~_on_a_wall(pre_in, pre, swapped)
+        swapped &= ~_on_a_wall(pre_in, pre, swapped, spacing(density_pre))
         swapped &= _coherent(pre_in[:, :2], swapped, 2.0 * spacing(density_pre))
     n, k = len(post_in), int(fallen.sum())
     share = k / n
@@ -220,9 +224,10 @@ def _surrounded(query: np.ndarray, reference: np.ndarray, dist: np.ndarray, idx:
     return (n >= SURROUND_MIN_RETURNS) & (mean <= SURROUND_MAX)
 
 
-def _on_a_wall(query: np.ndarray, own_epoch: np.ndarray, flag: np.ndarray) -> np.ndarray:
-    """Flagged query returns with a return of their own epoch within STACK_RADIUS_M in x/y and
-    STACK_LOW_M..SEE_THROUGH_M above them (a vertical surface)."""
+def _on_a_wall(query: np.ndarray, own_epoch: np.ndarray, flag: np.ndarray, point_spacing: float) -> np.ndarray:
+    """Flagged query returns under a steep surface of their own epoch: a return of it within
+    one point spacing (at least STACK_RADIUS_M) in x/y, STACK_LOW_M..STACK_HIGH_M above, and at
+    least STACK_STEEPNESS times as far up as across (steeper than 63°: a wall)."""
     from scipy.spatial import cKDTree
 
     out = np.zeros(len(query), bool)
@@ -230,9 +235,12 @@ def _on_a_wall(query: np.ndarray, own_epoch: np.ndarray, flag: np.ndarray) -> np
     if not len(sel) or not len(own_epoch):
         return out
     tree = cKDTree(own_epoch[:, :2])
-    for i, near in zip(sel, tree.query_ball_point(query[sel, :2], STACK_RADIUS_M)):
-        dz = own_epoch[near, 2] - query[i, 2]
-        out[i] = bool(np.any((dz > STACK_LOW_M) & (dz <= SEE_THROUGH_M)))
+    radius = max(STACK_RADIUS_M, point_spacing)
+    for i, near in zip(sel, tree.query_ball_point(query[sel, :2], radius)):
+        rel = own_epoch[near] - query[i]
+        dz = rel[:, 2]
+        across = np.hypot(rel[:, 0], rel[:, 1])
+        out[i] = bool(np.any((dz > STACK_LOW_M) & (dz <= STACK_HIGH_M) & (dz >= STACK_STEEPNESS * across)))
     return out
 
 

@@ -439,9 +439,11 @@ def describe_surfaces(pre_xyz: np.ndarray, pre_bid: np.ndarray, pre_ground: np.n
     pre_bid: building ID per pre-event point (0 = none); pre_ground: ground mask (ASPRS 2)
     or None. Returns ({building ID: {descriptor: value}}, {building ID: CoreChange}) and,
     with `quality`, {building ID: {density_pre, density_post, coverage, cells, area_m2,
-    lowering_lod_m}}: planimetric densities (pts/m²) of the building's own pre-event points and
-    of the post-event points over its cells, the share of its cells with post-event points,
-    its cells and their area (m²), and the smallest lowering it resolves
+    wall_density_pre, wall_density_post, facade_m2, lowering_lod_m}}: planimetric densities
+    (pts/m²) of the building's own pre-event points and of the post-event points over its
+    cells, the share of its cells with post-event points, its cells and their area (m²), each
+    epoch's returns per m² of its facades and their area (`quakescan.change.facade_sampling`),
+    and the smallest lowering it resolves
     (`quakescan.change.detectability.min_lowering_m`; absent without a comparable core point).
 
     Whether a wall is lost is judged against how well the post-event flight saw walls facing
@@ -500,6 +502,7 @@ def describe_surfaces(pre_xyz: np.ndarray, pre_bid: np.ndarray, pre_ground: np.n
                          "density_post": round(planimetric_density(post_xyz[inside]), 3),
                          "coverage": round(1.0 - descriptors[bid]["s_post_gap"], 4),
                          "cells": int(len(cells)), "area_m2": round(len(cells) * c * c, 3)}
+            qual[bid].update(_facades(pre_xyz[idx], interior, building_keys, ground, lo, c, width))
         members[bid] = idx
         core_of[bid] = idx[voxel_core_points(pre_xyz[idx], c)]
         outline_core[bid] = np.isin(pre_key[core_of[bid]], edge_keys)
@@ -621,6 +624,21 @@ def _openings(own: np.ndarray, own_keys: np.ndarray, own_density: float, interio
     over = np.isin(keys, np.unique(own_keys))
     d_post = planimetric_density(post[over]) if over.any() else 0.0
     return opening_descriptors(own, pre, post, ground, own_density, d_post, settings.min_share)
+
+
+def _facades(own: np.ndarray, interior: _InteriorView, building_keys, ground: float, lo, c: float,
+             width: int) -> dict:
+    """`quakescan.change.facade_sampling` of one building: its facades' area and how densely
+    each epoch sampled them (returns per m² of facade)."""
+    from .facade_sampling import facade_densities
+
+    own_lo, own_hi = row_bounds(own[:, :2])
+    reach = 2.0 * c
+    d_pre, d_post, area = facade_densities(own, interior.pre.in_box(own_lo - reach, own_hi + reach),
+                                           interior.post.in_box(own_lo - reach, own_hi + reach), building_keys,
+                                           ground, lo, c, width)
+    return {"wall_density_pre": round(d_pre, 3), "wall_density_post": round(d_post, 3),
+            "facade_m2": round(area, 1)}
 
 
 def chance_missed(area_m2, pre_density: float):

@@ -211,6 +211,7 @@ def predict_rows(rows, model: DamageModel, rule: bool | None = None) -> list:
         if seen is not None:
             res.detectable_grade, res.min_opening_m2, res.min_lowering_m = (seen.detectable_grade,
                                                                             seen.min_opening_m2, seen.min_lowering_m)
+            res.walls_resolved, res.min_wall_opening_m2 = seen.walls_resolved, seen.min_wall_opening_m2
         if rule and share == 0.0:
             res.grade = 0
             res.probabilities = {c: float(c == 0) for c in grades}
@@ -364,8 +365,13 @@ def detectability_counts(res) -> dict:
                "none" if r.detectable_grade is None else str(int(r.detectable_grade)))
         by[key] = by.get(key, 0) + 1
     order = ["3", "4", "5", "none", "unknown"]
+    walls = {"resolved": sum(1 for r in assessed if r.walls_resolved is True),
+             "not_resolved": sum(1 for r in assessed if r.walls_resolved is False),
+             "unknown": sum(1 for r in assessed if r.walls_resolved is None)}
     return {"no_damage_heavy_unresolved": sum(1 for r in assessed if r.heavy_unresolved),
-            "by_detectable_grade": {k: by[k] for k in order if k in by}}
+            "by_detectable_grade": {k: by[k] for k in order if k in by},
+            "walls_resolve_heavy": walls,
+            "no_damage_walls_unresolved": sum(1 for r in assessed if r.grade == 0 and r.walls_resolved is False)}
 
 
 # Epochs whose stable ground disagrees by more than this share of the model's level of

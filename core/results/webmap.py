@@ -86,6 +86,9 @@ def _detectability_rows(r, row) -> list[str]:
     out = [row("lowest grade resolvable", lowest), row("smallest opening resolvable", opening)]
     if r.min_lowering_m is not None:
         out.append(row("smallest lowering resolvable", f"{r.min_lowering_m:.2f} m"))
+    if r.walls_resolved is not None:
+        out.append(row("heavy damage in walls alone", "resolvable" if r.walls_resolved else
+                       "not resolvable (too few returns on the walls)"))
     if r.heavy_unresolved:
         out.append(row("note", HEAVY_UNRESOLVED))
     return out

@@ -42,7 +42,8 @@ _FIXED = ["building_id", "assessable", "predicted_grade", "label"]
 _TAIL = ["share_changed", "n_pre", "n_post", "decided_by", "reason"]
 # Columns added after the first files: written after all others, optional on reading, so
 # readers that look columns up by name (quakescan.results.evaluation, read_csv) take old and new files.
-_ADDED = ["confidence", "grade_name", "detectable_grade", "min_opening_m2", "min_lowering_m"]
+_ADDED = ["confidence", "grade_name", "detectable_grade", "min_opening_m2", "min_lowering_m", "walls_resolved",
+          "min_wall_opening_m2"]
 # Buildings graded 0 whose data cannot resolve heavy damage (`quakescan.change.detectability`):
 # hatched on both maps, with this legend entry
 HEAVY_UNRESOLVED = "no damage seen; heavy damage not resolvable here"
@@ -70,6 +71,10 @@ class BuildingResult:
     detectable_grade: int | None = None
     min_opening_m2: float | None = None
     min_lowering_m: float | None = None
+    # whether the walls resolve heavy damage confined to them, and the smallest wall hole they
+    # resolve (m²); None: unknown (no facade band, or no facade record)
+    walls_resolved: bool | None = None
+    min_wall_opening_m2: float | None = None
 
     @property
     def heavy_unresolved(self) -> bool:
@@ -130,7 +135,7 @@ def _sorted(rows) -> list[BuildingResult]:
 
 # ---------------------------------------------------------------------------------------- CSV
 
-_FLOATS = ("share_changed", "min_opening_m2", "min_lowering_m")  # written with `_fmt`, empty when None
+_FLOATS = ("share_changed", "min_opening_m2", "min_lowering_m", "min_wall_opening_m2")  # written with `_fmt`, empty when None
 
 
 def csv_columns(classes) -> list[str]:
@@ -154,6 +159,10 @@ def _record(r: BuildingResult, classes) -> dict:
     rec.update({"detectable_grade": int(r.detectable_grade) if known and r.detectable_grade is not None else None,
                 "min_opening_m2": float(r.min_opening_m2) if known else None,
                 "min_lowering_m": float(r.min_lowering_m) if known and r.min_lowering_m is not None else None})
+    walls = known and r.walls_resolved is not None
+    rec.update({"walls_resolved": (1 if r.walls_resolved else 0) if walls else None,
+                "min_wall_opening_m2": float(r.min_wall_opening_m2) if walls and r.min_wall_opening_m2 is not None
+                else None})
     return rec
 
 
@@ -172,7 +181,8 @@ def write_csv(rows, path, classes, own_ids: dict | None = None) -> None:
     data resolve; empty when they resolve none, or when min_opening_m2 is empty too: unknown),
     min_opening_m2 and min_lowering_m (the smallest roof opening and lowering they resolve;
     empty when unknown: not assessable, no surface descriptors, or no comparable core point
-    for the lowering). `quakescan.results.evaluation` reads it. `own_ids`
+    for the lowering), walls_resolved (1/0: whether heavy damage confined to the walls could
+    show; empty when unknown) and min_wall_opening_m2 (the smallest wall hole resolved). `quakescan.results.evaluation` reads it. `own_ids`
     ({building_id: footprint ID}, for footprints whose IDs are text) adds a last column
     `footprint_id`."""
     classes = [int(c) for c in classes]
@@ -229,15 +239,18 @@ def read_csv(path) -> list[BuildingResult]:
             probs = {k: float(d[c]) for c, k in pcols.items() if d[c].strip()} if ok else {}
             share = d["share_changed"].strip()
             conf = (d.get("confidence") or "").strip()
-            resolved, opening, lowering = ((d.get(c) or "").strip() for c in
-                                           ("detectable_grade", "min_opening_m2", "min_lowering_m"))
+            resolved, opening, lowering, walls, wall_opening = (
+                (d.get(c) or "").strip() for c in
+                ("detectable_grade", "min_opening_m2", "min_lowering_m", "walls_resolved", "min_wall_opening_m2"))
             out.append(BuildingResult(int(d["building_id"]), int(d["n_pre"]), int(d["n_post"]), ok,
                                       d["reason"], int(g) if ok and g else None, probs,
                                       float(share) if share else None, d["decided_by"],
                                       float(conf) if ok and conf else None,
                                       int(resolved) if ok and resolved else None,
                                       float(opening) if ok and opening else None,
-                                      float(lowering) if ok and lowering else None))
+                                      float(lowering) if ok and lowering else None,
+                                      (walls == "1") if ok and walls else None,
+                                      float(wall_opening) if ok and wall_opening else None))
         except (ValueError, AttributeError) as e:
             raise ResultsError(f"{path}: line {i}: {e}") from None
     return out
