@@ -155,19 +155,19 @@ def expected_calibration_error(confidence: np.ndarray, correct: np.ndarray, bins
 def real_shape_scenes(work: Path) -> dict:
     """{name: scene bundle folder} of the undamaged real-shape cities."""
     from bench_zurich import ZURICH, packed_cityjson
-    from quakescan.formats.cityjson import import_cityjson
+    from quakescan.formats.cityjson import IMPORT_VERSION, import_cityjson
     from quakescan.formats.scene import write_scene
     from quakescan.learning.trainset import densest_cluster
 
     out = {}
     rotterdam, zurich = SHARED / "rotterdam_subset.json", ZURICH
     if rotterdam.is_file():
-        folder = work / "shapes" / "rotterdam"
+        folder = work / "shapes" / f"rotterdam_v{IMPORT_VERSION}"  # another importer, another scene
         if not (folder / "scene.json").is_file():
             write_scene(densest_cluster(import_cityjson(rotterdam)), folder)
         out["Rotterdam"] = folder
     if zurich.is_file():
-        folder = work / "shapes" / "zurich"
+        folder = work / "shapes" / f"zurich_v{IMPORT_VERSION}"
         if not (folder / "scene.json").is_file():
             packed_cityjson(zurich, work / "shapes" / "zurich_packed.city.json")
             write_scene(import_cityjson(work / "shapes" / "zurich_packed.city.json"), folder)

@@ -148,10 +148,10 @@ def city(work: Path, damage: str, seed: int) -> tuple[Path, dict, float, int]:
     from quakescan.acquisition.dim_settings import preset_dim
     from quakescan.acquisition.survey import preset
     from quakescan.demo import generate
-    from quakescan.formats.cityjson import import_cityjson
+    from quakescan.formats.cityjson import IMPORT_VERSION, import_cityjson
     from quakescan.formats.scene import read_scene, write_scene
 
-    source = work / "source"
+    source = work / f"source_v{IMPORT_VERSION}"  # another importer, another scene
     if not (source / "scene.json").is_file():
         n = packed_cityjson(ZURICH, work / "zurich_packed.city.json")
         scene = import_cityjson(work / "zurich_packed.city.json")

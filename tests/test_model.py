@@ -355,6 +355,10 @@ def test_the_shipped_model_is_the_transfer_model_with_its_limits_and_provenance(
     prov = m.provenance
     assert prov["classifier_selection"]["chosen"] and prov["n_rows"] > 2500
     assert "make_default_model.py" in prov["command"] and prov["descriptor_version"] >= 1
+    # probabilities calibrated on real points, out of fold (quakescan.learning.real_calibration)
+    cal = prov["real_calibration"]
+    assert m.temperature == cal["temperature"] and cal["rows"] > 100
+    assert cal["log_loss_after"] <= cal["log_loss_before"]
 
 
 # ------------------------------------------------------------------ the no-change rule as a model property

@@ -119,6 +119,10 @@ def cmd_classify(args) -> int:
     if unresolved:
         print(f"classify: {unresolved} of the buildings graded 'no damage' could not have shown heavy damage "
               "(too sparse for its smallest roof openings): hatched on the maps, `detectable_grade` in the results")
+    blind_walls = summary.get("detectability", {}).get("no_damage_walls_unresolved", 0)
+    if blind_walls:
+        print(f"classify: {blind_walls} of the buildings graded 'no damage' have walls too sparsely sampled to show "
+              "heavy damage confined to them (holes, break-outs): `walls_resolved` 0 in the results")
     print(f"results -> {out / 'buildings.csv'}, {out / 'buildings.geojson'} (QGIS style buildings.qml), "
           f"{out / 'damage_map.png'}, {out / 'damage_map.html'} (opens offline)"
           + (f", {summary['post_grades']}" if "post_grades" in summary else ""))
