@@ -148,10 +148,10 @@ def city(work: Path, damage: str, seed: int) -> tuple[Path, dict, float, int]:
     from quakescan.acquisition.dim_settings import preset_dim
     from quakescan.acquisition.survey import preset
     from quakescan.demo import generate
-    from quakescan.formats.cityjson import IMPORT_VERSION, import_cityjson
+    from quakescan.formats.cityjson import import_cityjson
     from quakescan.formats.scene import read_scene, write_scene
 
-    source = work / f"source_v{IMPORT_VERSION}"  # another importer, another scene
+    source = source_folder(work)
     if not (source / "scene.json").is_file():
         n = packed_cityjson(ZURICH, work / "zurich_packed.city.json")
         scene = import_cityjson(work / "zurich_packed.city.json")
@@ -180,6 +180,13 @@ def city(work: Path, damage: str, seed: int) -> tuple[Path, dict, float, int]:
             clouds[(scene_name, kind)] = p
     pairs = {name: (clouds[("pre", a)], clouds[("post", b)]) for name, (a, b) in PAIRS.items()}
     return folder, pairs, seconds, fallback
+
+
+def source_folder(work: Path) -> Path:
+    """The imported Zurich scene: another importer, another scene (and folder)."""
+    from quakescan.formats.cityjson import IMPORT_VERSION
+
+    return work / f"source_v{IMPORT_VERSION}"
 
 
 def main(argv=None) -> int:
@@ -228,7 +235,7 @@ def main(argv=None) -> int:
     (work / "results.json").write_text(json.dumps(results, indent=1, default=str))
     from quakescan.formats.scene import read_scene
 
-    mix = scaled_mix(len(read_scene(work / "source").building_ids))
+    mix = scaled_mix(len(read_scene(source_folder(work)).building_ids))
     seed_text = ", ".join(str(v) for v in seeds)
     text = "\n".join([
         "## Real building shapes never trained on: Zurich (`bench/bench_zurich.py`)", "",
