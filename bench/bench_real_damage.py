@@ -141,15 +141,9 @@ def score(result_csv: Path, truth_csv: Path, every_building: bool = False) -> di
 
 
 def expected_calibration_error(confidence: np.ndarray, correct: np.ndarray, bins: int = ECE_BINS) -> float:
-    if len(confidence) == 0:
-        return float("nan")
-    k = np.minimum((confidence * bins).astype(int), bins - 1)
-    ece = 0.0
-    for b in range(bins):
-        m = k == b
-        if m.any():
-            ece += m.mean() * abs(correct[m].mean() - confidence[m].mean())
-    return float(ece)
+    from quakescan.learning.real_calibration import calibration_error
+
+    return calibration_error(confidence, correct, bins)
 
 
 def real_shape_scenes(work: Path) -> dict:

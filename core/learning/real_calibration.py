@@ -58,8 +58,14 @@ def expected_calibration_error(proba: np.ndarray, truth_index: np.ndarray, bins:
     p = np.asarray(proba)
     if len(p) == 0:
         return float("nan")
-    conf = p.max(axis=1)
-    correct = (p.argmax(axis=1) == np.asarray(truth_index)).astype(np.float64)
+    return calibration_error(p.max(axis=1), p.argmax(axis=1) == np.asarray(truth_index), bins)
+
+
+def calibration_error(confidence: np.ndarray, correct: np.ndarray, bins: int = ECE_BINS) -> float:
+    """ECE of answers given at `confidence` ((n,) in [0, 1]) that were `correct` ((n,) bool)."""
+    conf, correct = np.asarray(confidence, dtype=np.float64), np.asarray(correct, dtype=np.float64)
+    if len(conf) == 0:
+        return float("nan")
     k = np.minimum((conf * bins).astype(int), bins - 1)
     return float(sum((k == b).mean() * abs(correct[k == b].mean() - conf[k == b].mean())
                      for b in range(bins) if (k == b).any()))
