@@ -116,6 +116,21 @@ def test_a_step_without_its_wall_is_closed_and_one_with_it_is_not():
     np.testing.assert_allclose(v[new][..., 0], 5.0)
 
 
+def test_a_sliver_along_a_roof_edge_does_not_hide_the_missing_wall_under_it():
+    """A roof polygon with an extra vertex on its straight north edge, triangulated with a
+    zero-area triangle along that edge (as earcut leaves it), and no north wall in the file:
+    the wall is put back (the sliver shared the roof triangle's edge, so it looked inner)."""
+    m = _box(0, 0, 10, 8, 0, 6, walls=("s", "e", "w"))
+    v, t, s = m.arrays()
+    n = len(v)
+    v = np.vstack([v, [(10, 8, 6), (4, 8, 6), (0, 8, 6)]])  # on the north edge, x = 4 in between
+    t = np.vstack([t, [(n, n + 1, n + 2)]])  # collinear: no area
+    s = np.append(s, ROOF)
+    v2, t2, s2, area = close_open_edges(v, t, s)
+    assert area == pytest.approx(10 * 6)
+    np.testing.assert_allclose(v2[t2[len(t):]][..., 1], 8.0)  # in the north wall's plane
+
+
 def test_a_vertical_or_base_edge_is_left_alone():
     """A ground polygon's edges and a wall's vertical side never make walls."""
     m = _Mesh()
@@ -124,6 +139,13 @@ def test_a_vertical_or_base_edge_is_left_alone():
     v, new, area = _added(m)
     # the wall's top edge stands over the wall itself: nothing
     assert area == 0
+
+
+# Rotterdam buildings whose shells stay open after the closing, each alone: 6 (the lower part
+# of a stepped facade; its north facade under a sliver is closed) and 12 (a party-wall strip
+# over a lower roof part whose own facade the file lacks). Seen when each building stands
+# alone; the subset's neighbours hide both gaps.
+STILL_OPEN = {6, 12}
 
 
 @pytest.mark.realdata
@@ -145,8 +167,26 @@ def test_no_oblique_view_reaches_the_terrain_under_a_rotterdam_roof():
     face, _ = caster.cast(centre, up, 200.0)
     under = np.flatnonzero((face >= 0) & (scene.face_building[np.maximum(face, 0)] > 0))
     assert len(under) > 100
-    for az in np.radians(np.arange(0, 360, 30)):
-        d = np.tile([np.cos(az) * np.sqrt(0.5), np.sin(az) * np.sqrt(0.5), np.sqrt(0.5)], (len(under), 1))
-        face, _ = caster.cast(centre[under], d, 500.0)
-        escaped = face < 0
-        assert not escaped.any(), f"{escaped.sum()} terrain triangles under a roof seen from azimuth {az:.2f}"
+    owner = scene.face_building[face[under]]
+    for bid in sorted(set(np.unique(owner).tolist()) - STILL_OPEN):
+        # each building alone: a neighbour in the file must not hide a gap that a city
+        # without it (or a street between them) leaves open (building 6's north facade)
+        alone = RayCaster(_only_building(scene, bid))
+        mine = centre[under][owner == bid] + caster.local_origin - alone.local_origin
+        for az in np.radians(np.arange(0, 360, 30)):
+            for elevation in (np.radians(45), np.radians(60)):
+                d = np.tile([np.cos(az) * np.cos(elevation), np.sin(az) * np.cos(elevation), np.sin(elevation)],
+                            (len(mine), 1))
+                face, _ = alone.cast(mine, d, 500.0)
+                escaped = face < 0
+                assert not escaped.any(), (f"building {bid}: {escaped.sum()} terrain triangles under its roof "
+                                           f"seen from azimuth {az:.2f}, elevation {elevation:.2f}")
+
+
+def _only_building(scene, bid):
+    from dataclasses import replace
+
+    keep = scene.face_building == bid
+    return replace(scene, faces=scene.faces[keep], face_building=scene.face_building[keep],
+                   face_surface=scene.face_surface[keep], face_porous=None,
+                   buildings=[b for b in scene.buildings if b.id == bid])

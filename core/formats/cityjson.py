@@ -46,8 +46,9 @@ log = logging.getLogger(__name__)
 
 SUPPORTED_VERSIONS = ("1.0", "1.1", "2.0")
 # Bumped whenever the same file imports into another scene (caches of imported scenes key on
-# it). 2: open shells closed (`quakescan.formats.shell`).
-IMPORT_VERSION = 2
+# it). 2: open shells closed (`quakescan.formats.shell`); 3: slivers along an outline no
+# longer hide an open edge.
+IMPORT_VERSION = 3
 
 # Storey height used to turn a building height into a storey count (typical 2.8–3.2 m).
 STOREY_HEIGHT_M = 3.0

@@ -9,7 +9,10 @@ fallen in (Rotterdam building 15: 25 % of its post-event returns 15 m below the 
 roof between a laser and a photo flight). A real building is closed; a scene models it so.
 
 An **open edge** is an edge of a roof or wall triangle that no other triangle of the
-building shares (vertices merged at `MERGE_M`): a roof's edge with no wall under it, or the
+building shares (vertices merged at `MERGE_M`; slivers thinner than `SLIVER_M` share no
+edge: a polygon's triangulation leaves zero-area triangles along a straight outline where it
+has extra vertices, and one of them on a roof's outer edge made that edge look inner, so the
+facade under it stayed open: Rotterdam building 6): a roof's edge with no wall under it, or the
 bottom of a wall that stops in mid-air (3D BAG-style models keep only the strip of a party
 wall above the neighbour's roof; a subset without that neighbour leaves the facade open).
 It is closed by a vertical wall from the edge down to the building's lowest vertex unless
@@ -33,6 +36,8 @@ import numpy as np
 from .scene import ROOF, WALL
 
 MERGE_M = 1e-3
+# a triangle whose height over its longest edge is below this is a sliver: it covers nothing
+SLIVER_M = 0.01
 # probes: this far below an edge for a wall under it, this far outside it for a roof beyond it
 PROBE_DROP_M = 0.3
 PROBE_OUT_M = 0.1
@@ -95,7 +100,9 @@ def close_open_edges(verts: np.ndarray, tris: np.ndarray, surface: np.ndarray):
 
 def _open_edges(verts, tris, surface):
     """(e, 3): the two vertices of each roof or wall triangle's edge used by no other triangle,
-    and the triangle's third vertex (which side it lies on); (e,) whether of a roof."""
+    and the triangle's third vertex (which side it lies on); (e,) whether of a roof. Slivers
+    (`_slivers`) neither share an edge nor have one."""
+    tris, surface = tris[~_slivers(verts, tris)], surface[~_slivers(verts, tris)]
     keys = np.floor(verts / MERGE_M + 0.5).astype(np.int64)
     _, canon = np.unique(keys, axis=0, return_inverse=True)
     canon = canon.reshape(-1)
@@ -161,6 +168,14 @@ def _inside_triangle(q, a, b, c, n) -> np.ndarray:
     def side(u, v):
         return np.einsum("pwk,wk->pw", np.cross(v[None] - u[None], q - u[None]), n)
     return (side(a, b) >= -tol) & (side(b, c) >= -tol) & (side(c, a) >= -tol)
+
+
+def _slivers(v, t) -> np.ndarray:
+    """(k,) whether each triangle is thinner than SLIVER_M: twice its area over its longest edge."""
+    if not len(t):
+        return np.zeros(0, bool)
+    longest = np.max([np.linalg.norm(v[t[:, (j + 1) % 3]] - v[t[:, j]], axis=1) for j in range(3)], axis=0)
+    return 2.0 * _area(v, t) < SLIVER_M * longest
 
 
 def _area(v, t) -> np.ndarray:
