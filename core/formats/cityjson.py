@@ -47,8 +47,8 @@ log = logging.getLogger(__name__)
 SUPPORTED_VERSIONS = ("1.0", "1.1", "2.0")
 # Bumped whenever the same file imports into another scene (caches of imported scenes key on
 # it). 2: open shells closed (`quakescan.formats.shell`); 3: slivers along an outline no
-# longer hide an open edge.
-IMPORT_VERSION = 3
+# longer hide an open edge; 4: nor do walls rising from a roof edge.
+IMPORT_VERSION = 4
 
 # Storey height used to turn a building height into a storey count (typical 2.8–3.2 m).
 STOREY_HEIGHT_M = 3.0

@@ -9,7 +9,9 @@ fallen in (Rotterdam building 15: 25 % of its post-event returns 15 m below the 
 roof between a laser and a photo flight). A real building is closed; a scene models it so.
 
 An **open edge** is an edge of a roof or wall triangle that no other triangle of the
-building shares (vertices merged at `MERGE_M`; slivers thinner than `SLIVER_M` share no
+building shares, or a roof edge that only walls rising from it share (a wall strip standing
+on the outer edge of a lower part's roof, the facade under it missing: Rotterdam building 6)
+(vertices merged at `MERGE_M`; slivers thinner than `SLIVER_M` share no
 edge: a polygon's triangulation leaves zero-area triangles along a straight outline where it
 has extra vertices, and one of them on a roof's outer edge made that edge look inner, so the
 facade under it stayed open: Rotterdam building 6): a roof's edge with no wall under it, or the
@@ -110,11 +112,21 @@ def _open_edges(verts, tris, surface):
     pairs = np.concatenate([c[:, [0, 1]], c[:, [1, 2]], c[:, [2, 0]]])
     und = np.sort(pairs, axis=1)
     _, inverse, uses = np.unique(und, axis=0, return_inverse=True, return_counts=True)
-    once = uses[inverse.reshape(-1)] == 1
+    inverse = inverse.reshape(-1)
+    once = uses[inverse] == 1
     k = len(tris)
     tri_of = np.tile(np.arange(k), 3)
     corner = np.repeat(np.arange(3), k)
-    pick = once & np.isin(surface[tri_of], (ROOF, WALL))
+    # A roof edge is open too where only walls rising from it share it: a wall strip standing on
+    # the roof's outer edge (the storey above a lower part) leaves the facade under it open.
+    third_z = verts[tris[tri_of, (corner + 2) % 3], 2]
+    edge_z = 0.5 * (verts[tris[tri_of, corner], 2] + verts[tris[tri_of, (corner + 1) % 3], 2])
+    is_roof = surface[tri_of] == ROOF
+    down = (surface[tri_of] == WALL) & (third_z < edge_z - MERGE_M)
+    roofs_at = np.bincount(inverse, weights=is_roof, minlength=len(uses))
+    walls_down_at = np.bincount(inverse, weights=down, minlength=len(uses))
+    lone_roof = is_roof & (roofs_at[inverse] == 1) & (walls_down_at[inverse] == 0)
+    pick = (once | lone_roof) & np.isin(surface[tri_of], (ROOF, WALL))
     t, j = tri_of[pick], corner[pick]
     return np.column_stack([tris[t, j], tris[t, (j + 1) % 3], tris[t, (j + 2) % 3]]), surface[t] == ROOF
 
