@@ -159,3 +159,31 @@ def test_random_halves_of_a_real_tile_show_no_fall_beyond_the_swapped_null(share
         rows = [r for r in describe_pair(pair.pre, pair.post, settings, workers=2) if r.assessable]
         assert len(rows) >= 20
         assert all(r.descriptors["o_fallen_excess"] == 0.0 for r in rows), seed
+
+
+def test_on_a_wall_is_the_brute_force_answer():
+    """`on_a_wall` (pairs within reach found at once) against every pair of returns checked one
+    by one, on a random cloud of walls, roofs and floors: the same answer for every return."""
+    from quakescan.change.openings import STACK_HIGH_M, STACK_LOW_M, STACK_RADIUS_M, STACK_STEEPNESS
+    from quakescan.change.openings import _on_a_wall as on_a_wall
+
+    rng = np.random.default_rng(7)
+    floor = np.column_stack([rng.uniform(0, 6, 400), rng.uniform(0, 6, 400), rng.normal(0.0, 0.02, 400)])
+    roof = np.column_stack([rng.uniform(0, 6, 400), rng.uniform(0, 6, 400), rng.normal(3.0, 0.02, 400)])
+    wall = np.column_stack([np.full(300, 3.0) + rng.normal(0, 0.02, 300), rng.uniform(0, 6, 300),
+                            rng.uniform(0, 3, 300)])
+    pts = np.vstack([floor, roof, wall])
+    flag = rng.random(len(pts)) < 0.5
+    spacing = 0.3
+    got = on_a_wall(pts, pts, flag, spacing)
+    radius = max(STACK_RADIUS_M, spacing)
+    want = np.zeros(len(pts), bool)
+    for i in np.flatnonzero(flag):
+        rel = pts - pts[i]
+        across = np.hypot(rel[:, 0], rel[:, 1])
+        dz = rel[:, 2]
+        want[i] = bool(np.any((across <= radius) & (dz > STACK_LOW_M) & (dz <= STACK_HIGH_M)
+                              & (dz >= STACK_STEEPNESS * across)))
+    np.testing.assert_array_equal(got, want)
+    assert want[flag & (np.arange(len(pts)) >= 800)].mean() > 0.5  # the wall's lower returns are on it
+    assert not got[~flag].any()

@@ -234,13 +234,19 @@ def _on_a_wall(query: np.ndarray, own_epoch: np.ndarray, flag: np.ndarray, point
     sel = np.flatnonzero(flag)
     if not len(sel) or not len(own_epoch):
         return out
-    tree = cKDTree(own_epoch[:, :2])
+    q = query[sel]
+    # only returns within reach above a flagged one can be the wall over it; every pair within
+    # the radius at once (a loop over the flagged returns took 9-19 s of a dense building's 1)
+    z = own_epoch[:, 2]
+    cand = np.flatnonzero((z > q[:, 2].min() + STACK_LOW_M) & (z <= q[:, 2].max() + STACK_HIGH_M))
+    if not len(cand):
+        return out
     radius = max(STACK_RADIUS_M, point_spacing)
-    for i, near in zip(sel, tree.query_ball_point(query[sel, :2], radius)):
-        rel = own_epoch[near] - query[i]
-        dz = rel[:, 2]
-        across = np.hypot(rel[:, 0], rel[:, 1])
-        out[i] = bool(np.any((dz > STACK_LOW_M) & (dz <= STACK_HIGH_M) & (dz >= STACK_STEEPNESS * across)))
+    pairs = cKDTree(q[:, :2]).sparse_distance_matrix(cKDTree(own_epoch[cand, :2]), radius, output_type="ndarray")
+    i, across = pairs["i"], pairs["v"]
+    dz = z[cand[pairs["j"]]] - q[i, 2]
+    steep = (dz > STACK_LOW_M) & (dz <= STACK_HIGH_M) & (dz >= STACK_STEEPNESS * across)
+    out[sel] = np.bincount(i[steep], minlength=len(sel)) > 0
     return out
 
 
