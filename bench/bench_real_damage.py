@@ -51,6 +51,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
 from _report import machine, peak_rss_mb, table, write_section  # noqa: E402
+from bench_zurich import _renumber  # noqa: E402
 
 SHARED = ROOT.parent / "shared" / "data"
 TILE = SHARED / "ahn3_cropped_1.laz"
@@ -203,7 +204,7 @@ def rotated_copies(src: Path, dst: Path, turns=ROTATIONS) -> int:
         for k, o in objs.items():
             o = json.loads(json.dumps(o))
             for g in o.get("geometry", []):
-                g["boundaries"] = _shift(g["boundaries"], base)
+                g["boundaries"] = _renumber(g["boundaries"], lambda i, base=base: i + base)
             for key in ("parents", "children"):
                 if key in o:
                     o[key] = [f"{c}-r{turn}" for c in o[key]]
@@ -215,12 +216,6 @@ def rotated_copies(src: Path, dst: Path, turns=ROTATIONS) -> int:
     dst.parent.mkdir(parents=True, exist_ok=True)
     dst.write_text(json.dumps(doc))
     return len(new_objs)
-
-
-def _shift(x, base: int):
-    if isinstance(x, list):
-        return [_shift(y, base) for y in x]
-    return x + base if isinstance(x, int) else x
 
 
 def no_change_across_sensors(work: Path, model: str) -> list:

@@ -9,12 +9,11 @@ fallen in (Rotterdam building 15: 25 % of its post-event returns 15 m below the 
 roof between a laser and a photo flight). A real building is closed; a scene models it so.
 
 An **open edge** is an edge of a roof or wall triangle that no other triangle of the
-building shares, or a roof edge that only walls rising from it share (a wall strip standing
-on the outer edge of a lower part's roof, the facade under it missing: Rotterdam building 6)
-(vertices merged at `MERGE_M`; slivers thinner than `SLIVER_M` share no
-edge: a polygon's triangulation leaves zero-area triangles along a straight outline where it
-has extra vertices, and one of them on a roof's outer edge made that edge look inner, so the
-facade under it stayed open: Rotterdam building 6): a roof's edge with no wall under it, or the
+building shares, or a roof edge that only walls rising from it share (a storey's wall strip
+on a lower part's outer roof edge, no facade under it). Vertices are merged at `MERGE_M`, and
+slivers thinner than `SLIVER_M` share no edge (a triangulation leaves them along a straight
+outline with extra vertices; one on Rotterdam building 6's roof edge made it look inner).
+It is a roof's edge with no wall under it, or the
 bottom of a wall that stops in mid-air (3D BAG-style models keep only the strip of a party
 wall above the neighbour's roof; a subset without that neighbour leaves the facade open).
 It is closed by a vertical wall from the edge down to the building's lowest vertex unless
@@ -104,7 +103,8 @@ def _open_edges(verts, tris, surface):
     """(e, 3): the two vertices of each roof or wall triangle's edge used by no other triangle,
     and the triangle's third vertex (which side it lies on); (e,) whether of a roof. Slivers
     (`_slivers`) neither share an edge nor have one."""
-    tris, surface = tris[~_slivers(verts, tris)], surface[~_slivers(verts, tris)]
+    solid = ~_slivers(verts, tris)
+    tris, surface = tris[solid], surface[solid]
     keys = np.floor(verts / MERGE_M + 0.5).astype(np.int64)
     _, canon = np.unique(keys, axis=0, return_inverse=True)
     canon = canon.reshape(-1)
