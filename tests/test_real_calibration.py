@@ -123,3 +123,28 @@ def test_a_model_file_with_a_bad_temperature_is_refused(tmp_path, model, bad):
     sio.dump({"meta": meta, "estimator": m.estimator}, tmp_path / "bad.skops")
     with pytest.raises(ModelError, match="temperature must be"):
         load_model(tmp_path / "bad.skops")
+
+
+def test_the_temperature_is_fitted_to_the_probabilities_classify_reports():
+    """Rows whose data could not show damage carry unseen shares: the temperature is fitted
+    after they are counted (`unseen_damage`), the one a user's probabilities get."""
+    import dataclasses
+
+    from quakescan.learning.real_calibration import _out_of_fold, fit_temperature
+    from quakescan.learning.unseen_damage import with_unseen_damage
+
+    table = _table()
+    q = np.zeros((len(table.y), 3))
+    q[table.pair == 2] = [0.5, 0.1, 0.0]  # real_1: an airborne pair, walls unresolved
+    with_q = dataclasses.replace(table, unseen=q)
+    config = {"kind": "rf", "n_estimators": 20, "max_depth": None}
+    rec = real_calibration(with_q, with_q, config, ["real_1", "real_2"])
+    plain = real_calibration(table, table, config, ["real_1", "real_2"])
+    assert rec["unseen_damage"] and not plain["unseen_damage"]
+    proba, truth, classes, _, rows = _out_of_fold(with_q, with_q, config, ["real_1", "real_2"])
+    shares = [dict(zip((3, 4, 5), r)) for r in q[rows]]
+    index = np.searchsorted(classes, truth)
+    expected = fit_temperature(proba, index, lambda p: with_unseen_damage(p, classes, shares))
+    assert rec["temperature"] == pytest.approx(round(expected, 4))
+    assert plain["temperature"] == pytest.approx(round(fit_temperature(proba, index), 4))
+    assert rec["temperature"] != plain["temperature"]

@@ -78,6 +78,15 @@ SIGNATURES = (HEAVY, EXTREME, DESTRUCTION)
 # Heavy damage confined to walls: 1-4 holes or corner break-outs per facade, 0.5-2 m, over
 # 2-10 % of the facade area (docs/DAMAGE_CATALOGUE.md, masonry); the smallest share is taken.
 WALL_HEAVY_SHARE = 0.02
+# The share of each grade's catalogue forms confined to walls, which only a sensor that samples
+# the walls can show (`quakescan.learning.unseen_damage`): wall holes and corner break-outs
+# (masonry, grade 3) and infill blow-outs (RC, grade 3, and grade 4 over 30 % of a storey).
+# Everything else a grade does changes the roof or puts debris beside the building, which is
+# seen from above. Shares of the add-on's pattern weights for each grade (addon/ems98.py
+# PRIMARY, the generator's and the injector's draws), masonry and RC counted alike since a
+# real building's material is not known: grade 3 (2 / 8.7 + 3 / 4) / 2, grade 4 (0 + 1.5 / 6.5) / 2.
+WALLS_ONLY_PATTERNS = ("wall_holes", "infill_blowout")
+WALLS_ONLY_SHARE = {3: (2.0 / 8.7 + 3.0 / 4.0) / 2, 4: (0.0 + 1.5 / 6.5) / 2, 5: 0.0}
 
 
 def chance_fewer_than(k: int, area_m2: float, density_pts_m2: float) -> float:
@@ -208,6 +217,7 @@ def _nonnegative(v, what: str) -> float:
 
 
 __all__ = ["ALPHA", "DESTRUCTION", "Detectability", "EXTREME", "HEAVY", "RETURNS_ON_ROOF_BEFORE",
-           "RETURNS_THROUGH_OPENING", "SIGNATURES", "Signature", "WALL_HEAVY_SHARE", "chance_fewer_than",
+           "RETURNS_THROUGH_OPENING", "SIGNATURES", "Signature", "WALLS_ONLY_PATTERNS", "WALLS_ONLY_SHARE",
+           "WALL_HEAVY_SHARE", "chance_fewer_than",
            "detectable_grade", "heavy_unresolved", "min_area_m2", "min_lowering_m", "min_opening_m2", "of_building",
            "resolves", "walls_resolved"]

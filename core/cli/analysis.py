@@ -99,7 +99,8 @@ def cmd_classify(args) -> int:
         summary = classify(args.pre, args.post, args.output, model_path=args.model, footprints_path=args.footprints,
                            id_field=args.id_field, align=args.align, workers=args.threads,
                            progress=reporter(args, "classify"),
-                           write_las=not args.no_las, laz=args.laz, force=args.force)
+                           write_las=not args.no_las, laz=args.laz, force=args.force,
+                           unseen_damage=not args.assume_damage_visible)
     if summary.get("up_to_date"):
         print(f"{args.output}: up to date (same inputs, model and options); --force recomputes")
         return 0
@@ -138,7 +139,7 @@ def _classify_on_dask(args) -> dict:
         return classify_distributed(args.pre, args.post, args.output, client, model_path=args.model,
                                     footprints_path=args.footprints, id_field=args.id_field, align=args.align,
                                     progress=reporter(args, "classify"), write_las=not args.no_las, laz=args.laz,
-                                    force=args.force,
+                                    force=args.force, unseen_damage=not args.assume_damage_visible,
                                     on_stage=lambda name: print(f"classify: {name}", flush=True)
                                     if args.progress else None)
 
@@ -209,6 +210,11 @@ def add_classify(sub) -> None:
     reg.add_argument("--no-align", dest="align", action="store_const", const=False,
                      help="take the epochs as they are, unchecked")
     cl.add_argument("--no-las", action="store_true", help="skip the per-point LAS of predicted grades")
+    cl.add_argument("--assume-damage-visible", action="store_true",
+                    help="report the model's own probabilities, which assume any damage shows in the data; by default "
+                    "they count the damage each building's data could not have shown (wall holes under an airborne "
+                    "laser, roof openings below its resolution), so 'no damage' is not said with more confidence "
+                    "than the data allow")
     cl.add_argument("--force", action="store_true", help="recompute even when OUT_DIR holds the finished results "
                     "of the same inputs, model and options")
     cl.add_argument("--laz", action="store_const", const=True, default=None,

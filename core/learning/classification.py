@@ -37,6 +37,7 @@ from ..runtime import fingerprint
 from ..runtime.atomic import is_write_failure, write_failure_message, write_json, write_text
 from ..runtime.progress import ProgressCallback
 from .model import DamageModel, ModelError, load_model
+from .unseen_damage import unseen_shares, with_unseen_damage
 
 log = logging.getLogger(__name__)
 
@@ -185,7 +186,7 @@ class _Checkpoint:
             raise ResultsError(write_failure_message(self.path, e)) from e
 
 
-def predict_rows(rows, model: DamageModel, rule: bool | None = None) -> list:
+def predict_rows(rows, model: DamageModel, rule: bool | None = None, unseen_damage: bool = True) -> list:
     """BuildingResults: not assessable stays so; no changed points → no damage by rule;
     else the model. `confidence`: the model's probability of the grade it gives, 1.0 for a
     grade given by rule, None when not assessable.
@@ -193,7 +194,13 @@ def predict_rows(rows, model: DamageModel, rule: bool | None = None) -> list:
     rule: decide buildings without changed points without asking the model (the paper's
     rule); None: as the model was trained (`model.no_change_rule`; True for every model
     file written before the switch existed). Every assessed building carries what its data
-    could resolve (`quakescan.change.detectability.of_building`), where its row says."""
+    could resolve (`quakescan.change.detectability.of_building`), where its row says.
+
+    unseen_damage: the probabilities, and so the confidence of the grade, count the damage the
+    building's data could not have shown (`quakescan.learning.unseen_damage`): "no damage"
+    under an airborne laser that resolves no wall holes is not said with a drone's confidence.
+    The grade is the model's either way (what the data show). False: the model's own
+    probabilities (damage assumed to show)."""
     from ..results.writers import BuildingResult
 
     rule = model.no_change_rule if rule is None else bool(rule)
@@ -213,28 +220,36 @@ def predict_rows(rows, model: DamageModel, rule: bool | None = None) -> list:
                                                                             seen.min_opening_m2, seen.min_lowering_m)
             res.walls_resolved, res.min_wall_opening_m2 = seen.walls_resolved, seen.min_wall_opening_m2
         if rule and share == 0.0:
+            p = np.array([[float(c == 0) for c in grades]])
+            if unseen_damage:
+                p = with_unseen_damage(p, grades, [unseen_shares(seen, grades)])
             res.grade = 0
-            res.probabilities = {c: float(c == 0) for c in grades}
+            res.probabilities = {c: float(v) for c, v in zip(grades, p[0])}
             res.decided_by = "no change"
-            res.confidence = 1.0
+            res.confidence = res.probabilities[0]
         else:
-            ask.append((res, r))
+            ask.append((res, r, seen))
         out.append(res)
     if ask:
-        table = {n: np.array([r.descriptors[n] for _, r in ask]) for n in model.feature_names}
+        table = {n: np.array([r.descriptors[n] for _, r, _ in ask]) for n in model.feature_names}
         proba = model.predict_proba(table)
-        for (res, _), p, conf in zip(ask, proba, model.confidence(proba)):
+        # the grade is what the data show (the model's own answer); its probabilities, and so
+        # its confidence, count what they could not show
+        said = np.argmax(proba, axis=1)
+        if unseen_damage:
+            proba = with_unseen_damage(proba, classes, [unseen_shares(seen, classes) for _, _, seen in ask])
+        for (res, _, _), p, k in zip(ask, proba, said):
             res.probabilities = {c: 0.0 for c in grades}
             res.probabilities.update({c: float(v) for c, v in zip(classes, p)})
-            res.grade = int(classes[int(np.argmax(p))])
+            res.grade = int(classes[int(k)])
             res.decided_by = "model"
-            res.confidence = float(conf)
+            res.confidence = float(p[k])
     return out
 
 
 def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=None, id_field=None,
              align: bool | None = None, workers: int = -1, progress: ProgressCallback | None = None,
-             write_las: bool = True, laz: bool | None = None, force: bool = False) -> dict:
+             write_las: bool = True, laz: bool | None = None, force: bool = False, unseen_damage: bool = True) -> dict:
     """Run the whole classification and write OUT/buildings.csv, .geojson, .qml (its QGIS
     style), damage_map.png, damage_map.html (offline), post_grades.las and summary.json.
     Returns the summary.
@@ -246,7 +261,8 @@ def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=N
     (post_grades.laz) when `laz`, or when `laz` is None and the post-event file is LAZ.
     A folder that holds the finished results of the same inputs, model and options is up to
     date: its summary is returned (with "up_to_date": True) and nothing is recomputed,
-    unless `force`."""
+    unless `force`. `unseen_damage`: the probabilities count the damage each building's data
+    could not have shown (`predict_rows`); False gives the model's own."""
     from ..results import writers as results
 
     t0 = time.perf_counter()
@@ -258,6 +274,8 @@ def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=N
             raise ClassifyError(f"{p}: {what} " + ("is a folder, not a file" if Path(p).is_dir() else "does not exist"))
     _check_output_folder(out, [pre_path, post_path, footprints_path, model_path])
     options = {"id_field": id_field, "write_las": bool(write_las), "laz": laz}
+    if not unseen_damage:  # the default leaves the fingerprint of earlier results as it was
+        options["unseen_damage"] = False
     run_fp = _fingerprint(pre_path, post_path, footprints_path, model_path, align, options)
     done = _finished(out, run_fp)
     if done is not None and not force:
@@ -286,7 +304,8 @@ def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=N
                  if int(b) not in described]
     rows.sort(key=lambda r: r.building_id)
     t_describe = time.perf_counter()
-    res = predict_rows(rows, model)
+    res = predict_rows(rows, model, unseen_damage=unseen_damage)
+    summary["unseen_damage"] = bool(unseen_damage)
     out.mkdir(parents=True, exist_ok=True)
     fp = data.footprints
     outlines = results.building_outlines(res, fp, _XYByBuilding(pre) if fp is None else None, pre.origin)

@@ -71,16 +71,18 @@ def calibration_error(confidence: np.ndarray, correct: np.ndarray, bins: int = E
                      for b in range(bins) if (k == b).any()))
 
 
-def fit_temperature(proba: np.ndarray, truth_index: np.ndarray) -> float:
+def fit_temperature(proba: np.ndarray, truth_index: np.ndarray, then=None) -> float:
     """The temperature minimising the log-loss of `proba` (n, k) against the true classes'
-    column indices (bounded search on log T)."""
+    column indices (bounded search on log T); `then(p)`: what is done to the tempered
+    probabilities before they are reported (e.g. `unseen_damage.with_unseen_damage`)."""
     from scipy.optimize import minimize_scalar
 
     proba, truth_index = np.asarray(proba, dtype=np.float64), np.asarray(truth_index)
     if len(proba) == 0:
         raise ValueError("no rows to fit a temperature on")
     bound = math.log(MAX_TEMPERATURE)
-    res = minimize_scalar(lambda s: log_loss(temper(proba, math.exp(s)), truth_index), bounds=(-bound, bound),
+    then = then or (lambda p: p)
+    res = minimize_scalar(lambda s: log_loss(then(temper(proba, math.exp(s))), truth_index), bounds=(-bound, bound),
                           method="bounded", options={"xatol": 1e-4})
     return float(math.exp(res.x))
 
@@ -92,12 +94,17 @@ def out_of_fold_real(table, full, config: dict, real_pairs, *, seed: int = 0, fi
     those left out of training; `real_pairs`: the real pairs' names in `table.pairs`. Each real
     pair is predicted by `config`'s classifier fitted on `table` without that pair's rows.
     Returns (proba (n, k), truth (n,) grades, classes (k,), pair names (n,))."""
+    return _out_of_fold(table, full, config, real_pairs, seed=seed, fit=fit)[:4]
+
+
+def _out_of_fold(table, full, config: dict, real_pairs, *, seed: int = 0, fit=None):
+    """`out_of_fold_real` and the rows of `full` it predicted."""
     from .default_model import cv_groups
     from .model import fit_classifier
 
     fit = fit or fit_classifier
     fit_args = {k: v for k, v in config.items() if k not in ("name", "rule")}
-    probas, truths, where = [], [], []
+    probas, truths, where, rows = [], [], [], []
     classes = None
     for name in real_pairs:
         k_train = table.pairs.index(name)
@@ -117,23 +124,47 @@ def out_of_fold_real(table, full, config: dict, real_pairs, *, seed: int = 0, fi
         probas.append(est.predict_proba(full.x[test]))
         truths.append(full.y[test])
         where += [name] * len(test)
+        rows.append(test)
     if not probas:
         raise ValueError("no real rows to calibrate on")
-    return np.vstack(probas), np.concatenate(truths), classes, np.array(where)
+    return np.vstack(probas), np.concatenate(truths), classes, np.array(where), np.concatenate(rows)
 
 
 def real_calibration(table, full, config: dict, real_pairs, *, seed: int = 0, fit=None) -> dict:
     """{"temperature", "rows", "pairs", log-loss and ECE before and after} of the real rows'
     out-of-fold probabilities (`out_of_fold_real`)."""
-    proba, truth, classes, _ = out_of_fold_real(table, full, config, real_pairs, seed=seed, fit=fit)
+    proba, truth, classes, _, rows = _out_of_fold(table, full, config, real_pairs, seed=seed, fit=fit)
     known = np.isin(truth, classes)
-    proba, truth = proba[known], truth[known]
+    proba, truth, rows = proba[known], truth[known], rows[known]
     index = np.searchsorted(classes, truth)
-    t = fit_temperature(proba, index)
-    after = temper(proba, t)
+    then = counting_unseen(full, rows, classes)
+    t = fit_temperature(proba, index, then)
+    said = proba.argmax(axis=1)  # the grade given: the model's, whatever is counted (`predict_rows`)
+    after = (then or (lambda p: p))(temper(proba, t))
+    proba = (then or (lambda p: p))(proba)
+
+    def ece(p):
+        return calibration_error(p[np.arange(len(p)), said], said == index)
+
     return {"temperature": round(t, 4), "rows": int(len(truth)), "pairs": list(real_pairs),
+            "unseen_damage": then is not None,
             "log_loss_before": round(log_loss(proba, index), 4), "log_loss_after": round(log_loss(after, index), 4),
-            "ece_before": round(expected_calibration_error(proba, index), 4),
-            "ece_after": round(expected_calibration_error(after, index), 4),
+            "ece_before": round(ece(proba), 4), "ece_after": round(ece(after), 4),
             "how": "one temperature on the out-of-fold probabilities of every real-point row "
-                   "(quakescan.learning.real_calibration)"}
+                   "(quakescan.learning.real_calibration)"
+                   + (", counting the damage each row's data could not show (quakescan.learning.unseen_damage), "
+                      "as classify reports them" if then is not None else "")}
+
+
+def counting_unseen(full, rows: np.ndarray, classes):
+    """p -> p with the unseen damage of `full`'s `rows` counted (`with_unseen_damage`), as
+    `predict_rows` reports them, so the temperature is fitted to what the user reads; None
+    where the table records no unseen shares (the model's own probabilities are fitted)."""
+    from .realset import UNSEEN_GRADES
+    from .unseen_damage import with_unseen_damage
+
+    if getattr(full, "unseen", None) is None:
+        return None
+    q = np.nan_to_num(np.asarray(full.unseen)[rows], nan=0.0)
+    shares = [dict(zip(UNSEEN_GRADES, map(float, r))) for r in q]
+    return lambda p: with_unseen_damage(p, classes, shares)

@@ -34,7 +34,7 @@ from ..runtime.atomic import open_replacing, replacing
 from ..runtime.progress import stage_log
 
 log = logging.getLogger(__name__)
-VERSION = 1
+VERSION = 2  # 2: rows carry their unseen shares
 RESERVED = ("ahn3_cropped_1",)  # evaluation only: never trained or tuned on
 # real rows are few beside the simulated ones (a few hundred against twelve thousand): each is
 # repeated this many times in the shipped model's training table
@@ -151,7 +151,8 @@ def pair_rows(work: Path, data: Path, pair: RealPair, settings, workers: int = -
             "building_id": np.array([r.building_id for r in rows], np.int64),
             "density": np.array([[r.quality.get("density_pre", np.nan), r.quality.get("density_post", np.nan)]
                                  for r in rows], dtype=np.float64).reshape(len(rows), 2),
-            "cells": np.array([r.quality.get("cells", 0) for r in rows], np.int64)}
+            "cells": np.array([r.quality.get("cells", 0) for r in rows], np.int64),
+            "unseen": unseen_rows(rows)}
     fingerprint.forget(table)
     with open_replacing(table, "wb", RealSetError) as f:
         np.savez(f, **part)
@@ -174,14 +175,35 @@ def real_table(work, data, settings, *, plan=REAL_PLAN, workers: int = -1, repea
         parts.append(part)
         city.append(np.full(len(part["y"]), cities.index(pair.source), np.int64))
         pair_idx.append(np.full(len(part["y"]), k, np.int64))
-    cat = {key: np.concatenate([p[key] for p in parts]) for key in ("x", "y", "building_id", "density", "cells")}
+    cat = {key: np.concatenate([p[key] for p in parts]) for key in ("x", "y", "building_id", "density", "cells",
+                                                                      "unseen")}
     reps = max(1, int(repeat))
     tile = (lambda a: np.concatenate([a] * reps)) if reps > 1 else (lambda a: a)
     return TransferTable(x=tile(cat["x"].reshape(-1, len(names))), y=tile(cat["y"]), names=names,
                          city=tile(np.concatenate(city)), pair=tile(np.concatenate(pair_idx)),
                          building_id=tile(cat["building_id"]), density=tile(cat["density"]), cities=cities,
                          pairs=[p.name for p in plan], sensors=[f"real-{p.kind}" for p in plan],
-                         cells=tile(cat["cells"]))
+                         cells=tile(cat["cells"]), unseen=tile(cat["unseen"].reshape(-1, len(UNSEEN_GRADES))))
+
+
+UNSEEN_GRADES = (3, 4, 5)
+
+
+def unseen_rows(rows) -> np.ndarray:
+    """(n, 3) the unseen shares of grades 3, 4, 5 of each BuildingRow (`unseen_shares` of
+    its detectability; 0 where unknown, as `predict_rows` counts them)."""
+    from ..change.detectability import of_building
+    from .unseen_damage import unseen_shares
+
+    out = np.zeros((len(rows), len(UNSEEN_GRADES)))
+    for i, r in enumerate(rows):
+        q = unseen_shares(of_building(r.quality), UNSEEN_GRADES)
+        out[i] = [q[g] for g in UNSEEN_GRADES]
+    return out
+
+
+def _unseen_of(t) -> np.ndarray:
+    return t.unseen if t.unseen is not None else np.full((len(t.y), len(UNSEEN_GRADES)), np.nan)
 
 
 def append_tables(a, b):
@@ -196,4 +218,6 @@ def append_tables(a, b):
                          pair=np.concatenate([a.pair, b.pair + len(a.pairs)]),
                          building_id=np.concatenate([a.building_id, b.building_id]),
                          density=np.vstack([a.density, b.density]), cities=list(a.cities) + list(b.cities),
-                         pairs=list(a.pairs) + list(b.pairs), sensors=list(a.sensors) + list(b.sensors), cells=cells)
+                         pairs=list(a.pairs) + list(b.pairs), sensors=list(a.sensors) + list(b.sensors), cells=cells,
+                         unseen=None if a.unseen is None and b.unseen is None
+                         else np.vstack([_unseen_of(a), _unseen_of(b)]))

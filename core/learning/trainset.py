@@ -262,6 +262,9 @@ class TransferTable:
     pairs: list  # PairSpec.name per index
     sensors: list  # "pre-post" kinds per pair index
     cells: np.ndarray | None = None  # (n,) raster cells of the building's footprint (older tables: None)
+    # (n, 3) the share of grades 3, 4, 5's forms each row's data could not show
+    # (`quakescan.learning.unseen_damage.unseen_shares`; NaN where not recorded, None: no row has it)
+    unseen: np.ndarray | None = None
 
     def subset(self, keep: np.ndarray) -> "TransferTable":
         """The rows where `keep` (a boolean mask) holds; the city, pair and sensor lists stay."""
@@ -269,7 +272,8 @@ class TransferTable:
 
         return _replace(self, x=self.x[keep], y=self.y[keep], city=self.city[keep], pair=self.pair[keep],
                         building_id=self.building_id[keep], density=self.density[keep],
-                        cells=None if self.cells is None else self.cells[keep])
+                        cells=None if self.cells is None else self.cells[keep],
+                        unseen=None if self.unseen is None else self.unseen[keep])
 
     @property
     def pair_city(self) -> np.ndarray:
