@@ -18,9 +18,11 @@ whose injected damage moved no return: nothing in the data shows it, and their g
 with `walls_resolved` 0 where it lay in walls), and the expected
 calibration error of the predicted grade's probability (10 equal bins of confidence over
 the assessable buildings: sum of |accuracy - mean confidence| weighted by the bin's share).
-Each case is classified twice, the knob both ways: with the probabilities counting the damage
-each building's data could not show (`quakescan.learning.unseen_damage`, the default) and with
-the model's own, which assume any damage shows (`unseen_damage=False`).
+Each case is classified three times: with the probabilities counting the damage each
+building's data could not show (`quakescan.learning.unseen_damage`, the default), with the
+model's own, which assume any damage shows (`unseen_damage=False`), and counting it with the
+case's own mix of grades as the prior (`prior=`; the truth's shares, so what a perfect
+estimate of the mix would give at best).
 
 No change across sensors on real shapes: the Rotterdam LoD2 buildings (`rotterdam_subset.json`,
 its densest cluster as the training set takes it, and every building once per quarter turn
@@ -317,6 +319,13 @@ def main(argv=None) -> int:
         classify(pre, inj.post, work / "results" / f"{tag}_assumed_visible", model_path=a.model,
                  footprints_path=FOOTPRINTS, write_las=False, force=True, unseen_damage=False)
         s["assumed_visible"] = score(work / "results" / f"{tag}_assumed_visible" / "buildings.csv", inj.truth)
+        # and with the case's own mix of grades as the prior: what a responder's perfect estimate
+        # of it would give (`--prior`), an upper bound of what the knob buys
+        oracle = {int(g): max(sum(row.values()), 1) for g, row in s["confusion"].items()}
+        classify(pre, inj.post, work / "results" / f"{tag}_own_prior", model_path=a.model,
+                 footprints_path=FOOTPRINTS, write_las=False, force=True, prior=oracle)
+        s["own_prior"] = score(work / "results" / f"{tag}_own_prior" / "buildings.csv", inj.truth)
+        s["own_prior"]["prior"] = {str(g): n for g, n in oracle.items()}
         s.update({"case": name, "split": split, "seed": seed, "mix": {str(g): n for g, n in mix.items()},
                   "damage": damage, "inject_s": round(t_inject, 1), "classify_s": round(t_classify, 1),
                   "moved": inj.counts["moved"]})
@@ -364,11 +373,16 @@ def report(res: dict) -> str:
     both = [s for s in res["cases"] if "assumed_visible" in s]
     if both:
         lines += ["Counting the damage the data could not show (`quakescan.learning.unseen_damage`, the default) "
-                  "against the model's own probabilities, which assume any damage shows (`--assume-damage-visible`): "
-                  "the same descriptors and model, one run.", ""]
+                  "against the model's own probabilities, which assume any damage shows (`--assume-damage-visible`), "
+                  "and with the case's own mix of grades given as the prior (`--prior`; the truth's shares, so an "
+                  "upper bound of what a responder's estimate buys): the same descriptors and model, one run. "
+                  "Grades are the model's in all three; only the probabilities differ.", ""]
         knob = []
         for s in both:
-            for how, v in (("counted (default)", s), ("assumed visible", s["assumed_visible"])):
+            for how, v in (("counted (default)", s), ("assumed visible", s["assumed_visible"]),
+                           ("counted, the case's own mix as prior", s.get("own_prior"))):
+                if v is None:
+                    continue
                 g = v["per_grade"]
                 knob.append([s["case"], how, _pct(g["3"]["f1"]), _pct(g["4"]["f1"]), _pct(g["3"]["recall"]),
                              f"{100 * v['undamaged_called_damaged']:.1f} %",

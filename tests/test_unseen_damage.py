@@ -119,3 +119,60 @@ def test_predict_rows_counts_unseen_damage_by_default(rule):
     assert sum(blind.probabilities.values()) == pytest.approx(1.0)
     own = predict_rows(rows, _Model(), rule=rule, unseen_damage=False)
     assert [r.confidence for r in own] == pytest.approx([sure, sure])
+
+
+def test_a_prior_reweights_every_probability_in_closed_form():
+    from quakescan.learning.unseen_damage import with_prior
+
+    p = np.array([[0.5, 0.2, 0.2, 0.1]])
+    (out,) = with_prior(p, CLASSES, {0: 70, 3: 10, 4: 10, 5: 10})
+    w = np.array([0.7, 0.1, 0.1, 0.1]) * p[0]
+    assert out == pytest.approx(w / w.sum())
+    np.testing.assert_array_equal(with_prior(p, CLASSES, None), p)
+    # equal shares of any scale: the model's own prior, nothing changes
+    np.testing.assert_allclose(with_prior(p, CLASSES, {0: 3, 3: 3, 4: 3, 5: 3}), p)
+    # with unseen damage counted first: the posterior pi_g (p_g + q_g p_0), pi_0 p_0
+    q = unseen_shares(_seen(3, False), CLASSES)
+    (both,) = with_prior(with_unseen_damage(p, CLASSES, [q]), CLASSES, {0: 70, 3: 10, 4: 10, 5: 10})
+    raw = np.array([0.7 * 0.5, 0.1 * (0.2 + W3 * 0.5), 0.1 * (0.2 + W4 * 0.5), 0.1 * 0.1])
+    assert both == pytest.approx(raw / raw.sum())
+
+
+@pytest.mark.parametrize("text, message", [
+    ("0:70,3:10,4:10", "no share for grade\\(s\\) \\[5\\]"),
+    ("0:70,3:10,4:10,5:10,2:5", "grade\\(s\\) \\[2\\] the model does not know"),
+    ("0:70,3:0,4:10,5:10", "grade 3 must be a finite number > 0"),
+    ("0:70,3:nan,4:10,5:10", "grade 3 must be a finite number > 0"),
+    ("0:70;3:10", "is not GRADE:SHARE"),
+    ("0:70,0:10", "grade 0 is given twice"),
+])
+def test_a_prior_that_cannot_be_used_is_named(text, message):
+    from quakescan.learning.unseen_damage import PriorError, parse_prior, prior_weights
+
+    with pytest.raises(PriorError, match=message):
+        prior_weights(parse_prior(text), CLASSES)
+
+
+def test_predict_rows_takes_a_prior_and_keeps_the_model_s_grades():
+    from quakescan.learning.classification import predict_rows
+    from quakescan.learning.unseen_damage import PriorError
+
+    rows = [_row(1, 0.3), _row(2, 20.0)]
+    blind, seeing = predict_rows(rows, _Model(), prior={0: 80, 3: 10, 4: 5, 5: 5})
+    assert blind.grade == seeing.grade == 0
+    z = 0.8 * 0.97 + 0.1 * (0.01 + W3 * 0.97) + 0.05 * (0.01 + W4 * 0.97) + 0.05 * 0.01
+    assert blind.confidence == pytest.approx(0.8 * 0.97 / z)
+    assert seeing.confidence == pytest.approx(0.8 * 0.97 / (0.8 * 0.97 + 0.2 * 0.01))
+    with pytest.raises(PriorError, match="grade\\(s\\) \\[5\\]"):
+        predict_rows(rows, _Model(), prior={0: 80, 3: 10, 4: 10})
+
+
+def test_classify_refuses_a_prior_before_reading_the_clouds(tmp_path):
+    from quakescan.learning.unseen_damage import PriorError
+    from quakescan.learning.classification import classify
+
+    pre, post = tmp_path / "pre.las", tmp_path / "post.las"
+    pre.write_bytes(b"not read"), post.write_bytes(b"not read")
+    with pytest.raises(PriorError, match="grade\\(s\\) \\[9\\]"):
+        classify(pre, post, tmp_path / "out", prior={0: 1, 3: 1, 4: 1, 5: 1, 9: 1})
+    assert not (tmp_path / "out").exists()

@@ -1,6 +1,7 @@
 """Commands on point clouds: per-point features, levels of detection, classify, evaluate."""
 from __future__ import annotations
 
+import argparse
 import json
 import time
 from pathlib import Path
@@ -100,7 +101,7 @@ def cmd_classify(args) -> int:
                            id_field=args.id_field, align=args.align, workers=args.threads,
                            progress=reporter(args, "classify"),
                            write_las=not args.no_las, laz=args.laz, force=args.force,
-                           unseen_damage=not args.assume_damage_visible)
+                           unseen_damage=not args.assume_damage_visible, prior=args.prior)
     if summary.get("up_to_date"):
         print(f"{args.output}: up to date (same inputs, model and options); --force recomputes")
         return 0
@@ -123,7 +124,8 @@ def cmd_classify(args) -> int:
     blind_walls = summary.get("detectability", {}).get("no_damage_walls_unresolved", 0)
     if blind_walls:
         print(f"classify: {blind_walls} of the buildings graded 'no damage' have walls too sparsely sampled to show "
-              "heavy damage confined to them (holes, break-outs): `walls_resolved` 0 in the results")
+              "heavy damage confined to them (holes, break-outs): `walls_resolved` 0 in the results, and their "
+              "probabilities count it (--assume-damage-visible: the model's own)")
     print(f"results -> {out / 'buildings.csv'}, {out / 'buildings.geojson'} (QGIS style buildings.qml), "
           f"{out / 'damage_map.png'}, {out / 'damage_map.html'} (opens offline)"
           + (f", {summary['post_grades']}" if "post_grades" in summary else ""))
@@ -140,6 +142,7 @@ def _classify_on_dask(args) -> dict:
                                     footprints_path=args.footprints, id_field=args.id_field, align=args.align,
                                     progress=reporter(args, "classify"), write_las=not args.no_las, laz=args.laz,
                                     force=args.force, unseen_damage=not args.assume_damage_visible,
+                                    prior=args.prior,
                                     on_stage=lambda name: print(f"classify: {name}", flush=True)
                                     if args.progress else None)
 
@@ -194,6 +197,15 @@ def add_calibrate_lod(sub) -> None:
     lc.set_defaults(func=cmd_calibrate_lod)
 
 
+def _prior(text: str) -> dict:
+    from ..learning.unseen_damage import PriorError, parse_prior
+
+    try:
+        return parse_prior(text)
+    except PriorError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+
+
 def add_classify(sub) -> None:
     cl = sub.add_parser("classify", help="damage grade per building from a pre/post pair")
     cl.add_argument("--pre", required=True, help="pre-event LAS/LAZ")
@@ -215,6 +227,10 @@ def add_classify(sub) -> None:
                     "they count the damage each building's data could not have shown (wall holes under an airborne "
                     "laser, roof openings below its resolution), so 'no damage' is not said with more confidence "
                     "than the data allow")
+    cl.add_argument("--prior", type=_prior, default=None, metavar="0:70,3:10,4:10,5:10",
+                    help="the mix of grades you expect (shares of any scale, one for each grade of the model), for "
+                    "the equal one the model's probabilities carry; the grades stay the model's, the probabilities "
+                    "are reweighted (default: equal)")
     cl.add_argument("--force", action="store_true", help="recompute even when OUT_DIR holds the finished results "
                     "of the same inputs, model and options")
     cl.add_argument("--laz", action="store_const", const=True, default=None,

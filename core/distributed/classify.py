@@ -65,7 +65,7 @@ MAX_SPLIT_DEPTH = 12  # quarters of a 150 m tile down to 4 cm: buildings sharing
 def classify_distributed(pre_path, post_path, out_dir, client, *, model_path=None, footprints_path=None,
                          id_field=None, align: bool | None = None, progress: ProgressCallback | None = None,
                          write_las: bool = True, laz: bool | None = None, force: bool = False,
-                         unseen_damage: bool = True,
+                         unseen_damage: bool = True, prior: dict | None = None,
                          block_cells: int = BLOCK_CELLS, chunk_points: int = bk.CHUNK_POINTS,
                          on_stage=None) -> dict:
     """`quakescan.learning.classification.classify` with the tiles described by the workers of
@@ -84,6 +84,8 @@ def classify_distributed(pre_path, post_path, out_dir, client, *, model_path=Non
     options = {"id_field": id_field, "write_las": bool(write_las), "laz": laz}
     if not unseen_damage:  # as in `classify`: the default keeps earlier results' fingerprint
         options["unseen_damage"] = False
+    if prior is not None:
+        options["prior"] = {str(int(g)): float(v) for g, v in sorted(prior.items())}
     run_fp = cl._fingerprint(pre_path, post_path, footprints_path, model_path, align, options)
     done = cl._finished(out, run_fp)
     if done is not None and not force:
@@ -194,8 +196,9 @@ def classify_distributed(pre_path, post_path, out_dir, client, *, model_path=Non
     t_describe = time.perf_counter()
     stage("results")
     deleting = _delete_store(store)
-    res = cl.predict_rows(rows, model, unseen_damage=unseen_damage)
+    res = cl.predict_rows(rows, model, unseen_damage=unseen_damage, prior=prior)
     summary["unseen_damage"] = bool(unseen_damage)
+    summary["prior"] = options.get("prior", "equal (the model's)")
     from ..results import writers as results
 
     outlines = results.building_outlines(res, fp, pre_s.hulls if fp is None else None, (0.0, 0.0))

@@ -37,7 +37,7 @@ from ..runtime import fingerprint
 from ..runtime.atomic import is_write_failure, write_failure_message, write_json, write_text
 from ..runtime.progress import ProgressCallback
 from .model import DamageModel, ModelError, load_model
-from .unseen_damage import unseen_shares, with_unseen_damage
+from .unseen_damage import prior_weights, unseen_shares, with_prior, with_unseen_damage
 
 log = logging.getLogger(__name__)
 
@@ -186,7 +186,8 @@ class _Checkpoint:
             raise ResultsError(write_failure_message(self.path, e)) from e
 
 
-def predict_rows(rows, model: DamageModel, rule: bool | None = None, unseen_damage: bool = True) -> list:
+def predict_rows(rows, model: DamageModel, rule: bool | None = None, unseen_damage: bool = True,
+                 prior: dict | None = None) -> list:
     """BuildingResults: not assessable stays so; no changed points → no damage by rule;
     else the model. `confidence`: the model's probability of the grade it gives, 1.0 for a
     grade given by rule, None when not assessable.
@@ -200,12 +201,16 @@ def predict_rows(rows, model: DamageModel, rule: bool | None = None, unseen_dama
     building's data could not have shown (`quakescan.learning.unseen_damage`): "no damage"
     under an airborne laser that resolves no wall holes is not said with a drone's confidence.
     The grade is the model's either way (what the data show). False: the model's own
-    probabilities (damage assumed to show)."""
+    probabilities (damage assumed to show). `prior` {grade: share}: the mix of grades the user
+    expects, for the equal one the model's probabilities carry (`unseen_damage.with_prior`);
+    the grades stay the model's."""
     from ..results.writers import BuildingResult
 
     rule = model.no_change_rule if rule is None else bool(rule)
     classes = model.classes
     grades = sorted(set(classes) | ({0} if rule else set()))
+    if prior is not None:
+        prior_weights(prior, grades)  # a prior that cannot be used is refused before any row
     out, ask = [], []
     for r in rows:
         if not r.assessable:
@@ -223,6 +228,7 @@ def predict_rows(rows, model: DamageModel, rule: bool | None = None, unseen_dama
             p = np.array([[float(c == 0) for c in grades]])
             if unseen_damage:
                 p = with_unseen_damage(p, grades, [unseen_shares(seen, grades)])
+            p = with_prior(p, grades, prior)
             res.grade = 0
             res.probabilities = {c: float(v) for c, v in zip(grades, p[0])}
             res.decided_by = "no change"
@@ -238,6 +244,7 @@ def predict_rows(rows, model: DamageModel, rule: bool | None = None, unseen_dama
         said = np.argmax(proba, axis=1)
         if unseen_damage:
             proba = with_unseen_damage(proba, classes, [unseen_shares(seen, classes) for _, _, seen in ask])
+        proba = with_prior(proba, classes, prior)
         for (res, _, _), p, k in zip(ask, proba, said):
             res.probabilities = {c: 0.0 for c in grades}
             res.probabilities.update({c: float(v) for c, v in zip(classes, p)})
@@ -249,7 +256,8 @@ def predict_rows(rows, model: DamageModel, rule: bool | None = None, unseen_dama
 
 def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=None, id_field=None,
              align: bool | None = None, workers: int = -1, progress: ProgressCallback | None = None,
-             write_las: bool = True, laz: bool | None = None, force: bool = False, unseen_damage: bool = True) -> dict:
+             write_las: bool = True, laz: bool | None = None, force: bool = False, unseen_damage: bool = True,
+             prior: dict | None = None) -> dict:
     """Run the whole classification and write OUT/buildings.csv, .geojson, .qml (its QGIS
     style), damage_map.png, damage_map.html (offline), post_grades.las and summary.json.
     Returns the summary.
@@ -262,7 +270,8 @@ def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=N
     A folder that holds the finished results of the same inputs, model and options is up to
     date: its summary is returned (with "up_to_date": True) and nothing is recomputed,
     unless `force`. `unseen_damage`: the probabilities count the damage each building's data
-    could not have shown (`predict_rows`); False gives the model's own."""
+    could not have shown (`predict_rows`); False gives the model's own. `prior` {grade: share}:
+    the mix of grades expected, for the model's equal one (`predict_rows`)."""
     from ..results import writers as results
 
     t0 = time.perf_counter()
@@ -274,14 +283,18 @@ def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=N
             raise ClassifyError(f"{p}: {what} " + ("is a folder, not a file" if Path(p).is_dir() else "does not exist"))
     _check_output_folder(out, [pre_path, post_path, footprints_path, model_path])
     options = {"id_field": id_field, "write_las": bool(write_las), "laz": laz}
-    if not unseen_damage:  # the default leaves the fingerprint of earlier results as it was
+    if not unseen_damage:  # the defaults leave the fingerprint of earlier results as it was
         options["unseen_damage"] = False
+    if prior is not None:
+        options["prior"] = {str(int(g)): float(v) for g, v in sorted(prior.items())}
     run_fp = _fingerprint(pre_path, post_path, footprints_path, model_path, align, options)
     done = _finished(out, run_fp)
     if done is not None and not force:
         log.info("%s: up to date (same inputs, model and options); force=True recomputes", out)
         return {**done, "up_to_date": True}
     model = load_model(model_path)
+    if prior is not None:  # before the long part: a prior the model's grades do not fit is refused
+        prior_weights(prior, sorted(set(model.classes) | ({0} if model.no_change_rule else set())))
     settings = model_settings(model, str(model_path))
     data = load_pair(pre_path, post_path, footprints_path, id_field, labels=False)  # 2 bytes a point less
     pre, post = data.pre, data.post
@@ -304,8 +317,9 @@ def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=N
                  if int(b) not in described]
     rows.sort(key=lambda r: r.building_id)
     t_describe = time.perf_counter()
-    res = predict_rows(rows, model, unseen_damage=unseen_damage)
+    res = predict_rows(rows, model, unseen_damage=unseen_damage, prior=prior)
     summary["unseen_damage"] = bool(unseen_damage)
+    summary["prior"] = options.get("prior", "equal (the model's)")
     out.mkdir(parents=True, exist_ok=True)
     fp = data.footprints
     outlines = results.building_outlines(res, fp, _XYByBuilding(pre) if fp is None else None, pre.origin)

@@ -25,6 +25,11 @@ With every q_g = 0 (a drone flight whose walls and roof resolve every form) the 
 probabilities are unchanged. With walls unresolved, "no damage" under a model sure of it
 gets 1 / (1 + Σ q_g): an airborne pair says "no damage seen" at about 0.62, not 0.9.
 
+A responder who expects another mix of grades (most buildings of a city stand after an
+earthquake of intensity VIII; EMS-98's own tables give "few", "many", "most" per grade and
+vulnerability class) gives it as a prior: every probability is reweighted by π_g
+(`with_prior`), the unseen share included, as the formula says for π_g / π_0 other than 1.
+
 The grade stays the model's (`quakescan.learning.classification.predict_rows`): it says what
 the data show, and the probabilities what that answer is worth given what they cannot show.
 Unseen damage could only ever be guessed from the prior, and a guess is not a grade: taken as
@@ -41,10 +46,15 @@ from __future__ import annotations
 import numpy as np
 
 from ..change.detectability import WALLS_ONLY_SHARE, Detectability
+from ..errors import QuakeScanError
 
 # the model's classes are weighted inversely to their frequency in training (`fit_classifier`,
 # class_weight "balanced"): its probabilities carry equal priors, π_g / π_0 = 1
 PRIOR_RATIO = 1.0
+
+
+class PriorError(QuakeScanError, ValueError):
+    """A prior over the grades that cannot be used."""
 
 
 def unseen_shares(seen: Detectability | None, grades) -> dict[int, float]:
@@ -83,4 +93,54 @@ def with_unseen_damage(proba, classes, shares: list[dict]) -> np.ndarray:
     return np.divide(mixed, total, out=np.array(p, copy=True), where=total > 0)
 
 
-__all__ = ["PRIOR_RATIO", "unseen_shares", "with_unseen_damage"]
+def with_prior(proba, classes, prior: dict | None) -> np.ndarray:
+    """(n, k) probabilities for another prior over the grades than the equal one the model's
+    carry: p_g ∝ π_g p_g (Saerens, Latinne & Decaestecker 2002, "Adjusting the outputs of a
+    classifier to new a priori probabilities"). `prior` {grade: share}, any positive scale,
+    one share for every class; None: the equal prior, `proba` as it is. With unseen damage
+    counted first (`with_unseen_damage`) this is the module's posterior for prior π."""
+    p = np.asarray(proba, dtype=np.float64)
+    if prior is None or not len(p):
+        return p
+    weights = prior_weights(prior, classes)
+    out = p * weights[None, :]
+    total = out.sum(axis=1, keepdims=True)
+    return np.divide(out, total, out=np.array(p, copy=True), where=total > 0)
+
+
+def prior_weights(prior: dict, classes) -> np.ndarray:
+    """The prior's shares for `classes`, in their order, summing to 1."""
+    classes = [int(c) for c in classes]
+    missing = [c for c in classes if c not in prior]
+    if missing:
+        raise PriorError(f"the prior gives no share for grade(s) {missing} (it needs one for each of {classes})")
+    extra = sorted(set(int(g) for g in prior) - set(classes))
+    if extra:
+        raise PriorError(f"the prior gives shares for grade(s) {extra} the model does not know (its grades: {classes})")
+    w = np.array([float(prior[c]) for c in classes])
+    if not np.all(np.isfinite(w)) or np.any(w <= 0):
+        raise PriorError(f"every share of the prior must be a finite number > 0, got {dict(zip(classes, w.tolist()))}")
+    return w / w.sum()
+
+
+def parse_prior(text: str) -> dict[int, float]:
+    """"0:70,3:10,4:10,5:10" → {0: 70.0, 3: 10.0, 4: 10.0, 5: 10.0} (shares of any scale)."""
+    out: dict[int, float] = {}
+    for part in str(text).split(","):
+        grade, sep, share = part.partition(":")
+        try:
+            if not sep:
+                raise ValueError
+            g, v = int(grade.strip()), float(share.strip())
+        except ValueError:
+            raise PriorError(f"prior {text!r}: {part.strip()!r} is not GRADE:SHARE (e.g. 0:70,3:10,4:10,5:10)") from None
+        if g in out:
+            raise PriorError(f"prior {text!r}: grade {g} is given twice")
+        if not (np.isfinite(v) and v > 0):
+            raise PriorError(f"prior {text!r}: the share of grade {g} must be a finite number > 0, got {share.strip()!r}")
+        out[g] = v
+    return out
+
+
+__all__ = ["PRIOR_RATIO", "PriorError", "parse_prior", "prior_weights", "unseen_shares", "with_prior",
+           "with_unseen_damage"]
