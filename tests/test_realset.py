@@ -60,5 +60,5 @@ def test_real_rows_carry_the_unseen_shares_classify_counts():
             "density_pre": 4.0, "density_post": 4.0, "area_m2": 200.0, "lowering_lod_m": 0.3,
             "wall_density_pre": walls, "wall_density_post": walls, "facade_m2": 300.0})
 
-    q = unseen_rows([row(0.3), row(20.0), BuildingRow(3, 10, 10, True)])
+    q = unseen_rows([row(0.3), row(20.0), BuildingRow(3, 10, 10, True)])  # the last: no detectability
     np.testing.assert_allclose(q, [[D.WALLS_ONLY_SHARE[3], D.WALLS_ONLY_SHARE[4], 0.0], [0, 0, 0], [0, 0, 0]])

@@ -35,8 +35,9 @@ def test_shares_from_what_the_roof_and_the_walls_resolve():
     assert unseen_shares(_seen(4, True), CLASSES) == pytest.approx({0: 0.0, 3: 1 - W3, 4: 0.0, 5: 0.0})
     assert unseen_shares(_seen(4, False), CLASSES) == pytest.approx({0: 0.0, 3: 1.0, 4: W4, 5: 0.0})
     assert unseen_shares(_seen(None, False), CLASSES) == pytest.approx({0: 0.0, 3: 1.0, 4: 1.0, 5: 1.0})
-    # unknown: the walls (None) or the whole building (no record) count as seen
-    assert unseen_shares(_seen(3, None), CLASSES) == {0: 0.0, 3: 0.0, 4: 0.0, 5: 0.0}
+    # walls not measured (a building too low for a facade band) are not seen walls
+    assert unseen_shares(_seen(3, None), CLASSES) == {0: 0.0, 3: W3, 4: W4, 5: 0.0}
+    # no detectability at all (a model without surface descriptors): the model's probabilities
     assert unseen_shares(None, CLASSES) == {0: 0.0, 3: 0.0, 4: 0.0, 5: 0.0}
 
 

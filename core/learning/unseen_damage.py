@@ -37,9 +37,10 @@ one it would call the undamaged buildings of every airborne archive damaged.
 
 q_g comes from closed-form sampling (`quakescan.change.detectability`), not from fitting: the
 catalogue's forms of grade g confined to walls (`detectability.WALLS_ONLY_SHARE`) are unseen
-where `walls_resolved` is False, its roof forms where the roof resolves no grade up to g
-(`detectable_grade` None or above g). Unknown detectability (None) counts as seen: older rows
-and models without surface descriptors keep their probabilities.
+unless `walls_resolved` is True (False: too sparse; None: not measured, a building too low
+for a facade band), its roof forms where the roof resolves no grade up to g (`detectable_grade`
+None or above g). A row without any detectability (a model without surface descriptors)
+counts as seen: its probabilities are the model's.
 """
 from __future__ import annotations
 
@@ -59,7 +60,7 @@ class PriorError(QuakeScanError, ValueError):
 
 def unseen_shares(seen: Detectability | None, grades) -> dict[int, float]:
     """{grade: q_g}, the share of each damaged grade's catalogue forms this building's data
-    could not show (0 for grade 0 and where detectability is unknown)."""
+    could not show (0 for grade 0, and for every grade where `seen` is None)."""
     out = {}
     for g in (int(v) for v in grades):
         if g <= 0 or seen is None:
@@ -67,7 +68,9 @@ def unseen_shares(seen: Detectability | None, grades) -> dict[int, float]:
             continue
         walls = float(WALLS_ONLY_SHARE.get(g, 0.0))
         roof_unseen = seen.detectable_grade is None or int(seen.detectable_grade) > g
-        q = (1.0 - walls if roof_unseen else 0.0) + (walls if seen.walls_resolved is False else 0.0)
+        # walls count as seen only where they resolve heavy damage: unresolved, or not measured
+        # at all (too low for a facade band: `walls_resolved` None), their forms are unseen
+        q = (1.0 - walls if roof_unseen else 0.0) + (0.0 if seen.walls_resolved is True else walls)
         out[g] = min(max(q, 0.0), 1.0)
     return out
 
