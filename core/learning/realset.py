@@ -34,7 +34,7 @@ from ..runtime.atomic import open_replacing, replacing
 from ..runtime.progress import stage_log
 
 log = logging.getLogger(__name__)
-VERSION = 2  # 2: rows carry their unseen shares
+VERSION = 3  # 3: rows carry what their detectability is computed from
 RESERVED = ("ahn3_cropped_1",)  # evaluation only: never trained or tuned on
 # real rows are few beside the simulated ones (a few hundred against twelve thousand): each is
 # repeated this many times in the shipped model's training table
@@ -152,7 +152,7 @@ def pair_rows(work: Path, data: Path, pair: RealPair, settings, workers: int = -
             "density": np.array([[r.quality.get("density_pre", np.nan), r.quality.get("density_post", np.nan)]
                                  for r in rows], dtype=np.float64).reshape(len(rows), 2),
             "cells": np.array([r.quality.get("cells", 0) for r in rows], np.int64),
-            "unseen": unseen_rows(rows)}
+            "sampling": sampling_rows(rows)}
     fingerprint.forget(table)
     with open_replacing(table, "wb", RealSetError) as f:
         np.savez(f, **part)
@@ -176,7 +176,9 @@ def real_table(work, data, settings, *, plan=REAL_PLAN, workers: int = -1, repea
         city.append(np.full(len(part["y"]), cities.index(pair.source), np.int64))
         pair_idx.append(np.full(len(part["y"]), k, np.int64))
     cat = {key: np.concatenate([p[key] for p in parts]) for key in ("x", "y", "building_id", "density", "cells",
-                                                                      "unseen")}
+                                                                      "sampling")}
+    # the shares are computed on reading, not cached: the cache keeps what they are computed from
+    cat["unseen"] = unseen_of_sampling(cat["sampling"])
     reps = max(1, int(repeat))
     tile = (lambda a: np.concatenate([a] * reps)) if reps > 1 else (lambda a: a)
     return TransferTable(x=tile(cat["x"].reshape(-1, len(names))), y=tile(cat["y"]), names=names,
@@ -187,19 +189,43 @@ def real_table(work, data, settings, *, plan=REAL_PLAN, workers: int = -1, repea
 
 
 UNSEEN_GRADES = (3, 4, 5)
+# the quality fields a building's detectability is computed from (`detectability.of_building`)
+SAMPLING_FIELDS = ("density_pre", "density_post", "area_m2", "lowering_lod_m", "wall_density_pre",
+                   "wall_density_post", "facade_m2")
 
 
-def unseen_rows(rows) -> np.ndarray:
-    """(n, 3) the unseen shares of grades 3, 4, 5 of each BuildingRow (`unseen_shares` of
-    its detectability; 0 where unknown, as `predict_rows` counts them)."""
+def sampling_rows(rows) -> np.ndarray:
+    """(n, 7) each BuildingRow's `SAMPLING_FIELDS` (NaN where its quality record lacks one)."""
+    return np.array([[_number(r.quality.get(k)) for k in SAMPLING_FIELDS] for r in rows],
+                    dtype=np.float64).reshape(len(rows), len(SAMPLING_FIELDS))
+
+
+def _number(v) -> float:
+    try:
+        return float(v)
+    except (TypeError, ValueError):
+        return float("nan")
+
+
+def unseen_of_sampling(sampling: np.ndarray) -> np.ndarray:
+    """(n, 3) the unseen shares of grades 3, 4, 5 (`unseen_shares`) of rows of
+    `SAMPLING_FIELDS`, as `predict_rows` counts them for the same buildings."""
     from ..change.detectability import of_building
     from .unseen_damage import unseen_shares
 
-    out = np.zeros((len(rows), len(UNSEEN_GRADES)))
-    for i, r in enumerate(rows):
-        q = unseen_shares(of_building(r.quality), UNSEEN_GRADES)
+    out = np.zeros((len(sampling), len(UNSEEN_GRADES)))
+    for i, values in enumerate(np.asarray(sampling, dtype=np.float64).reshape(-1, len(SAMPLING_FIELDS))):
+        quality = {k: float(v) for k, v in zip(SAMPLING_FIELDS, values) if np.isfinite(v)}
+        if "lowering_lod_m" not in quality:
+            quality["lowering_lod_m"] = None
+        q = unseen_shares(of_building(quality), UNSEEN_GRADES)
         out[i] = [q[g] for g in UNSEEN_GRADES]
     return out
+
+
+def unseen_rows(rows) -> np.ndarray:
+    """(n, 3) the unseen shares of grades 3, 4, 5 of BuildingRows (`unseen_of_sampling`)."""
+    return unseen_of_sampling(sampling_rows(rows))
 
 
 def _unseen_of(t) -> np.ndarray:
