@@ -34,3 +34,20 @@ def test_rotated_copies_turn_every_vertex_exactly_and_keep_every_object_once_per
     for k, o in dst["CityObjects"].items():  # parents and children stay within their own copy
         for c in o.get("parents", []) + o.get("children", []):
             assert c.endswith(k[k.rindex("-r"):]) and c in dst["CityObjects"]
+
+
+def _scored(quiet, ece):
+    grades = {str(g): {"recall": 0.5, "precision": 0.5, "f1": 0.5, "n": 10} for g in (0, 3, 4, 5)}
+    return {"per_grade": grades, "undamaged_called_damaged": 0.0, "damaged_found": 0.7, "quiet_misses": quiet,
+            "quiet_misses_no_return_moved": quiet[:1], "ece": ece, "heavy_seen": {"roof": [1, 2], "walls only": [0, 2]},
+            "confusion": {str(t): {str(c): 0 for c in (0, 3, 4, 5, "n/a")} for t in (0, 3, 4, 5)}}
+
+
+def test_the_report_shows_the_unseen_damage_knob_every_way_in_one_table():
+    case = {**_scored([], 0.12), "case": "15/15/15, patterns", "split": 5, "seed": 101, "damage": "patterns",
+            "moved": 10, "assumed_visible": _scored([7, 8, 9], 0.15), "own_prior": _scored([], 0.05)}
+    text = bench.report({"machine": "m", "model": "x.skops", "seconds": 1, "peak_mib": 1, "cases": [case]})
+    rows = [line for line in text.splitlines() if line.startswith("| 15/15/15, patterns | ")]
+    assert [r.split(" | ")[1] for r in rows[1:]] == ["counted (default)", "assumed visible",
+                                                     "counted, the case's own mix as prior"]
+    assert rows[2].endswith("| 3 (1) | 0.150 |") and rows[3].endswith("| 0 (0) | 0.050 |")
