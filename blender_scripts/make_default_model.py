@@ -2,6 +2,7 @@
 """Rebuild the model that QuakeScan ships (core/data/default_model.skops), reproducibly.
 
     .venv/bin/python blender_scripts/make_default_model.py [--work out/default_model] [--seed 0] [--size large]
+    .venv/bin/python blender_scripts/make_default_model.py --recalibrate MODEL [--work …] -o OUT   # its temperature only
 
 One command from nothing (`quakescan.learning.default_model`): the transfer training set
 (`quakescan.learning.trainset.default_plan`: generic, region-specific and Rotterdam cities, mixed and
@@ -25,7 +26,7 @@ REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
 from quakescan.learning.classification import DEFAULT_MODEL  # noqa: E402
-from quakescan.learning.default_model import make_default_model  # noqa: E402
+from quakescan.learning.default_model import make_default_model, recalibrate_default_model  # noqa: E402
 
 
 def main(argv=None) -> int:
@@ -52,6 +53,9 @@ def main(argv=None) -> int:
                    help="folder of the real archives whose points get injected damage for training "
                    "(quakescan.learning.realset; default ../shared/data; skipped where absent)")
     p.add_argument("--no-real", action="store_true", help="simulated training rows only")
+    p.add_argument("--recalibrate", metavar="MODEL",
+                   help="refit only the real-point temperature of MODEL (its estimator, and so every grade, kept) "
+                   "on this recipe's tables under --work, and write it to --output")
     p.add_argument("-o", "--output", default=str(DEFAULT_MODEL))
     a = p.parse_args(argv)
     # the library logs its stage messages (training set, classifier comparison) to quakescan.stages
@@ -62,6 +66,13 @@ def main(argv=None) -> int:
     if real_data is None and not a.no_real:
         print(f"warning: {a.real_data} is absent: the model is trained on simulated rows only", file=sys.stderr)
     command = "python blender_scripts/make_default_model.py " + shlex.join(argv if argv is not None else sys.argv[1:])
+    if a.recalibrate:
+        rec = recalibrate_default_model(Path(a.recalibrate), Path(a.work), Path(a.output), seed=a.seed,
+                                        note=command.strip(), size=a.size, scenes=a.scenes, damage=a.damage,
+                                        small=a.small, workers=a.threads, keep_clouds=a.keep_clouds,
+                                        real_data=real_data)
+        print(f"temperature {rec['temperature']} -> {a.output}; {time.perf_counter() - t0:.0f} s")
+        return 0
     model, scores, table = make_default_model(Path(a.work), Path(a.output), seed=a.seed, size=a.size,
                                               scenes=a.scenes, damage=a.damage, small=a.small, workers=a.threads,
                                               command=command.strip(), keep_clouds=a.keep_clouds,

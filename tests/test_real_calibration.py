@@ -148,3 +148,26 @@ def test_the_temperature_is_fitted_to_the_probabilities_classify_reports():
     assert rec["temperature"] == pytest.approx(round(expected, 4))
     assert plain["temperature"] == pytest.approx(round(fit_temperature(proba, index), 4))
     assert rec["temperature"] != plain["temperature"]
+
+
+def test_recalibrating_a_model_refits_its_temperature_and_keeps_its_estimator(tmp_path, monkeypatch):
+    from quakescan.learning import default_model as dm
+
+    table = _table()
+    config = dm.CANDIDATES[0]
+    fit_args = {k: v for k, v in config.items() if k not in ("name", "rule")}
+    from quakescan.learning.model import fit_classifier
+
+    m = DamageModel(fit_classifier(table.x, table.y, seed=0, **fit_args), list(table.names), 1.5, temperature=3.0)
+    m.provenance["classifier_selection"] = {"chosen": config["name"]}
+    save_model(m, tmp_path / "m.skops")
+    monkeypatch.setattr(dm, "default_tables", lambda work, **kw: (None, table, table, ["real_1", "real_2"]))
+    rec = dm.recalibrate_default_model(tmp_path / "m.skops", tmp_path / "work", tmp_path / "out.skops",
+                                       real_data=tmp_path)
+    expected = real_calibration(table, table, config, ["real_1", "real_2"])
+    back = load_model(tmp_path / "out.skops")
+    assert back.temperature == rec["temperature"] == expected["temperature"]
+    assert "before: T 3)" in back.provenance["real_calibration"]["refit"]
+    np.testing.assert_array_equal(back.estimator.predict_proba(table.x), m.estimator.predict_proba(table.x))
+    with pytest.raises(ValueError, match="needs the real archives"):
+        dm.recalibrate_default_model(tmp_path / "m.skops", tmp_path / "work", tmp_path / "o2.skops")

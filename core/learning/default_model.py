@@ -252,17 +252,11 @@ def calibrate_on_real_points(model, table, full, config: dict, real_pairs, *, se
     return record
 
 
-def make_default_model(work: Path, output: Path, *, seed: int = 0, size: str = "full", scenes: str = "both",
-                       damage: str = "both", small: bool = False, workers: int = -1,
-                       command: str = "", keep_clouds: bool = False, real_data: Path | None = None):
-    """Build the training set under `work`, choose and fit the classifier, write `output`.
-    The training clouds are removed once described unless `keep_clouds` (the tables are what
-    the model is made from; the large plan's clouds fill 27 GB). `real_data`: the folder of
-    the real archives of `quakescan.learning.realset` (damage injected into their points, rows
-    repeated `REAL_REPEAT` times); None: simulated rows only."""
-    from .model import save_model
-
-    t0 = time.perf_counter()
+def default_tables(work: Path, *, seed: int = 0, size: str = "full", scenes: str = "both", damage: str = "both",
+                   small: bool = False, workers: int = -1, keep_clouds: bool = False, real_data: Path | None = None):
+    """(plan, training rows, every row, real pair names) of the shipped model's recipe under
+    `work` (built where missing, read where cached): the simulated transfer table, the real
+    pairs appended (`real_data`), the model's columns, the unseen damage left out of training."""
     plan, table = transfer_training_table(work, seed=seed, size=size, scenes=scenes, damage=damage, small=small,
                                           workers=workers, keep_clouds=keep_clouds)
     real_pairs = []
@@ -274,7 +268,50 @@ def make_default_model(work: Path, output: Path, *, seed: int = 0, size: str = "
                                                 workers=workers, repeat=REAL_REPEAT))
         real_pairs = [p.name for p in REAL_PLAN]
     full = model_columns(table)
-    table = training_rows(full)
+    return plan, training_rows(full), full, real_pairs
+
+
+def recalibrate_default_model(model_path: Path, work: Path, output: Path, *, seed: int = 0, note: str = "",
+                              **recipe) -> dict:
+    """Refit only the real-point temperature of the model at `model_path` with the recipe's
+    out-of-fold calibration (`calibrate_on_real_points`: each real pair predicted by the
+    model's classifier configuration fitted on the recipe's table without that pair) and write
+    it to `output`. The estimator is left as it is, so every grade it gives stays the same;
+    the out-of-fold fits depend on the table and the configuration, not on the estimator.
+    `recipe`: `default_tables`' arguments (real_data required). Returns the calibration record."""
+    from .model import load_model, save_model
+
+    if recipe.get("real_data") is None:
+        raise ValueError("recalibrating needs the real archives (real_data): the temperature is fitted on them")
+    model = load_model(model_path)
+    chosen = model.provenance.get("classifier_selection", {}).get("chosen")
+    config = next((c for c in CANDIDATES if c["name"] == chosen), None)
+    if config is None:
+        raise ValueError(f"{model_path}: its classifier {chosen!r} is none of the recipe's candidates "
+                         f"{[c['name'] for c in CANDIDATES]}")
+    _, table, full, real_pairs = default_tables(work, seed=seed, **recipe)
+    before = model.temperature
+    record = calibrate_on_real_points(model, table, full, config, real_pairs, seed=seed)
+    record["refit"] = (f"temperature refitted on a table of {len(table.y)} training rows, estimator kept "
+                       f"(before: T {before:g}){'; ' + note if note else ''}")
+    save_model(model, output)
+    return record
+
+
+def make_default_model(work: Path, output: Path, *, seed: int = 0, size: str = "full", scenes: str = "both",
+                       damage: str = "both", small: bool = False, workers: int = -1,
+                       command: str = "", keep_clouds: bool = False, real_data: Path | None = None):
+    """Build the training set under `work`, choose and fit the classifier, write `output`.
+    The training clouds are removed once described unless `keep_clouds` (the tables are what
+    the model is made from; the large plan's clouds fill 27 GB). `real_data`: the folder of
+    the real archives of `quakescan.learning.realset` (damage injected into their points, rows
+    repeated `REAL_REPEAT` times); None: simulated rows only."""
+    from .model import save_model
+
+    t0 = time.perf_counter()
+    plan, table, full, real_pairs = default_tables(work, seed=seed, size=size, scenes=scenes, damage=damage,
+                                                   small=small, workers=workers, keep_clouds=keep_clouds,
+                                                   real_data=real_data)
     stage_log.info(f"{len(full.y) - len(table.y)} of {len(full.y)} rows left out: damage their acquisition did not see")
     t_build = round(time.perf_counter() - t0, 1)
     stage_log.info(f"comparing {len(CANDIDATES)} classifiers (cross-validation holding out whole cities)")
