@@ -53,12 +53,12 @@ def test_tables_append_with_their_cities_and_pairs_numbered_after():
 def test_real_rows_carry_the_unseen_shares_classify_counts():
     from quakescan.change import detectability as D
     from quakescan.change.pipeline import BuildingRow
-    from quakescan.learning.realset import unseen_rows
+    from quakescan.learning.realset import sampling_rows, unseen_of_sampling
 
     def row(walls):  # 4 pts/m² on the roof; walls at an airborne laser's 0.3 or a drone's 20 per m²
         return BuildingRow(1, 800, 800, True, quality={
             "density_pre": 4.0, "density_post": 4.0, "area_m2": 200.0, "lowering_lod_m": 0.3,
             "wall_density_pre": walls, "wall_density_post": walls, "facade_m2": 300.0})
 
-    q = unseen_rows([row(0.3), row(20.0), BuildingRow(3, 10, 10, True)])  # the last: no detectability
+    q = unseen_of_sampling(sampling_rows([row(0.3), row(20.0), BuildingRow(3, 10, 10, True)]))  # the last: no detectability
     np.testing.assert_allclose(q, [[D.WALLS_ONLY_SHARE[3], D.WALLS_ONLY_SHARE[4], 0.0], [0, 0, 0], [0, 0, 0]])

@@ -81,11 +81,7 @@ def classify_distributed(pre_path, post_path, out_dir, client, *, model_path=Non
             raise cl.ClassifyError(f"{p}: {what} " + ("is a folder, not a file" if Path(p).is_dir() else
                                                       "does not exist"))
     cl._check_output_folder(out, [pre_path, post_path, footprints_path, model_path])
-    options = {"id_field": id_field, "write_las": bool(write_las), "laz": laz}
-    if not unseen_damage:  # as in `classify`: the default keeps earlier results' fingerprint
-        options["unseen_damage"] = False
-    if prior is not None:
-        options["prior"] = {str(int(g)): float(v) for g, v in sorted(prior.items())}
+    options = cl.run_options(id_field, write_las, laz, unseen_damage, prior)
     run_fp = cl._fingerprint(pre_path, post_path, footprints_path, model_path, align, options)
     done = cl._finished(out, run_fp)
     if done is not None and not force:

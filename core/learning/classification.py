@@ -254,6 +254,17 @@ def predict_rows(rows, model: DamageModel, rule: bool | None = None, unseen_dama
     return out
 
 
+def run_options(id_field, write_las: bool, laz, unseen_damage: bool, prior: dict | None) -> dict:
+    """The options of a classify run that its results depend on (its fingerprint's, the
+    summary's), for one process and the Dask path alike."""
+    options = {"id_field": id_field, "write_las": bool(write_las), "laz": laz}
+    if not unseen_damage:  # the defaults leave the fingerprint of earlier results as it was
+        options["unseen_damage"] = False
+    if prior is not None:
+        options["prior"] = {str(int(g)): float(v) for g, v in sorted(prior.items())}
+    return options
+
+
 def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=None, id_field=None,
              align: bool | None = None, workers: int = -1, progress: ProgressCallback | None = None,
              write_las: bool = True, laz: bool | None = None, force: bool = False, unseen_damage: bool = True,
@@ -282,11 +293,7 @@ def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=N
         if p is not None and not Path(p).is_file():  # before the fingerprint reads them
             raise ClassifyError(f"{p}: {what} " + ("is a folder, not a file" if Path(p).is_dir() else "does not exist"))
     _check_output_folder(out, [pre_path, post_path, footprints_path, model_path])
-    options = {"id_field": id_field, "write_las": bool(write_las), "laz": laz}
-    if not unseen_damage:  # the defaults leave the fingerprint of earlier results as it was
-        options["unseen_damage"] = False
-    if prior is not None:
-        options["prior"] = {str(int(g)): float(v) for g, v in sorted(prior.items())}
+    options = run_options(id_field, write_las, laz, unseen_damage, prior)
     run_fp = _fingerprint(pre_path, post_path, footprints_path, model_path, align, options)
     done = _finished(out, run_fp)
     if done is not None and not force:

@@ -138,22 +138,23 @@ def real_calibration(table, full, config: dict, real_pairs, *, seed: int = 0, fi
     proba, truth, rows = proba[known], truth[known], rows[known]
     index = np.searchsorted(classes, truth)
     then = counting_unseen(full, rows, classes)
+    counted = then is not None
+    then = then or (lambda p: p)
     t = fit_temperature(proba, index, then)
     said = proba.argmax(axis=1)  # the grade given: the model's, whatever is counted (`predict_rows`)
-    after = (then or (lambda p: p))(temper(proba, t))
-    proba = (then or (lambda p: p))(proba)
+    after, proba = then(temper(proba, t)), then(proba)
 
     def ece(p):
         return calibration_error(p[np.arange(len(p)), said], said == index)
 
     return {"temperature": round(t, 4), "rows": int(len(truth)), "pairs": list(real_pairs),
-            "unseen_damage": then is not None,
+            "unseen_damage": counted,
             "log_loss_before": round(log_loss(proba, index), 4), "log_loss_after": round(log_loss(after, index), 4),
             "ece_before": round(ece(proba), 4), "ece_after": round(ece(after), 4),
             "how": "one temperature on the out-of-fold probabilities of every real-point row "
                    "(quakescan.learning.real_calibration)"
                    + (", counting the damage each row's data could not show (quakescan.learning.unseen_damage), "
-                      "as classify reports them" if then is not None else "")}
+                      "as classify reports them" if counted else "")}
 
 
 def counting_unseen(full, rows: np.ndarray, classes):

@@ -223,11 +223,6 @@ def unseen_of_sampling(sampling: np.ndarray) -> np.ndarray:
     return out
 
 
-def unseen_rows(rows) -> np.ndarray:
-    """(n, 3) the unseen shares of grades 3, 4, 5 of BuildingRows (`unseen_of_sampling`)."""
-    return unseen_of_sampling(sampling_rows(rows))
-
-
 def _unseen_of(t) -> np.ndarray:
     return t.unseen if t.unseen is not None else np.full((len(t.y), len(UNSEEN_GRADES)), np.nan)
 

@@ -49,11 +49,6 @@ import numpy as np
 from ..change.detectability import WALLS_ONLY_SHARE, Detectability
 from ..errors import QuakeScanError
 
-# the model's classes are weighted inversely to their frequency in training (`fit_classifier`,
-# class_weight "balanced"): its probabilities carry equal priors, π_g / π_0 = 1
-PRIOR_RATIO = 1.0
-
-
 class PriorError(QuakeScanError, ValueError):
     """A prior over the grades that cannot be used."""
 
@@ -91,7 +86,9 @@ def with_unseen_damage(proba, classes, shares: list[dict]) -> np.ndarray:
     q = np.array([[float(s.get(c, 0.0)) if c != 0 else 0.0 for c in classes] for s in shares])
     if np.any(~np.isfinite(q)) or np.any((q < 0) | (q > 1)):
         raise ValueError("unseen shares must lie in [0, 1]")
-    mixed = p + q * PRIOR_RATIO * p[:, [zero]]
+    # π_g / π_0 = 1: the model's classes are weighted inversely to their frequency in training
+    # (`fit_classifier`, class_weight "balanced"); another prior is `with_prior`'s
+    mixed = p + q * p[:, [zero]]
     total = mixed.sum(axis=1, keepdims=True)
     return np.divide(mixed, total, out=np.array(p, copy=True), where=total > 0)
 
@@ -145,5 +142,5 @@ def parse_prior(text: str) -> dict[int, float]:
     return out
 
 
-__all__ = ["PRIOR_RATIO", "PriorError", "parse_prior", "prior_weights", "unseen_shares", "with_prior",
+__all__ = ["PriorError", "parse_prior", "prior_weights", "unseen_shares", "with_prior",
            "with_unseen_damage"]
