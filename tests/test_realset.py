@@ -1,5 +1,6 @@
 """Training rows from real points with injected damage (`quakescan.learning.realset`)."""
 import dataclasses
+import json
 
 import numpy as np
 import pytest
@@ -18,6 +19,37 @@ def test_the_plan_never_trains_on_the_tile_reserved_for_evaluation():
         realset.check_plan([realset.RealPair("ahn3_tile2", "mirror", 1, 1)])
     names = [p.name for p in realset.REAL_PLAN]
     assert len(set(names)) == len(names)  # every pair its own folder
+    with pytest.raises(realset.RealSetError, match="a drone kind needs a sensor of uls, dim"):
+        realset.check_plan([realset.RealPair("ahn3_tile2", "drone", 1, 1, ((3, 1),))])
+    with pytest.raises(realset.RealSetError, match="only a drone kind has one"):
+        realset.check_plan([realset.RealPair("ahn3_tile2", "halves", 1, 1, ((3, 1),), sensor="uls")])
+
+
+def test_a_pair_without_a_drone_keeps_the_name_and_fields_its_cached_rows_were_made_with():
+    pair = realset.RealPair("ahn3_tile2", "halves", 11, 1, ((3, 6),))
+    assert pair.name == "ahn3_tile2_halves_s11_i1" and pair.sensor_pair == "real-halves"
+    assert "sensor" not in pair.spec() and pair.spec()["split"] == 11
+    drone = realset.RealPair("ahn3_tile2", "drone", 21, 21, ((3, 6),), sensor="dim")
+    assert drone.name == "ahn3_tile2_drone_dim_s21_i21" and drone.sensor_pair == "real-drone-dim"
+    assert drone.spec()["sensor"] == "dim"
+
+
+@pytest.mark.slow
+def test_a_drone_pair_is_a_real_half_before_and_a_simulated_flight_over_the_other_half_after(shared_data, tmp_path):
+    import laspy
+
+    pair = realset.RealPair("ahn3_tile2", "drone_rescan", 25, 25, sensor="uls")
+    a = realset.pair_rows(tmp_path, shared_data, pair, TABLE_SETTINGS, workers=1)
+    folder = tmp_path / pair.name
+    pre, post = laspy.read(folder / "pre.las"), laspy.open(folder / "post_real.las")
+    whole = laspy.open(shared_data / "ahn3_cropped_2.laz").header.point_count
+    half = np.random.default_rng(25).random(whole) < 0.5
+    assert len(pre.points) == half.sum()  # the archive's own returns before
+    sidecar = json.loads((folder / "post_real.las.acquisition.json").read_text())
+    assert sidecar["acquisition"]["kind"] == "uls" and post.header.point_count > 100_000  # a drone's after
+    assert (a["y"] == 0).all() and len(a["y"]) >= 20  # no damage: every building undamaged
+    again = realset.pair_rows(tmp_path, shared_data, pair, TABLE_SETTINGS, workers=1)
+    assert all(np.array_equal(a[k], again[k]) for k in a)
 
 
 def test_a_real_pair_gives_rows_labelled_by_the_injected_truth_and_is_cached(shared_data, tmp_path):

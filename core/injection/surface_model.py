@@ -31,6 +31,7 @@ import numpy as np
 from ..errors import QuakeScanError
 from ..formats.scene import GROUND, OBJECT, ROOF, VEGETATION, WALL, Building, Scene
 
+VERSION = 1  # the surface a cloud gives: a change makes every scene of it new
 CELL_M = 0.5
 WALL_SLOPE_DEG = 60.0
 # ASPRS classes: noise (7 low, 18 high) is not a surface; what is ground, what is vegetation

@@ -12,7 +12,13 @@ epochs real:
 - `halves`: the tile's two random halves (one before, the other after, with damage injected);
 - `thinned`: the whole tile before and a random quarter of it after (an archive at 15
   pts/m² against a sparse post-event flight), damage injected into the quarter;
-- `rescan`: the halves without damage (real no-change rows: every building grade 0).
+- `rescan`: the halves without damage (real no-change rows: every building grade 0);
+- `drone`: a real half before (the archive), and after a simulated drone (`sensor`: ULS or
+  DIM, its settings drawn at random from the sensor's ranges) flown over the 2.5D surface of
+  the other half (`quakescan.injection.surface_model`), damage injected into the drone's
+  returns: the responder's usual pair, an airborne archive and a drone flight, with the
+  real city's roofs, trees and gaps under both;
+- `drone_rescan`: the same without damage (no-change rows across sources).
 
 Grade mixes, seeds, splits and patterns or rigid-body collapses vary by pair, so no pair
 repeats another's damage. Each pair's rows are cached under WORK/<pair>/ with the fingerprint
@@ -61,10 +67,29 @@ class RealPair:
     mix: tuple = ()  # ((grade, count), ...)
     damage: str = "patterns"
     min_points: int = 60
+    sensor: str = ""  # the drone's, for the drone kinds (uls | dim)
 
     @property
     def name(self) -> str:
-        return f"{self.source}_{self.kind}_s{self.split}_i{self.seed}"
+        sensor = f"_{self.sensor}" if self.sensor else ""
+        return f"{self.source}_{self.kind}{sensor}_s{self.split}_i{self.seed}"
+
+    @property
+    def sensor_pair(self) -> str:
+        return f"real-{self.kind}" + (f"-{self.sensor}" if self.sensor else "")
+
+    def spec(self) -> dict:
+        """The fields that make the pair's rows (a pair without a drone as before drones existed,
+        so its cached rows stay current)."""
+        d = asdict(self)
+        if not d["sensor"]:
+            del d["sensor"]
+        return d
+
+
+KINDS = ("halves", "thinned", "rescan", "drone", "drone_rescan")
+DRONE_KINDS = ("drone", "drone_rescan")
+DRONE_SENSORS = ("uls", "dim")
 
 
 SOURCES = (RealSource("ahn3_tile2", "ahn3_cropped_2.laz", "ahn3_footprints_rd.geojson"),)
@@ -78,6 +103,12 @@ REAL_PLAN = (
     RealPair("ahn3_tile2", "thinned", 17, 7, ((3, 8), (4, 4), (5, 3)), "both", min_points=30),
     RealPair("ahn3_tile2", "rescan", 18, 0),
     RealPair("ahn3_tile2", "rescan", 19, 0),
+    RealPair("ahn3_tile2", "drone", 21, 21, ((3, 6), (4, 5), (5, 5)), sensor="uls"),
+    RealPair("ahn3_tile2", "drone", 22, 22, ((3, 8), (4, 4), (5, 3)), "both", sensor="uls"),
+    RealPair("ahn3_tile2", "drone", 23, 23, ((3, 6), (4, 5), (5, 4)), sensor="dim"),
+    RealPair("ahn3_tile2", "drone", 24, 24, ((3, 7), (4, 4), (5, 4)), "both", sensor="dim"),
+    RealPair("ahn3_tile2", "drone_rescan", 25, 25, sensor="uls"),
+    RealPair("ahn3_tile2", "drone_rescan", 26, 26, sensor="dim"),
 )
 
 
@@ -89,28 +120,63 @@ def check_plan(plan=REAL_PLAN, sources=SOURCES) -> None:
             raise RealSetError(f"real pair {p.name}: no source {p.source!r}")
         if any(r in s.cloud for r in RESERVED):
             raise RealSetError(f"real pair {p.name}: {s.cloud} is reserved for evaluation and never trained on")
-        if p.kind not in ("halves", "thinned", "rescan"):
-            raise RealSetError(f"real pair {p.name}: kind must be halves, thinned or rescan, got {p.kind!r}")
+        if p.kind not in KINDS:
+            raise RealSetError(f"real pair {p.name}: kind must be one of {', '.join(KINDS)}, got {p.kind!r}")
+        if (p.kind in DRONE_KINDS) != (p.sensor in DRONE_SENSORS):
+            raise RealSetError(f"real pair {p.name}: a drone kind needs a sensor of {', '.join(DRONE_SENSORS)} "
+                               f"and only a drone kind has one, got kind {p.kind!r} sensor {p.sensor!r}")
 
 
-def epochs(cloud: Path, pair: RealPair, folder: Path) -> tuple[Path, Path]:
-    """The pair's real pre- and post-event clouds (before injection), written once."""
+def epochs(cloud: Path, pair: RealPair, folder: Path, footprints: Path | None = None) -> tuple[Path, Path]:
+    """The pair's pre- and post-event clouds (before injection), written once; a drone pair's
+    post-event cloud is flown over the surface of `footprints`' buildings in the other half
+    (`acquire` keeps it when it is current)."""
     import laspy
 
     pre, post = folder / "pre.las", folder / "post_real.las"
-    if pre.is_file() and post.is_file():
+    drone = pair.kind in DRONE_KINDS
+    if pre.is_file() and post.is_file() and not drone:
         return pre, post
     las = laspy.read(cloud)
     n = len(las.points)
     u = np.random.default_rng(pair.split).random(n)
     masks = {"halves": (u < 0.5, u >= 0.5), "rescan": (u < 0.5, u >= 0.5),
-             "thinned": (np.ones(n, bool), u < 0.25)}[pair.kind]
+             "thinned": (np.ones(n, bool), u < 0.25), "drone": (u < 0.5, u >= 0.5),
+             "drone_rescan": (u < 0.5, u >= 0.5)}[pair.kind]
     for path, mask in zip((pre, post), masks):
         sub = laspy.LasData(las.header)
         sub.points = las.points[mask]
-        with replacing(path, RealSetError) as tmp:
-            sub.write(tmp)
+        if drone and path == post:
+            _fly_drone(sub, pair, path, footprints)
+        elif not path.is_file():
+            with replacing(path, RealSetError) as tmp:
+                sub.write(tmp)
     return pre, post
+
+
+def _fly_drone(half, pair: RealPair, path: Path, footprints: Path | None) -> None:
+    """The pair's drone (settings drawn with its seed) flown over the surface of `half`."""
+    from ..acquisition.acquire import acquire, random_acquisition
+    from ..formats.footprints import read_footprints
+    from ..injection.surface_model import surface_scene
+
+    if footprints is None:
+        raise RealSetError(f"real pair {pair.name}: a drone pair needs the source's footprints")
+    fp = read_footprints(footprints)
+    xyz = np.c_[half.x, half.y, half.z]
+    scene = surface_scene(xyz, np.asarray(half.classification), fp,
+                          np.r_[np.floor(xyz[:, :2].min(axis=0)), 0.0], crs=fp.crs)
+    acquire(scene, random_acquisition(pair.sensor, pair.seed), path, seed=pair.seed)
+
+
+def _drone_versions(pair: RealPair) -> dict:
+    """What else a drone pair's rows are made from: the surface model and the simulators."""
+    if pair.kind not in DRONE_KINDS:
+        return {}
+    from .. import __version__
+    from ..injection.surface_model import VERSION as SURFACE_VERSION
+
+    return {"surface_model": SURFACE_VERSION, "quakescan": __version__}
 
 
 def pair_rows(work: Path, data: Path, pair: RealPair, settings, workers: int = -1) -> dict:
@@ -130,14 +196,15 @@ def pair_rows(work: Path, data: Path, pair: RealPair, settings, workers: int = -
     folder = work / pair.name
     table = folder / "rows.npz"
     fp = fingerprint.make("real-pair", {"cloud": fingerprint.content(cloud), "footprints": fingerprint.content(footprints)},
-                          {"pair": asdict(pair), "pipeline": settings.to_json()},
-                          {"realset": VERSION, "descriptors": DESCRIPTOR_VERSION, "openings": OPENINGS_VERSION})
+                          {"pair": pair.spec(), "pipeline": settings.to_json()},
+                          {"realset": VERSION, "descriptors": DESCRIPTOR_VERSION, "openings": OPENINGS_VERSION,
+                           **_drone_versions(pair)})
     if fingerprint.is_current(table, fp):
         with np.load(table) as d:
             return {k: d[k] for k in d.files}
     folder.mkdir(parents=True, exist_ok=True)
-    pre, post = epochs(cloud, pair, folder)
-    if pair.kind == "rescan":
+    pre, post = epochs(cloud, pair, folder, footprints)
+    if pair.kind in ("rescan", "drone_rescan"):
         post_path, truth = post, {}
     else:
         r = inject(post, footprints, folder / "inject",
@@ -184,7 +251,7 @@ def real_table(work, data, settings, *, plan=REAL_PLAN, workers: int = -1, repea
     return TransferTable(x=tile(cat["x"].reshape(-1, len(names))), y=tile(cat["y"]), names=names,
                          city=tile(np.concatenate(city)), pair=tile(np.concatenate(pair_idx)),
                          building_id=tile(cat["building_id"]), density=tile(cat["density"]), cities=cities,
-                         pairs=[p.name for p in plan], sensors=[f"real-{p.kind}" for p in plan],
+                         pairs=[p.name for p in plan], sensors=[p.sensor_pair for p in plan],
                          cells=tile(cat["cells"]), unseen=tile(cat["unseen"].reshape(-1, len(UNSEEN_GRADES))))
 
 
