@@ -221,6 +221,18 @@ def test_a_proxy_stands_on_its_ground_points_up_to_its_roof_and_refuses_a_cloud_
                     np.zeros(3))
 
 
+def test_a_building_cropped_tight_takes_its_ground_from_farther_off_and_none_beyond_the_reach():
+    from quakescan.injection.proxy import GROUND_FALLBACK_M, GROUND_SEARCH_M, ground_heights
+
+    box = shapely.box(0.0, 0.0, 10.0, 10.0)
+    ground = np.array([[-15.0, 5.0, 2.0], [-15.0, 6.0, 4.0]])  # 15 m west: beyond the first search
+    assert GROUND_SEARCH_M < 15.0 < GROUND_FALLBACK_M
+    z = ground_heights(ground, np.array([2, 2]), [box])
+    assert z[0] == pytest.approx(2.0 + 0.1 * 2.0)  # the 10th percentile of the two
+    far = ground - [GROUND_FALLBACK_M, 0.0, 0.0]
+    assert np.isnan(ground_heights(far, np.array([2, 2]), [box])[0])
+
+
 def test_range_noise_is_the_spread_of_ground_returns_in_their_cells():
     rng = np.random.default_rng(4)
     xy = rng.uniform(0, 50, (50_000, 2))

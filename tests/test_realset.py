@@ -63,7 +63,7 @@ def test_a_real_pair_gives_rows_labelled_by_the_injected_truth_and_is_cached(sha
     again = realset.pair_rows(tmp_path, shared_data, pair, TABLE_SETTINGS, workers=1)
     assert all(np.array_equal(a[k], again[k]) for k in a)
     table = realset.real_table(tmp_path, shared_data, TABLE_SETTINGS, plan=(pair,), repeat=2, workers=1)
-    assert len(table.y) == 2 * len(a["y"]) and table.cities == ["ahn3_tile2"] and table.pairs == [pair.name]
+    assert len(table.y) == 2 * len(a["y"]) and table.cities == ["ahn3_tile2", "sample_c"] and table.pairs == [pair.name]
 
 
 def test_tables_append_with_their_cities_and_pairs_numbered_after():
@@ -94,3 +94,13 @@ def test_real_rows_carry_the_unseen_shares_classify_counts():
 
     q = unseen_of_sampling(sampling_rows([row(0.3), row(20.0), BuildingRow(3, 10, 10, True)]))  # the last: no detectability
     np.testing.assert_allclose(q, [[D.WALLS_ONLY_SHARE[3], D.WALLS_ONLY_SHARE[4], 0.0], [0, 0, 0], [0, 0, 0]])
+
+
+@pytest.mark.slow
+def test_a_source_without_an_outline_file_gets_footprints_from_its_building_class(shared_data, tmp_path):
+    pair = realset.RealPair("sample_c", "halves", 32, 32, ((5, 1),))
+    a = realset.pair_rows(tmp_path, shared_data, pair, TABLE_SETTINGS, workers=1)
+    assert (tmp_path / "sample_c" / "footprints.geojson").is_file()
+    assert sorted(a["y"].tolist()) == [0, 5]  # the large building destroyed, the small one as it was
+    names = TABLE_SETTINGS.descriptor_names()
+    assert a["x"][a["y"] == 5, names.index("s_lowered_1m")][0] > 0.2

@@ -36,7 +36,7 @@ from ..runtime.atomic import replacing, write_json, write_text
 from ..runtime.progress import stage_log
 
 FORMAT = "quakescan-injection"
-VERSION = 1
+VERSION = 2  # 2: a building's ground from farther off where none lies within 10 m
 # the grades a mix draws, and the buildings eligible for damage in a mix (the independent
 # benchmark's choice: a building needs points enough to be graded at all)
 DAMAGE_GRADES = (3, 4, 5)

@@ -13,7 +13,7 @@ damaged proxy differs from the undamaged one along that point's pulse. The error
 the new surfaces lie, not whether an undamaged surface keeps its real points.
 
 Heights: ground = 10th percentile of the ground points (ASPRS 2) within `GROUND_SEARCH_M` of
-the footprint, as `quakescan.change.surface` measures it (2nd percentile of all points there
+the footprint (within `GROUND_FALLBACK_M` where none is that near), as `quakescan.change.surface` measures it (2nd percentile of all points there
 without a ground class); roof = the median over the footprint's 1 m cells of each cell's
 highest point, so a chimney or a tree over one corner does not lift the block.
 """
@@ -29,6 +29,9 @@ from ..formats.scene import GROUND, ROOF, WALL, Building, Scene
 
 GROUND_CLASS = 2
 GROUND_SEARCH_M = 10.0
+# a tile cropped tightly around a building holds its ground only farther off (PDAL's sample_c:
+# 15 m): where no ground return lies within GROUND_SEARCH_M, the ground within this reach counts
+GROUND_FALLBACK_M = 50.0
 ROOF_CELL_M = 1.0
 # below this a block is no building the catalogue's patterns describe (a shed's roof is 2.2 m up)
 MIN_HEIGHT_M = 2.0
@@ -66,7 +69,9 @@ class ProxyModel:
 
 
 def ground_heights(xyz: np.ndarray, cls: np.ndarray | None, polygons) -> np.ndarray:
-    """Ground height near each polygon (world z), NaN where no point lies within GROUND_SEARCH_M."""
+    """Ground height near each polygon (world z): of the ground returns within GROUND_SEARCH_M,
+    else within GROUND_FALLBACK_M; NaN where none (without a ground class: of any return
+    within GROUND_SEARCH_M)."""
     import shapely
     from scipy.spatial import cKDTree
 
@@ -78,14 +83,15 @@ def ground_heights(xyz: np.ndarray, cls: np.ndarray | None, polygons) -> np.ndar
     for k, poly in enumerate(polygons):
         minx, miny, maxx, maxy = poly.bounds
         centre = ((minx + maxx) / 2, (miny + maxy) / 2)
-        reach = math.hypot(maxx - minx, maxy - miny) / 2 + GROUND_SEARCH_M
-        cand = tree.query_ball_point(centre, reach)
-        if not cand:
-            continue
-        cand = np.asarray(cand)
-        near = shapely.dwithin(poly, shapely.points(pts[cand, :2]), GROUND_SEARCH_M)
-        if near.any():
-            out[k] = float(np.percentile(pts[cand[near], 2], q))
+        for search in (GROUND_SEARCH_M, GROUND_FALLBACK_M) if has_ground else (GROUND_SEARCH_M,):
+            cand = tree.query_ball_point(centre, math.hypot(maxx - minx, maxy - miny) / 2 + search)
+            if not cand:
+                continue
+            cand = np.asarray(cand)
+            near = shapely.dwithin(poly, shapely.points(pts[cand, :2]), search)
+            if near.any():
+                out[k] = float(np.percentile(pts[cand[near], 2], q))
+                break
     return out
 
 
@@ -123,7 +129,8 @@ def build_proxy(xyz: np.ndarray, cls: np.ndarray | None, building_of_point: np.n
             skipped[bid] = f"{len(own)} points < {MIN_POINTS}"
             continue
         if not math.isfinite(grounds[k]):
-            skipped[bid] = f"no point within {GROUND_SEARCH_M:g} m to give its ground"
+            skipped[bid] = (f"no ground return within {GROUND_FALLBACK_M:g} m (without a ground class: no return "
+                            f"within {GROUND_SEARCH_M:g} m) to give its ground")
             continue
         roof = roof_height(own)
         if roof - grounds[k] < MIN_HEIGHT_M:

@@ -4,7 +4,9 @@ The simulated training set teaches the catalogue's damage on simulated sampling;
 teach it on real sampling: real roofs, real density, real scan pattern and real noise, with
 the catalogue's damage re-cast along the archive's own pulses (`quakescan.injection`).
 
-Sources are real clouds the project may train on: AHN3 tile 2 of Delft with its footprints.
+Sources are real clouds the project may train on: AHN3 tile 2 of Delft with its footprints,
+and PDAL's `sample_c.las` (another sensor, another country, 5 pts/m², no outline file: its
+footprints are derived from its building class, `quakescan.formats.class_footprints`).
 **AHN3 tile 1 never enters** (it is reserved for evaluation, `bench/bench_real_damage.py`):
 `REAL_PLAN` is checked against `RESERVED` when a table is built. Pairs (`RealPair`), both
 epochs real:
@@ -55,7 +57,7 @@ class RealSetError(QuakeScanError):
 class RealSource:
     name: str
     cloud: str  # file name in the data folder
-    footprints: str
+    footprints: str  # file name in the data folder, or "" to derive them from the building class
 
 
 @dataclass(frozen=True)
@@ -92,7 +94,8 @@ DRONE_KINDS = ("drone", "drone_rescan")
 DRONE_SENSORS = ("uls", "dim")
 
 
-SOURCES = (RealSource("ahn3_tile2", "ahn3_cropped_2.laz", "ahn3_footprints_rd.geojson"),)
+SOURCES = (RealSource("ahn3_tile2", "ahn3_cropped_2.laz", "ahn3_footprints_rd.geojson"),
+           RealSource("sample_c", "sample_c.las", ""))
 REAL_PLAN = (
     RealPair("ahn3_tile2", "halves", 11, 1, ((3, 6), (4, 5), (5, 5))),
     RealPair("ahn3_tile2", "halves", 12, 2, ((3, 8), (4, 4), (5, 3)), "both"),
@@ -109,6 +112,14 @@ REAL_PLAN = (
     RealPair("ahn3_tile2", "drone", 24, 24, ((3, 7), (4, 4), (5, 4)), "both", sensor="dim"),
     RealPair("ahn3_tile2", "drone_rescan", 25, 25, sensor="uls"),
     RealPair("ahn3_tile2", "drone_rescan", 26, 26, sensor="dim"),
+    # one building large enough to damage: each pair grades it
+    RealPair("sample_c", "halves", 31, 31, ((3, 1),)),
+    RealPair("sample_c", "halves", 32, 32, ((5, 1),)),
+    RealPair("sample_c", "halves", 33, 33, ((4, 1),), "both"),
+    RealPair("sample_c", "thinned", 34, 34, ((3, 1),), min_points=30),
+    RealPair("sample_c", "rescan", 35, 0),
+    RealPair("sample_c", "drone", 36, 36, ((3, 1),), sensor="uls"),
+    RealPair("sample_c", "drone", 37, 37, ((4, 1),), sensor="dim"),
 )
 
 
@@ -169,6 +180,33 @@ def _fly_drone(half, pair: RealPair, path: Path, footprints: Path | None) -> Non
     acquire(scene, random_acquisition(pair.sensor, pair.seed), path, seed=pair.seed)
 
 
+def derived_footprints(cloud: Path, folder: Path) -> Path:
+    """FOLDER/footprints.geojson: the footprints of `cloud`'s building class (written once per
+    content of the cloud)."""
+    import laspy
+
+    from ..formats.class_footprints import footprints_from_class
+    from ..formats.footprints import write_footprints
+
+    path = folder / "footprints.geojson"
+    fp = fingerprint.make("class-footprints", {"cloud": fingerprint.content(cloud)}, {},
+                          {"class_footprints": CLASS_FOOTPRINTS_VERSION})
+    if fingerprint.is_current(path, fp):
+        return path
+    las = laspy.read(cloud)
+    crs = las.header.parse_crs()
+    fps = footprints_from_class(np.c_[las.x, las.y, las.z], np.asarray(las.classification),
+                                crs=crs.to_string() if crs is not None else None, source=str(cloud))
+    folder.mkdir(parents=True, exist_ok=True)
+    fingerprint.forget(path)
+    write_footprints(fps, path)
+    fingerprint.record(path, fp)
+    return path
+
+
+CLASS_FOOTPRINTS_VERSION = 1
+
+
 def _drone_versions(pair: RealPair) -> dict:
     """What else a drone pair's rows are made from: the surface model and the simulators."""
     if pair.kind not in DRONE_KINDS:
@@ -189,10 +227,11 @@ def pair_rows(work: Path, data: Path, pair: RealPair, settings, workers: int = -
     from .classification import load_pair
 
     source = {s.name: s for s in SOURCES}[pair.source]
-    cloud, footprints = data / source.cloud, data / source.footprints
-    for path in (cloud, footprints):
+    cloud = data / source.cloud
+    for path in (cloud, data / source.footprints) if source.footprints else (cloud,):
         if not path.is_file():
             raise RealSetError(f"{path}: missing (real pair {pair.name})")
+    footprints = data / source.footprints if source.footprints else derived_footprints(cloud, work / source.name)
     folder = work / pair.name
     table = folder / "rows.npz"
     fp = fingerprint.make("real-pair", {"cloud": fingerprint.content(cloud), "footprints": fingerprint.content(footprints)},
