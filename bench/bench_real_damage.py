@@ -33,6 +33,11 @@ undamaged, acquired before by one of QuakeScan's preset sensors and after by ano
 DIM, DIM → ULS, ALS-like → DIM): the share of assessable buildings called damaged (target
 ≤ 2 %).
 
+A real archive before, a simulated drone after: the tile's half DRONE_SPLIT before; after,
+the paper's ULS and DIM presets flown over the 2.5D surface of the other half
+(`quakescan.injection.surface_model`), once as flown (no change: the share called damaged) and
+once with DRONE_MIX injected into the drone's returns (the score above).
+
 Low buildings: a city of the generator's small set (garden sheds, garages, Dutch row houses,
 small detached houses; seed LOW_SEED, no training city's) with LOW_MIX, acquired by the paper's
 ULS and DIM presets: heavy damage F1 there (target ≥ 0.85), where openings in a low roof
@@ -80,6 +85,12 @@ CROSS_SEEDS = {"uls": 31, "dim": 32, "als": 33}
 # each stands alone, so no neighbour in the file hides what a sensor sees of it
 ROTATIONS = (0, 1, 2, 3)
 ECE_BINS = 10
+# a real archive before, a simulated drone after: tile 1's half DRONE_SPLIT before, a drone
+# flown over the 2.5D surface of the other half (`injection.surface_model`), damage injected
+# into the drone's returns
+DRONE_SPLIT, DRONE_SEED = 9, 909
+DRONE_MIX = {3: 15, 4: 15, 5: 15}
+DRONE_SENSORS = ("ULS", "DIM")
 
 
 def halves(work: Path, split: int) -> tuple[Path, Path]:
@@ -284,6 +295,54 @@ def low_buildings(work: Path, model: str) -> list:
     return rows
 
 
+def drone_after_archive(work: Path, model: str, sensors=DRONE_SENSORS) -> list:
+    """Per drone sensor: the real half before, the drone after with no damage (the share of
+    buildings called damaged) and with DRONE_MIX injected (`score`)."""
+    import laspy
+
+    from quakescan.acquisition.acquire import Acquisition, acquire
+    from quakescan.acquisition.dim_settings import preset_dim
+    from quakescan.acquisition.survey import preset
+    from quakescan.formats.footprints import read_footprints
+    from quakescan.injection.inject import InjectSettings, inject
+    from quakescan.injection.surface_model import surface_scene
+    from quakescan.learning.classification import classify
+
+    pre, other = halves(work, DRONE_SPLIT)
+    las = laspy.read(other)
+    xyz = np.c_[las.x, las.y, las.z]
+    origin = np.r_[np.floor(xyz[:, :2].min(axis=0)), 0.0]
+    t0 = time.perf_counter()
+    scene = surface_scene(xyz, np.asarray(las.classification), read_footprints(FOOTPRINTS), origin, crs="EPSG:28992")
+    t_scene = time.perf_counter() - t0
+    acq = {"ULS": Acquisition("uls", preset("paper")), "DIM": Acquisition("dim", preset_dim("paper"))}
+    rows = []
+    for k, kind in enumerate(sensors):
+        flown = work / "drone" / f"after_{kind.lower()}.las"
+        flown.parent.mkdir(parents=True, exist_ok=True)
+        t0 = time.perf_counter()
+        acquire(scene, acq[kind], flown, seed=DRONE_SEED + k)
+        t_fly = time.perf_counter() - t0
+        quiet = work / "drone" / "results" / f"{kind.lower()}_no_change"
+        classify(pre, flown, quiet, model_path=model, footprints_path=FOOTPRINTS, write_las=False, force=True)
+        graded = [r for r in csv.DictReader(open(quiet / "buildings.csv")) if r["assessable"] == "1"]
+        flagged = sorted(int(r["predicted_grade"]) for r in graded if int(r["predicted_grade"]) > 0)
+        inj = inject(flown, FOOTPRINTS, work / "drone" / "inject" / kind.lower(),
+                     InjectSettings(seed=DRONE_SEED, grade_mix=DRONE_MIX))
+        out = work / "drone" / "results" / kind.lower()
+        classify(pre, inj.post, out, model_path=model, footprints_path=FOOTPRINTS, write_las=False, force=True)
+        s = score(out / "buildings.csv", inj.truth)
+        s.update({"pair": f"real half → {kind} over its other half", "no_change_damaged": len(flagged),
+                  "no_change_assessable": len(graded), "no_change_grades": flagged, "moved": inj.counts["moved"],
+                  "points_after": int(laspy.open(flown).header.point_count), "scene_s": round(t_scene, 1),
+                  "fly_s": round(t_fly, 1), "scene_faces": int(len(scene.faces))})
+        rows.append(s)
+        f1 = ", ".join(f"{g}: {100 * v['f1']:.0f}" for g, v in s["per_grade"].items())
+        print(f"drone after archive, {kind}: no change {len(flagged)} of {len(graded)} called damaged; "
+              f"damage F1 {f1}; ECE {s['ece']:.3f}", flush=True)
+    return rows
+
+
 def main(argv=None) -> int:
     from quakescan.injection.inject import InjectSettings, inject
     from quakescan.learning.classification import DEFAULT_MODEL, classify
@@ -295,6 +354,7 @@ def main(argv=None) -> int:
     p.add_argument("--no-write", action="store_true", help="do not write BENCHMARKS.md")
     p.add_argument("--no-shapes", action="store_true", help="skip the no-change rows across sensors on real shapes")
     p.add_argument("--no-low", action="store_true", help="skip the small-building city")
+    p.add_argument("--no-drone", action="store_true", help="skip the real archive before, simulated drone after")
     a = p.parse_args(argv)
     if not TILE.is_file():
         print(f"skipping: {TILE} is missing", file=sys.stderr)
@@ -338,6 +398,8 @@ def main(argv=None) -> int:
         results["across_sensors"] = no_change_across_sensors(work, a.model)
     if not a.no_low:
         results["low"] = low_buildings(work, a.model)
+    if not a.no_drone:
+        results["drone"] = drone_after_archive(work, a.model)
     results["seconds"] = round(time.perf_counter() - t_start, 1)
     results["peak_mib"] = round(peak_rss_mb())
     work.mkdir(parents=True, exist_ok=True)
@@ -398,6 +460,24 @@ def report(res: dict) -> str:
                         [[r["pair"], *[_pct(r["per_grade"][str(g)]["f1"]) for g in GRADES],
                           _pct(r["per_grade"]["3"]["recall"]),
                           sum(r["confusion"][str(g)]["n/a"] for g in GRADES)] for r in res["low"]]), ""]
+    if res.get("drone"):
+        lines += [f"A real archive before, a simulated drone after (tile 1 split {DRONE_SPLIT}: one real half before; "
+                  "after, QuakeScan's paper ULS / DIM preset flown over the 2.5D surface of the other half, "
+                  "`injection.surface_model`; then once as flown, no damage, and once with "
+                  + "/".join(str(DRONE_MIX[g]) for g in (3, 4, 5)) + f" buildings at grades 3/4/5 injected, seed "
+                  f"{DRONE_SEED}). F1 %; no change: assessable buildings called damaged (target ≤ 2 %).", ""]
+        lines += [table(["pair", "points after", "no change: called damaged", "F1 0", "F1 3", "F1 4", "F1 5",
+                         "heavy recall", "undamaged called damaged", "damaged reported 0 at ≥ 0.8", "ECE"],
+                        [[r["pair"], f"{r['points_after']:,}",
+                          f"{100 * r['no_change_damaged'] / max(r['no_change_assessable'], 1):.1f} % "
+                          f"({r['no_change_damaged']}/{r['no_change_assessable']})",
+                          *[_pct(r["per_grade"][str(g)]["f1"]) for g in GRADES], _pct(r["per_grade"]["3"]["recall"]),
+                          f"{100 * r['undamaged_called_damaged']:.1f} %", len(r["quiet_misses"]), f"{r['ece']:.3f}"]
+                         for r in res["drone"]]), ""]
+        for r in res["drone"]:
+            cols = [str(c) for c in GRADES] + ["n/a"]
+            lines += [f"**{r['pair']}**: truth → predicted", "",
+                      table(["truth"] + cols, [[t] + [r["confusion"][t][c] for c in cols] for t in r["confusion"]]), ""]
     if res.get("across_sensors"):
         lines += ["No change across sensors on real shapes (every building undamaged; QuakeScan's preset sensors, "
                   "one before, another after): assessable buildings called damaged (target ≤ 2 %).", ""]
