@@ -22,6 +22,7 @@ import numpy as np
 
 from .footprints import FootprintError, Footprints
 
+VERSION = 1  # the outlines a cloud gives: a change makes every derived footprint file new
 BUILDING_CLASS = 6
 CELL_M = 1.0
 CLOSE_CELLS = 1

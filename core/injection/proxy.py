@@ -13,8 +13,9 @@ damaged proxy differs from the undamaged one along that point's pulse. The error
 the new surfaces lie, not whether an undamaged surface keeps its real points.
 
 Heights: ground = 10th percentile of the ground points (ASPRS 2) within `GROUND_SEARCH_M` of
-the footprint (within `GROUND_FALLBACK_M` where none is that near), as `quakescan.change.surface` measures it (2nd percentile of all points there
-without a ground class); roof = the median over the footprint's 1 m cells of each cell's
+the footprint (within `GROUND_FALLBACK_M` where none is that near), as
+`quakescan.change.surface` measures it (2nd percentile of all points there without a ground
+class); roof = the median over the footprint's 1 m cells of each cell's
 highest point, so a chimney or a tree over one corner does not lift the block.
 """
 from __future__ import annotations

@@ -102,8 +102,7 @@ def surface_scene(xyz: np.ndarray, cls: np.ndarray | None, footprints, origin, *
     for bid in footprints.ids.tolist():
         if bid not in present:
             continue
-        on = face_building == bid
-        tall = float(np.ptp(vertices[faces[on]][..., 2])) if on.any() else STOREY_M
+        tall = float(np.ptp(vertices[faces[face_building == bid]][..., 2]))
         buildings.append(Building(id=int(bid), grade=0, storeys=max(1, int(round(tall / STOREY_M))),
                                   typology="surface"))
     return Scene(vertices, faces, face_building.astype(np.int32), face_surface.astype(np.uint8), buildings,

@@ -91,6 +91,7 @@ class RealPair:
 
 KINDS = ("halves", "thinned", "rescan", "drone", "drone_rescan")
 DRONE_KINDS = ("drone", "drone_rescan")
+NO_CHANGE_KINDS = ("rescan", "drone_rescan")
 DRONE_SENSORS = ("uls", "dim")
 
 
@@ -151,9 +152,8 @@ def epochs(cloud: Path, pair: RealPair, folder: Path, footprints: Path | None = 
     las = laspy.read(cloud)
     n = len(las.points)
     u = np.random.default_rng(pair.split).random(n)
-    masks = {"halves": (u < 0.5, u >= 0.5), "rescan": (u < 0.5, u >= 0.5),
-             "thinned": (np.ones(n, bool), u < 0.25), "drone": (u < 0.5, u >= 0.5),
-             "drone_rescan": (u < 0.5, u >= 0.5)}[pair.kind]
+    # every kind but `thinned` splits the tile into halves
+    masks = (np.ones(n, bool), u < 0.25) if pair.kind == "thinned" else (u < 0.5, u >= 0.5)
     for path, mask in zip((pre, post), masks):
         sub = laspy.LasData(las.header)
         sub.points = las.points[mask]
@@ -185,6 +185,7 @@ def derived_footprints(cloud: Path, folder: Path) -> Path:
     content of the cloud)."""
     import laspy
 
+    from ..formats.class_footprints import VERSION as CLASS_FOOTPRINTS_VERSION
     from ..formats.class_footprints import footprints_from_class
     from ..formats.footprints import write_footprints
 
@@ -202,9 +203,6 @@ def derived_footprints(cloud: Path, folder: Path) -> Path:
     write_footprints(fps, path)
     fingerprint.record(path, fp)
     return path
-
-
-CLASS_FOOTPRINTS_VERSION = 1
 
 
 def _drone_versions(pair: RealPair) -> dict:
@@ -243,7 +241,7 @@ def pair_rows(work: Path, data: Path, pair: RealPair, settings, workers: int = -
             return {k: d[k] for k in d.files}
     folder.mkdir(parents=True, exist_ok=True)
     pre, post = epochs(cloud, pair, folder, footprints)
-    if pair.kind in ("rescan", "drone_rescan"):
+    if pair.kind in NO_CHANGE_KINDS:
         post_path, truth = post, {}
     else:
         r = inject(post, footprints, folder / "inject",
