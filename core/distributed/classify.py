@@ -65,7 +65,7 @@ MAX_SPLIT_DEPTH = 12  # quarters of a 150 m tile down to 4 cm: buildings sharing
 def classify_distributed(pre_path, post_path, out_dir, client, *, model_path=None, footprints_path=None,
                          id_field=None, align: bool | None = None, progress: ProgressCallback | None = None,
                          write_las: bool = True, laz: bool | None = None, force: bool = False,
-                         unseen_damage: bool = True, prior: dict | None = None,
+                         unseen_damage: bool = True, prior: dict | None = None, csv_raw: bool = False,
                          block_cells: int = BLOCK_CELLS, chunk_points: int = bk.CHUNK_POINTS,
                          on_stage=None) -> dict:
     """`quakescan.learning.classification.classify` with the tiles described by the workers of
@@ -199,7 +199,7 @@ def classify_distributed(pre_path, post_path, out_dir, client, *, model_path=Non
 
     outlines = results.building_outlines(res, fp, pre_s.hulls if fp is None else None, (0.0, 0.0))
     cl.write_building_results(out, res, model.grades, fp, outlines, crs, pre_s.map_xy + origin[:2],
-                              f"Damage grades: {Path(post_path).name}")
+                              f"Damage grades: {Path(post_path).name}", csv_raw=csv_raw)
     t_graded = time.perf_counter()
     if write_las:
         stage("graded cloud")

@@ -172,7 +172,7 @@ def _json_number(v):
     return None if isinstance(v, float) and not math.isfinite(v) else v
 
 
-def write_csv(rows, path, classes, own_ids: dict | None = None) -> None:
+def write_csv(rows, path, classes, own_ids: dict | None = None, raw_text: bool = False) -> None:
     """One line per building, sorted by building_id. Columns: building_id, assessable (1/0),
     predicted_grade (empty when not assessable), label, p_<grade> per model class (empty when
     not assessable), share_changed, n_pre, n_post, decided_by, reason, confidence (probability
@@ -184,11 +184,19 @@ def write_csv(rows, path, classes, own_ids: dict | None = None) -> None:
     for the lowering), walls_resolved (1/0: whether heavy damage confined to the walls could
     show; empty when unknown) and min_wall_opening_m2 (the smallest wall hole resolved). `quakescan.results.evaluation` reads it. `own_ids`
     ({building_id: footprint ID}, for footprints whose IDs are text) adds a last column
-    `footprint_id`."""
+    `footprint_id`.
+
+    The footprint IDs are somebody else's text: one that a spreadsheet would run as a
+    formula (it begins with = + - @, TAB or CR) is written with a leading single quote
+    (`quakescan.runtime.text_safety.spreadsheet_cell`; `read_footprint_ids` takes it off),
+    unless `raw_text` (for machine readers). Numbers, ours or a footprint's, are never
+    escaped. A field holding a comma, quote, CR or LF is quoted, so no ID splits a row.
+    UTF-8 whatever the locale."""
+    from ..runtime.text_safety import csv_line, spreadsheet_cell, utf8_text
+
     classes = [int(c) for c in classes]
-    with open_replacing(path, "w", newline="") as f:
-        w = csv.writer(f, lineterminator="\n")
-        w.writerow(csv_columns(classes) + (["footprint_id"] if own_ids else []))
+    with open_replacing(path, "w", encoding="utf-8", newline="") as f:
+        f.write(csv_line(csv_columns(classes) + (["footprint_id"] if own_ids else [])))
         for r in _sorted(rows):
             rec = _record(r, classes)
             line = []
@@ -202,8 +210,13 @@ def write_csv(rows, path, classes, own_ids: dict | None = None) -> None:
                     line.append("" if v is None else str(v))
             if own_ids:
                 own = own_ids.get(int(r.building_id))
-                line.append("" if own is None else str(own))
-            w.writerow(line)
+                if own is None:
+                    line.append("")
+                elif isinstance(own, str):
+                    line.append(utf8_text(own) if raw_text else spreadsheet_cell(own))
+                else:  # a number in the footprint file stays a number
+                    line.append(str(own))
+            f.write(csv_line(line))
 
 
 def read_csv_rows(path, error=None, what: str = "file") -> tuple[list, list[dict]]:
@@ -220,6 +233,22 @@ def read_csv_rows(path, error=None, what: str = "file") -> tuple[list, list[dict
         raise error(f"{path}: {what} does not exist") from None
     except (OSError, UnicodeDecodeError, csv.Error) as e:
         raise error(f"{path}: cannot read as a CSV table ({e})") from None
+
+
+def read_footprint_ids(path) -> dict:
+    """{building_id: footprint ID} of a buildings.csv with a `footprint_id` column (empty
+    without one), each ID as the footprint file holds it: the single quote `write_csv` puts
+    before a text a spreadsheet would run as a formula is taken off."""
+    from ..runtime.text_safety import spreadsheet_raw
+
+    path = Path(path)
+    cols, data = read_csv_rows(path, what="result file")
+    if "footprint_id" not in cols:
+        return {}
+    try:
+        return {int(d["building_id"]): spreadsheet_raw(d["footprint_id"]) for d in data if d["footprint_id"]}
+    except (ValueError, TypeError) as e:
+        raise ResultsError(f"{path}: building_id must be an integer ({e})") from None
 
 
 def read_csv(path) -> list[BuildingResult]:
@@ -816,4 +845,5 @@ def _format7(src):
 
 __all__ = ["BACKGROUND_COLOUR", "BuildingResult", "GRADE_COLOURS", "GRADE_NONE", "HEAVY_UNRESOLVED",
            "NOT_ASSESSABLE", "NOT_ASSESSABLE_COLOUR", "Outline", "ResultsError", "building_outlines", "colour_of",
-           "read_csv", "write_csv", "write_geojson", "write_grade_las", "write_grade_las_streamed", "write_map_png"]
+           "read_csv", "read_footprint_ids", "write_csv", "write_geojson", "write_grade_las",
+           "write_grade_las_streamed", "write_map_png"]
