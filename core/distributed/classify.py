@@ -226,8 +226,9 @@ def classify_distributed(pre_path, post_path, out_dir, client, *, model_path=Non
     summary["fingerprint"] = run_fp.digest
     summary["options"] = options
     from ..runtime.atomic import write_text
+    from ..runtime.text_safety import json_text
 
-    write_text(out / "summary.json", json.dumps(summary, indent=1, default=cl._json_default))
+    write_text(out / "summary.json", json_text(summary, indent=1, default=cl._json_default))  # strict: NaN is null
     for done_with in (".checkpoint.jsonl", UNMOVED_CHECKPOINT):
         (out / done_with).unlink(missing_ok=True)
     deleting.join()

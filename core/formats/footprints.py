@@ -7,7 +7,6 @@ more specific part (a BGT building part inside a larger outline).
 """
 from __future__ import annotations
 
-import json
 import logging
 import math
 import os
@@ -315,6 +314,7 @@ def write_footprints(footprints: Footprints, path: str | os.PathLike) -> Path:
     if footprints.crs:
         doc["crs"] = {"type": "name", "properties": {"name": footprints.crs}}
     from ..runtime.atomic import write_text
+    from ..runtime.text_safety import json_text
 
-    write_text(path, json.dumps(doc))
+    write_text(path, json_text(doc))  # strict: a NaN attribute is null
     return path

@@ -36,6 +36,7 @@ from ..formats.pointcloud import Epoch, PointCloudError, check_pair, check_point
 from ..runtime import fingerprint
 from ..runtime.atomic import is_write_failure, write_failure_message, write_json, write_text
 from ..runtime.progress import ProgressCallback
+from ..runtime.text_safety import json_text
 from .model import DamageModel, ModelError, load_model
 from .unseen_damage import prior_weights, unseen_shares, with_prior, with_unseen_damage
 
@@ -356,7 +357,7 @@ def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=N
                                 "graded_cloud": round(t_graded, 2), "total": round(time.perf_counter() - t0, 2)}})
     summary["fingerprint"] = run_fp.digest
     summary["options"] = options
-    write_text(out / "summary.json", json.dumps(summary, indent=1, default=_json_default))
+    write_text(out / "summary.json", json_text(summary, indent=1, default=_json_default))  # strict: NaN is null
     ckpt.path.unlink(missing_ok=True)
     return summary
 

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import csv
 import datetime
-import json
 import math
 import re
 from dataclasses import dataclass, field
@@ -392,9 +391,12 @@ def write_geojson(rows, outlines: dict, path, crs: str | None, classes, attribut
     ("urn:ogc:def:crs:EPSG::n") when the CRS has an EPSG code, which QGIS/GDAL honour and
     `quakescan.formats.footprints.read_footprints` reads back. Coordinates are rounded to 1 mm.
     `attributes` ({building_id: the footprint's properties}) adds them as `footprint`: the
-    cadastre's own ID, address or use stay with the result whatever their types.
+    cadastre's own ID, address or use stay with the result whatever their types (a number
+    JSON cannot hold, NaN or infinity, as null).
     """
     import shapely.geometry
+
+    from ..runtime.text_safety import json_text
 
     classes = [int(c) for c in classes]
     feats = []
@@ -415,7 +417,8 @@ def write_geojson(rows, outlines: dict, path, crs: str | None, classes, attribut
     if member:
         doc["crs"] = member
     doc["features"] = feats
-    write_text(path, json.dumps(doc, separators=(",", ":"), allow_nan=False) + "\n")
+    # strict JSON: a footprint attribute NaN or Infinity (Python's reader takes them) is null
+    write_text(path, json_text(doc, separators=(",", ":")) + "\n")
 
 
 # ---------------------------------------------------------------------------------------- map
