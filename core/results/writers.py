@@ -559,6 +559,8 @@ def _draw_map(rows, outlines: dict, title: str, points_xy=None, crs: str | None 
     from matplotlib.patches import Patch
     from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
 
+    from ..runtime.text_safety import utf8_text
+
     fig = Figure(figsize=MAP_SIZE_IN, dpi=MAP_DPI)
     FigureCanvasAgg(fig)
     ax = fig.add_subplot(1, 1, 1)
@@ -612,15 +614,15 @@ def _draw_map(rows, outlines: dict, title: str, points_xy=None, crs: str | None 
     ax.ticklabel_format(useOffset=False, style="plain")
     ax.set_xlabel("easting (m)")
     ax.set_ylabel("northing (m)")
-    ax.set_title(title)
+    ax.set_title(utf8_text(title), parse_math=False)  # a file name's "$" is text, not mathtext
     x0, x1 = ax.get_xlim()
     length = nice_length(x1 - x0)
     bar = AnchoredSizeBar(ax.transData, length, f"{length:g} m", "lower right", pad=0.5, sep=4,
                           borderpad=0.6, frameon=True, size_vertical=0, color="black", fontproperties={"size": 8})
     bar.set_gid("scale-bar")
     ax.add_artist(bar)
-    ax.text(0.01, 0.01, crs_text(crs), transform=ax.transAxes, fontsize=7, ha="left", va="bottom", zorder=4,
-            gid="crs", bbox={"boxstyle": "round,pad=0.2", "facecolor": "white", "edgecolor": "#999999",
+    ax.text(0.01, 0.01, utf8_text(crs_text(crs)), transform=ax.transAxes, fontsize=7, ha="left", va="bottom",
+            zorder=4, gid="crs", parse_math=False, bbox={"boxstyle": "round,pad=0.2", "facecolor": "white", "edgecolor": "#999999",
                              "alpha": 0.85})
     shown = [0, 3, 4, 5] + sorted(k for k in counts if k is not None and k not in (0, 3, 4, 5))
     handles = [Patch(facecolor=colour_of(g), edgecolor="#333333", label=f"{long_label(g)}: {counts.get(g, 0)}")
