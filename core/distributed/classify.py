@@ -75,13 +75,14 @@ def classify_distributed(pre_path, post_path, out_dir, client, *, model_path=Non
     t0 = time.perf_counter()
     out = Path(out_dir)
     model_path = Path(model_path) if model_path else cl.default_model_path()
+    from ..errors import check_input_file
+
     for p, what in ((pre_path, "pre-event point cloud"), (post_path, "post-event point cloud"),
                     (footprints_path, "footprint file"), (model_path, "model file")):
-        if p is not None and not Path(p).is_file():
-            raise cl.ClassifyError(f"{p}: {what} " + ("is a folder, not a file" if Path(p).is_dir() else
-                                                      "does not exist"))
+        if p is not None:  # a device or FIFO is refused as such, before a read that never ends
+            check_input_file(p, what, cl.ClassifyError)
     cl._check_output_folder(out, [pre_path, post_path, footprints_path, model_path])
-    options = cl.run_options(id_field, write_las, laz, unseen_damage, prior)
+    options = cl.run_options(id_field, write_las, laz, unseen_damage, prior, csv_raw)
     run_fp = cl._fingerprint(pre_path, post_path, footprints_path, model_path, align, options)
     done = cl._finished(out, run_fp)
     if done is not None and not force:

@@ -31,7 +31,7 @@ from ..change.pipeline import (
     describe_pair,
     settings_for_descriptors,
 )
-from ..errors import QuakeScanError, ResultsError
+from ..errors import QuakeScanError, ResultsError, check_input_file
 from ..formats.pointcloud import Epoch, PointCloudError, check_pair, check_point_cloud_path, epoch_origin, read_epoch
 from ..runtime import fingerprint
 from ..runtime.atomic import is_write_failure, write_failure_message, write_json, write_text
@@ -296,10 +296,10 @@ def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=N
     model_path = Path(model_path) if model_path else default_model_path()
     for p, what in ((pre_path, "pre-event point cloud"), (post_path, "post-event point cloud"),
                     (footprints_path, "footprint file"), (model_path, "model file")):
-        if p is not None and not Path(p).is_file():  # before the fingerprint reads them
-            raise ClassifyError(f"{p}: {what} " + ("is a folder, not a file" if Path(p).is_dir() else "does not exist"))
+        if p is not None:  # before the fingerprint reads them
+            check_input_file(p, what, ClassifyError)
     _check_output_folder(out, [pre_path, post_path, footprints_path, model_path])
-    options = run_options(id_field, write_las, laz, unseen_damage, prior)
+    options = run_options(id_field, write_las, laz, unseen_damage, prior, csv_raw)
     run_fp = _fingerprint(pre_path, post_path, footprints_path, model_path, align, options)
     done = _finished(out, run_fp)
     if done is not None and not force:

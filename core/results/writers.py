@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import ResultsError
+from ..errors import ResultsError, check_input_file
 from ..formats.pointcloud import SCALE
 from ..grades import grade_name, long_label
 from ..learning.model import GRADE_LABELS
@@ -223,8 +223,11 @@ def read_csv_rows(path, error=None, what: str = "file") -> tuple[list, list[dict
     `error` (default ResultsError) naming the file as `what` ("result file", "truth file")."""
     error = error or ResultsError
     path = Path(path)
+    check_input_file(path, what, error)  # a FIFO would block the read, a device never end it
     try:
-        with open(path, newline="") as f:
+        # utf-8-sig: a spreadsheet's "CSV UTF-8" starts with a byte order mark, which is not
+        # part of the first column's name
+        with open(path, encoding="utf-8-sig", newline="") as f:
             reader = csv.DictReader(f)
             rows = list(reader)
             return list(reader.fieldnames or []), rows
