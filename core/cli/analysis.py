@@ -101,7 +101,7 @@ def cmd_classify(args) -> int:
                            id_field=args.id_field, align=args.align, workers=args.threads,
                            progress=reporter(args, "classify"),
                            write_las=not args.no_las, laz=args.laz, force=args.force,
-                           unseen_damage=not args.assume_damage_visible, prior=args.prior)
+                           unseen_damage=not args.assume_damage_visible, prior=args.prior, csv_raw=args.csv_raw)
     if summary.get("up_to_date"):
         print(f"{args.output}: up to date (same inputs, model and options); --force recomputes")
         return 0
@@ -142,7 +142,7 @@ def _classify_on_dask(args) -> dict:
                                     footprints_path=args.footprints, id_field=args.id_field, align=args.align,
                                     progress=reporter(args, "classify"), write_las=not args.no_las, laz=args.laz,
                                     force=args.force, unseen_damage=not args.assume_damage_visible,
-                                    prior=args.prior,
+                                    prior=args.prior, csv_raw=args.csv_raw,
                                     on_stage=lambda name: print(f"classify: {name}", flush=True)
                                     if args.progress else None)
 
@@ -222,6 +222,10 @@ def add_classify(sub) -> None:
     reg.add_argument("--no-align", dest="align", action="store_const", const=False,
                      help="take the epochs as they are, unchecked")
     cl.add_argument("--no-las", action="store_true", help="skip the per-point LAS of predicted grades")
+    cl.add_argument("--csv-raw", action="store_true",
+                    help="write footprint IDs into buildings.csv as they are, for programs that read it; by default "
+                    "an ID that begins with = + - @, a tab or CR gets a leading ' so that a spreadsheet shows it "
+                    "instead of running it as a formula")
     cl.add_argument("--assume-damage-visible", action="store_true",
                     help="report the model's own probabilities, which assume any damage shows in the data; by default "
                     "they count the damage each building's data could not have shown (wall holes under an airborne "

@@ -436,7 +436,9 @@ def stream_epoch(f: EpochFile, origin: np.ndarray, folder: Path, *, block_cells:
 
                 ids = assign_buildings(xyz[:, 0] + origin[0], xyz[:, 1] + origin[1], footprints)
             else:
-                ids = np.asarray(chunk["building_id"], dtype=np.int64)
+                from ..formats.pointcloud import checked_building_ids
+
+                ids = np.asarray(checked_building_ids(chunk["building_id"], f.path), dtype=np.int64)
             groups = _Groups.of(ids)
             _add_building_stats(stats, groups, xyz)
             if hulls is not None:

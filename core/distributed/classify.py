@@ -65,7 +65,7 @@ MAX_SPLIT_DEPTH = 12  # quarters of a 150 m tile down to 4 cm: buildings sharing
 def classify_distributed(pre_path, post_path, out_dir, client, *, model_path=None, footprints_path=None,
                          id_field=None, align: bool | None = None, progress: ProgressCallback | None = None,
                          write_las: bool = True, laz: bool | None = None, force: bool = False,
-                         unseen_damage: bool = True, prior: dict | None = None,
+                         unseen_damage: bool = True, prior: dict | None = None, csv_raw: bool = False,
                          block_cells: int = BLOCK_CELLS, chunk_points: int = bk.CHUNK_POINTS,
                          on_stage=None) -> dict:
     """`quakescan.learning.classification.classify` with the tiles described by the workers of
@@ -75,13 +75,14 @@ def classify_distributed(pre_path, post_path, out_dir, client, *, model_path=Non
     t0 = time.perf_counter()
     out = Path(out_dir)
     model_path = Path(model_path) if model_path else cl.default_model_path()
+    from ..errors import check_input_file
+
     for p, what in ((pre_path, "pre-event point cloud"), (post_path, "post-event point cloud"),
                     (footprints_path, "footprint file"), (model_path, "model file")):
-        if p is not None and not Path(p).is_file():
-            raise cl.ClassifyError(f"{p}: {what} " + ("is a folder, not a file" if Path(p).is_dir() else
-                                                      "does not exist"))
+        if p is not None:  # a device or FIFO is refused as such, before a read that never ends
+            check_input_file(p, what, cl.ClassifyError)
     cl._check_output_folder(out, [pre_path, post_path, footprints_path, model_path])
-    options = cl.run_options(id_field, write_las, laz, unseen_damage, prior)
+    options = cl.run_options(id_field, write_las, laz, unseen_damage, prior, csv_raw)
     run_fp = cl._fingerprint(pre_path, post_path, footprints_path, model_path, align, options)
     done = cl._finished(out, run_fp)
     if done is not None and not force:
@@ -199,7 +200,7 @@ def classify_distributed(pre_path, post_path, out_dir, client, *, model_path=Non
 
     outlines = results.building_outlines(res, fp, pre_s.hulls if fp is None else None, (0.0, 0.0))
     cl.write_building_results(out, res, model.grades, fp, outlines, crs, pre_s.map_xy + origin[:2],
-                              f"Damage grades: {Path(post_path).name}")
+                              f"Damage grades: {Path(post_path).name}", csv_raw=csv_raw)
     t_graded = time.perf_counter()
     if write_las:
         stage("graded cloud")
@@ -226,8 +227,9 @@ def classify_distributed(pre_path, post_path, out_dir, client, *, model_path=Non
     summary["fingerprint"] = run_fp.digest
     summary["options"] = options
     from ..runtime.atomic import write_text
+    from ..runtime.text_safety import json_text
 
-    write_text(out / "summary.json", json.dumps(summary, indent=1, default=cl._json_default))
+    write_text(out / "summary.json", json_text(summary, indent=1, default=cl._json_default))  # strict: NaN is null
     for done_with in (".checkpoint.jsonl", UNMOVED_CHECKPOINT):
         (out / done_with).unlink(missing_ok=True)
     deleting.join()

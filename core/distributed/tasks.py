@@ -221,7 +221,9 @@ def graded_part(out_file: str, epoch_json: dict, origin: list, start: int, stop:
         for raw, kept in source_chunks_format7(reader, chunk_points, start, stop):
             xyz = f.local_xyz(raw.array["X"], raw.array["Y"], raw.array["Z"], origin)
             if fp is None:
-                ids = np.asarray(raw["building_id"], dtype=np.int64)
+                from ..formats.pointcloud import checked_building_ids
+
+                ids = np.asarray(checked_building_ids(raw["building_id"], f.path), dtype=np.int64)
             else:  # IDs from the unaligned points, as the tiles got them
                 ids = assign_buildings(xyz[:, 0] + origin[0], xyz[:, 1] + origin[1], fp)
             if transform is not None:

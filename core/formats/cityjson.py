@@ -218,9 +218,7 @@ def _scene_crs(path: Path, doc: dict, given: str | None) -> str | None:
 
 def _load(path: Path) -> dict:
     """Read and check the top level of a CityJSON file."""
-    if not path.is_file():
-        raise SceneError(f"{path}: CityJSON file does not exist")
-    doc = read_json_file(path, "CityJSON file", SceneError)
+    doc = read_json_file(path, "CityJSON file", SceneError)  # refuses a missing or special file too
     if not isinstance(doc, dict) or doc.get("type") != "CityJSON":
         found = doc.get("type") if isinstance(doc, dict) else type(doc).__name__
         raise SceneError(f"{path}: not a CityJSON file (type is {found!r}, expected 'CityJSON')")
@@ -271,6 +269,14 @@ def _vertices(path: Path, doc: dict) -> tuple[np.ndarray, np.ndarray]:
         translate = np.array(transform["translate"], dtype=np.float64).reshape(3)
     except (KeyError, TypeError, ValueError):
         raise SceneError(f"{path}: 'transform' must have 'scale' and 'translate' with 3 numbers each") from None
+    # Python's JSON reads NaN and Infinity, which would make every vertex NaN (or one point)
+    for name, values in (("scale", scale), ("translate", translate)):
+        if not np.isfinite(values).all():
+            raise SceneError(f"{path}: transform.{name} {values.tolist()} holds a value that is not a finite "
+                             "number; fix the file's transform")
+    if np.any(scale == 0):
+        raise SceneError(f"{path}: transform.scale {scale.tolist()} holds a zero: every vertex would collapse "
+                         "onto one plane; fix the file's transform")
     # Integers below 2**53 are exact in float64, so int * scale is as exact as float64 allows
     # and the large translate never touches the mesh coordinates.
     return raw * scale, translate

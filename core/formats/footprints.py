@@ -7,7 +7,6 @@ more specific part (a BGT building part inside a larger outline).
 """
 from __future__ import annotations
 
-import json
 import logging
 import math
 import os
@@ -24,6 +23,9 @@ log = logging.getLogger(__name__)
 
 class FootprintError(QuakeScanError):
     """A footprint file cannot be read or does not fit the point cloud."""
+
+
+MAX_ID = 2 ** 63 - 1  # building IDs are int64 everywhere (arrays, the graded LAS's uint64 holds them)
 
 
 @dataclass
@@ -82,7 +84,9 @@ def read_footprints(path: str | os.PathLike, id_field: str | None = None) -> Foo
     An `id_field` holding text (a GML id such as "b3fe1a…"), or mixing text and numbers,
     cannot be a point cloud's integer ID: the polygons are then numbered 1, 2, … in file
     order and each keeps its own ID, with all its other attributes, in `properties`
-    (classify writes them into buildings.geojson and the ID into buildings.csv).
+    (classify writes them into buildings.geojson and the ID into buildings.csv). Two
+    features with the same ID are refused, naming both (merging them into one building
+    doubled its points without a word), as is an integer ID beyond 2^63 - 1.
 
     A footprint that cannot stand for its building's outline (a vertex that is not a finite
     number, a ring that crosses itself like a bow-tie, no area) is not guessed at: the
@@ -103,6 +107,7 @@ def read_footprints(path: str | os.PathLike, id_field: str | None = None) -> Foo
     if not isinstance(features, list) or not all(isinstance(f, dict) for f in features):
         raise FootprintError(f"{path}: 'features' must be a list of GeoJSON Feature objects")
     entries = []  # (raw ID, polygon or None, reason it is unusable, properties)
+    first_with = {}  # raw ID → the feature that has it first
     use_field = id_field or ("building_id" if features and all(
         "building_id" in (f.get("properties") or {}) for f in features) else None)
     for i, f in enumerate(features):
@@ -117,6 +122,16 @@ def read_footprints(path: str | os.PathLike, id_field: str | None = None) -> Foo
             if value is None or isinstance(value, (bool, dict, list)) or value == "":
                 raise FootprintError(f"{path}: feature {i}: property {use_field!r} must be an ID (an integer > 0 "
                                      f"or a text), got {value!r}")
+            if isinstance(value, int) and value > MAX_ID:
+                raise FootprintError(f"{path}: feature {i}: {use_field!r} {value} is too large for a building ID "
+                                     f"(at most 2^63 - 1 = {MAX_ID}); give the footprints smaller IDs, or IDs as "
+                                     "text, which are kept as they are")
+            key = (type(value) is str, value)  # the text "7" is not the number 7
+            if key in first_with:
+                raise FootprintError(f"{path}: features {first_with[key]} and {i} have the same {use_field!r} "
+                                     f"{value!r}: two footprints would be merged into one building; give each its "
+                                     "own ID, or make the parts one MultiPolygon feature")
+            first_with[key] = i
             bid = value
         else:
             bid = i + 1
@@ -150,12 +165,14 @@ def read_footprints(path: str | os.PathLike, id_field: str | None = None) -> Foo
 
 
 def _numbers(c):
-    """Every leaf of a GeoJSON coordinate array."""
-    if isinstance(c, (list, tuple)):
-        for x in c:
-            yield from _numbers(x)
-    else:
-        yield c
+    """Every leaf of a GeoJSON coordinate array (without recursion: no depth can overflow it)."""
+    stack = [c]
+    while stack:
+        x = stack.pop()
+        if isinstance(x, (list, tuple)):
+            stack.extend(reversed(x))
+        else:
+            yield x
 
 
 def _polygon(geom: dict, path, i: int):
@@ -315,6 +332,7 @@ def write_footprints(footprints: Footprints, path: str | os.PathLike) -> Path:
     if footprints.crs:
         doc["crs"] = {"type": "name", "properties": {"name": footprints.crs}}
     from ..runtime.atomic import write_text
+    from ..runtime.text_safety import json_text
 
-    write_text(path, json.dumps(doc))
+    write_text(path, json_text(doc))  # strict: a NaN attribute is null
     return path

@@ -15,7 +15,7 @@ from pathlib import Path
 import laspy
 import numpy as np
 
-from ..errors import PointCloudError
+from ..errors import PointCloudError, check_input_file
 from ..runtime.atomic import commit, is_write_failure, replacing, temp_path, write_failure_message
 
 log = logging.getLogger(__name__)
@@ -310,12 +310,12 @@ def read_laz_chunks(path, laszip_record: bytes, point_format, chunks, geometry_o
 
 
 def check_point_cloud_path(path: str | os.PathLike) -> Path:
-    """`path` as a Path, refused with its reason when it is a folder or does not exist."""
+    """`path` as a Path, refused with its reason when it is a folder, a device or FIFO (a read
+    would never end or never start) or does not exist."""
     path = Path(path)
     if path.is_dir():
         raise PointCloudError(f"{path}: is a folder, not a LAS/LAZ point cloud file")
-    if not path.is_file():
-        raise PointCloudError(f"{path}: point cloud file does not exist")
+    check_input_file(path, "point cloud file", PointCloudError)
     return path
 
 
@@ -410,6 +410,29 @@ def _id_buffer_dtype(file_dtype) -> np.dtype:
     return np.dtype(np.int64)
 
 
+def checked_building_ids(values, path) -> np.ndarray:
+    """A chunk of a file's `building_id` values as integers, refused where they cannot be
+    building IDs: a float dimension with values that are not whole numbers (casting truncated
+    a cloud of 1.5, 2.7, ... into a building per value), or above 2^63 (int64, every ID's type).
+    Integer dimensions of 4 bytes or fewer come back as they are."""
+    values = np.asarray(values)
+    if values.dtype.kind == "f":
+        bad = ~np.isfinite(values) | (values != np.floor(values))
+        if bad.any():
+            first = values[np.argmax(bad)]
+            raise PointCloudError(f"{path}: the building_id dimension is a float type ({values.dtype}) and "
+                                  f"{int(bad.sum())} of {len(values)} values read are not whole numbers "
+                                  f"(first: {first!r}); building IDs must be integers")
+        if len(values) and (values.min() < -2.0 ** 63 or values.max() >= 2.0 ** 63):
+            raise PointCloudError(f"{path}: building_id values reach {values.max()!r}, beyond the integers "
+                                  "QuakeScan keeps IDs in (below 2^63)")
+        return values.astype(np.int64)
+    if values.dtype == np.uint64 and len(values) and int(values.max()) >= 2 ** 63:
+        raise PointCloudError(f"{path}: building_id {int(values.max())} is 2^63 or more; QuakeScan keeps IDs in "
+                              "signed 64-bit integers (below 2^63)")
+    return values
+
+
 def _signed_ids(ids: np.ndarray) -> np.ndarray:
     """Building IDs as a signed integer array (code takes differences and -1 marks): unsigned
     4-byte IDs below 2^31 are the same bits as int32 (a view, no copy), larger ones go to int64."""
@@ -471,7 +494,7 @@ def read_epoch(path: str | os.PathLike, origin=None, chunk_points: int = 4_000_0
                                                                                                  - origin[k])
                 classification[at:at + m] = chunk.classification
                 for name, arr in extras.items():
-                    arr[at:at + m] = chunk[name]
+                    arr[at:at + m] = checked_building_ids(chunk[name], path) if name == "building_id" else chunk[name]
                 at += m
     except PointCloudError:
         raise

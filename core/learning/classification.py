@@ -31,11 +31,12 @@ from ..change.pipeline import (
     describe_pair,
     settings_for_descriptors,
 )
-from ..errors import QuakeScanError, ResultsError
+from ..errors import QuakeScanError, ResultsError, check_input_file
 from ..formats.pointcloud import Epoch, PointCloudError, check_pair, check_point_cloud_path, epoch_origin, read_epoch
 from ..runtime import fingerprint
 from ..runtime.atomic import is_write_failure, write_failure_message, write_json, write_text
 from ..runtime.progress import ProgressCallback
+from ..runtime.text_safety import json_text
 from .model import DamageModel, ModelError, load_model
 from .unseen_damage import prior_weights, unseen_shares, with_prior, with_unseen_damage
 
@@ -254,12 +255,15 @@ def predict_rows(rows, model: DamageModel, rule: bool | None = None, unseen_dama
     return out
 
 
-def run_options(id_field, write_las: bool, laz, unseen_damage: bool, prior: dict | None) -> dict:
+def run_options(id_field, write_las: bool, laz, unseen_damage: bool, prior: dict | None,
+                csv_raw: bool = False) -> dict:
     """The options of a classify run that its results depend on (its fingerprint's, the
     summary's), for one process and the Dask path alike."""
     options = {"id_field": id_field, "write_las": bool(write_las), "laz": laz}
     if not unseen_damage:  # the defaults leave the fingerprint of earlier results as it was
         options["unseen_damage"] = False
+    if csv_raw:
+        options["csv_raw"] = True
     if prior is not None:
         options["prior"] = {str(int(g)): float(v) for g, v in sorted(prior.items())}
     return options
@@ -268,7 +272,7 @@ def run_options(id_field, write_las: bool, laz, unseen_damage: bool, prior: dict
 def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=None, id_field=None,
              align: bool | None = None, workers: int = -1, progress: ProgressCallback | None = None,
              write_las: bool = True, laz: bool | None = None, force: bool = False, unseen_damage: bool = True,
-             prior: dict | None = None) -> dict:
+             prior: dict | None = None, csv_raw: bool = False) -> dict:
     """Run the whole classification and write OUT/buildings.csv, .geojson, .qml (its QGIS
     style), damage_map.png, damage_map.html (offline), post_grades.las and summary.json.
     Returns the summary.
@@ -282,7 +286,9 @@ def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=N
     date: its summary is returned (with "up_to_date": True) and nothing is recomputed,
     unless `force`. `unseen_damage`: the probabilities count the damage each building's data
     could not have shown (`predict_rows`); False gives the model's own. `prior` {grade: share}:
-    the mix of grades expected, for the model's equal one (`predict_rows`)."""
+    the mix of grades expected, for the model's equal one (`predict_rows`). `csv_raw`:
+    buildings.csv keeps footprint IDs that begin like a formula as they are (for machine
+    readers; `quakescan.results.writers.write_csv`)."""
     from ..results import writers as results
 
     t0 = time.perf_counter()
@@ -290,10 +296,10 @@ def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=N
     model_path = Path(model_path) if model_path else default_model_path()
     for p, what in ((pre_path, "pre-event point cloud"), (post_path, "post-event point cloud"),
                     (footprints_path, "footprint file"), (model_path, "model file")):
-        if p is not None and not Path(p).is_file():  # before the fingerprint reads them
-            raise ClassifyError(f"{p}: {what} " + ("is a folder, not a file" if Path(p).is_dir() else "does not exist"))
+        if p is not None:  # before the fingerprint reads them
+            check_input_file(p, what, ClassifyError)
     _check_output_folder(out, [pre_path, post_path, footprints_path, model_path])
-    options = run_options(id_field, write_las, laz, unseen_damage, prior)
+    options = run_options(id_field, write_las, laz, unseen_damage, prior, csv_raw)
     run_fp = _fingerprint(pre_path, post_path, footprints_path, model_path, align, options)
     done = _finished(out, run_fp)
     if done is not None and not force:
@@ -331,7 +337,8 @@ def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=N
     fp = data.footprints
     outlines = results.building_outlines(res, fp, _XYByBuilding(pre) if fp is None else None, pre.origin)
     write_building_results(out, res, model.grades, fp, outlines, pre.crs,
-                           pre.xyz[:: map_step(len(pre)), :2] + pre.origin[:2], f"Damage grades: {Path(post_path).name}")
+                           pre.xyz[:: map_step(len(pre)), :2] + pre.origin[:2], f"Damage grades: {Path(post_path).name}",
+                           csv_raw=csv_raw)
     t_graded = time.perf_counter()
     if write_las:
         compress = Path(post_path).suffix.lower() == ".laz" if laz is None else laz
@@ -350,7 +357,7 @@ def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=N
                                 "graded_cloud": round(t_graded, 2), "total": round(time.perf_counter() - t0, 2)}})
     summary["fingerprint"] = run_fp.digest
     summary["options"] = options
-    write_text(out / "summary.json", json.dumps(summary, indent=1, default=_json_default))
+    write_text(out / "summary.json", json_text(summary, indent=1, default=_json_default))  # strict: NaN is null
     ckpt.path.unlink(missing_ok=True)
     return summary
 
@@ -363,15 +370,17 @@ def map_step(n: int) -> int:
     return max(1, n // MAP_POINTS)
 
 
-def write_building_results(out: Path, res, classes, fp, outlines, crs, map_xy, title: str) -> None:
+def write_building_results(out: Path, res, classes, fp, outlines, crs, map_xy, title: str,
+                           csv_raw: bool = False) -> None:
     """buildings.csv, .geojson, .qml, damage_map.png and .html of graded buildings (also a
-    distributed run's, `quakescan.distributed`): `map_xy` the world x/y drawn under the map."""
+    distributed run's, `quakescan.distributed`): `map_xy` the world x/y drawn under the map;
+    `csv_raw`: footprint IDs unescaped in the CSV (`write_csv`'s `raw_text`)."""
     from ..results import writers as results
     from ..results.qgis_style import write_qml
     from ..results.webmap import write_map_html
 
     own = fp.own_ids() if fp is not None else None
-    results.write_csv(res, out / "buildings.csv", classes, own_ids=own)
+    results.write_csv(res, out / "buildings.csv", classes, own_ids=own, raw_text=csv_raw)
     attributes = (fp.attributes() or None) if fp is not None else None
     results.write_geojson(res, outlines, out / "buildings.geojson", crs, classes, attributes)
     write_qml(out / "buildings.qml")

@@ -128,7 +128,7 @@ def read_truth(path: str | os.PathLike) -> dict[int, int]:
 
         manifest = path / "scene.json"
         try:
-            doc = json.loads(manifest.read_text())
+            doc = json.loads(manifest.read_bytes())  # bytes: UTF-8 whatever the locale
             grades = {int(b["id"]): int(b["grade"]) for b in doc["buildings"]}
         except FileNotFoundError:
             raise EvaluationError(f"{manifest}: a truth folder must be a scene bundle with scene.json") from None

@@ -9,13 +9,12 @@ the PNG map and the CSV (`quakescan.results.writers.colour_of`, `quakescan.grade
 """
 from __future__ import annotations
 
-import html
-import json
 import math
 from pathlib import Path
 
 from ..grades import grade_name, long_label, short_name
 from ..runtime.atomic import write_text
+from ..runtime.text_safety import html_text, js_safe_id, script_json
 from .writers import (
     HATCH_COLOUR,
     HEAVY_UNRESOLVED,
@@ -38,11 +37,6 @@ def _vendored(name: str) -> str:
     return "\n".join(line for line in text.splitlines() if not line.startswith("//# sourceMappingURL="))
 
 
-def _script_safe(text: str) -> str:
-    """Text that cannot end the inline <script> it sits in."""
-    return text.replace("</", "<\\/")
-
-
 def _shifted(coords, dx: float, dy: float):
     if isinstance(coords, (list, tuple)) and coords and isinstance(coords[0], (int, float)):
         return [round(float(coords[0]) - dx, 3), round(float(coords[1]) - dy, 3)]
@@ -52,7 +46,7 @@ def _shifted(coords, dx: float, dy: float):
 def _popup(r, classes, centre, own_id) -> str:
     """The popup's HTML table for one building."""
     def row(k, v):
-        return f"<tr><th>{html.escape(k)}</th><td>{html.escape(str(v))}</td></tr>"
+        return f"<tr><th>{html_text(k)}</th><td>{html_text(v)}</td></tr>"
 
     ok = bool(r.assessable) and r.grade is not None
     lines = [row("building ID", int(r.building_id))]
@@ -109,9 +103,9 @@ def map_features(rows, outlines: dict, classes, origin_xy, own_ids: dict | None 
         g = shapely.geometry.mapping(o.geometry)
         ok = bool(r.assessable) and r.grade is not None
         at = o.geometry.representative_point()
-        feats.append({"type": "Feature", "id": bid,
+        feats.append({"type": "Feature", "id": js_safe_id(bid),  # beyond 2^53 as text: a double rounds it
                       "geometry": {"type": g["type"], "coordinates": _shifted(g["coordinates"], *origin_xy)},
-                      "properties": {"id": bid, "grade": int(r.grade) if ok else None,
+                      "properties": {"id": js_safe_id(bid), "grade": int(r.grade) if ok else None,
                                      "name": grade_name(r.grade) if ok else NOT_ASSESSABLE,
                                      "colour": colour_of(r.grade if ok else None),
                                      "hatched": r.heavy_unresolved,
@@ -254,9 +248,12 @@ def write_map_html(rows, outlines: dict, path, title: str, crs: str | None, clas
             "frame": [round(frame[0] - origin[0], 3), round(frame[1] - origin[1], 3),
                       round(frame[2] - origin[0], 3), round(frame[3] - origin[1], 3)],
             "buildings": len(rows), "legend": legend_entries(rows), "features": feats}
-    page = _PAGE.format(title=html.escape(title), leaflet_version=LEAFLET_VERSION,
+    # every text from the inputs (file names in the title, CRS names, footprint IDs in the
+    # popups) goes through quakescan.runtime.text_safety: `html_text` in the markup,
+    # `script_json` in the script, where no "</script>" or "<!--<script>" can end it early or late
+    page = _PAGE.format(title=html_text(title), leaflet_version=LEAFLET_VERSION,
                         leaflet_css=_vendored("leaflet.css"), leaflet_js=_vendored("leaflet.js"),
-                        data=_script_safe(json.dumps(data, separators=(",", ":"), allow_nan=False)),
+                        data=script_json(data, separators=(",", ":")),
                         n_features=len(feats), no_damage=colour_of(0), hatch=HATCH_COLOUR,
                         hatch_css=f"repeating-linear-gradient(45deg, {HATCH_COLOUR} 0 2px, {colour_of(0)} 2px 6px)",
                         leaflet_license=_vendored("LEAFLET_LICENSE").replace("--", "- -"))

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import csv
 import datetime
-import json
 import math
 import re
 from dataclasses import dataclass, field
@@ -20,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import ResultsError
+from ..errors import ResultsError, check_input_file
 from ..formats.pointcloud import SCALE
 from ..grades import grade_name, long_label
 from ..learning.model import GRADE_LABELS
@@ -172,7 +171,7 @@ def _json_number(v):
     return None if isinstance(v, float) and not math.isfinite(v) else v
 
 
-def write_csv(rows, path, classes, own_ids: dict | None = None) -> None:
+def write_csv(rows, path, classes, own_ids: dict | None = None, raw_text: bool = False) -> None:
     """One line per building, sorted by building_id. Columns: building_id, assessable (1/0),
     predicted_grade (empty when not assessable), label, p_<grade> per model class (empty when
     not assessable), share_changed, n_pre, n_post, decided_by, reason, confidence (probability
@@ -184,11 +183,19 @@ def write_csv(rows, path, classes, own_ids: dict | None = None) -> None:
     for the lowering), walls_resolved (1/0: whether heavy damage confined to the walls could
     show; empty when unknown) and min_wall_opening_m2 (the smallest wall hole resolved). `quakescan.results.evaluation` reads it. `own_ids`
     ({building_id: footprint ID}, for footprints whose IDs are text) adds a last column
-    `footprint_id`."""
+    `footprint_id`.
+
+    The footprint IDs are somebody else's text: one that a spreadsheet would run as a
+    formula (it begins with = + - @, TAB or CR) is written with a leading single quote
+    (`quakescan.runtime.text_safety.spreadsheet_cell`; `read_footprint_ids` takes it off),
+    unless `raw_text` (for machine readers). Numbers, ours or a footprint's, are never
+    escaped. A field holding a comma, quote, CR or LF is quoted, so no ID splits a row.
+    UTF-8 whatever the locale."""
+    from ..runtime.text_safety import csv_line, spreadsheet_cell, utf8_text
+
     classes = [int(c) for c in classes]
-    with open_replacing(path, "w", newline="") as f:
-        w = csv.writer(f, lineterminator="\n")
-        w.writerow(csv_columns(classes) + (["footprint_id"] if own_ids else []))
+    with open_replacing(path, "w", encoding="utf-8", newline="") as f:
+        f.write(csv_line(csv_columns(classes) + (["footprint_id"] if own_ids else [])))
         for r in _sorted(rows):
             rec = _record(r, classes)
             line = []
@@ -202,8 +209,13 @@ def write_csv(rows, path, classes, own_ids: dict | None = None) -> None:
                     line.append("" if v is None else str(v))
             if own_ids:
                 own = own_ids.get(int(r.building_id))
-                line.append("" if own is None else str(own))
-            w.writerow(line)
+                if own is None:
+                    line.append("")
+                elif isinstance(own, str):
+                    line.append(utf8_text(own) if raw_text else spreadsheet_cell(own))
+                else:  # a number in the footprint file stays a number
+                    line.append(str(own))
+            f.write(csv_line(line))
 
 
 def read_csv_rows(path, error=None, what: str = "file") -> tuple[list, list[dict]]:
@@ -211,8 +223,11 @@ def read_csv_rows(path, error=None, what: str = "file") -> tuple[list, list[dict
     `error` (default ResultsError) naming the file as `what` ("result file", "truth file")."""
     error = error or ResultsError
     path = Path(path)
+    check_input_file(path, what, error)  # a FIFO would block the read, a device never end it
     try:
-        with open(path, newline="") as f:
+        # utf-8-sig: a spreadsheet's "CSV UTF-8" starts with a byte order mark, which is not
+        # part of the first column's name
+        with open(path, encoding="utf-8-sig", newline="") as f:
             reader = csv.DictReader(f)
             rows = list(reader)
             return list(reader.fieldnames or []), rows
@@ -220,6 +235,22 @@ def read_csv_rows(path, error=None, what: str = "file") -> tuple[list, list[dict
         raise error(f"{path}: {what} does not exist") from None
     except (OSError, UnicodeDecodeError, csv.Error) as e:
         raise error(f"{path}: cannot read as a CSV table ({e})") from None
+
+
+def read_footprint_ids(path) -> dict:
+    """{building_id: footprint ID} of a buildings.csv with a `footprint_id` column (empty
+    without one), each ID as the footprint file holds it: the single quote `write_csv` puts
+    before a text a spreadsheet would run as a formula is taken off."""
+    from ..runtime.text_safety import spreadsheet_raw
+
+    path = Path(path)
+    cols, data = read_csv_rows(path, what="result file")
+    if "footprint_id" not in cols:
+        return {}
+    try:
+        return {int(d["building_id"]): spreadsheet_raw(d["footprint_id"]) for d in data if d["footprint_id"]}
+    except (ValueError, TypeError) as e:
+        raise ResultsError(f"{path}: building_id must be an integer ({e})") from None
 
 
 def read_csv(path) -> list[BuildingResult]:
@@ -363,9 +394,12 @@ def write_geojson(rows, outlines: dict, path, crs: str | None, classes, attribut
     ("urn:ogc:def:crs:EPSG::n") when the CRS has an EPSG code, which QGIS/GDAL honour and
     `quakescan.formats.footprints.read_footprints` reads back. Coordinates are rounded to 1 mm.
     `attributes` ({building_id: the footprint's properties}) adds them as `footprint`: the
-    cadastre's own ID, address or use stay with the result whatever their types.
+    cadastre's own ID, address or use stay with the result whatever their types (a number
+    JSON cannot hold, NaN or infinity, as null).
     """
     import shapely.geometry
+
+    from ..runtime.text_safety import json_text
 
     classes = [int(c) for c in classes]
     feats = []
@@ -386,7 +420,8 @@ def write_geojson(rows, outlines: dict, path, crs: str | None, classes, attribut
     if member:
         doc["crs"] = member
     doc["features"] = feats
-    write_text(path, json.dumps(doc, separators=(",", ":"), allow_nan=False) + "\n")
+    # strict JSON: a footprint attribute NaN or Infinity (Python's reader takes them) is null
+    write_text(path, json_text(doc, separators=(",", ":")) + "\n")
 
 
 # ---------------------------------------------------------------------------------------- map
@@ -527,6 +562,8 @@ def _draw_map(rows, outlines: dict, title: str, points_xy=None, crs: str | None 
     from matplotlib.patches import Patch
     from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
 
+    from ..runtime.text_safety import utf8_text
+
     fig = Figure(figsize=MAP_SIZE_IN, dpi=MAP_DPI)
     FigureCanvasAgg(fig)
     ax = fig.add_subplot(1, 1, 1)
@@ -580,15 +617,15 @@ def _draw_map(rows, outlines: dict, title: str, points_xy=None, crs: str | None 
     ax.ticklabel_format(useOffset=False, style="plain")
     ax.set_xlabel("easting (m)")
     ax.set_ylabel("northing (m)")
-    ax.set_title(title)
+    ax.set_title(utf8_text(title), parse_math=False)  # a file name's "$" is text, not mathtext
     x0, x1 = ax.get_xlim()
     length = nice_length(x1 - x0)
     bar = AnchoredSizeBar(ax.transData, length, f"{length:g} m", "lower right", pad=0.5, sep=4,
                           borderpad=0.6, frameon=True, size_vertical=0, color="black", fontproperties={"size": 8})
     bar.set_gid("scale-bar")
     ax.add_artist(bar)
-    ax.text(0.01, 0.01, crs_text(crs), transform=ax.transAxes, fontsize=7, ha="left", va="bottom", zorder=4,
-            gid="crs", bbox={"boxstyle": "round,pad=0.2", "facecolor": "white", "edgecolor": "#999999",
+    ax.text(0.01, 0.01, utf8_text(crs_text(crs)), transform=ax.transAxes, fontsize=7, ha="left", va="bottom",
+            zorder=4, gid="crs", parse_math=False, bbox={"boxstyle": "round,pad=0.2", "facecolor": "white", "edgecolor": "#999999",
                              "alpha": 0.85})
     shown = [0, 3, 4, 5] + sorted(k for k in counts if k is not None and k not in (0, 3, 4, 5))
     handles = [Patch(facecolor=colour_of(g), edgecolor="#333333", label=f"{long_label(g)}: {counts.get(g, 0)}")
@@ -816,4 +853,5 @@ def _format7(src):
 
 __all__ = ["BACKGROUND_COLOUR", "BuildingResult", "GRADE_COLOURS", "GRADE_NONE", "HEAVY_UNRESOLVED",
            "NOT_ASSESSABLE", "NOT_ASSESSABLE_COLOUR", "Outline", "ResultsError", "building_outlines", "colour_of",
-           "read_csv", "write_csv", "write_geojson", "write_grade_las", "write_grade_las_streamed", "write_map_png"]
+           "read_csv", "read_footprint_ids", "write_csv", "write_geojson", "write_grade_las",
+           "write_grade_las_streamed", "write_map_png"]

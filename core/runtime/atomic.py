@@ -133,8 +133,11 @@ def write_text(path: str | os.PathLike, text: str, error: type[QuakeScanError] =
 
 def write_json(path: str | os.PathLike, doc, indent: int | None = 1, error: type[QuakeScanError] = ResultsError,
                **dumps_kwargs) -> None:
-    """`doc` as JSON with a final newline."""
-    write_text(path, json.dumps(doc, indent=indent, **dumps_kwargs) + "\n", error)
+    """`doc` as strict JSON with a final newline: NaN and infinities, which JSON does not
+    have, are written null (`quakescan.runtime.text_safety.json_text`, the one place)."""
+    from .text_safety import json_text
+
+    write_text(path, json_text(doc, indent=indent, **dumps_kwargs) + "\n", error)
 
 
 __all__ = ["TEMP_SUFFIX", "commit", "is_write_failure", "open_replacing", "replacing", "temp_path",
