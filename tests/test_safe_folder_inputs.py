@@ -105,3 +105,13 @@ def test_an_empty_or_odd_output_path_is_an_error(pair, tmp_path, capsys, monkeyp
     with pytest.raises(ClassifyError, match="-o"):
         classify(pair / "pre.las", pair / "post.las", odd, model_path=pair / "model.skops")
     assert names(tmp_path) == []
+
+
+def test_evaluate_never_writes_its_metrics_over_the_truth(tmp_path, capsys):
+    truth = tmp_path / "evaluation.json"
+    truth.write_text("building_id,grade\n1,0\n")
+    result = tmp_path / "buildings.csv"
+    result.write_text("building_id,assessable,predicted_grade\n1,1,0\n")
+    assert main(["evaluate", str(result), "--truth", str(truth)]) == 2
+    assert f"{truth}: the truth is {truth}, which evaluate would replace" in capsys.readouterr().err
+    assert truth.read_text() == "building_id,grade\n1,0\n"

@@ -11,6 +11,7 @@ import time
 
 import pytest
 
+from quakescan.cli import main
 from quakescan.learning.classification import ClassifyError, classify
 from quakescan.runtime.output_folder import LOCK_NAME, exclusive_run
 from tests.safe_folder_pair import RESULTS, names, pair  # noqa: F401  (a fixture)
@@ -105,3 +106,21 @@ def test_a_lock_file_that_is_a_link_is_refused(tmp_path):
         with exclusive_run(out, "classify", ClassifyError):
             pass
     assert (tmp_path / "victim").read_text() == "keep"
+
+
+@pytest.mark.parametrize("command", [["inject", "{d}/cloud.las", "--footprints", "{d}/fp.geojson", "-o", "{out}"],
+                                     ["training-set", "--size", "quick", "-o", "{out}"],
+                                     ["experiment", "paper", "-o", "{out}"]])
+def test_every_command_that_writes_a_folder_takes_its_lock(tmp_path, capsys, command):
+    out = tmp_path / "out"
+    holder = _holder(out)
+    try:
+        args = [a.format(d=tmp_path, out=out) for a in command]
+        assert main(args) == 2
+        err = capsys.readouterr().err
+        assert f"quakescan: error: {out}: another run is writing into this output folder (pid {holder.pid}" in err
+        assert names(out) == [LOCK_NAME]
+    finally:
+        holder.stdin.close()  # the holder leaves: its lock file goes with it
+        holder.wait(30)
+    assert not out.exists()

@@ -574,7 +574,7 @@ def claimed_output_folder(out_dir, command: str, pre_path, post_path, footprints
         if (out / name).exists() or (out / name).is_symlink():
             output_folder.own_subfolder(out / name, ClassifyError)  # refuses one that is not QuakeScan's
     with output_folder.exclusive_run(out, command, ClassifyError):
-        remove_stale_temporaries(out, every=True)  # the folder is ours alone now
+        remove_stale_temporaries(out)  # a killed run's; not a live writer's (evaluate may write here too)
         yield out
 
 

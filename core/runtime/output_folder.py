@@ -80,6 +80,9 @@ def exclusive_run(folder, command: str, error: type[QuakeScanError] = ResultsErr
     it and left nothing in it. Where the system has no such locks (Windows, some network
     file systems) the run goes on unlocked, with a note in the log."""
     folder = Path(folder)
+    if folder.exists() and not folder.is_dir():  # not a folder: the command says what it expected
+        yield
+        return
     made = not folder.exists()
     try:
         folder.mkdir(parents=True, exist_ok=True)
