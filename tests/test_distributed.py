@@ -618,17 +618,19 @@ def test_blocks_are_deleted_beside_the_results_their_manifest_first(tmp_path, mo
 
     from quakescan.distributed import classify as dc
 
-    store = tmp_path / ".blocks"
+    from quakescan.runtime.output_folder import own_subfolder
+
+    store = own_subfolder(tmp_path / ".blocks")
     (store / "pre").mkdir(parents=True)
     (store / "pre" / "part0.bin").write_bytes(b"x" * 100)
     (store / dc.MANIFEST).write_text("{}")
-    release, real = threading.Event(), dc.shutil.rmtree
+    release, real = threading.Event(), dc.remove_own_subfolder
 
-    def slow_rmtree(path, **kw):
+    def slow_remove(path):
         release.wait(10)
-        real(path, **kw)
+        return real(path)
 
-    monkeypatch.setattr(dc.shutil, "rmtree", slow_rmtree)
+    monkeypatch.setattr(dc, "remove_own_subfolder", slow_remove)
     thread = dc._delete_store(store)
     assert not (store / dc.MANIFEST).exists() and (store / "pre" / "part0.bin").is_file()
     assert dc.kept_epochs(store, "any", 50) is None
@@ -640,7 +642,9 @@ def test_blocks_are_deleted_beside_the_results_their_manifest_first(tmp_path, mo
 def test_blocks_of_an_interrupted_run_are_kept_only_for_the_same_inputs_and_layout(tmp_path):
     from quakescan.distributed import blocks
     from quakescan.distributed.classify import MANIFEST, kept_epochs
+    from quakescan.runtime.output_folder import FOLDER_MARKER
 
+    (tmp_path / FOLDER_MARKER).write_text("")  # the store is QuakeScan's (tests/test_safe_folder_deletes.py)
     stats = blocks.EpochStats(n=3, counts={7: 3}, lo={7: (0.0, 0.0)}, hi={7: (1.0, 1.0)}, blocks=[[0, 0]])
     for name in ("pre", "post"):
         blocks.save_arrays(tmp_path / f"{name}.npz", {"map_xy": np.zeros((1, 2))})

@@ -139,16 +139,20 @@ def test_without_the_variable_the_cache_is_the_users(monkeypatch, tmp_path):
 
 
 def test_prune_keeps_the_most_recently_used_within_count_and_bytes(tmp_path):
-    for i in range(6):
-        p = tmp_path / f"{i}.pickle"
+    from quakescan.runtime.output_folder import FOLDER_MARKER
+
+    (tmp_path / FOLDER_MARKER).write_text("")  # the cache's own folder (tests/test_safe_folder_deletes.py)
+    names = [f"{i:064x}.pickle" for i in range(6)]  # entry_name's names
+    for i, name in enumerate(names):
+        p = tmp_path / name
         p.write_bytes(b"x" * 100)
         os.utime(p, (1000 + i, 1000 + i))
     model_cache.prune(tmp_path, max_entries=4, max_bytes=10_000)
-    assert [p.name for p in entries(tmp_path)] == ["2.pickle", "3.pickle", "4.pickle", "5.pickle"]
+    assert [p.name for p in entries(tmp_path)] == names[2:]
     model_cache.prune(tmp_path, max_entries=4, max_bytes=250)
-    assert [p.name for p in entries(tmp_path)] == ["4.pickle", "5.pickle"]
+    assert [p.name for p in entries(tmp_path)] == names[4:]
     model_cache.prune(tmp_path, max_entries=4, max_bytes=50)  # the newest is kept even past the bytes
-    assert [p.name for p in entries(tmp_path)] == ["5.pickle"]
+    assert [p.name for p in entries(tmp_path)] == names[5:]
 
 
 def test_a_file_larger_than_any_model_is_refused_before_it_is_read(tmp_path, model_file, monkeypatch):

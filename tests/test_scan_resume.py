@@ -88,7 +88,7 @@ def test_a_checkpoint_of_another_scan_or_a_cut_line_is_not_used(tmp_path):
 
 
 def test_a_killed_scan_resumes_from_the_file_it_left(tmp_path):
-    """kill -9 leaves OUT.las.part (its header never finished) and the finished lines' records."""
+    """kill -9 leaves OUT.las.lines/writing.las (its header never finished) and the finished lines' records."""
     scene = box_city(rows=3, cols=2)
     ends = _line_ends(scene)
     whole = tmp_path / "whole.las"
@@ -108,10 +108,10 @@ def test_a_killed_scan_resumes_from_the_file_it_left(tmp_path):
     assert len(data) >= end
     left = bytearray(data[:end] + bytes(size // 2))  # and half of a next point
     left[107:111] = bytes(4)  # legacy point count 0
-    (tmp_path / "part.las.part").write_bytes(bytes(left))
+    (ck / "writing.las").write_bytes(bytes(left))
     r = scan(scene, SURVEY, out, seed=5, batch_rays=BATCH, checkpoint=ck)
     assert r.lines_resumed == 2 and out.read_bytes() == whole.read_bytes()
-    assert not (tmp_path / "part.las.part").exists() and not ck.exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["part.las", "whole.las"]
 
 
 def test_a_cut_laz_line_is_scanned_again(tmp_path):

@@ -115,9 +115,11 @@ def scan(scene: Scene, survey: Survey, out_path: str | os.PathLike, seed: int = 
 
         # Before the writer opens (and truncates) its temporary file: a killed run's is kept.
         saved = LineCheckpoint(checkpoint, plan_key(fingerprint, scene, survey, seed, batch_rays, plan.lines),
-                               las_part=None if las_writer.compressed else las_writer.tmp,
-                               point_size=las_writer.header.point_format.size)
+                               las_part=not las_writer.compressed, point_size=las_writer.header.point_format.size)
         if not las_writer.compressed:
+            # the partial file is written in the checkpoint's folder, where a rerun after kill -9 finds it
+            las_writer = LasChunkWriter(out_path, offset, scene.crs, survey.acquisition_date,
+                                        temporary=saved.las_part)
             las_writer.keep_partial_as = saved.partial_las
     with las_writer as writer, ThreadPoolExecutor(max_workers=threads) as pool:
         sim = Simulator(caster, survey, seed, shift=shift, header=writer.header, fast=fast)

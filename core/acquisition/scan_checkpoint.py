@@ -8,15 +8,16 @@ A checkpoint is a folder beside the output (`OUT.las.lines/`, the CLI's choice) 
 - per finished line k, `line_0000k.json` (written atomically): each batch's point count,
   bounds and counters, and where the line's points start in the point stream.
 - the points themselves. An uncompressed LAS is header + point records in scan order, so
-  its points need no second copy: a stopped scan's partial file is kept as `partial.las`
-  (also the `OUT.las.part` a killed process leaves), and a rerun reads the finished lines'
-  records back from it — no cost while scanning. A LAZ cannot be cut by points, so for
+  its points need no second copy: the writer writes it in this folder (`writing.las`, which
+  a killed process leaves), a stopped scan's is kept as `partial.las`, and a rerun reads the
+  finished lines' records back from it — no cost while scanning. A LAZ cannot be cut by points, so for
   `.laz` outputs each finished line's packed records also go to `line_0000k.bin` (renamed
   into place before its JSON is written).
 
 A rerun writes a finished line's batches again through the same writer calls, in the same
 order, so its LAS or LAZ bytes are those of an uninterrupted scan. The folder is removed
-when the output is complete.
+when the output is complete. The folder is the scan's only with its `key.json`: a folder of
+that name without one (or a symbolic link) is somebody else's and refused, never emptied.
 """
 from __future__ import annotations
 
@@ -27,7 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..runtime.atomic import commit, temp_path, write_json
+from ..errors import PointCloudError
+from ..runtime.atomic import commit, write_json
 from ..runtime.fingerprint import make, scene_fingerprint
 
 log = logging.getLogger(__name__)
@@ -48,18 +50,40 @@ def plan_key(fingerprint: str, scene, survey, seed: int, batch_rays: int, lines)
     return fp.digest[:24]
 
 
+def _check_own(folder: Path) -> None:
+    """Refuse a checkpoint folder that is not the scan's (see the module's doc)."""
+    if folder.is_symlink():
+        raise PointCloudError(f"{folder}: is a symbolic link; the scan keeps its finished flight lines in a folder "
+                              "of its own there: remove the link")
+    if folder.is_dir() and not (folder / _KEY).is_file() and any(folder.iterdir()):
+        raise PointCloudError(f"{folder}: a folder the scan did not make (no {_KEY}); it keeps its finished flight "
+                              "lines there: move the folder away or write the scan under another name")
+
+
+def _part(path: Path) -> Path:
+    """A line file's name while it is written, in the scan's own folder."""
+    return path.with_name(path.name + ".part")
+
+
+def _open_new(path: Path):
+    """`path` opened for writing, new: whatever was left under that name (a killed run's file,
+    a link) is removed, never written through."""
+    path.unlink(missing_ok=True)
+    return os.fdopen(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666), "wb")
+
+
 class LineCheckpoint:
     """Finished lines in `folder` for the scan whose key is `key` (see `plan_key`).
 
-    `las_part`: the writer's temporary file of an uncompressed LAS output (its points are
-    kept, see the module's doc), None for LAZ (records go to line files). `point_size`:
-    bytes per LAS point record."""
+    `las_part`: True for an uncompressed LAS output, whose writer writes its temporary file
+    here (`.las_part`; its points are kept, see the module's doc), False for LAZ (records go
+    to line files). `point_size`: bytes per LAS point record."""
 
-    def __init__(self, folder: str | os.PathLike, key: str, las_part: str | os.PathLike | None = None,
-                 point_size: int = 0):
+    def __init__(self, folder: str | os.PathLike, key: str, las_part: bool = False, point_size: int = 0):
         self.folder = Path(folder)
         self.key = key
-        self.las_part = None if las_part is None else Path(las_part)
+        _check_own(self.folder)
+        self.las_part = self.folder / "writing.las" if las_part else None
         self.point_size = point_size
         self._data = None  # open data file of the line being scanned (LAZ outputs)
         self._batches: list = []
@@ -89,7 +113,7 @@ class LineCheckpoint:
     def _clear(self) -> None:
         if self.folder.is_dir():
             for p in self.folder.iterdir():
-                if p.name in (_KEY, "partial.las", "replay.las") or p.name.startswith("line_"):
+                if p.name in (_KEY, "partial.las", "replay.las", "writing.las") or p.name.startswith("line_"):
                     p.unlink()
 
     def _complete_points(self, path: Path) -> int:
@@ -167,7 +191,8 @@ class LineCheckpoint:
         if self.las_part is None:
             data, _ = self._paths(line_index)
             if self._data is None:
-                self._data = open(temp_path(data), "wb")
+                self._data_path = _part(data)
+                self._data = _open_new(self._data_path)
             raw = b"" if record is None or len(record) == 0 else record.array.tobytes()
             self._data.write(raw)
             raw_size = len(raw)
@@ -184,7 +209,7 @@ class LineCheckpoint:
         if self._data is not None:
             self._data.close()
             self._data = None
-            commit(temp_path(data), data)
+            commit(_part(data), data)
         faces = np.flatnonzero(by_face)
         self._write_json(meta, {"line": line_index, "bytes": self._offset, "first_point": self._first_point,
                                 "batches": self._batches, "by_return": by_return.tolist(),
@@ -195,10 +220,9 @@ class LineCheckpoint:
         """Drop the line being written (the scan stopped in it)."""
         self._batches = []
         if self._data is not None:
-            name = self._data.name
             self._data.close()
             self._data = None
-            Path(name).unlink(missing_ok=True)
+            self._data_path.unlink(missing_ok=True)
 
     # --- reading ----------------------------------------------------------------------------
     def line_record(self, line_index: int) -> dict:

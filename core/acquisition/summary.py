@@ -24,7 +24,7 @@ def cloud_is_up_to_date(out: Path, summary_path: Path, fp: Fingerprint) -> bool:
     if not (out.is_file() and summary_path.is_file()):
         return False
     try:
-        summary = json.loads(summary_path.read_text())
+        summary = json.loads(summary_path.read_text(encoding="utf-8"))
     except (json.JSONDecodeError, UnicodeDecodeError, OSError):
         return False
     if not matches(summary, fp):

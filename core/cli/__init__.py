@@ -74,6 +74,10 @@ def main(argv=None) -> int:
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
     try:
+        if isinstance(getattr(args, "output", None), str):  # `-o ''` would write into the current folder
+            from ..runtime.output_folder import check_output_path
+
+            check_output_path(args.output, "-o")
         with stage_messages(args):
             code = args.func(args)
     except QuakeScanError as e:

@@ -6,9 +6,18 @@ from pathlib import Path
 
 from ..acquisition.summary import cloud_fingerprint, cloud_is_up_to_date, write_cloud_summary
 from ..errors import QuakeScanError
+from ..runtime.output_folder import refuse_replacing_inputs
 from ..runtime.workers import EVERY_CORE
 from .options import PROGRESS_HELP, THREADS_HELP, check_threads
 from .reporting import echo, reporter
+
+
+def _refuse_replacing_inputs(command: str, outputs, scene_dir, survey) -> None:
+    """No output of an acquisition is one of its inputs (the scene's files, the survey file)."""
+    from .scenes import scene_files
+
+    survey_file = survey if survey is not None and Path(survey).is_file() else None  # else a preset's name
+    refuse_replacing_inputs(outputs, scene_files(scene_dir) + [(survey_file, "survey file")], command=command)
 
 
 def _check_scan_flags(args) -> None:
@@ -34,6 +43,8 @@ def cmd_scan(args) -> int:
     if args.beam:
         survey = survey.replace(beam=args.beam)
     summary_path = Path(args.summary) if args.summary else out.with_name(out.name + ".summary.json")
+    _refuse_replacing_inputs("scan", [out, summary_path, args.trajectory, out.with_name(out.name + ".lines")],
+                             scene_dir, args.survey)
     fp = cloud_fingerprint("scan", scene_dir, survey, args.seed)
     if not args.force and cloud_is_up_to_date(out, summary_path, fp):
         if args.trajectory:
@@ -103,6 +114,7 @@ def cmd_dim(args) -> int:
     out = Path(args.output)
     survey = get("dim").load_settings(args.survey)
     summary_path = out.with_name(out.name + ".summary.json")
+    _refuse_replacing_inputs("dim", [out, summary_path], scene_dir, args.survey)
     fp = cloud_fingerprint("dim", scene_dir, survey, args.seed)
     if not args.force and cloud_is_up_to_date(out, summary_path, fp):
         echo(f"{out}: up to date (same scene, photo survey and seed); use --force to simulate it again")

@@ -154,6 +154,10 @@ def cmd_evaluate(args) -> int:
     if out.exists() and not out.is_dir():
         raise QuakeScanError(f"{out}: -o is an existing file; evaluate writes a folder (confusion.png, "
                              "evaluation.json)")
+    from ..runtime.output_folder import refuse_replacing_inputs
+
+    refuse_replacing_inputs([out / "confusion.png", out / "evaluation.json"],
+                            [(args.result, "result CSV"), (args.truth, "truth")], command="evaluate")
     ev = evaluate_files(args.result, args.truth)
     print(f"evaluate: {ev.n} assessable buildings, overall accuracy {100 * ev.overall_accuracy:.1f} %"
           + (f", {ev.not_assessable} not assessable" if ev.not_assessable else "")

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 
+from ..runtime.output_folder import exclusive_run
 from .options import check_number, check_seed
 from .reporting import echo
 
@@ -30,7 +31,8 @@ def cmd_inject(args) -> int:
     settings = InjectSettings(seed=args.seed, grades=grades, grade_mix=mix, min_points=args.min_points,
                               damage=args.damage, kind=args.sensor, range_noise_m=args.range_noise,
                               id_field=args.id_field)
-    r = inject(args.cloud, args.footprints, args.output, settings)
+    with exclusive_run(args.output, "inject", InjectionError):  # one injection in the folder at a time
+        r = inject(args.cloud, args.footprints, args.output, settings)
     damaged = {g: sum(1 for v in r.grades.values() if v == g) for g in (3, 4, 5)}
     state = "up to date, kept" if r.reused else "written"
     echo(f"{r.post}: {state}; {sum(damaged.values())} buildings damaged "

@@ -6,7 +6,21 @@ import sys
 from pathlib import Path
 
 from ..errors import QuakeScanError
+from ..runtime.output_folder import refuse_replacing_inputs
 from .reporting import echo
+
+
+def scene_files(scene_dir) -> list:
+    """(path, what) of the files a scene bundle is read from: what no output may replace."""
+    import json
+
+    folder = Path(scene_dir)
+    mesh = "mesh.ply"
+    try:
+        mesh = str(json.loads((folder / "scene.json").read_bytes()).get("mesh", mesh))
+    except (OSError, ValueError, AttributeError):
+        pass  # read_scene names what is wrong with it
+    return [(folder / "scene.json", "scene manifest"), (folder / mesh, "scene mesh")]
 
 
 def cmd_import_cityjson(args) -> int:
@@ -16,6 +30,8 @@ def cmd_import_cityjson(args) -> int:
     out = Path(args.output)
     if out.exists() and not out.is_dir():
         raise QuakeScanError(f"-o {out}: exists and is not a folder; a scene bundle is a folder (give a new name)")
+    refuse_replacing_inputs([out / "scene.json", out / "mesh.ply"], [(args.input, "CityJSON file")],
+                            command="import-cityjson")
     if out.is_dir() and any(out.iterdir()) and not (out / "scene.json").is_file():
         raise QuakeScanError(f"-o {out}: a folder that holds other files than a scene bundle; give a new or empty "
                              "folder")
@@ -66,6 +82,7 @@ def cmd_footprints(args) -> int:
     from ..formats.footprints import footprints_from_scene, write_footprints
     from ..formats.scene import read_scene
 
+    refuse_replacing_inputs([args.output], scene_files(args.scene), command="footprints")
     fp = footprints_from_scene(read_scene(args.scene))
     write_footprints(fp, args.output)
     print(f"{args.output}: {len(fp)} building footprints (top-view outlines) of {args.scene}"

@@ -6,6 +6,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import QuakeScanError
+from ..runtime.output_folder import exclusive_run
 from ..runtime.workers import EVERY_CORE
 from .options import (PROGRESS_HELP, THREADS_HELP, add_dask_options, dask_client_for, check_folder_output, check_number,
                       check_seed, check_threads, old_form)
@@ -72,9 +73,10 @@ def cmd_robustness(args) -> int:
         raise QuakeScanError(f"--sample: expected a number of points >= 0 (0 = all), got {args.sample}")
     pre, posts = _robustness_scenes(args)
     post = posts[0] if len(posts) == 1 else posts
-    res = run_experiment(pre, post, args.output, seed=args.seed, workers=args.threads,
-                         progress=reporter(args, "robustness"),
-                         threshold_pct=args.threshold, spacing=spacing, sample=sample, **kw)
+    with exclusive_run(args.output, "robustness", QuakeScanError):  # one study in the folder at a time
+        res = run_experiment(pre, post, args.output, seed=args.seed, workers=args.threads,
+                             progress=reporter(args, "robustness"),
+                             threshold_pct=args.threshold, spacing=spacing, sample=sample, **kw)
     stages = f" over {len(res.stages)} stages" if len(res.stages) > 1 else ""
     print(f"robustness: best radius {res.best_radius:g} m, {len(res.robust)} robust features at "
           f"<= {args.threshold:g} %{stages}: {', '.join(res.robust)}")
@@ -108,13 +110,14 @@ def cmd_experiment(args) -> int:
     settings = ExperimentSettings(buildings=args.buildings, test_mix=mix, seed=args.seed, n_estimators=args.trees,
                                   lod_height_m=args.lod_height, lod_curvature=args.lod_curvature,
                                   training=args.training)
-    if args.workers is not None or args.scheduler:
-        with dask_client_for(args) as client:
-            results = run_paper_experiment(args.output, settings, progress=reporter(args, "experiment"),
-                                           client=client)
-    else:
-        results = run_paper_experiment(args.output, settings, workers=args.threads,
-                                       progress=reporter(args, "experiment"))
+    with exclusive_run(args.output, "experiment", QuakeScanError):  # one experiment in the folder at a time
+        if args.workers is not None or args.scheduler:
+            with dask_client_for(args) as client:
+                results = run_paper_experiment(args.output, settings, progress=reporter(args, "experiment"),
+                                               client=client)
+        else:
+            results = run_paper_experiment(args.output, settings, workers=args.threads,
+                                           progress=reporter(args, "experiment"))
     for name, ev in results.items():
         print(f"{name}: overall accuracy {100 * ev.overall_accuracy:.1f} %, damaged vs undamaged F1 "
               f"{metric_text(ev.damaged, 'f1')}")

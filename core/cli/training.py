@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import QuakeScanError
+from ..runtime.output_folder import exclusive_run
 from ..runtime.workers import EVERY_CORE
 from .options import (PROGRESS_HELP, THREADS_HELP, add_dask_options, dask_client_for, check_file_output,
                       check_folder_output, check_number, check_seed, check_threads, csv_list, old_form)
@@ -108,11 +109,12 @@ def cmd_training_set(args) -> int:
     check_threads(args.threads)
     check_folder_output(Path(args.output))
     plan = default_plan(args.seed, args.size, args.scenes, args.damage, args.small)
-    if args.workers is not None or args.scheduler:
-        table = _training_set_on_dask(args, plan, TABLE_SETTINGS)
-    else:
-        table = build(args.output, plan, TABLE_SETTINGS, workers=args.threads,
-                      progress=reporter(args, "training set"))
+    with exclusive_run(args.output, "training-set", QuakeScanError):  # one build in the folder at a time
+        if args.workers is not None or args.scheduler:
+            table = _training_set_on_dask(args, plan, TABLE_SETTINGS)
+        else:
+            table = build(args.output, plan, TABLE_SETTINGS, workers=args.threads,
+                          progress=reporter(args, "training set"))
     counts = dict(zip(*(v.tolist() for v in np.unique(table.y, return_counts=True))))
     print(f"{args.output}: {len(table.y)} building rows, grades {counts}; manifest.json and tables/")
     return 0

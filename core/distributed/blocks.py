@@ -368,9 +368,9 @@ def _write_record(folder: Path, dtype: np.dtype, part: int | None) -> None:
     """`RECORD_NAME` under `folder`. Every part of an epoch, on any worker, writes the same
     text: each under a temporary name of its own, renamed into place (a reader sees one
     whole file or none)."""
-    tmp = Path(folder) / f".{RECORD_NAME}.part{int(part or 0)}.{os.getpid()}"
-    tmp.write_text(json.dumps([[name, dtype[name].str] for name in dtype.names]))
-    os.replace(tmp, Path(folder) / RECORD_NAME)
+    from ..runtime.atomic import write_text
+
+    write_text(Path(folder) / RECORD_NAME, json.dumps([[name, dtype[name].str] for name in dtype.names]))
 
 
 def stream_epoch(f: EpochFile, origin: np.ndarray, folder: Path, *, block_cells: int, footprints=None,
@@ -763,9 +763,10 @@ def read_manifest(path: Path) -> dict | None:
 
 def save_arrays(path: Path, arrays: dict) -> None:
     """The stats' arrays next to the manifest, written under a temporary name."""
-    tmp = Path(str(path) + ".part.npz")
-    np.savez(tmp, **arrays)
-    os.replace(tmp, path)
+    from ..runtime.atomic import open_replacing
+
+    with open_replacing(path, "wb") as f:
+        np.savez(f, **arrays)
 
 
 def block_m(block_cells: int) -> float:

@@ -19,14 +19,15 @@ from __future__ import annotations
 
 import json
 import logging
-import shutil
 import time
 from pathlib import Path
 
 import numpy as np
 
+from ..errors import check_input_file
 from ..formats.pointcloud import PointCloudError, check_coordinates_fit_crs
 from ..learning import classification as cl
+from ..runtime.output_folder import empty_own_subfolder, is_own_subfolder, remove_own_subfolder
 from ..runtime.progress import ProgressCallback
 from . import blocks as bk
 from .cluster import dashboard_address, dask_client  # noqa: F401  (moved; still importable here)
@@ -41,6 +42,9 @@ log = logging.getLogger(__name__)
 BLOCK_CELLS = 50
 MANIFEST = "manifest.json"
 UNMOVED_CHECKPOINT = ".checkpoint.unmoved.jsonl"
+# QuakeScan's working folders in OUT (with the marker of `runtime.output_folder`: a user's
+# folder of the name is refused, never emptied): the epochs' blocks, the graded cloud's parts
+STORE_NAME, GRADED_NAME = ".blocks", ".graded"
 HALO_STEP_M = 10.0  # a tile whose nearest neighbours reach beyond its halo asks again with this much more
 # What a tile task holds at its peak, per point: the records of every block it reads (their
 # bytes, the index sort and the sorted copy) and, per point inside its box, the coordinates,
@@ -72,16 +76,26 @@ def classify_distributed(pre_path, post_path, out_dir, client, *, model_path=Non
     `client` (a dask.distributed Client). Same files, same rows; the summary adds "dask".
     `progress(done, total, stage)`: the points of each epoch streamed into blocks (stages
     "tiling pre", "tiling post"), then the buildings described (no stage), as `classify`."""
+    with cl.claimed_output_folder(out_dir, "classify", pre_path, post_path, footprints_path, model_path,
+                                  working_folders=(STORE_NAME, GRADED_NAME)):
+        return _classify_distributed(pre_path, post_path, out_dir, client, model_path=model_path,
+                                     footprints_path=footprints_path, id_field=id_field, align=align,
+                                     progress=progress, write_las=write_las, laz=laz, force=force,
+                                     unseen_damage=unseen_damage, prior=prior, csv_raw=csv_raw, block_cells=block_cells,
+                                     chunk_points=chunk_points, on_stage=on_stage)
+
+
+def _classify_distributed(pre_path, post_path, out_dir, client, *, model_path=None, footprints_path=None,
+                          id_field=None, align: bool | None = None, progress: ProgressCallback | None = None,
+                          write_las: bool = True, laz: bool | None = None, force: bool = False,
+                          unseen_damage: bool = True, prior: dict | None = None, csv_raw: bool = False,
+                          block_cells: int = BLOCK_CELLS, chunk_points: int = bk.CHUNK_POINTS,
+                          on_stage=None) -> dict:
+    """`classify_distributed` in the output folder it has claimed."""
     t0 = time.perf_counter()
     out = Path(out_dir)
     model_path = Path(model_path) if model_path else cl.default_model_path()
-    from ..errors import check_input_file
-
-    for p, what in ((pre_path, "pre-event point cloud"), (post_path, "post-event point cloud"),
-                    (footprints_path, "footprint file"), (model_path, "model file")):
-        if p is not None:  # a device or FIFO is refused as such, before a read that never ends
-            check_input_file(p, what, cl.ClassifyError)
-    cl._check_output_folder(out, [pre_path, post_path, footprints_path, model_path])
+    check_input_file(model_path, "model file", cl.ClassifyError)  # the inputs given were checked with the folder
     options = cl.run_options(id_field, write_las, laz, unseen_damage, prior, csv_raw)
     run_fp = cl._fingerprint(pre_path, post_path, footprints_path, model_path, align, options)
     done = cl._finished(out, run_fp)
@@ -99,7 +113,8 @@ def classify_distributed(pre_path, post_path, out_dir, client, *, model_path=Non
     crs = _pair_crs(pre_f, post_f, fp)
     origin = bk.default_origin(pre_f)
     out.mkdir(parents=True, exist_ok=True)
-    store = out / ".blocks"
+    store = out / STORE_NAME
+    cl.retire_previous_results(out)  # before the first write
     sample = None if align is False else cl.check_max_points(align)
     stage("tiling")
     footprints = None if footprints_path is None else {"path": str(Path(footprints_path).resolve()),
@@ -208,7 +223,7 @@ def classify_distributed(pre_path, post_path, out_dir, client, *, model_path=Non
         graded = out / ("post_grades.laz" if compress else "post_grades.las")
         _write_graded_cloud(client, graded, post_f, origin, crs, footprints, transform,
                             {r.building_id: r.grade for r in res}, max(post_s.counts, default=0), chunk_points,
-                            out / ".graded", progress)
+                            out / GRADED_NAME, progress)
         summary["post_grades"] = str(graded)
     t_graded = time.perf_counter() - t_graded
     counts: dict[str, int] = {}
@@ -226,6 +241,8 @@ def classify_distributed(pre_path, post_path, out_dir, client, *, model_path=Non
                              "tile_memory_budget_bytes": int(budget) if np.isfinite(budget) else None}})
     summary["fingerprint"] = run_fp.digest
     summary["options"] = options
+    summary["outputs"] = cl.result_names(summary)
+    cl.warn_of_foreign_results(out, summary)
     from ..runtime.atomic import write_text
     from ..runtime.text_safety import json_text
 
@@ -245,9 +262,9 @@ def _delete_store(store: Path):
     blocks half deleted."""
     import threading
 
-    (store / MANIFEST).unlink(missing_ok=True)
-    thread = threading.Thread(target=shutil.rmtree, args=(store,), kwargs={"ignore_errors": True},
-                              name="quakescan-delete-blocks", daemon=True)
+    if is_own_subfolder(store):
+        (store / MANIFEST).unlink(missing_ok=True)
+    thread = threading.Thread(target=remove_own_subfolder, args=(store,), name="quakescan-delete-blocks", daemon=True)
     thread.start()
     return thread
 
@@ -310,7 +327,7 @@ def _tiled_epochs(client, store: Path, digest: str, pre_f, post_f, origin, fp, f
         if meanwhile:
             meanwhile()
         return kept
-    shutil.rmtree(store, ignore_errors=True)
+    empty_own_subfolder(store, cl.ClassifyError)
     n_workers = max(1, len(client.scheduler_info().get("workers", {})))
     pair_bytes = sum(Path(f.path).stat().st_size for f in (pre_f, post_f))
     futures = {}
@@ -359,6 +376,8 @@ def _tiled_epochs(client, store: Path, digest: str, pre_f, post_f, origin, fp, f
 def kept_epochs(store: Path, digest: str, block_cells: int):
     """(pre, post) EpochStats of the blocks an interrupted run of the same inputs, block size
     and block layout finished under `store`, or None (none, other, or unreadable: tiled again)."""
+    if not is_own_subfolder(store):
+        return None
     manifest = bk.read_manifest(store / MANIFEST)
     if not (manifest and manifest.get("fingerprint") == digest and manifest.get("block_cells") == block_cells
             and manifest.get("layout") == bk.LAYOUT):
@@ -651,8 +670,7 @@ def _write_graded_cloud(client, path, post_f, origin, crs, footprints, transform
     from ..results.writers import grade_header, source_extra_dims, write_grade_records
     from .tasks import graded_part
 
-    shutil.rmtree(folder, ignore_errors=True)
-    folder.mkdir(parents=True)
+    empty_own_subfolder(folder, cl.ClassifyError)
     n_workers = max(1, len(client.scheduler_info().get("workers", {})))
     bounds = part_bounds(post_f.n, n_workers, chunk_points)
     grades = {int(b): (None if g is None else int(g)) for b, g in grade_by_building.items()}
@@ -684,7 +702,7 @@ def _write_graded_cloud(client, path, post_f, origin, crs, footprints, transform
                     yield laspy.PackedPointRecord(array, header.point_format)
 
     write_grade_records(path, header, origin, records())
-    shutil.rmtree(folder, ignore_errors=True)
+    remove_own_subfolder(folder)
 
 
 __all__ = ["BLOCK_CELLS", "classify_distributed", "dashboard_address", "dask_client",

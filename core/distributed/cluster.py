@@ -5,6 +5,9 @@ from __future__ import annotations
 
 import contextlib
 import gc
+import socket
+import struct
+import time
 
 from ..errors import QuakeScanError
 from ..runtime.allocator import ENVIRON
@@ -41,6 +44,19 @@ LOOP_TICK = {"distributed.admin.tick.interval": "500ms"}
 # 35.8 s, in turn; scratch harness of 2026-11-28). The task stream, progress and memory
 # pages stay; a cluster the user starts (`--scheduler`) keeps its own configuration.
 NO_WORKER_PROFILER = {"distributed.worker.profile.enabled": False}
+# A scheduler answers a new connection at once with its handshake (one frame of some hundred
+# bytes). A server that says nothing, or not that, is not one: Dask's client would wait for
+# the handshake without end (its timeout covers the connection only), so it is asked here first.
+SCHEDULER_ANSWER_S = 20.0
+MAX_HANDSHAKE_BYTES = 1 << 20
+# What a worker holds before its first tile: Python, numpy, laspy, Dask and the kernels took
+# 140 MB in a bare process, a worker at rest after tiles ~0.5 GB (bench_pipeline). Below this
+# limit its nanny restarts it at rest for ever ("exceeded 95% memory budget"): refused up front.
+MIN_WORKER_MEMORY = 512 * 2 ** 20
+# Ctrl-C reaches every process of the terminal's group: each worker printed two tracebacks of
+# its own (77 lines under --workers 2) before the command's one line. Workers ignore it (this
+# module's `dask_setup`, a preload); the command stops and closes its cluster, which ends them.
+IGNORE_CTRL_C = "quakescan.distributed.cluster"
 
 
 @contextlib.contextmanager
@@ -81,6 +97,7 @@ def _client(n_workers, scheduler, memory_limit):
     from dask.distributed import Client, LocalCluster
 
     if scheduler:
+        check_answers_as_dask(scheduler)
         why = None
         try:
             client = Client(scheduler, timeout="20s")
@@ -103,6 +120,7 @@ def _client(n_workers, scheduler, memory_limit):
         return
     if n_workers is None or n_workers < 1:
         raise ClusterError(f"--workers must be at least 1, got {n_workers}")
+    check_memory_limit(memory_limit)
     import os
 
     import dask
@@ -113,7 +131,8 @@ def _client(n_workers, scheduler, memory_limit):
     # not put back: this process read it, if at all, when it started; only what it spawns sees it.
     if os.environ.get(TRIM_VARIABLE) == DASK_TRIM_VALUE:
         del os.environ[TRIM_VARIABLE]
-    with dask.config.set({**WORKER_ENVIRON, **LOOP_TICK, **NO_WORKER_PROFILER}):
+    preload = [*dask.config.get("distributed.worker.preload", []), IGNORE_CTRL_C]
+    with dask.config.set({**WORKER_ENVIRON, **LOOP_TICK, **NO_WORKER_PROFILER, "distributed.worker.preload": preload}):
         cluster = LocalCluster(n_workers=int(n_workers), threads_per_worker=1, processes=True,
                                memory_limit=memory_limit, dashboard_address=":0")
     client = Client(cluster)
@@ -123,6 +142,83 @@ def _client(n_workers, scheduler, memory_limit):
         quiet_workers_for_shutdown(client)
         client.close()
         cluster.close()
+
+
+def check_memory_limit(memory_limit) -> int | None:
+    """The bytes each LocalCluster worker may hold (None: no limit), or a ClusterError for a
+    limit that is not a size (`--memory-limit lots`) or below what a worker needs at rest."""
+    import logging
+
+    from distributed.worker_memory import parse_memory_limit
+
+    try:  # as each worker will read it (one thread; "auto": the machine's memory over its cores)
+        limit = parse_memory_limit(memory_limit, 1, logger=logging.getLogger("distributed"))
+    except (ValueError, TypeError):
+        raise ClusterError(f"--memory-limit {memory_limit}: not a size; give one such as 4GB or 800MB, or auto "
+                           "(the machine's memory shared out)") from None
+    if limit is not None and limit < MIN_WORKER_MEMORY:
+        from dask.utils import format_bytes
+
+        raise ClusterError(f"--memory-limit {memory_limit}: {format_bytes(limit)} a worker is below the "
+                           f"{MIN_WORKER_MEMORY // 2 ** 20} MiB a worker holds before its first tile (its workers would "
+                           "be restarted for ever); give more, or fewer --workers")
+    return limit
+
+
+def check_answers_as_dask(scheduler: str, timeout_s: float | None = None) -> None:
+    """A ClusterError when something listens at a tcp:// `scheduler` address but does not send
+    a Dask handshake within `timeout_s` (default SCHEDULER_ANSWER_S): a web server, another
+    service. An address nothing listens at, or of another scheme, is left to Dask's client."""
+    from distributed.comm.addressing import parse_address, parse_host_port
+
+    timeout_s = SCHEDULER_ANSWER_S if timeout_s is None else timeout_s
+    try:
+        scheme, location = parse_address(scheduler)
+        if scheme != "tcp":
+            return
+        host, port = parse_host_port(location)
+        conn = socket.create_connection((host, port), timeout=timeout_s)
+    except Exception:  # a malformed address, a name that does not resolve, nothing listening: Dask says it
+        return
+    end = time.monotonic() + timeout_s
+    with conn:
+        try:
+            header = _receive(conn, 8, end)
+            size = struct.unpack("Q", header)[0] if len(header) == 8 else 0
+            if not 0 < size <= MAX_HANDSHAKE_BYTES:
+                raise ClusterError(f"--scheduler {scheduler}: the server there is not a Dask scheduler (it answered "
+                                   f"{header!r}, not a Dask handshake)")
+            _receive(conn, size, end)
+        except (TimeoutError, socket.timeout):
+            raise ClusterError(f"--scheduler {scheduler}: the server there did not answer as a Dask scheduler within "
+                               f"{timeout_s:g} s (it accepts connections but sent no handshake); check the "
+                               "address and port (the scheduler's, usually 8786)") from None
+        except OSError as e:
+            raise ClusterError(f"--scheduler {scheduler}: the server there closed the connection instead of answering "
+                               f"as a Dask scheduler ({e.strerror or e})") from None
+
+
+def _receive(conn, n: int, end: float) -> bytes:
+    data = b""
+    while len(data) < n:
+        conn.settimeout(max(0.01, end - time.monotonic()))
+        chunk = conn.recv(n - len(data))
+        if not chunk:
+            if not data:
+                raise ConnectionResetError(0, "closed without a word")
+            return data
+        data += chunk
+    return data
+
+
+def dask_setup(worker) -> None:
+    """Dask's preload hook, in each worker of a LocalCluster this module starts: Ctrl-C is the
+    command's, not the worker's (see IGNORE_CTRL_C)."""
+    import signal
+    import threading
+
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def quiet_workers_for_shutdown(client) -> None:
@@ -165,5 +261,5 @@ def dashboard_address(client) -> str | None:
         return None
 
 
-__all__ = ["WORKER_ENVIRON", "ClusterError", "dashboard_address", "dask_client", "describe_cluster",
-           "quiet_workers_for_shutdown"]
+__all__ = ["WORKER_ENVIRON", "ClusterError", "check_answers_as_dask", "check_memory_limit", "dashboard_address",
+           "dask_client", "describe_cluster", "quiet_workers_for_shutdown"]

@@ -16,7 +16,7 @@ import laspy
 import numpy as np
 
 from ..errors import PointCloudError, check_input_file
-from ..runtime.atomic import commit, is_write_failure, replacing, temp_path, write_failure_message
+from ..runtime.atomic import Temporary, check_output_name, commit, is_write_failure, replacing, write_failure_message
 
 log = logging.getLogger(__name__)
 
@@ -80,14 +80,18 @@ class LasChunkWriter:
     """Streams chunks into a LAS/LAZ file; the file appears under its name only on success."""
 
     def __init__(self, path: str | os.PathLike, offset, crs: str | None = None, date: str = "2020-01-01",
-                 software: str = "QuakeScan"):
+                 software: str = "QuakeScan", temporary: str | os.PathLike | None = None):
+        """`temporary`: where the points are written until the file is complete, inside a folder
+        of QuakeScan's own (a resumable scan's checkpoint, which finds a killed run's file
+        there); None: a private temporary of `runtime.atomic`, made when writing starts."""
         self.path = Path(path)
         suffix = self.path.suffix.lower()
         if suffix not in (".las", ".laz"):
             raise PointCloudError(f"{self.path}: output must end in .las or .laz")
         self.header = make_header(offset, crs, date, software)
         self.offset = np.asarray(offset, dtype=np.float64)
-        self.tmp = temp_path(self.path)
+        self._temporary: Temporary | None = None
+        self.tmp = None if temporary is None else Path(temporary)
         self._writer = None
         self._compress = suffix == ".laz"
         self.count = 0
@@ -103,11 +107,17 @@ class LasChunkWriter:
         kwargs = {}
         if self._compress:
             kwargs["laz_backend"] = laspy.LazBackend.LazrsParallel
+        check_output_name(self.path, PointCloudError)
+        if self.tmp is None:
+            self._temporary = Temporary(self.path, PointCloudError)
+            self.tmp = self._temporary.path
+        else:  # laspy opens by name: whatever is there (a link planted in the folder) is not opened
+            self.tmp.unlink(missing_ok=True)
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             self._writer = laspy.open(self.tmp, mode="w", header=self.header, do_compress=self._compress, **kwargs)
         except Exception as e:
-            self.tmp.unlink(missing_ok=True)
+            self._drop_temporary()
             if is_write_failure(e):
                 raise PointCloudError(write_failure_message(self.path, e)) from e
             raise
@@ -153,19 +163,25 @@ class LasChunkWriter:
         if exc is None:
             try:
                 commit(self.tmp, self.path)
+                self._drop_temporary()
                 return False
             except OSError as e:
                 exc = e
         # never a cut file under the final name; a resumable scan keeps it under its own
         if self.keep_partial_as is not None and self.tmp.is_file():
             os.replace(self.tmp, self.keep_partial_as)
-        else:
-            self.tmp.unlink(missing_ok=True)
+        self._drop_temporary()
         if is_write_failure(exc) and not isinstance(exc, PointCloudError):
             raise PointCloudError(write_failure_message(self.path, exc)) from exc
         if exc_type is None:
             raise exc
         return False
+
+    def _drop_temporary(self) -> None:
+        if self._temporary is not None:
+            self._temporary.discard()
+        elif self.tmp is not None:
+            self.tmp.unlink(missing_ok=True)
 
 
 def record_bounds(rec):

@@ -10,10 +10,14 @@ trained on every row (`DamageModel.no_change_rule` False) and is asked about all
 
 Long runs checkpoint every finished tile to OUT/.checkpoint.jsonl; a rerun with the same
 inputs, model and options (`quakescan.runtime.fingerprint`'s rule) continues from there. Every output is
-written under a temporary name and renamed.
+written under a temporary name and renamed. The output folder follows the rule of
+`quakescan.runtime.output_folder` (`claimed_output_folder`): one run in it at a time, no
+input replaced by a result, and the results of a previous run that this one does not write
+removed by the record of its summary.
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -33,8 +37,8 @@ from ..change.pipeline import (
 )
 from ..errors import QuakeScanError, ResultsError, check_input_file
 from ..formats.pointcloud import Epoch, PointCloudError, check_pair, check_point_cloud_path, epoch_origin, read_epoch
-from ..runtime import fingerprint
-from ..runtime.atomic import is_write_failure, write_failure_message, write_json, write_text
+from ..runtime import fingerprint, output_folder
+from ..runtime.atomic import check_output_name, is_write_failure, remove_stale_temporaries, write_failure_message, write_json, write_text
 from ..runtime.progress import ProgressCallback
 from ..runtime.text_safety import json_text
 from .model import DamageModel, ModelError, load_model
@@ -289,16 +293,23 @@ def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=N
     the mix of grades expected, for the model's equal one (`predict_rows`). `csv_raw`:
     buildings.csv keeps footprint IDs that begin like a formula as they are (for machine
     readers; `quakescan.results.writers.write_csv`)."""
+    with claimed_output_folder(out_dir, "classify", pre_path, post_path, footprints_path, model_path):
+        return _classify(pre_path, post_path, out_dir, model_path=model_path, footprints_path=footprints_path,
+                         id_field=id_field, align=align, workers=workers, progress=progress, write_las=write_las,
+                         laz=laz, force=force, unseen_damage=unseen_damage, prior=prior, csv_raw=csv_raw)
+
+
+def _classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=None, id_field=None,
+              align: bool | None = None, workers: int = -1, progress: ProgressCallback | None = None,
+              write_las: bool = True, laz: bool | None = None, force: bool = False, unseen_damage: bool = True,
+              prior: dict | None = None, csv_raw: bool = False) -> dict:
+    """`classify` in the output folder it has claimed."""
     from ..results import writers as results
 
     t0 = time.perf_counter()
     out = Path(out_dir)
     model_path = Path(model_path) if model_path else default_model_path()
-    for p, what in ((pre_path, "pre-event point cloud"), (post_path, "post-event point cloud"),
-                    (footprints_path, "footprint file"), (model_path, "model file")):
-        if p is not None:  # before the fingerprint reads them
-            check_input_file(p, what, ClassifyError)
-    _check_output_folder(out, [pre_path, post_path, footprints_path, model_path])
+    check_input_file(model_path, "model file", ClassifyError)  # the inputs given were checked with the folder
     options = run_options(id_field, write_las, laz, unseen_damage, prior, csv_raw)
     run_fp = _fingerprint(pre_path, post_path, footprints_path, model_path, align, options)
     done = _finished(out, run_fp)
@@ -316,6 +327,7 @@ def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=N
                      "points": {"pre": len(pre), "post": len(post)}, "crs": pre.crs}
     summary["registration"] = _register(pre, post, settings, align, summary, workers)
     t_read = time.perf_counter()
+    retire_previous_results(out)  # before the first write
     ckpt = _Checkpoint(out / ".checkpoint.jsonl", run_fp.digest)
     resumed = len(ckpt.rows)
     if resumed:
@@ -357,6 +369,8 @@ def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=N
                                 "graded_cloud": round(t_graded, 2), "total": round(time.perf_counter() - t0, 2)}})
     summary["fingerprint"] = run_fp.digest
     summary["options"] = options
+    summary["outputs"] = result_names(summary)
+    warn_of_foreign_results(out, summary)
     write_text(out / "summary.json", json_text(summary, indent=1, default=_json_default))  # strict: NaN is null
     ckpt.path.unlink(missing_ok=True)
     return summary
@@ -535,10 +549,84 @@ def _check_output_folder(out: Path, inputs) -> None:
                             "(buildings.csv, buildings.geojson, damage_map.png, ...): give a folder")
 
 
+RESULT_NAMES = ("buildings.csv", "buildings.geojson", "buildings.qml", "damage_map.png", "damage_map.html")
+GRADED_NAMES = ("post_grades.las", "post_grades.laz")
+# Everything a classification writes, replaces or deletes in its output folder: none of it may be an input.
+WRITTEN_NAMES = RESULT_NAMES + GRADED_NAMES + ("summary.json", ".checkpoint.jsonl", ".checkpoint.unmoved.jsonl",
+                                               ".blocks", ".graded")
+
+
+@contextlib.contextmanager
+def claimed_output_folder(out_dir, command: str, pre_path, post_path, footprints_path, model_path,
+                          working_folders=()):
+    """The checks of `classify` (one process or Dask) before anything is read or written, and
+    the output folder held for the run (`quakescan.runtime.output_folder`): the inputs exist,
+    OUT is a folder, no input is a file the run writes or deletes in it, its `working_folders`
+    (names in OUT) are QuakeScan's or absent, no other run is in it; the temporary files of a
+    killed run there are removed."""
+    out = output_folder.check_output_path(out_dir, "-o", ClassifyError)
+    inputs = ((pre_path, "pre-event point cloud"), (post_path, "post-event point cloud"),
+              (footprints_path, "footprint file"), (model_path, "model file"))
+    for p, what in inputs:
+        if p is not None:  # before the fingerprint reads them; a device or FIFO is refused as such
+            check_input_file(p, what, ClassifyError)
+    _check_output_folder(out, [p for p, _ in inputs])
+    output_folder.refuse_replacing_inputs([out / name for name in WRITTEN_NAMES], inputs, ClassifyError, command)
+    for name in RESULT_NAMES + GRADED_NAMES + ("summary.json",):  # refused now, not after the work
+        if (out / name).is_symlink():
+            check_output_name(out / name, ClassifyError)
+    for name in working_folders:
+        if (out / name).exists() or (out / name).is_symlink():
+            output_folder.own_subfolder(out / name, ClassifyError)  # refuses one that is not QuakeScan's
+    with output_folder.exclusive_run(out, command, ClassifyError):
+        remove_stale_temporaries(out)  # a killed run's; not a live writer's (evaluate may write here too)
+        yield out
+
+
+def result_names(summary: dict) -> list[str]:
+    """The files a finished classification wrote into its folder (its summary's "outputs")."""
+    names = list(RESULT_NAMES)
+    if "post_grades" in summary:
+        names.append(Path(summary["post_grades"]).name)
+    return names + ["summary.json"]
+
+
+def retire_previous_results(out: Path) -> None:
+    """Before a classification writes: the folder no longer says it holds finished results (a
+    run stopped half-way must not leave a summary over a mix of two runs' files, which a
+    rerun would take as up to date), and the graded cloud a previous run recorded writing is
+    removed when this run writes another one or none (`--no-las`, `--laz` after a `.las`
+    run): never left beside the new results as if it were theirs. Only QuakeScan's own names,
+    and only those the previous summary lists."""
+    summary_path = out / "summary.json"
+    try:
+        previous = json.loads(summary_path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return
+    if not isinstance(previous, dict) or "fingerprint" not in previous:
+        return  # not a summary of ours: left as it is
+    recorded = previous.get("outputs")
+    if not isinstance(recorded, list):  # a summary written before "outputs": its graded cloud is named apart
+        recorded = [Path(str(previous["post_grades"])).name] if "post_grades" in previous else []
+    summary_path.unlink(missing_ok=True)
+    for name in recorded:
+        if name in GRADED_NAMES:  # written again under its name, or not at all: remove it now
+            (out / name).unlink(missing_ok=True)
+
+
+def warn_of_foreign_results(out: Path, summary: dict) -> None:
+    """Say so when a graded cloud this run did not write, and no run recorded writing, sits
+    beside the results (a user's file under QuakeScan's name): it is left as it is."""
+    for name in GRADED_NAMES:
+        if name not in summary["outputs"] and (out / name).exists():
+            log.warning("%s: not written by this run nor recorded by an earlier one, so left as it is: it is not "
+                        "the graded cloud of these results", out / name)
+
+
 def _finished(out: Path, fp) -> dict | None:
     """The summary of a finished classification of the same inputs in `out`, else None."""
     try:
-        summary = json.loads((out / "summary.json").read_text())
+        summary = json.loads((out / "summary.json").read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, json.JSONDecodeError):
         return None
     if not fingerprint.matches(summary, fp):

@@ -15,6 +15,12 @@ others, a broken entry) is not read, and the model is loaded through skops as be
 
 `QUAKESCAN_CACHE_DIR` moves the cache (models go to its `models/`), `off` turns it off;
 without it, `$XDG_CACHE_HOME/quakescan` or `~/.cache/quakescan`.
+
+The cache reads, writes and deletes only its own entries: files named as `entry_name` names
+them (64 hex digits and `.pickle`) in a folder holding its marker (`runtime.output_folder`'s
+FOLDER_MARKER). A `models/` folder without the marker is taken as the cache only when it
+holds nothing but such entries (a cache of an earlier QuakeScan); one with other files is a
+user's folder and left alone: no model is kept there and none of its files is pruned.
 """
 from __future__ import annotations
 
@@ -23,6 +29,7 @@ import hashlib
 import logging
 import os
 import pickle
+import re
 import stat
 import sys
 from pathlib import Path
@@ -38,6 +45,7 @@ SUFFIX = ".pickle"
 # study loads, not every model ever tried (a random forest pickles to ~30 MB).
 MAX_ENTRIES = 8
 MAX_TOTAL_BYTES = 512 * 2 ** 20
+ENTRY = re.compile(r"^[0-9a-f]{64}" + re.escape(SUFFIX) + "$")  # `entry_name`'s names, nothing else
 
 
 def cache_folder() -> Path | None:
@@ -67,7 +75,7 @@ def entry_name(data: bytes) -> str:
 def recall(name: str):
     """The DamageModel kept under `name` (`entry_name` of a model file's bytes), or None."""
     folder = cache_folder()
-    if folder is None or not _private(folder, warn=True):
+    if folder is None or not ENTRY.match(name) or not _private(folder, warn=True) or not _own(folder, adopt=False):
         return None
     path = folder / name
     try:
@@ -98,7 +106,7 @@ def remember(name: str, model) -> None:
         return
     try:
         folder.mkdir(parents=True, exist_ok=True, mode=0o700)
-        if not _private(folder, warn=False):
+        if not ENTRY.match(name) or not _private(folder, warn=False) or not _own(folder, adopt=True):
             return
         from ..runtime.atomic import open_replacing
 
@@ -111,9 +119,14 @@ def remember(name: str, model) -> None:
 
 
 def prune(folder: Path, max_entries: int = MAX_ENTRIES, max_bytes: int = MAX_TOTAL_BYTES) -> None:
-    """Delete all but the most recently used entries that fit `max_entries` and `max_bytes`."""
+    """Delete all but the most recently used entries that fit `max_entries` and `max_bytes`:
+    the cache's own entries only (their names, in a folder with its marker)."""
+    if not _own(folder, adopt=False):
+        return
     entries = []
     for p in folder.glob("*" + SUFFIX):
+        if not ENTRY.match(p.name) or p.is_symlink():
+            continue
         with contextlib.suppress(OSError):
             s = p.stat()
             entries.append((s.st_mtime, s.st_size, p))
@@ -124,6 +137,30 @@ def prune(folder: Path, max_entries: int = MAX_ENTRIES, max_bytes: int = MAX_TOT
         if i >= max_entries or (i > 0 and total > max_bytes):
             with contextlib.suppress(OSError):
                 p.unlink()
+
+
+def _own(folder: Path, adopt: bool) -> bool:
+    """True when `folder` is the cache's (its marker). `adopt`: mark a folder that holds
+    nothing but entries and the atomic writer's temporaries (new, or an earlier QuakeScan's
+    cache); a folder with anything else is a user's, said once in the log."""
+    from ..runtime.atomic import TEMP_SUFFIX
+    from ..runtime.output_folder import FOLDER_MARKER
+
+    marker = folder / FOLDER_MARKER
+    if marker.is_file() and not marker.is_symlink():
+        return True
+    if not adopt:
+        return False
+    others = [p.name for p in folder.iterdir()
+              if not ENTRY.match(p.name) and not (p.name.startswith(".") and p.name.endswith(TEMP_SUFFIX))]
+    if others:
+        log.warning("%s: not used as the model cache: it holds files that are not the cache's (%s); set %s to a "
+                    "folder of its own", folder, ", ".join(sorted(others)[:3]), CACHE_ENV)
+        return False
+    fd = os.open(marker, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    with os.fdopen(fd, "w") as f:
+        f.write("QuakeScan's model cache: it reads, keeps and deletes only its own entries here\n")
+    return True
 
 
 def _private_file(s: os.stat_result) -> bool:

@@ -472,11 +472,15 @@ def pair_table(out_dir, pair: dict, settings: dict, labels: str = "simulator", w
 
 def _discard_clouds(paths) -> None:
     """Remove clouds no later pair reads, sidecar first (a cloud without its sidecar is made
-    again, never trusted)."""
+    again, never trusted). Only a cloud its sidecar records as made: a file there without one
+    is not the build's to delete."""
     from ..acquisition.acquire import sidecar_path
 
     for p in paths:
-        sidecar_path(p).unlink(missing_ok=True)
+        sidecar = sidecar_path(p)
+        if not sidecar.is_file() or sidecar.is_symlink():
+            continue
+        sidecar.unlink()
         Path(p).unlink(missing_ok=True)
 
 
