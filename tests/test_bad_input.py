@@ -8,6 +8,7 @@ is the pre epoch with millimetre noise), so no case waits for a scan.
 import csv
 import errno
 import json
+import re
 import time
 import zipfile
 
@@ -376,6 +377,21 @@ def test_a_building_whose_points_coincide_is_not_assessable(pair, tmp_path, caps
     rows = result_rows(tmp_path / "res")
     assert rows[2]["assessable"] == "0" and rows[2]["predicted_grade"] == ""
     assert "1 distinct pre-event positions" in rows[2]["reason"] and "coincide" in rows[2]["reason"]
+    assert rows[1]["assessable"] == rows[3]["assessable"] == "1"
+
+
+def test_a_pile_of_points_on_one_spot_is_no_survey_of_its_building(pair, tmp_path, capsys):
+    xyz, bid = town()
+    inside = xyz[bid == 2]
+    pile = np.repeat(inside[:1], 3 * len(inside), axis=0)
+    pile[:, 2] += np.linspace(0.0, 5.0, len(pile))  # one x/y spot, z spread: a stuck scanner
+    post = write_cloud(tmp_path / "post.las", np.vstack([xyz, pile]), np.concatenate([bid, np.full(len(pile), 2)]))
+    code, _, err = run(classify_args(pair, tmp_path / "res", post=post), capsys)
+    assert code == 0, err
+    rows = result_rows(tmp_path / "res")
+    assert rows[2]["assessable"] == "0" and rows[2]["predicted_grade"] == ""
+    stacked = re.match(r"(\d+) of its (\d+) post-event points lie on one x/y spot", rows[2]["reason"])
+    assert stacked and int(stacked[2]) == len(pile) + len(inside) and len(pile) < int(stacked[1]) < int(stacked[2])
     assert rows[1]["assessable"] == rows[3]["assessable"] == "1"
 
 

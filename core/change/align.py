@@ -36,7 +36,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import QuakeScanError
-from ..formats.pointcloud import BUILDING_CLASS, GROUND_CLASS, VEGETATION_CLASSES
+from ..formats.pointcloud import BUILDING_CLASS, GROUND_CLASS, NOISE_CLASSES, VEGETATION_CLASSES
 
 log = logging.getLogger(__name__)
 
@@ -142,15 +142,15 @@ def stable_mask(classification, building_id=None) -> np.ndarray:
     Stable are ground points (ASPRS class 2) and, when building ids are known, every point
     outside a building (building_id == 0) that is not itself classified as building (class 6:
     a building missing from the footprints is still a building) nor as vegetation (classes
-    3-5: crowns are porous and move in the wind). Without building ids only ground is
-    trusted: unclassified points may well be buildings."""
+    3-5: crowns are porous and move in the wind) nor noise (7, 18). Without building ids only
+    ground is trusted: unclassified points may well be buildings."""
     c = np.asarray(classification)
     mask = c == GROUND_CLASS
     if building_id is not None:
         b = np.asarray(building_id)
         if b.shape != c.shape:
             raise AlignmentError(f"building_id has {b.shape} entries but classification {c.shape}")
-        mask |= (b == 0) & (c != BUILDING_CLASS) & ~np.isin(c, VEGETATION_CLASSES)
+        mask |= (b == 0) & (c != BUILDING_CLASS) & ~np.isin(c, VEGETATION_CLASSES) & ~np.isin(c, NOISE_CLASSES)
     return mask
 
 

@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import QuakeScanError
-from ..formats.pointcloud import Epoch
+from ..formats.pointcloud import Epoch, without_noise
 from ..runtime.progress import ProgressCallback
 from ._cell_kernels import row_bounds
 from .features import FEATURES, compute_features
@@ -380,6 +380,7 @@ def describe_pair(pre: Epoch, post: Epoch, settings: PipelineSettings, *, worker
     if not np.array_equal(pre.origin, post.origin):
         raise PipelineError(f"{post.source}: epochs are in different local frames; read the post epoch "
                             "with the pre epoch's origin")
+    pre, post = without_noise(pre), without_noise(post)  # noise is no surface: not counted, not described
     pre_ids, post_ids = pre.building_id, post.building_id
     uniq_pre, n_pre = id_counts(pre_ids)
     uniq_post, n_post = id_counts(post_ids)
@@ -398,20 +399,11 @@ def describe_pair(pre: Epoch, post: Epoch, settings: PipelineSettings, *, worker
     post_start = dict(zip(uniq_post.tolist(), post_starts.tolist()))
     for bid in list(ok):
         s, t = where[bid]
-        a = _few_distinct(pre.xyz, order[s:t], settings.min_points_pre)
         p0 = post_start[bid]
-        b = _few_distinct(post.xyz, post_order[p0:p0 + n_post_of[bid]], settings.min_points_post)
-        if a is not None:
-            rows[bid] = BuildingRow(bid, n_pre_of[bid], n_post_of[bid], False,
-                                    f"{a} distinct pre-event positions < {settings.min_points_pre} "
-                                    f"(of {n_pre_of[bid]} points, the others coincide)")
-        elif b is not None:
-            rows[bid] = BuildingRow(bid, n_pre_of[bid], n_post_of[bid], False,
-                                    f"{b} distinct post-event positions < {settings.min_points_post} "
-                                    f"(of {n_post_of[bid]} points, the others coincide)")
-        else:
-            continue
-        ok.remove(bid)
+        why = _degenerate(pre.xyz, order[s:t], post.xyz, post_order[p0:p0 + n_post_of[bid]], settings)
+        if why:
+            rows[bid] = BuildingRow(bid, n_pre_of[bid], n_post_of[bid], False, why)
+            ok.remove(bid)
     del post_order, post_start  # 4 bytes a post-event point, not needed by the tiles
     centres = {}
     tiles: dict[tuple, list[int]] = {}
@@ -577,21 +569,17 @@ def describe_tile(pre: Epoch, post: Epoch, bids: Sequence[int], settings: Pipeli
     `facing_counts`: the counts the surface descriptors judge lost walls by, out of this call
     and into it (`quakescan.change.surface.describe_surfaces`), for a tile described in parts.
 
-    A building whose points coincide (fewer distinct positions than the minimum counts) is
-    not assessable, as in `describe_pair`; the others are described together."""
+    A building whose points coincide (fewer distinct positions than the minimum counts, or
+    most of them on one spot: `_degenerate`) is not assessable, as in `describe_pair`; the
+    others are described together."""
     pre_ids, post_ids = pre.building_id, post.building_id
     rows, ok, members = [], [], {}
     pre_of, post_of = _members_by_id(pre_ids), _members_by_id(post_ids)
     for bid in sorted(int(b) for b in bids):
         m, p = pre_of(bid), post_of(bid)
-        a = _few_distinct(pre.xyz, m, settings.min_points_pre)
-        b = None if a is not None else _few_distinct(post.xyz, p, settings.min_points_post)
-        if a is not None:
-            rows.append(BuildingRow(bid, len(m), len(p), False, f"{a} distinct pre-event positions < "
-                                    f"{settings.min_points_pre} (of {len(m)} points, the others coincide)"))
-        elif b is not None:
-            rows.append(BuildingRow(bid, len(m), len(p), False, f"{b} distinct post-event positions < "
-                                    f"{settings.min_points_post} (of {len(p)} points, the others coincide)"))
+        why = _degenerate(pre.xyz, m, post.xyz, p, settings)
+        if why:
+            rows.append(BuildingRow(bid, len(m), len(p), False, why))
         else:
             ok.append(bid)
             members[bid] = m
@@ -613,6 +601,47 @@ def _report_buildings(progress, finished: int, n: int, total: int) -> int:
         if progress:
             progress(finished, total)
     return finished
+
+
+def _degenerate(pre_xyz, pre_members, post_xyz, post_members, settings) -> str:
+    """Why a building's points are no surface to describe ("" when they are one): fewer
+    distinct positions than the model needs, or most of an epoch's points on one x/y spot."""
+    for xyz, members, minimum, name in ((pre_xyz, pre_members, settings.min_points_pre, "pre"),
+                                        (post_xyz, post_members, settings.min_points_post, "post")):
+        n = len(members)
+        distinct = _few_distinct(xyz, members, minimum)
+        if distinct is not None:
+            return f"{distinct} distinct {name}-event positions < {minimum} (of {n} points, the others coincide)"
+        stacked = _stacked_on_one_spot(xyz, members)
+        if stacked:
+            return (f"{stacked} of its {n} {name}-event points lie on one x/y spot "
+                    "(a stuck sensor or a broken export, not a surface)")
+    return ""
+
+
+STACK_CELL_M = 0.01  # points closer than this in x/y are on one spot
+STACKED_SHARE = 0.5  # an epoch with more of a building's points on one spot is no survey of it
+
+
+def _stacked_on_one_spot(xyz: np.ndarray, members: np.ndarray) -> int:
+    """The number of `members` on their most common x/y spot when that is more than
+    STACKED_SHARE of them, else 0. No scan puts half a roof's returns within a centimetre
+    (a wall's returns spread along the wall): such a pile would outweigh the building's real
+    returns in every count and raster. An even sample of 1024 decides almost every building."""
+    n = len(members)
+    if n == 0:
+        return 0
+
+    def mode_count(idx):
+        cells = np.floor(xyz[idx, :2] / STACK_CELL_M).astype(np.int64)
+        return int(np.unique(cells, axis=0, return_counts=True)[1].max())
+
+    if n > 1024:
+        sample = members[np.linspace(0, n - 1, 1024).astype(np.int64)]
+        if mode_count(sample) <= STACKED_SHARE / 2 * len(sample):
+            return 0
+    top = mode_count(members)
+    return top if top > STACKED_SHARE * n else 0
 
 
 def _few_distinct(xyz: np.ndarray, members: np.ndarray, minimum: int) -> int | None:

@@ -40,7 +40,7 @@ from pathlib import Path
 import numpy as np
 
 from ..change.surface import DENSITY_CELL_M
-from ..formats.pointcloud import PointCloudError, read_point_range
+from ..formats.pointcloud import PointCloudError, noise_mask, read_point_range
 
 # The stored point: the file's integers, so a float64 coordinate is made once, on reading.
 # RECORD is the widest record, for any file; an epoch's blocks store the narrowest its file
@@ -146,19 +146,20 @@ class EpochStats:
     stable_sample: np.ndarray | None = None  # (m, 3) local: the registration check's points
     map_xy: np.ndarray | None = None  # (k, 2) local
     hulls: dict = field(default_factory=dict)  # building ID -> (h, 2) hull vertices, world x/y
+    noise: int = 0  # ASPRS noise returns, in no building
 
     def to_json(self) -> dict:
         return {"n": self.n, "counts": {str(k): v for k, v in self.counts.items()},
                 "lo": {str(k): list(v) for k, v in self.lo.items()},
                 "hi": {str(k): list(v) for k, v in self.hi.items()},
-                "bounds": self.bounds, "blocks": self.blocks}
+                "bounds": self.bounds, "blocks": self.blocks, "noise": self.noise}
 
     @classmethod
     def from_json(cls, d: dict, arrays: dict) -> EpochStats:
         return cls(int(d["n"]), {int(k): int(v) for k, v in d["counts"].items()},
                    {int(k): tuple(v) for k, v in d["lo"].items()}, {int(k): tuple(v) for k, v in d["hi"].items()},
                    d["bounds"], [list(b) for b in d["blocks"]], arrays.get("stable_sample"), arrays.get("map_xy"),
-                   {int(k[5:]): v for k, v in arrays.items() if k.startswith("hull_")})
+                   {int(k[5:]): v for k, v in arrays.items() if k.startswith("hull_")}, int(d.get("noise", 0)))
 
 
 def block_of(xy: np.ndarray, block_cells: int) -> np.ndarray:
@@ -439,6 +440,10 @@ def stream_epoch(f: EpochFile, origin: np.ndarray, folder: Path, *, block_cells:
                 from ..formats.pointcloud import checked_building_ids
 
                 ids = np.asarray(checked_building_ids(chunk["building_id"], f.path), dtype=np.int64)
+            noise = noise_mask(cls)
+            if noise.any():  # in no building, as `classification.load_pair` sets them
+                ids[noise] = 0
+                stats.noise += int(noise.sum())
             groups = _Groups.of(ids)
             _add_building_stats(stats, groups, xyz)
             if hulls is not None:
@@ -602,6 +607,7 @@ def merge_stats(parts: list[EpochStats]) -> EpochStats:
     blocks = set()
     for s in parts:
         out.n += s.n
+        out.noise += s.noise
         for b, c in s.counts.items():
             if b in out.counts:
                 out.counts[b] += c

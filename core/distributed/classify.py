@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import check_input_file
-from ..formats.pointcloud import PointCloudError, check_coordinates_fit_crs
+from ..formats.pointcloud import PointCloudError, check_coordinates_fit_crs, check_not_all_noise
 from ..learning import classification as cl
 from ..runtime.output_folder import empty_own_subfolder, is_own_subfolder, remove_own_subfolder
 from ..runtime.progress import ProgressCallback
@@ -131,6 +131,8 @@ def _classify_distributed(pre_path, post_path, out_dir, client, *, model_path=No
     pre_s, post_s = _tiled_epochs(client, store, run_fp.digest, pre_f, post_f, origin, fp, footprints, block_cells,
                                   sample, chunk_points, progress, meanwhile=load_model)
     model, settings = loaded["model"], loaded["settings"]
+    for path, stats in ((pre_path, pre_s), (post_path, post_s)):
+        check_not_all_noise(stats.noise, stats.n, path)
     if fp is not None and not pre_s.counts:
         b = fp.bounds()
         raise cl.ClassifyError(f"{footprints_path}: no footprint contains a pre-event point (footprints span "
@@ -140,7 +142,9 @@ def _classify_distributed(pre_path, post_path, out_dir, client, *, model_path=No
         raise cl.ClassifyError(f"{pre_path}: no point belongs to a building (all building IDs are 0)")
     summary: dict = {"pre": str(pre_path), "post": str(post_path), "model": str(model_path),
                      "model_provenance": model.provenance, "settings": settings.to_json(),
-                     "points": {"pre": pre_s.n, "post": post_s.n}, "crs": crs}
+                     "points": {"pre": pre_s.n, "post": post_s.n},
+                     "noise_points": {"pre": pre_s.noise, "post": post_s.noise}, "crs": crs}
+    cl.warn_of_epoch_order(pre_path, post_path, summary)
     t_read = time.perf_counter()
     stage("densities")
 

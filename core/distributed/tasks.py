@@ -208,6 +208,7 @@ def graded_part(out_file: str, epoch_json: dict, origin: list, start: int, stop:
 
     from ..change.align import apply_transform
     from ..formats.footprints import assign_buildings
+    from ..formats.pointcloud import noise_mask
     from ..results.writers import grade_header, grade_records, source_chunks_format7, source_extra_dims
     from ..runtime.atomic import open_replacing
 
@@ -226,6 +227,7 @@ def graded_part(out_file: str, epoch_json: dict, origin: list, start: int, stop:
                 ids = np.asarray(checked_building_ids(raw["building_id"], f.path), dtype=np.int64)
             else:  # IDs from the unaligned points, as the tiles got them
                 ids = assign_buildings(xyz[:, 0] + origin[0], xyz[:, 1] + origin[1], fp)
+            ids[noise_mask(raw.classification)] = 0  # noise is in no building, as in the tiles
             if transform is not None:
                 xyz = apply_transform(transform, xyz)
             records = grade_records(out_file, header, origin, grade_by_building, xyz, ids, kept)
@@ -291,7 +293,7 @@ def describe_tile_task(store: str, tile: dict, settings_json: dict, geometry: di
     parallelism)."""
     from ..change.pipeline import PipelineSettings, describe_tile
     from ..change.surface import SurfaceGeometry
-    from ..formats.pointcloud import Epoch
+    from ..formats.pointcloud import Epoch, without_noise
 
     settings = PipelineSettings.from_json(settings_json)
     box = np.asarray(tile["box"], dtype=np.float64)
@@ -308,7 +310,8 @@ def describe_tile_task(store: str, tile: dict, settings_json: dict, geometry: di
             xyz = apply_transform(alignment, xyz)
             inside = np.all((xyz[:, :2] >= box[0]) & (xyz[:, :2] <= box[1]), axis=1)
             rec, xyz = rec[inside], xyz[inside]
-        epochs.append(Epoch(xyz, origin, rec["classification"], building_id=rec["building_id"], source=f.path))
+        epochs.append(without_noise(Epoch(xyz, origin, rec["classification"], building_id=rec["building_id"],
+                                          source=f.path)))  # as `describe_pair` leaves it out
     pre, post = epochs
     geom = None if geometry is None else SurfaceGeometry(**geometry)
     reach: dict = {}

@@ -6,6 +6,7 @@ Coordinates are stored with scale 0.001 m and offset = scene origin.
 """
 from __future__ import annotations
 
+import dataclasses
 import datetime
 import logging
 import os
@@ -27,6 +28,8 @@ GRADE_UNKNOWN = 255
 UNCLASSIFIED, GROUND_CLASS, BUILDING_CLASS = 1, 2, 6
 LOW_VEGETATION_CLASS, HIGH_VEGETATION_CLASS = 3, 5
 VEGETATION_CLASSES = (3, 4, 5)  # low, medium, high vegetation
+# low and high noise: a return off no surface (a bird, multipath, a dust cloud) is no roof
+NOISE_CLASSES = (7, 18)
 EXTRA_DIMS = (("building_id", np.uint32, "building ID, 0 = none"),
               ("grade", np.uint8, "EMS-98 grade, 255 = unknown"),
               ("surface", np.uint8, "0grd1roof2wall3deb4int5veg6obj"))
@@ -528,6 +531,82 @@ def read_epoch(path: str | os.PathLike, origin=None, chunk_points: int = 4_000_0
         check_coordinates_fit_crs(crs, lo + origin, hi + origin, str(path))
     return Epoch(xyz, origin, classification, building_id=extras.get("building_id"), grade=extras.get("grade"),
                  surface=extras.get("surface"), crs=crs, source=str(path))
+
+
+ORDER_SAMPLE_POINTS = 10_000  # a flight's first returns date its start
+
+
+def acquisition_start(path) -> dict:
+    """When the epoch in `path` was acquired, as far as its file says: {"date": the header's
+    creation date (ISO) or None, "gps_start": the earliest adjusted-standard GPS time of its
+    first ORDER_SAMPLE_POINTS returns or None (GPS week time repeats every week: no order)}.
+    Reads the header and one small chunk."""
+    try:
+        with laspy.open(path) as reader:
+            h = reader.header
+            date = h.creation_date.isoformat() if h.creation_date else None
+            gps = None
+            standard = h.global_encoding.gps_time_type == laspy.header.GpsTimeType.STANDARD
+            if standard and "gps_time" in h.point_format.dimension_names and h.point_count:
+                times = np.asarray(reader.read_points(min(ORDER_SAMPLE_POINTS, int(h.point_count))).gps_time)
+                times = times[np.isfinite(times)]
+                gps = float(times.min()) if len(times) else None
+    except Exception:  # the reader proper says what is wrong with the file
+        return {"date": None, "gps_start": None}
+    return {"date": date, "gps_start": gps}
+
+
+def epoch_order_warning(pre_path, post_path) -> str | None:
+    """A sentence when the files say the post-event epoch was acquired before the pre-event
+    one (its creation date earlier, or its flight's start in GPS time): swapped epochs turn
+    collapse into construction. None when they do not say so."""
+    pre, post = acquisition_start(pre_path), acquisition_start(post_path)
+    said = []
+    if pre["date"] and post["date"] and post["date"] < pre["date"]:
+        said.append(f"dated {post['date']}, the pre-event file {pre['date']}")
+    if pre["gps_start"] is not None and post["gps_start"] is not None and post["gps_start"] < pre["gps_start"]:
+        said.append(f"its GPS time starts {pre['gps_start'] - post['gps_start']:.0f} s before the pre-event file's")
+    if not said:
+        return None
+    return (f"{post_path}: the post-event epoch was acquired before the pre-event epoch {pre_path} "
+            f"({'; '.join(said)}): are --pre and --post swapped? Graded as given")
+
+
+def noise_mask(classification) -> np.ndarray:
+    """The points classified as ASPRS noise (`NOISE_CLASSES`)."""
+    return np.isin(np.asarray(classification), NOISE_CLASSES)
+
+
+def without_noise(epoch: Epoch) -> Epoch:
+    """`epoch` without its noise returns (the same object when it has none): noise is left
+    out of every surface, point feature and count."""
+    noise = noise_mask(epoch.classification)
+    if not noise.any():
+        return epoch
+    keep = ~noise
+    return dataclasses.replace(epoch, xyz=epoch.xyz[keep], classification=epoch.classification[keep],
+                               **{name: getattr(epoch, name)[keep] for name in ("building_id", "grade", "surface")
+                                  if getattr(epoch, name) is not None})
+
+
+def check_not_all_noise(n_noise: int, n: int, source) -> None:
+    """Refuse a cloud whose `n` points are all noise: grading it would grade nothing as if it
+    were a survey."""
+    if n and n_noise == n:
+        raise PointCloudError(f"{source}: every one of its {n} points is classified as noise "
+                              f"(ASPRS class {' or '.join(map(str, NOISE_CLASSES))}): no surface to grade")
+
+
+def set_noise_apart(epoch: Epoch) -> int:
+    """Give the epoch's noise returns building ID 0 (none), so no building counts them and the
+    graded cloud draws them as no building; the number of them. A cloud of nothing but noise
+    is refused (`check_not_all_noise`)."""
+    noise = noise_mask(epoch.classification)
+    n = int(noise.sum())
+    check_not_all_noise(n, len(epoch), epoch.source)
+    if n and epoch.building_id is not None:
+        epoch.building_id[noise] = 0
+    return n
 
 
 def check_pair(pre: Epoch, post: Epoch) -> None:

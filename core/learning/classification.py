@@ -36,7 +36,16 @@ from ..change.pipeline import (
     settings_for_descriptors,
 )
 from ..errors import QuakeScanError, ResultsError, check_input_file
-from ..formats.pointcloud import Epoch, PointCloudError, check_pair, check_point_cloud_path, epoch_origin, read_epoch
+from ..formats.pointcloud import (
+    Epoch,
+    PointCloudError,
+    check_pair,
+    check_point_cloud_path,
+    epoch_order_warning,
+    epoch_origin,
+    read_epoch,
+    set_noise_apart,
+)
 from ..runtime import fingerprint, output_folder
 from ..runtime.atomic import check_output_name, is_write_failure, remove_stale_temporaries, write_failure_message, write_json, write_text
 from ..runtime.progress import ProgressCallback
@@ -92,6 +101,7 @@ class PairData:
     post: Epoch
     footprints: object = None  # quakescan.formats.footprints.Footprints
     footprint_ids_without_points: list = field(default_factory=list)
+    noise_points: dict = field(default_factory=dict)  # {"pre": n, "post": n}: ASPRS noise, in no building
 
 
 def load_pair(pre_path, post_path, footprints_path=None, id_field: str | None = None, labels: bool = True) -> PairData:
@@ -111,7 +121,7 @@ def load_pair(pre_path, post_path, footprints_path=None, id_field: str | None = 
             if e.building_id is None:
                 raise ClassifyError(f"{e.source}: no building_id dimension; give building footprints "
                                     "(--footprints F.geojson in the clouds' CRS)")
-        return PairData(pre, post)
+        return PairData(pre, post, noise_points=_noise_apart(pre, post))
     from ..formats.footprints import assign_buildings, read_footprints
 
     fp = read_footprints(footprints_path, id_field)
@@ -128,9 +138,28 @@ def load_pair(pre_path, post_path, footprints_path=None, id_field: str | None = 
         raise ClassifyError(f"{footprints_path}: no footprint contains a pre-event point (footprints span "
                             f"x {b[:, 0].min():.1f}..{b[:, 2].max():.1f}, y {b[:, 1].min():.1f}..{b[:, 3].max():.1f}; "
                             f"points x {pre.bounds_xy()[:, 0].round(1).tolist()}); wrong CRS?")
+    noise = _noise_apart(pre, post)
     hit = set(np.unique(pre.building_id).tolist()) | set(np.unique(post.building_id).tolist())
     empty = sorted(int(i) for i in fp.ids if int(i) not in hit)
-    return PairData(pre, post, fp, empty)
+    return PairData(pre, post, fp, empty, noise)
+
+
+def warn_of_epoch_order(pre_path, post_path, summary: dict) -> None:
+    """Say so (on the console and in the summary's "warnings") when the files date the
+    post-event epoch before the pre-event one (`epoch_order_warning`)."""
+    warning = epoch_order_warning(pre_path, post_path)
+    if warning:
+        log.warning("%s", warning)
+        summary.setdefault("warnings", []).append(warning)
+
+
+def _noise_apart(pre: Epoch, post: Epoch) -> dict:
+    """Both epochs' noise returns in no building (`set_noise_apart`), counted and said."""
+    counts = {"pre": set_noise_apart(pre), "post": set_noise_apart(post)}
+    for name, e in (("pre", pre), ("post", post)):
+        if counts[name]:
+            log.info("%s: %d noise returns (ASPRS class 7/18) left out of every building", e.source, counts[name])
+    return counts
 
 
 def _fingerprint(pre_path, post_path, footprints_path, model_path, align: bool | None, options: dict):
@@ -324,7 +353,9 @@ def _classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=
     pre, post = data.pre, data.post
     summary: dict = {"pre": str(pre_path), "post": str(post_path), "model": str(model_path),
                      "model_provenance": model.provenance, "settings": settings.to_json(),
-                     "points": {"pre": len(pre), "post": len(post)}, "crs": pre.crs}
+                     "points": {"pre": len(pre), "post": len(post)}, "noise_points": data.noise_points,
+                     "crs": pre.crs}
+    warn_of_epoch_order(pre_path, post_path, summary)
     summary["registration"] = _register(pre, post, settings, align, summary, workers)
     t_read = time.perf_counter()
     retire_previous_results(out)  # before the first write
