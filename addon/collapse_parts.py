@@ -2,7 +2,7 @@
 
 ``generate_scenes.py --jobs N`` simulates a scene's collapses in several processes (each
 collapse depends only on its building and its neighbours as they stand before the event:
-scene_tools.PhysicsColliders) and writes the scene in one. A part file (``.npz``) holds one
+post_scene.PhysicsColliders) and writes the scene in one. A part file (``.npz``) holds one
 collapse: the mesh of the collapsed copy (vertex coordinates as Blender stores them, float32,
 polygons in their loop order and every face, corner and point attribute; edges are rebuilt
 from the polygons) and its record, or the message of a collapse that did not settle. Restored
@@ -119,7 +119,7 @@ def is_done(folder, key: dict, building_id: int) -> bool:
 def loader(folder, key: dict):
     """building_id -> None (no usable part) or a function that gives a fresh copy of the
     building the stored collapse and returns its records (raising DamageError with the stored
-    message for one that did not settle): scene_tools.make_post_scene's `collapses`."""
+    message for one that did not settle): post_scene.make_post_scene's `collapses`."""
     def find(building_id):
         if not is_done(folder, key, building_id):
             return None

@@ -4,7 +4,7 @@ from __future__ import annotations
 import bpy
 from bpy.props import BoolProperty, EnumProperty, IntProperty
 
-from . import ems98, scene_tools
+from . import ems98, post_scene, scene_tools
 from .ops_building import _is_building
 from .props import PATTERN_ITEMS
 
@@ -97,7 +97,7 @@ class DAMAGE_OT_apply_grade(bpy.types.Operator):
                 continue
             try:
                 g = obj.qs_building.grade if self.grade < 0 else self.grade
-                if scene_tools.uses_physics(obj, g, self.method):
+                if post_scene.uses_physics(obj, g, self.method):
                     _collapse(context, obj, g, self.settle_steps)
                 else:
                     scene_tools.apply_grade_to_object(obj, None if self.grade < 0 else self.grade)

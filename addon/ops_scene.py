@@ -4,7 +4,7 @@ from __future__ import annotations
 import bpy
 from bpy.props import BoolProperty
 
-from . import scene_tools
+from . import post_scene, scene_tools
 
 
 class DAMAGE_OT_make_post_scene(bpy.types.Operator):
@@ -38,7 +38,7 @@ class DAMAGE_OT_make_post_scene(bpy.types.Operator):
             return {'CANCELLED'}
         target = scene_tools.ensure_collection(context.scene, name, clear=self.replace)
         try:
-            out = scene_tools.make_post_scene(objs, target, seed_salt=context.scene.qs_scene.seed)
+            out = post_scene.make_post_scene(objs, target, seed_salt=context.scene.qs_scene.seed)
         except scene_tools.DamageError as e:
             self.report({'ERROR'}, str(e))
             return {'CANCELLED'}

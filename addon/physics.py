@@ -13,7 +13,7 @@ What happens to one building (``collapse_object``):
 3. a temporary scene with a rigid-body world: every shard an active body (convex hull, mass =
    volume × the material's density, friction 0.6, restitution 0), passive colliders for the
    ground, the part of the building outside the zone, neighbouring buildings and terrain
-   objects (triangle meshes, as given: scene_tools.PhysicsColliders gives a scene's
+   objects (triangle meshes, as given: post_scene.PhysicsColliders gives a scene's
    neighbours as they stand when its collapses start, see standing_part); the world is
    stepped frame by frame (``scene.frame_set``) until no shard moved more than 5 cm within the last second, or the
    step limit, or after 5 s once the shards that moved 0.5 m or more within the last second

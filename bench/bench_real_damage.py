@@ -168,7 +168,7 @@ def score(result_csv: Path, truth_csv: Path, every_building: bool = False) -> di
 
 
 def expected_calibration_error(confidence: np.ndarray, correct: np.ndarray, bins: int = ECE_BINS) -> float:
-    from quakescan.learning.real_calibration import calibration_error
+    from quakescan.learning.reliability import calibration_error
 
     return calibration_error(confidence, correct, bins)
 

@@ -425,6 +425,7 @@ def run(args) -> int:
     import bpy
     addon = addon_module()
     citygen, io_export, scene_tools = addon_module("citygen"), addon_module("io_export"), addon_module("scene_tools")
+    post_scene = addon_module("post_scene")
     ShellSpec = addon_module("geometry.shell").ShellSpec
 
     if not hasattr(bpy.types.Object, "qs_building"):
@@ -528,10 +529,10 @@ def run(args) -> int:
                     collapse_parts = addon_module("collapse_parts")
                     damage["collapses"] = collapse_parts.loader(parts_folder(out, name), info)
                 if street is None:
-                    scene_tools.make_post_scene(pre_objs, coll, grades=grades, on_progress=progress, **damage)
+                    post_scene.make_post_scene(pre_objs, coll, grades=grades, on_progress=progress, **damage)
                 else:  # trees, hedges, furniture copied; the pre-event cars replaced by this scene's
                     street_objects, streetscape = addon_module("street_objects"), addon_module("streetscape")
-                    scene_tools.make_post_scene([o for o in pre_objs if not street_objects.is_car_object(o)], coll,
+                    post_scene.make_post_scene([o for o in pre_objs if not street_objects.is_car_object(o)], coll,
                                                 grades=grades, on_progress=progress, **damage)
                     scape, footprints, bounds, ground_z, set_name = street
                     cars = streetscape.post_event_cars(scape, footprints, bounds, set_name, args.seed, name, ground_z)
@@ -638,13 +639,14 @@ def simulate_collapses(args, scenes, pre_objs, out: Path, claims: Path, street=N
     exclusively in `claims`), so the processes stay busy until the last collapse; each is
     written to its scene's parts folder (collapse_parts), those already there are skipped."""
     collapse_parts, scene_tools = addon_module("collapse_parts"), addon_module("scene_tools")
+    post_scene = addon_module("post_scene")
     DamageError = scene_tools.DamageError
     if street is not None:
         street_objects = addon_module("street_objects")
         pre_objs = [o for o in pre_objs if not street_objects.is_car_object(o)]
     done = 0
     for name, grades, info in scenes:
-        colliders = scene_tools.PhysicsColliders(pre_objs, grades, args.damage)
+        colliders = post_scene.PhysicsColliders(pre_objs, grades, args.damage)
         folder = parts_folder(out, name)
         for src in colliders.sources:
             pg = src.qs_building
@@ -658,7 +660,7 @@ def simulate_collapses(args, scenes, pre_objs, out: Path, claims: Path, street=N
                 continue  # another process has it
             t0 = time.perf_counter()
             try:
-                obj, rec = scene_tools.collapse_copy(src, colliders, settle_steps=args.settle_steps)
+                obj, rec = post_scene.collapse_copy(src, colliders, settle_steps=args.settle_steps)
             except DamageError as e:
                 collapse_parts.save(folder, info, pg.building_id, error=str(e))
                 log(f"{name}: building {pg.building_id} did not come to rest ({time.perf_counter() - t0:.1f} s)")
@@ -666,7 +668,7 @@ def simulate_collapses(args, scenes, pre_objs, out: Path, claims: Path, street=N
                 try:
                     collapse_parts.save(folder, info, pg.building_id, obj, rec)
                 finally:
-                    scene_tools.remove_object(obj)
+                    post_scene.remove_object(obj)
                 log(f"{name}: building {pg.building_id} collapsed in {time.perf_counter() - t0:.1f} s")
             done += 1
     log(f"{done} collapses simulated")

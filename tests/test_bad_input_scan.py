@@ -347,17 +347,17 @@ def test_the_demo_scans_again_a_cut_cloud(tmp_path, scene_dir):
 
 
 def test_the_generators_own_refusals_do_not_name_its_script(monkeypatch, tmp_path):
-    import quakescan.demo
+    import quakescan.generator
     from quakescan.errors import QuakeScanError
 
     class Refused:
         returncode = 2
         stderr = "usage: generate_scenes.py [-h]\ngenerate_scenes.py: error: argument --seed: seed must be in 0..2^32-1"
 
-    monkeypatch.setattr(quakescan.demo, "generator_command", lambda args: ["generator", *args])
-    monkeypatch.setattr(quakescan.demo.subprocess, "run", lambda *a, **k: Refused())
+    monkeypatch.setattr(quakescan.generator, "generator_command", lambda args: ["generator", *args])
+    monkeypatch.setattr(quakescan.generator.subprocess, "run", lambda *a, **k: Refused())
     with pytest.raises(QuakeScanError, match=r"the scene generator refused .*--seed: seed must be") as e:
-        quakescan.demo.generate("generic", "mixed", 3, 5, tmp_path)
+        quakescan.generator.generate("generic", "mixed", 3, 5, tmp_path)
     assert "usage" not in str(e.value)
 
 

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from quakescan.learning.model import DamageModel, ModelError, load_model, save_model, train_forest
-from quakescan.learning.real_calibration import (MAX_TEMPERATURE, expected_calibration_error, fit_temperature,
-                                                 log_loss, out_of_fold_real, real_calibration, temper)
+from quakescan.learning.real_calibration import out_of_fold_real, real_calibration
+from quakescan.learning.reliability import MAX_TEMPERATURE, expected_calibration_error, fit_temperature, log_loss, temper
 from quakescan.learning.trainset import TransferTable
 
 
@@ -130,7 +130,7 @@ def test_the_temperature_is_fitted_to_the_probabilities_classify_reports():
     after they are counted (`unseen_damage`), the one a user's probabilities get."""
     import dataclasses
 
-    from quakescan.learning.real_calibration import _out_of_fold, fit_temperature
+    from quakescan.learning.real_calibration import _out_of_fold
     from quakescan.learning.unseen_damage import with_unseen_damage
 
     table = _table()

@@ -72,7 +72,7 @@ def test_the_model_cache_never_prunes_a_users_pickles(tmp_path, monkeypatch):
         model_cache.remember(f"{i:064x}.pickle", {"i": i})
     assert (cache / "mine.pickle").read_bytes() == b"the user's"
     assert len([p for p in cache.glob("*.pickle") if p.name != "mine.pickle"]) == model_cache.MAX_ENTRIES
-    assert model_cache.recall("mine.pickle") is None  # never read as an entry either
+    assert model_cache.recall("mine.pickle", object) is None  # never read as an entry either
 
 
 def test_an_earlier_quakescans_cache_is_adopted(tmp_path, monkeypatch):

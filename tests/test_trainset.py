@@ -245,10 +245,10 @@ def test_a_city_made_by_another_generator_is_made_again_not_refused(monkeypatch,
     """The training set's scenes are its own cache: a bundle of an older generator version (or
     other settings) must be regenerated, which the generator does only with --force (without
     it, it stops: right for a user's folder, a dead end for a cache)."""
-    import quakescan.demo as demo
+    import quakescan.generator as generator
     from quakescan.learning import trainset as T
 
     calls = []
-    monkeypatch.setattr(demo, "generate", lambda *a, **kw: calls.append(kw))
+    monkeypatch.setattr(generator, "generate", lambda *a, **kw: calls.append(kw))
     T.generate_city(T.CitySpec("generic_m0", "generic", "mixed", 100, None, {0: 2, 5: 1}), tmp_path / "generic_m0")
     assert calls and all(kw.get("force") is True for kw in calls)

@@ -208,10 +208,10 @@ def training_settings(descriptors: str = "surface", *, radius_m: float = 1.5,
     surface = None
     extra = {}
     if descriptors in ("surface", "both") or per_point_lod:
-        from ..learning.default_model import MODEL_DESCRIPTORS
+        from .surface import NOISE_FREE_DESCRIPTORS
 
         surface = SurfaceSettings()
-        extra["surface_descriptors"] = MODEL_DESCRIPTORS if descriptors in ("surface", "both") else ()
+        extra["surface_descriptors"] = NOISE_FREE_DESCRIPTORS if descriptors in ("surface", "both") else ()
     return PipelineSettings(radius_m=radius_m, point_features=tuple(point_features or PAPER_FEATURES),
                             split=split or SplitSettings(), paper_descriptors=descriptors in ("paper", "both"),
                             surface=surface, per_point_lod=per_point_lod and descriptors != "surface", **extra)

@@ -132,6 +132,10 @@ CORE_DESCRIPTORS = ("m_changed", "m_lost", "m_roof_changed", "m_wall_changed", "
                     "m_lower_changed", "m_inward", "m_outward", "m_coherent", "m_largest_patch", "m_distance_p10",
                     "m_distance_median", "m_distance_p90", "m_lod_median")
 SURFACE_DESCRIPTORS = RASTER_DESCRIPTORS + CORE_DESCRIPTORS + OPENING_DESCRIPTORS
+# the descriptors whose meaning does not depend on the sensor's noise: the signed distances and
+# the level of detection of the significant core points describe the sensor on an unchanged
+# real roof (quakescan.learning.default_model reads these; bench_transfer measures the others)
+NOISE_FREE_DESCRIPTORS = tuple(n for n in SURFACE_DESCRIPTORS if not n.startswith(("m_distance", "m_lod")))
 
 
 class SurfaceError(QuakeScanError):

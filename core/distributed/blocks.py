@@ -745,10 +745,9 @@ def _copc_records(folder: Path, f: EpochFile, origin: np.ndarray, packed: np.nda
     footprints = _epoch_json(folder).get("footprints")
     if footprints:
         from ..formats.footprints import assign_buildings
-        from .tasks import _footprints
 
         rec["building_id"] = assign_buildings(xyz[:, 0] + origin[0], xyz[:, 1] + origin[1],
-                                              _footprints(footprints["path"], footprints.get("id_field")))
+                                              worker_footprints(footprints["path"], footprints.get("id_field")))
     else:
         rec["building_id"] = np.asarray(points["building_id"], dtype=np.int64)
     return rec
@@ -775,11 +774,25 @@ def save_arrays(path: Path, arrays: dict) -> None:
         np.savez(f, **arrays)
 
 
+_FOOTPRINTS: dict = {}
+
+
+def worker_footprints(path: str, id_field):
+    """The footprints of `path`, read once per worker process (every part of both epochs asks)."""
+    from ..formats.footprints import read_footprints
+
+    key = (path, id_field, Path(path).stat().st_mtime_ns)
+    if key not in _FOOTPRINTS:
+        _FOOTPRINTS.clear()
+        _FOOTPRINTS[key] = read_footprints(path, id_field)
+    return _FOOTPRINTS[key]
+
+
 def block_m(block_cells: int) -> float:
     return float(block_cells) * DENSITY_CELL_M
 
 
 __all__ = ["CHUNK_POINTS", "EpochFile", "EpochStats", "RECORD", "block_of", "block_runs", "blocks_in_box",
            "default_origin", "join_part_indexes", "merge_stats", "open_epoch_file", "page_cache_cannot_hold",
-           "read_box", "read_records", "read_runs", "record_dtype", "stored_points", "stored_record",
-           "stream_epoch"]
+           "read_box", "read_records", "read_runs", "record_dtype", "stored_points", "stored_record", "stream_epoch",
+           "worker_footprints"]

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from ..change.surface import DENSITY_CELL_M
-from .blocks import EpochFile, block_runs, read_box, read_records, read_runs, stored_points
+from .blocks import EpochFile, block_runs, read_box, read_records, read_runs, stored_points, worker_footprints
 
 # the eight neighbours a roof cell needs occupied to count as interior (roof_cell_density)
 NEIGHBOURS = [(dx, dy) for dx in (-1, 0, 1) for dy in (-1, 0, 1) if dx or dy]
@@ -189,7 +189,7 @@ def stream_part(folder: str, epoch_json: dict, origin: list, part: int, start: i
     page cache (`blocks.page_cache_cannot_hold`). Returns the part's EpochStats."""
     from .blocks import page_cache_cannot_hold, stream_epoch
 
-    fp = None if footprints is None else _footprints(footprints["path"], footprints.get("id_field"))
+    fp = None if footprints is None else worker_footprints(footprints["path"], footprints.get("id_field"))
     return stream_epoch(EpochFile(**epoch_json), np.asarray(origin, dtype=np.float64), Path(folder),
                         block_cells=block_cells, footprints=fp, with_hulls=with_hulls,
                         sample=None if sample is None else tuple(sample), map_step=map_step,
@@ -214,7 +214,7 @@ def graded_part(out_file: str, epoch_json: dict, origin: list, start: int, stop:
 
     f = EpochFile(**epoch_json)
     origin = np.asarray(origin, dtype=np.float64)
-    fp = None if footprints is None else _footprints(footprints["path"], footprints.get("id_field"))
+    fp = None if footprints is None else worker_footprints(footprints["path"], footprints.get("id_field"))
     n = 0
     with laspy.open(f.path) as reader, open_replacing(Path(out_file), "wb") as out:
         # the records' layout only: the client writes the header
@@ -235,20 +235,6 @@ def graded_part(out_file: str, epoch_json: dict, origin: list, start: int, stop:
                 out.write(records.array.tobytes())
                 n += len(records)
     return n
-
-
-_FOOTPRINTS: dict = {}
-
-
-def _footprints(path: str, id_field):
-    """The footprints of `path`, read once per worker process (every part of both epochs asks)."""
-    from ..formats.footprints import read_footprints
-
-    key = (path, id_field, Path(path).stat().st_mtime_ns)
-    if key not in _FOOTPRINTS:
-        _FOOTPRINTS.clear()
-        _FOOTPRINTS[key] = read_footprints(path, id_field)
-    return _FOOTPRINTS[key]
 
 
 def merge_roof_cells(parts: list[dict]) -> float:

@@ -221,7 +221,7 @@ def choose_grades(settings: InjectSettings, model, fps) -> dict:
 
 def _damaged_scenes(model, grades: dict, settings: InjectSettings, scenes: Path):
     """The generator's pre- and post-event bundles of the proxies with these grades."""
-    from ..demo import generate
+    from ..generator import generate
     from ..formats.scene import read_scene, write_scene
 
     proxy_dir = scenes / "proxy"

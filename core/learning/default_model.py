@@ -35,8 +35,9 @@ from pathlib import Path
 import numpy as np
 
 from ..change.pipeline import PipelineSettings
-from ..change.surface import DESCRIPTOR_VERSION, SURFACE_DESCRIPTORS, SurfaceSettings
+from ..change.surface import DESCRIPTOR_VERSION, NOISE_FREE_DESCRIPTORS, SurfaceSettings
 from ..runtime.progress import accepts_old_say, stage_log
+from .model_selection import MIN_CITIES_TO_GROUP, cv_groups
 
 # The training set's tables hold every surface descriptor (so that an ablation can put any of
 # them back); the model uses those whose meaning does not depend on the sensor's noise: the
@@ -48,7 +49,7 @@ TABLE_SETTINGS = PipelineSettings(surface=SurfaceSettings(), paper_descriptors=F
 # openings version 4: earlier definitions found heavy damage in real points but called undamaged
 # buildings damaged across sensors, on walls a photo flight reconstructs and a laser barely
 # samples and through real city models' open shells (docs/results.md).
-MODEL_DESCRIPTORS = tuple(n for n in SURFACE_DESCRIPTORS if not n.startswith(("m_distance", "m_lod")))
+MODEL_DESCRIPTORS = NOISE_FREE_DESCRIPTORS
 TRANSFER_SETTINGS = PipelineSettings(surface=SurfaceSettings(), paper_descriptors=False,
                                      surface_descriptors=MODEL_DESCRIPTORS)
 CANDIDATES = (
@@ -123,19 +124,6 @@ def size_limit(table, quantile: float | None = CELLS_QUANTILE) -> int:
     if quantile is None or table.cells is None or not len(table.cells):
         return 0
     return int(np.quantile(table.cells, quantile))
-
-
-MIN_CITIES_TO_GROUP = 6
-
-
-def cv_groups(table) -> np.ndarray:
-    """Groups of the cross-validation: whole cities (a building and its neighbours, whose debris
-    and acquisitions it shares, never on both sides), or single buildings for a training set of
-    fewer than MIN_CITIES_TO_GROUP cities, where city folds would leave calibration folds
-    without a second city."""
-    if len(set(table.city.tolist())) >= MIN_CITIES_TO_GROUP:
-        return np.asarray(table.city)
-    return table.groups
 
 
 def model_columns(table, names=MODEL_DESCRIPTORS):

@@ -102,7 +102,7 @@ class DamageModel:
         x = np.column_stack([np.asarray(table[f], dtype=np.float64) for f in self.feature_names])
         proba = self.estimator.predict_proba(x)
         if self.temperature != 1.0:
-            from .real_calibration import temper
+            from .reliability import temper
 
             proba = temper(proba, self.temperature)
         return proba
@@ -383,7 +383,7 @@ def save_model(model: DamageModel, path: str | os.PathLike) -> None:
         "classifier": model.classifier, "no_change_rule": bool(model.no_change_rule),
     }
     if model.temperature != 1.0:
-        from .real_calibration import check_temperature
+        from .reliability import check_temperature
 
         meta["temperature"] = check_temperature(model.temperature)
     from ..runtime.atomic import replacing  # a failed write leaves nothing, names the file
@@ -416,7 +416,7 @@ def load_model(path: str | os.PathLike) -> DamageModel:
     from . import model_cache
 
     name = model_cache.entry_name(data)
-    model = model_cache.recall(name)
+    model = model_cache.recall(name, DamageModel)
     if model is None:
         model = _build_model(path, data)
         model_cache.remember(name, model)
@@ -462,7 +462,7 @@ def _build_model(path: Path, data: bytes) -> DamageModel:
         raise ModelError(f"{path}: no_change_rule must be true or false, got {rule!r}")
     _check_classifier_record(path, meta.get("classifier"), est)
     _check_settings(path, meta)
-    from .real_calibration import check_temperature
+    from .reliability import check_temperature
 
     try:
         temperature = check_temperature(meta.get("temperature", 1.0))

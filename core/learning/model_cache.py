@@ -72,8 +72,8 @@ def entry_name(data: bytes) -> str:
     return h.hexdigest() + SUFFIX
 
 
-def recall(name: str):
-    """The DamageModel kept under `name` (`entry_name` of a model file's bytes), or None."""
+def recall(name: str, kind: type):
+    """The model of class `kind` kept under `name` (`entry_name` of a model file's bytes), or None."""
     folder = cache_folder()
     if folder is None or not ENTRY.match(name) or not _private(folder, warn=True) or not _own(folder, adopt=False):
         return None
@@ -89,9 +89,7 @@ def recall(name: str):
     except Exception as e:  # a broken entry (an interrupted disk, another version): loaded anew
         log.debug("%s: not read (%s)", path, e)
         return None
-    from .model import DamageModel
-
-    if not isinstance(model, DamageModel):
+    if not isinstance(model, kind):  # the caller's class: this module is below the model's
         return None
     with contextlib.suppress(OSError):
         os.utime(path)  # the most recently used are the ones kept

@@ -155,4 +155,19 @@ def comparison_table(scores: Sequence[CandidateScore]) -> str:
     return "\n".join(rows)
 
 
-__all__ = ["CandidateScore", "candidate_name", "compare_classifiers", "comparison_table", "grouped_folds"]
+
+MIN_CITIES_TO_GROUP = 6
+
+
+def cv_groups(table) -> np.ndarray:
+    """Groups of the cross-validation: whole cities (a building and its neighbours, whose debris
+    and acquisitions it shares, never on both sides), or single buildings for a training set of
+    fewer than MIN_CITIES_TO_GROUP cities, where city folds would leave calibration folds
+    without a second city."""
+    if len(set(table.city.tolist())) >= MIN_CITIES_TO_GROUP:
+        return np.asarray(table.city)
+    return table.groups
+
+
+__all__ = ["MIN_CITIES_TO_GROUP", "CandidateScore", "candidate_name", "compare_classifiers", "comparison_table", "cv_groups",
+           "grouped_folds"]

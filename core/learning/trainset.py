@@ -19,7 +19,7 @@ every building looks changed. This training set varies what real pairs vary:
   after is what responders really have);
 - **labels**: the post-event scene's grade per building (grades 1–2 → 0).
 
-`build` generates the scenes (the add-on's generator, `quakescan.demo.generate`), acquires the
+`build` generates the scenes (the add-on's generator, `quakescan.generator.generate`), acquires the
 clouds (`quakescan.acquisition.acquire.acquire`), describes every pair (`quakescan.change.pipeline.describe_pair`)
 and keeps one descriptor table per pair. Every step is resumable: a scene with the same
 generator settings, a cloud whose sidecar records the same acquisition, seed and scene,
@@ -344,7 +344,7 @@ def generate_city(city: CitySpec, folder: Path) -> None:
     """The city's scene bundles under `folder`: skipped by the generator when up to date,
     made again when another generator version or other settings made them (the folder is
     this training set's own cache, `force`)."""
-    from ..demo import generate
+    from ..generator import generate
 
     if city.source == "rotterdam":
         from ..formats.cityjson import IMPORT_VERSION

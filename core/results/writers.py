@@ -22,7 +22,7 @@ import numpy as np
 from ..errors import ResultsError, check_input_file
 from ..formats.pointcloud import SCALE
 from ..grades import grade_name, long_label
-from ..learning.model import GRADE_LABELS
+from ..grades import GRADE_SHORT_NAMES
 from ..runtime.atomic import open_replacing, replacing, write_text
 
 NOT_ASSESSABLE = "not assessable"
@@ -88,7 +88,7 @@ class BuildingResult:
     def label(self) -> str:
         if not self.assessable or self.grade is None:
             return NOT_ASSESSABLE
-        return GRADE_LABELS.get(int(self.grade), f"grade {self.grade}")
+        return GRADE_SHORT_NAMES.get(int(self.grade), f"grade {self.grade}")
 
     @property
     def grade_name(self) -> str:

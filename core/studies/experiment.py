@@ -226,7 +226,7 @@ def run_paper_experiment(out_dir, settings: ExperimentSettings | None = None, *,
     each worker its own ray-casting scene); every worker must reach out_dir. The same files,
     caches and numbers as one process makes: either run resumes the other's."""
     from ..change.pipeline import PipelineSettings
-    from ..demo import generate
+    from ..generator import generate
     from ..learning.classification import predict_rows
     from ..learning.model import DamageModel
 

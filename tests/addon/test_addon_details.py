@@ -470,17 +470,17 @@ def test_generator_details_flag(tmp_path, bpy_registered, capsys):
 def test_demo_generate_passes_details(monkeypatch, tmp_path):
     import subprocess
 
-    from quakescan import demo
+    from quakescan import generator
     seen = {}
 
     def fake_run(cmd, **kw):
         seen["cmd"] = cmd
         return subprocess.CompletedProcess(cmd, 0, "", "")
-    monkeypatch.setattr(demo.subprocess, "run", fake_run)
-    demo.generate("generic", "mixed", 4, 1, tmp_path, details="typical")
+    monkeypatch.setattr(generator.subprocess, "run", fake_run)
+    generator.generate("generic", "mixed", 4, 1, tmp_path, details="typical")
     assert "--details" in seen["cmd"]
     assert seen["cmd"][seen["cmd"].index("--details") + 1] == "typical"
-    demo.generate("generic", "mixed", 4, 1, tmp_path)
+    generator.generate("generic", "mixed", 4, 1, tmp_path)
     assert "--details" not in seen["cmd"]
 
 

@@ -184,15 +184,15 @@ def test_generator_damage_physics_records_the_collapse(tmp_path):
 
 
 def test_neighbours_are_colliders_as_they_stand_when_the_collapses_start(blank):
-    from addon import physics, scene_tools
+    from addon import physics, post_scene, scene_tools
     coll, spec, a, b = _city(blank)
     terrain = scene_tools.create_terrain_object(coll, 0.0, 0.0, 40.0, 30.0)
     objs = list(coll.objects)
     # a neighbour that keeps the patterns is a collider as it was, the terrain too
-    got = scene_tools.PhysicsColliders(objs, {1: 5, 2: 3}, "physics").of(a)
+    got = post_scene.PhysicsColliders(objs, {1: 5, 2: 3}, "physics").of(a)
     assert b in got and terrain in got and a not in got
     # one that collapses too: only what stands outside its own zone (nothing at grade 5)
-    co, polys = [c for c in scene_tools.PhysicsColliders(objs, 5, "physics").of(a) if isinstance(c, tuple)][0]
+    co, polys = [c for c in post_scene.PhysicsColliders(objs, 5, "physics").of(a) if isinstance(c, tuple)][0]
     assert len(polys) == 0
     co, polys = physics.standing_part(b, 4, mode="corner")
     whole = physics._world_arrays(b)
