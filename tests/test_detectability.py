@@ -151,7 +151,7 @@ def test_the_pipeline_measures_each_buildings_area_and_lowering_resolution():
 
     from quakescan.change.pipeline import PipelineSettings, describe_pair
     from quakescan.change.surface import SurfaceSettings
-    from quakescan.learning.classification import detectability_counts
+    from quakescan.learning.classify_run import detectability_counts
 
     rng = np.random.default_rng(6)
     pre, post = scene(rng, 30, False), scene(rng, 30, False)

@@ -24,9 +24,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import check_input_file
 from ..formats.pointcloud import PointCloudError, check_coordinates_fit_crs, check_not_all_noise
 from ..learning import classification as cl
+from ..learning import classify_run as run
 from ..runtime.output_folder import empty_own_subfolder, is_own_subfolder, remove_own_subfolder
 from ..runtime.progress import ProgressCallback
 from . import blocks as bk
@@ -76,7 +76,7 @@ def classify_distributed(pre_path, post_path, out_dir, client, *, model_path=Non
     `client` (a dask.distributed Client). Same files, same rows; the summary adds "dask".
     `progress(done, total, stage)`: the points of each epoch streamed into blocks (stages
     "tiling pre", "tiling post"), then the buildings described (no stage), as `classify`."""
-    with cl.claimed_output_folder(out_dir, "classify", pre_path, post_path, footprints_path, model_path,
+    with run.claimed_output_folder(out_dir, "classify", pre_path, post_path, footprints_path, model_path,
                                   working_folders=(STORE_NAME, GRADED_NAME)):
         return _classify_distributed(pre_path, post_path, out_dir, client, model_path=model_path,
                                      footprints_path=footprints_path, id_field=id_field, align=align,
@@ -94,13 +94,11 @@ def _classify_distributed(pre_path, post_path, out_dir, client, *, model_path=No
     """`classify_distributed` in the output folder it has claimed."""
     t0 = time.perf_counter()
     out = Path(out_dir)
-    model_path = Path(model_path) if model_path else cl.default_model_path()
-    check_input_file(model_path, "model file", cl.ClassifyError)  # the inputs given were checked with the folder
-    options = cl.run_options(id_field, write_las, laz, unseen_damage, prior, csv_raw)
-    run_fp = cl._fingerprint(pre_path, post_path, footprints_path, model_path, align, options)
-    done = cl._finished(out, run_fp)
-    if done is not None and not force:
-        return {**done, "up_to_date": True}
+    options = run.run_options(id_field, write_las, laz, unseen_damage, prior, csv_raw)
+    model_path, run_fp, done = run.begin(pre_path, post_path, out, model_path=model_path,
+                                         footprints_path=footprints_path, align=align, options=options, force=force)
+    if done is not None:
+        return done
     marks: list = []  # (stage, when it began): the summary's seconds per stage
 
     def stage(name):
@@ -114,7 +112,7 @@ def _classify_distributed(pre_path, post_path, out_dir, client, *, model_path=No
     origin = bk.default_origin(pre_f)
     out.mkdir(parents=True, exist_ok=True)
     store = out / STORE_NAME
-    cl.retire_previous_results(out)  # before the first write
+    run.retire_previous_results(out)  # before the first write
     sample = None if align is False else cl.check_max_points(align)
     stage("tiling")
     footprints = None if footprints_path is None else {"path": str(Path(footprints_path).resolve()),
@@ -134,17 +132,11 @@ def _classify_distributed(pre_path, post_path, out_dir, client, *, model_path=No
     for path, stats in ((pre_path, pre_s), (post_path, post_s)):
         check_not_all_noise(stats.noise, stats.n, path)
     if fp is not None and not pre_s.counts:
-        b = fp.bounds()
-        raise cl.ClassifyError(f"{footprints_path}: no footprint contains a pre-event point (footprints span "
-                               f"x {b[:, 0].min():.1f}..{b[:, 2].max():.1f}, y {b[:, 1].min():.1f}..{b[:, 3].max():.1f};"
-                               f" points x {[round(pre_f.mins[0], 1), round(pre_f.maxs[0], 1)]}); wrong CRS?")
+        raise run.no_footprint_contains_a_point(footprints_path, fp, (pre_f.mins[0], pre_f.maxs[0]))
     if not (set(pre_s.counts) | set(post_s.counts)):
-        raise cl.ClassifyError(f"{pre_path}: no point belongs to a building (all building IDs are 0)")
-    summary: dict = {"pre": str(pre_path), "post": str(post_path), "model": str(model_path),
-                     "model_provenance": model.provenance, "settings": settings.to_json(),
-                     "points": {"pre": pre_s.n, "post": post_s.n},
-                     "noise_points": {"pre": pre_s.noise, "post": post_s.noise}, "crs": crs}
-    cl.warn_of_epoch_order(pre_path, post_path, summary)
+        raise run.ClassifyError(f"{pre_path}: no point belongs to a building (all building IDs are 0)")
+    summary = run.run_summary(pre_path, post_path, model_path, model, settings, {"pre": pre_s.n, "post": post_s.n},
+                              {"pre": pre_s.noise, "post": post_s.noise}, crs)
     t_read = time.perf_counter()
     stage("densities")
 
@@ -202,12 +194,7 @@ def _classify_distributed(pre_path, post_path, out_dir, client, *, model_path=No
         if registration is not None:
             client.cancel([registration])
         raise
-    if fp is not None:
-        hit = set(pre_s.counts) | set(post_s.counts)
-        rows += [cl.BuildingRow(int(b), 0, 0, False, "no point inside the footprint")
-                 for b in sorted(int(i) for i in fp.ids if int(i) not in hit)]
-        described = {r.building_id for r in rows}
-        rows += [cl.BuildingRow(int(b), 0, 0, False, why) for b, why, _ in fp.rejected if int(b) not in described]
+    rows += run.footprint_rows(fp, rows, run.footprints_without_points(fp, set(pre_s.counts) | set(post_s.counts)))
     rows.sort(key=lambda r: r.building_id)
     t_describe = time.perf_counter()
     stage("results")
@@ -218,39 +205,25 @@ def _classify_distributed(pre_path, post_path, out_dir, client, *, model_path=No
     from ..results import writers as results
 
     outlines = results.building_outlines(res, fp, pre_s.hulls if fp is None else None, (0.0, 0.0))
-    cl.write_building_results(out, res, model.grades, fp, outlines, crs, pre_s.map_xy + origin[:2],
+    run.write_building_results(out, res, model.grades, fp, outlines, crs, pre_s.map_xy + origin[:2],
                               f"Damage grades: {Path(post_path).name}", csv_raw=csv_raw)
     t_graded = time.perf_counter()
     if write_las:
         stage("graded cloud")
-        compress = Path(post_path).suffix.lower() == ".laz" if laz is None else laz
-        graded = out / ("post_grades.laz" if compress else "post_grades.las")
+        graded = run.graded_cloud_path(out, post_path, laz)
         _write_graded_cloud(client, graded, post_f, origin, crs, footprints, transform,
                             {r.building_id: r.grade for r in res}, max(post_s.counts, default=0), chunk_points,
                             out / GRADED_NAME, progress)
         summary["post_grades"] = str(graded)
     t_graded = time.perf_counter() - t_graded
-    counts: dict[str, int] = {}
-    for r in res:
-        counts[r.label] = counts.get(r.label, 0) + 1
-    summary.update({"buildings": len(res), "by_label": counts, "by_grade_name": cl.counts_by_grade_name(res),
-                    "detectability": cl.detectability_counts(res),
-                    "resumed_buildings": resumed,
-                    "seconds": {"read": round(t_read - t0, 2), "describe": round(t_describe - t_read, 2),
-                                "graded_cloud": round(t_graded, 2), "total": round(time.perf_counter() - t0, 2),
-                                "stages": _stage_seconds(marks, time.perf_counter())},
-                    "dask": {"workers": len(client.scheduler_info().get("workers", {})),
-                             "dashboard": dashboard_address(client), "block_m": bk.block_m(block_cells),
-                             "tiles_widened": widened, "tiles_split": split,
-                             "tile_memory_budget_bytes": int(budget) if np.isfinite(budget) else None}})
-    summary["fingerprint"] = run_fp.digest
-    summary["options"] = options
-    summary["outputs"] = cl.result_names(summary)
-    cl.warn_of_foreign_results(out, summary)
-    from ..runtime.atomic import write_text
-    from ..runtime.text_safety import json_text
-
-    write_text(out / "summary.json", json_text(summary, indent=1, default=cl._json_default))  # strict: NaN is null
+    summary["dask"] = {"workers": len(client.scheduler_info().get("workers", {})),
+                       "dashboard": dashboard_address(client), "block_m": bk.block_m(block_cells),
+                       "tiles_widened": widened, "tiles_split": split,
+                       "tile_memory_budget_bytes": int(budget) if np.isfinite(budget) else None}
+    seconds = {"read": round(t_read - t0, 2), "describe": round(t_describe - t_read, 2),
+               "graded_cloud": round(t_graded, 2), "total": round(time.perf_counter() - t0, 2),
+               "stages": _stage_seconds(marks, time.perf_counter())}
+    run.finish(out, summary, res, options=options, digest=run_fp.digest, resumed=resumed, seconds=seconds)
     for done_with in (".checkpoint.jsonl", UNMOVED_CHECKPOINT):
         (out / done_with).unlink(missing_ok=True)
     deleting.join()
@@ -283,14 +256,14 @@ def _read_footprints(footprints_path, id_field, pre_f, post_f):
     if footprints_path is None:
         for f in (pre_f, post_f):
             if "building_id" not in f.dimensions:
-                raise cl.ClassifyError(f"{f.path}: no building_id dimension; give building footprints "
+                raise run.ClassifyError(f"{f.path}: no building_id dimension; give building footprints "
                                        "(--footprints F.geojson in the clouds' CRS)")
         return None
     from ..formats.footprints import read_footprints
 
     fp = read_footprints(footprints_path, id_field)
     if fp.crs and pre_f.crs and fp.crs != pre_f.crs:
-        raise cl.ClassifyError(f"{footprints_path}: footprints are in {fp.crs} but the point clouds in {pre_f.crs}; "
+        raise run.ClassifyError(f"{footprints_path}: footprints are in {fp.crs} but the point clouds in {pre_f.crs}; "
                                "reproject the footprints")
     return fp
 
@@ -331,7 +304,7 @@ def _tiled_epochs(client, store: Path, digest: str, pre_f, post_f, origin, fp, f
         if meanwhile:
             meanwhile()
         return kept
-    empty_own_subfolder(store, cl.ClassifyError)
+    empty_own_subfolder(store, run.ClassifyError)
     n_workers = max(1, len(client.scheduler_info().get("workers", {})))
     pair_bytes = sum(Path(f.path).stat().st_size for f in (pre_f, post_f))
     futures = {}
@@ -346,7 +319,7 @@ def _tiled_epochs(client, store: Path, digest: str, pre_f, post_f, origin, fp, f
             fut = client.submit(stream_part, str(folder), f.to_json(), origin.tolist(), part, a, b, block_cells,
                                 footprints, name == "pre" and fp is None,
                                 None if sample is None else (f.n, sample),
-                                cl.map_step(f.n) if name == "pre" else None, chunk_points, pair_bytes, pure=False,
+                                run.map_step(f.n) if name == "pre" else None, chunk_points, pair_bytes, pure=False,
                                 key=f"stream-{name}-{part}-{run_token()}")
             futures[fut] = (name, part, b - a)
     if meanwhile:
@@ -471,9 +444,9 @@ def _describe_tiles(client, store, pre_s, post_s, settings, geometry, block_cell
     tiles: dict[tuple, list[int]] = {}
     for b in ok:
         tiles.setdefault(tile_key(pre_s.lo[b], pre_s.hi[b], settings.tile_m), []).append(b)
-    ckpt = cl._Checkpoint(out / ".checkpoint.jsonl", digest)
+    ckpt = run.RowCheckpoint(out / ".checkpoint.jsonl", digest)
     # rows described before the registration check answered, unmoved: valid unless it aligns
-    unmoved = cl._Checkpoint(out / UNMOVED_CHECKPOINT, digest) if pending is not None else None
+    unmoved = run.RowCheckpoint(out / UNMOVED_CHECKPOINT, digest) if pending is not None else None
     known = {**unmoved.rows, **ckpt.rows} if unmoved is not None else ckpt.rows
     resumed = 0
     total, finished = len(ok), 0
@@ -502,7 +475,7 @@ def _describe_tiles(client, store, pre_s, post_s, settings, geometry, block_cell
         return (np.asarray(pre_s.lo[b], dtype=np.float64) + np.asarray(pre_s.hi[b], dtype=np.float64)) / 2
 
     futures, groups, widened, split = {}, {}, 0, 0
-    run = run_token()
+    token = run_token()
 
     def submit(s, facing=None, name=None):
         # the largest tiles first, so that no worker is left with a large one while the others idle
@@ -532,9 +505,9 @@ def _describe_tiles(client, store, pre_s, post_s, settings, geometry, block_cell
             s = spec(part_key, part_bids, halo)
             name = "_".join(str(v) for v in part_key)
             if count_first:
-                submit({**s, "count_facing": True, "group": list(key)}, name=f"count-{name}-{run}")
+                submit({**s, "count_facing": True, "group": list(key)}, name=f"count-{name}-{token}")
             else:
-                submit(s, name=f"tile-{name}-{run}")
+                submit(s, name=f"tile-{name}-{token}")
     queue = as_completed(list(futures) + ([pending] if pending is not None else []))
     for fut in queue:
         if fut is pending:
@@ -565,7 +538,7 @@ def _describe_tiles(client, store, pre_s, post_s, settings, geometry, block_cell
                 whole = add_facing_counts(*group["counts"])
                 for part_key, part_bids in group["parts"]:
                     name = "_".join(str(v) for v in part_key)
-                    queue.add(submit(spec(part_key, part_bids, halo), whole, name=f"tile-{name}-{run}"))
+                    queue.add(submit(spec(part_key, part_bids, halo), whole, name=f"tile-{name}-{token}"))
             continue
         tile_rows = result["rows"]
         for r in tile_rows:
@@ -674,7 +647,7 @@ def _write_graded_cloud(client, path, post_f, origin, crs, footprints, transform
     from ..results.writers import grade_header, source_extra_dims, write_grade_records
     from .tasks import graded_part
 
-    empty_own_subfolder(folder, cl.ClassifyError)
+    empty_own_subfolder(folder, run.ClassifyError)
     n_workers = max(1, len(client.scheduler_info().get("workers", {})))
     bounds = part_bounds(post_f.n, n_workers, chunk_points)
     grades = {int(b): (None if g is None else int(g)) for b, g in grade_by_building.items()}
