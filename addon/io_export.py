@@ -18,9 +18,11 @@ scenes without vegetation keep their bytes) with scene.json ``"vegetation":
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -73,19 +75,33 @@ def write_ply(path, vertices, faces, building_id, surface, comment="quakescan sc
     rec["s"] = surface
     if porous is not None:
         rec["p"] = porous
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as fh:
-        fh.write(header)
-        fh.write(v.tobytes())
-        fh.write(rec.tobytes())
-    os.replace(tmp, path)
+    _write_atomically(path, lambda fh: (fh.write(header), fh.write(v.tobytes()), fh.write(rec.tobytes())))
 
 
 def write_json(path, data):
-    path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(data, indent=1) + "\n")
-    os.replace(tmp, path)
+    text = (json.dumps(data, indent=1) + "\n").encode("utf-8")
+    _write_atomically(Path(path), lambda fh: fh.write(text))
+
+
+def _write_atomically(path: Path, write) -> None:
+    """`write(file)` into a temporary of its own beside `path` (created exclusively under an
+    unpredictable name: a link planted at a guessable name is never followed), renamed onto
+    `path` when complete, removed when not. A `path` that is a symbolic link is refused: the
+    bundle is written where it is, not where a link points."""
+    if path.is_symlink():
+        raise OSError(f"{path}: is a symbolic link; the export writes its own files only, give another folder")
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".part")
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            umask = os.umask(0)
+            os.umask(umask)
+            os.fchmod(fh.fileno(), 0o666 & ~umask)  # a file as open() makes it, not mkstemp's private 0600
+            write(fh)
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
 
 
 def parse_origin(text) -> list[float]:

@@ -32,7 +32,36 @@ def test_bundle_round_trip(tmp_path):
     bld = sc.buildings[0]
     assert (bld.id, bld.grade, bld.material, bld.storeys, bld.seed) == (5, 4, "masonry", 2, 9)
     assert bld.patterns == recs[0]["patterns"]
-    assert not list(tmp_path.glob("s/*.tmp"))
+    assert not list(tmp_path.glob("s/*.tmp")) and not list(tmp_path.glob("s/.*.part"))
+
+
+def test_the_export_never_follows_a_planted_link_nor_writes_through_one(tmp_path):
+    """Issue 45: the old temporary name (NAME.tmp) was predictable; a link planted there sent
+    the bytes outside the folder. The temporary is now exclusive and unguessable."""
+    import os
+    import stat
+
+    v, f, b, s, _ = _box_city()
+    victim = tmp_path / "victim.txt"
+    victim.write_text("keep me")
+    out = tmp_path / "bundle"
+    out.mkdir()
+    (out / "mesh.ply.tmp").symlink_to(victim)
+    (out / "scene.json.tmp").symlink_to(victim)
+    io_export.write_ply(out / "mesh.ply", v, f, b, s)
+    io_export.write_json(out / "scene.json", {"a": 1})
+    assert victim.read_text() == "keep me"
+    assert not (out / "mesh.ply").is_symlink() and json.loads((out / "scene.json").read_text()) == {"a": 1}
+    umask = os.umask(0)
+    os.umask(umask)
+    assert stat.S_IMODE((out / "mesh.ply").stat().st_mode) == 0o666 & ~umask
+    assert sorted(p.name for p in out.iterdir()) == ["mesh.ply", "mesh.ply.tmp", "scene.json", "scene.json.tmp"]
+    (out / "scene.json").unlink()
+    (out / "scene.json").symlink_to(victim)
+    with pytest.raises(OSError, match="is a symbolic link"):
+        io_export.write_json(out / "scene.json", {"b": 2})
+    assert victim.read_text() == "keep me"
+    assert not list(out.glob(".*.part"))
 
 
 def test_ply_header_is_the_contract(tmp_path):
