@@ -67,15 +67,6 @@ import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parent.parent
-# Bumped whenever the add-on makes different bundles from the same settings, so that bundles
-# made before are regenerated, not reused (bundle_state). 2: walls another building covers are
-# party walls, pattern draws salted by name (6b9cfbd); physics records name their element source.
-# 3: a toppled facade takes the roof strip and the floors that bore on it down (roof_drop, sag_depth).
-GENERATOR_VERSION = 3
-# Bumped whenever collapses by physics (--damage physics|both) differ from the same settings:
-# their bundles and part files are then remade, the patterns' bundles stay valid. Absent: 1;
-# 2: a collapse stops early once the shards still moving fast hold 1 % of the volume or less.
-PHYSICS_VERSION = 2
 PROG = "generate_scenes.py"
 # addon/citygen.py's SETS and "bundle" (spelt out: the arguments are parsed before the add-on is importable)
 SETS = ("generic", "region", "small", "bundle")
@@ -97,6 +88,11 @@ def addon_module(name: str = ""):
         if str(REPO.parent) not in sys.path:
             sys.path.append(str(REPO.parent))
     return importlib.import_module(f"{package}.{name}" if name else package)
+
+
+# The add-on's own versions (addon/versions.py: beside the patterns that change them)
+GENERATOR_VERSION = addon_module("versions").GENERATOR_VERSION
+PHYSICS_VERSION = addon_module("versions").PHYSICS_VERSION
 
 
 def library_module(name: str):

@@ -41,6 +41,20 @@ def test_the_distribution_installs_quakescan_and_its_add_on_never_core(tmp_path)
     assert got["found"] == {"quakescan": True, "quakescan_damage": True, "core": False}
 
 
+def test_every_package_of_the_checkout_is_in_the_distribution():
+    """setuptools takes only the packages listed: one left out is missing from every wheel
+    (quakescan.studies.robustness was, and `quakescan robustness` failed installed)."""
+    import tomllib
+
+    config = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]
+    dirs = {name: ROOT / folder for name, folder in config["package-dir"].items()}
+    listed = set(config["packages"])
+    for top in ("quakescan", "quakescan_damage"):
+        for init in sorted(dirs[top].rglob("__init__.py")):
+            name = ".".join([top, *init.parent.relative_to(dirs[top]).parts])
+            assert name in listed, f"{init.parent.relative_to(ROOT)} ({name}) is not in pyproject.toml's packages"
+
+
 @pytest.mark.slow
 def test_the_wheel_installs_into_a_fresh_venv_and_runs_the_demo(tmp_path):
     src = tmp_path / "src"

@@ -44,9 +44,11 @@ def test_new_plans_come_with_a_new_generator_version():
                                                   REPO / "blender_scripts" / "generate_scenes.py")
     gen = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(gen)
-    assert gen.GENERATOR_VERSION == PLAN_DIGESTS_GENERATOR_VERSION, (
-        "the pinned plan digests belong to another generator version: bump GENERATOR_VERSION "
-        "and PLAN_DIGESTS_GENERATOR_VERSION together when the plans change")
+    from addon import versions
+
+    assert versions.GENERATOR_VERSION == gen.GENERATOR_VERSION == PLAN_DIGESTS_GENERATOR_VERSION, (
+        "the pinned plan digests belong to another generator version: bump addon/versions.py's "
+        "GENERATOR_VERSION and PLAN_DIGESTS_GENERATOR_VERSION together when the plans change")
 
 
 @pytest.mark.parametrize("set_name", citygen.SETS)
