@@ -122,6 +122,21 @@ def test_the_forest_learns_only_from_buildings_with_changed_points():
     assert (grades[:len(x)] == y).mean() > 0.9  # separable by construction
 
 
+def test_training_and_classifying_read_no_change_from_one_column():
+    """The rule reads share_changed where a row has it, else a surface model's m_changed: the
+    rows training leaves out are the rows classifying decides without the model."""
+    from quakescan.learning.model import changed_share, changed_share_column, decided_by_rule
+
+    assert changed_share_column(["m_changed", "share_changed"]) == "share_changed"
+    assert changed_share_column(["s_raised", "m_changed"]) == "m_changed"
+    assert changed_share_column(["s_raised"]) is None
+    names = ["s_raised", "m_changed"]
+    x = np.array([[0.3, 0.0], [0.0, 0.2], [0.0, 0.0]])
+    assert decided_by_rule(x, names).tolist() == [True, False, True]
+    assert [changed_share(dict(zip(names, row))) == 0.0 for row in x] == decided_by_rule(x, names).tolist()
+    assert changed_share({"share_changed": 0.1, "m_changed": 0.0}) == 0.1 and changed_share({"s_raised": 1.0}) == 0.0
+
+
 def test_a_forest_that_never_saw_grade_0_still_reports_it_by_rule():
     """Only destroyed buildings changed in training: the forest knows one grade; a building
     without changes is still "no damage" with p_0 = 1 in the results."""

@@ -56,7 +56,7 @@ from .classify_run import (  # noqa: F401  (ClassifyError, DEFAULT_MODEL, defaul
     run_summary,
     write_building_results,
 )
-from .model import DamageModel, ModelError, load_model
+from .model import DamageModel, ModelError, changed_share, load_model
 from .unseen_damage import prior_weights, unseen_shares, with_prior, with_unseen_damage
 
 log = logging.getLogger(__name__)
@@ -181,8 +181,7 @@ def predict_rows(rows, model: DamageModel, rule: bool | None = None, unseen_dama
         if not r.assessable:
             out.append(BuildingResult(r.building_id, r.n_pre, r.n_post, False, r.reason))
             continue
-        # the paper's share of changed points, or for a surface model its share of changed surface
-        share = float(r.descriptors.get("share_changed", r.descriptors.get("m_changed", 0.0)))
+        share = changed_share(r.descriptors)  # the rule's column, as training reads it
         res = BuildingResult(r.building_id, r.n_pre, r.n_post, True, "", share_changed=share)
         seen = of_building(r.quality)
         if seen is not None:

@@ -138,16 +138,32 @@ def _probability_rows(proba) -> np.ndarray:
 
 
 SHARE_CHANGED = "share_changed"
+# What "nothing changed" is read from, the first a row has: the paper's share of changed
+# points, else a surface model's share of changed surface (core points)
+CHANGED_SHARE_COLUMNS = (SHARE_CHANGED, "m_changed")
+
+
+def changed_share_column(names) -> str | None:
+    """The column of `names` the no-change rule reads (`CHANGED_SHARE_COLUMNS`), or None."""
+    return next((c for c in CHANGED_SHARE_COLUMNS if c in list(names)), None)
+
+
+def changed_share(descriptors) -> float:
+    """A building's changed share by the same column (0 when its row has none)."""
+    column = changed_share_column(descriptors)
+    return float(descriptors[column]) if column else 0.0
 
 
 def decided_by_rule(x: np.ndarray, names) -> np.ndarray:
     """Rows a classification decides without the forest: no changed point, so no damage
     (Zahs et al.: "buildings with no changed points would directly be considered as
-    undamaged")."""
+    undamaged"). The one rule of training (`train_damage_forest`) and classifying
+    (`quakescan.learning.classification.predict_rows`, through `changed_share`)."""
     names = list(names)
-    if SHARE_CHANGED not in names:
+    column = changed_share_column(names)
+    if column is None:
         return np.zeros(len(x), bool)
-    return np.asarray(x)[:, names.index(SHARE_CHANGED)] == 0
+    return np.asarray(x)[:, names.index(column)] == 0
 
 
 def train_forest(x: np.ndarray, y: np.ndarray, n_estimators: int = 100, max_depth: int | None = 5,
