@@ -104,6 +104,9 @@ def test_epochs_in_order_or_in_gps_week_time_are_not_warned_about(pair, tmp_path
     assert epoch_order_warning(pair / "pre.las", pair / "post.las") is None  # one date, one start
     later = redated(pair / "post.las", tmp_path / "post_2021.las", "2021-05-01", 3600.0)
     assert epoch_order_warning(pair / "pre.las", later) is None
+    # one survey in two halves, or a photo flight's first images: seconds apart either way
+    close = redated(pair / "post.las", tmp_path / "post_close.las", "2020-01-01", -300.0)
+    assert epoch_order_warning(pair / "pre.las", close) is None
     week = laspy.read(pair / "post.las")  # GPS week time repeats every week: it orders nothing
     week.header.global_encoding.gps_time_type = laspy.header.GpsTimeType.WEEK_TIME
     week.gps_time = np.asarray(week.gps_time) - 3600.0

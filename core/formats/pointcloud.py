@@ -534,6 +534,9 @@ def read_epoch(path: str | os.PathLike, origin=None, chunk_points: int = 4_000_0
 
 
 ORDER_SAMPLE_POINTS = 10_000  # a flight's first returns date its start
+# a post-event flight starting less than this before the pre-event one is not called early:
+# two halves of one survey, or a photo flight's first images, start within seconds either way
+ORDER_MARGIN_S = 600.0
 
 
 def acquisition_start(path) -> dict:
@@ -558,13 +561,15 @@ def acquisition_start(path) -> dict:
 
 def epoch_order_warning(pre_path, post_path) -> str | None:
     """A sentence when the files say the post-event epoch was acquired before the pre-event
-    one (its creation date earlier, or its flight's start in GPS time): swapped epochs turn
-    collapse into construction. None when they do not say so."""
+    one (its creation date earlier, or its flight's start in GPS time more than
+    ORDER_MARGIN_S earlier): swapped epochs turn collapse into construction. None when they
+    do not say so."""
     pre, post = acquisition_start(pre_path), acquisition_start(post_path)
     said = []
     if pre["date"] and post["date"] and post["date"] < pre["date"]:
         said.append(f"dated {post['date']}, the pre-event file {pre['date']}")
-    if pre["gps_start"] is not None and post["gps_start"] is not None and post["gps_start"] < pre["gps_start"]:
+    if pre["gps_start"] is not None and post["gps_start"] is not None and \
+            post["gps_start"] < pre["gps_start"] - ORDER_MARGIN_S:
         said.append(f"its GPS time starts {pre['gps_start'] - post['gps_start']:.0f} s before the pre-event file's")
     if not said:
         return None
