@@ -1,8 +1,6 @@
 """Escaped HTML, plain-text PNG titles and IDs JavaScript cannot round (issue 45)."""
 import json
 import re
-import shutil
-import subprocess
 
 import pytest
 import shapely.geometry
@@ -10,6 +8,7 @@ import shapely.geometry
 from quakescan.results import writers as R
 from quakescan.results.webmap import write_map_html
 from quakescan.runtime.text_safety import js_safe_id, script_json
+from test_maps import CHROMIUM, _chromium
 
 CLASSES = [0, 3, 4, 5]
 E0, N0 = 367000.0, 4690000.0
@@ -64,19 +63,13 @@ def test_html_map_escapes_file_names_crs_names_and_ids(tmp_path):
     assert "\\ud800 lone" in by_id[str(BIG)]["properties"]["popup"]  # a lone surrogate escaped, not a crash
 
 
-CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
-
-
 def test_html_map_with_hostile_names_draws_every_building_in_chromium(tmp_path):
     if CHROMIUM is None:
         pytest.skip("chromium is not installed: HTML map not opened")
     rows, outlines = _rows_and_outlines([7, 8, BIG])
     path = tmp_path / "damage_map.html"
     write_map_html(rows, outlines, path, f"Damage grades: {HOSTILE}.las", HOSTILE, CLASSES, own_ids={8: HOSTILE})
-    cmd = [CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
-           "--disable-component-update", "--disable-sync", "--no-first-run",
-           f"--user-data-dir={tmp_path / 'profile'}", "--dump-dom", path.resolve().as_uri()]
-    dom = subprocess.run(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, timeout=120)
+    dom = _chromium(tmp_path, "--dump-dom", path.resolve().as_uri())
     assert dom.returncode == 0, dom.stderr[-2000:]
     m = re.search(r'data-rendered-features="(\d+)"', dom.stdout)
     assert m and int(m.group(1)) == 3, "the page's script did not run to its end"

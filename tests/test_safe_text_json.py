@@ -2,13 +2,10 @@
 import json
 
 import numpy as np
-import shapely.geometry
 
 from quakescan.results import writers as R
 from quakescan.runtime.atomic import write_json
-
-CLASSES = [0, 3, 4, 5]
-E0, N0 = 367000.0, 4690000.0
+from test_safe_text_html import CLASSES, _rows_and_outlines
 
 
 def _strict(text):
@@ -24,17 +21,6 @@ def test_write_json_writes_nan_and_infinities_as_null(tmp_path):
     write_json(path, {"a": float("nan"), "b": [float("inf"), -float("inf"), 1.5], "c": np.float64("nan"),
                       "d": np.float32(2.0)}, default=float)
     assert _strict(path.read_text()) == {"a": None, "b": [None, None, 1.5], "c": None, "d": 2.0}
-
-
-def _rows_and_outlines(ids):
-    rows, outlines = [], {}
-    for k, bid in enumerate(ids):
-        rows.append(R.BuildingResult(bid, 900, 800, True, grade=3, probabilities={0: 0.2, 3: 0.8, 4: 0.0, 5: 0.0},
-                                     share_changed=0.4, decided_by="model", confidence=0.8,
-                                     min_opening_m2=float("inf"), detectable_grade=None))
-        x = E0 + 25 * k
-        outlines[bid] = R.Outline(shapely.geometry.box(x, N0, x + 16, N0 + 12), R.OUTLINE_FOOTPRINT)
-    return rows, outlines
 
 
 def test_geojson_with_nan_and_infinite_footprint_attributes_is_strict_json(tmp_path):
