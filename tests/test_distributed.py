@@ -696,7 +696,7 @@ def test_block_densities_merged_are_the_whole_epochs_density_to_the_last_bit(pai
     """Each block's roof cells counted on its own (a dense grid, neighbours by shifting it),
     merged by the client: the planimetric density one process computes from every building
     point at once, exactly."""
-    from quakescan.change.surface import planimetric_density
+    from quakescan.grid.density import planimetric_density
     from quakescan.distributed import blocks
     from quakescan.distributed.tasks import _roof_cells, block_roof_cells, group_roof_cells, merge_roof_cells
     from quakescan.formats.pointcloud import read_epoch

@@ -9,14 +9,14 @@ import pytest
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def _imports(path: Path, package: str, top_level_only: bool):
+def _imports(path: Path, package: str, top_level_only: bool, root: Path = ROOT):
     """Absolute names of the modules `path` imports (relative ones resolved within `package`)."""
     tree = ast.parse(path.read_text(), str(path))
     nodes = tree.body if top_level_only else list(ast.walk(tree))
     if top_level_only:  # imports under `if TYPE_CHECKING:`-free module-level statements only
         nodes = [n for n in nodes if isinstance(n, (ast.Import, ast.ImportFrom))]
     out = set()
-    mod_parts = [package] + list(path.relative_to(ROOT / package_dir(package)).with_suffix("").parts)
+    mod_parts = [package] + list(path.relative_to(root / package_dir(package)).with_suffix("").parts)
     if mod_parts[-1] == "__init__":
         mod_parts = mod_parts[:-1] + ["__init__"]
     for n in nodes:
@@ -83,3 +83,49 @@ def test_no_import_cycle_even_through_imports_inside_functions(package):
         if n not in state:
             visit(n, [n])
     assert len(graph) > (40 if package == "quakescan" else 10)  # the walk saw the package
+
+
+# The stages in the order data flows through them (docs/layout.md): a module may import only
+# from its own stage and the ones before it, at module level and inside functions alike.
+STAGE_ORDER = ("errors", "grades", "runtime", "grid", "generator", "formats", "acquisition", "injection",
+               "change", "learning", "results", "distributed", "studies", "demo", "api", "cli")
+# Upward imports that remain, each with its reason: the classify run and the training reports
+# live in learning/ and write or score through results/ (issue 46 moves the run on top).
+UPWARD_ALLOWED = {("learning", "results")}
+
+
+def _stage(module: str) -> str:
+    parts = module.split(".")
+    return parts[1] if len(parts) > 1 else "__init__"
+
+
+def _upward_imports(modules: dict, root: Path) -> list[str]:
+    """'a -> b' for every import of `modules` ({path: name}) that goes up STAGE_ORDER."""
+    rank = {s: i for i, s in enumerate(STAGE_ORDER)}
+    bad = []
+    for path, name in modules.items():
+        me = _stage(name)
+        if me == "__init__":
+            continue
+        assert me in rank, f"{path}: stage {me!r} is not in STAGE_ORDER"
+        for dep in _imports(path, "quakescan", False, root):
+            if not dep or not dep.startswith("quakescan.") or _stage(dep) in ("__init__", "__version__"):
+                continue
+            if rank[_stage(dep)] > rank[me] and (me, _stage(dep)) not in UPWARD_ALLOWED:
+                bad.append(f"{name} -> {dep}")
+    return sorted(bad)
+
+
+def test_every_stage_imports_only_from_the_stages_before_it():
+    bad = _upward_imports(_modules("quakescan"), ROOT)
+    assert not bad, "imports up the stages: " + ", ".join(bad)
+
+
+def test_the_stage_rule_sees_an_upward_import_inside_a_function(tmp_path):
+    (tmp_path / "core" / "formats").mkdir(parents=True)
+    bad = tmp_path / "core" / "formats" / "bad.py"
+    bad.write_text("def f():\n    from ..change import surface\n")
+    fine = tmp_path / "core" / "formats" / "fine.py"
+    fine.write_text("from ..grid.density import DENSITY_CELL_M\n")
+    found = _upward_imports({bad: "quakescan.formats.bad", fine: "quakescan.formats.fine"}, tmp_path)
+    assert found == ["quakescan.formats.bad -> quakescan.change"]  # `from ..change import x` names the package

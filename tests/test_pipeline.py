@@ -172,7 +172,7 @@ def test_id_counts_and_grouping_are_numpys_unique_and_stable_argsort(ids):
                                  np.random.default_rng(6).integers(0, 9, 1_000).astype(np.int32),
                                  np.array([7]), np.zeros(0, np.int64)])
 def test_stable_order_is_a_stable_argsort(key):
-    from quakescan.change._cell_kernels import stable_order
+    from quakescan.grid.cells import stable_order
 
     np.testing.assert_array_equal(stable_order(key), np.argsort(key, kind="stable"))
 
@@ -184,7 +184,7 @@ _UTM = np.random.default_rng(8).uniform(0, 400, (3_000, 3)) + (500_000.0, 5_000_
                                _UTM[:1], np.array([[-0.0, 3.0], [0.0, -np.inf], [np.inf, 2.0]])])
 def test_row_bounds_are_numpys_min_and_max_down_the_rows(a):
     """Strided views, float32, integers, one row, infinities: numpy's values and dtype."""
-    from quakescan.change._cell_kernels import row_bounds
+    from quakescan.grid.cells import row_bounds
 
     lo, hi = row_bounds(a)
     assert lo.dtype == a.dtype and hi.dtype == a.dtype
@@ -193,7 +193,7 @@ def test_row_bounds_are_numpys_min_and_max_down_the_rows(a):
 
 
 def test_column_bounds_share_the_row_bounds_pass_as_float64():
-    from quakescan.change._cell_kernels import column_bounds
+    from quakescan.grid.cells import column_bounds
 
     lo, hi = column_bounds(_UTM.astype(np.float32)[:, :2])
     assert lo.dtype == np.float64
@@ -204,7 +204,7 @@ def test_column_bounds_share_the_row_bounds_pass_as_float64():
 
 @pytest.mark.parametrize("row", [0, 1, 2999])
 def test_row_bounds_propagate_nan_and_refuse_no_rows(row):
-    from quakescan.change._cell_kernels import row_bounds
+    from quakescan.grid.cells import row_bounds
 
     a = _UTM.copy()
     a[row, 1] = np.nan

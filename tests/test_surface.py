@@ -10,9 +10,9 @@ from quakescan.change.surface import (
     SurfaceGeometry,
     SurfaceSettings,
     describe_surfaces,
-    planimetric_density,
 )
 from quakescan.formats.pointcloud import Epoch
+from quakescan.grid.density import planimetric_density
 
 
 def sample_box(rng, density, x0, y0, x1, y1, top, noise=0.01, base=0.0, walls=True):
@@ -425,7 +425,7 @@ def test_the_m3c2_kernels_run_on_the_threads_asked_for_with_the_same_descriptors
 
 
 def test_compiled_top_band_counts_are_numpys_to_the_last_bit():
-    from quakescan.change._cell_kernels import top_band_counts, top_band_counts_reference
+    from quakescan.grid.cells import top_band_counts, top_band_counts_reference
 
     rng = np.random.default_rng(3)
     cell = rng.integers(0, 50, 20_000)
@@ -443,15 +443,15 @@ def test_planimetric_density_on_a_dense_grid_is_the_sorted_cells_to_the_last_bit
     """The dense-grid count (no per-point arrays) gives the measure of the cells found by
     sorting, to the last bit: a city, a building too small for an interior cell, and a cloud
     scattered over 1000 km (which falls back to sorting)."""
-    from quakescan.change import surface
+    from quakescan.grid import density
 
     rng = np.random.default_rng(4)
     n = 60_000
     xyz = np.c_[rng.uniform(0, spread, n) + 500_000.0, rng.uniform(0, 200, n) - 100, rng.uniform(0, 20, n)]
     where = rng.random(n) < 0.6 if masked else None
-    dense = surface.planimetric_density(xyz, where)
-    monkeypatch.setattr(surface, "_dense_planimetric_density", lambda *a: None)
-    assert dense == surface.planimetric_density(xyz, where)
+    dense = density.planimetric_density(xyz, where)
+    monkeypatch.setattr(density, "_dense_planimetric_density", lambda *a: None)
+    assert dense == density.planimetric_density(xyz, where)
 
 
 @pytest.mark.parametrize("spacing", [0.5, 1.0, 2.0])

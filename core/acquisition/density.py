@@ -20,17 +20,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..change.surface import DENSITY_CELL_M
 from ..errors import PointCloudError
 from ..formats.pointcloud import BUILDING_CLASS, Epoch, read_epoch, read_las
+from ..grid.density import DENSITY_CELL_M, roof_cell_density
 from ..runtime.atomic import replacing
-
-def _roof_cell_density(cells: np.ndarray, z: np.ndarray) -> tuple[float, int]:
-    """The one density measure of the project (`quakescan.change.surface.roof_cell_density`)."""
-    from ..change.surface import roof_cell_density
-
-    return roof_cell_density(cells, z)
-
 
 def _building_mask(classification: np.ndarray, building_id: np.ndarray | None) -> np.ndarray:
     m = np.asarray(classification) == BUILDING_CLASS
@@ -66,7 +59,7 @@ def measured_density(cloud: str | os.PathLike | Epoch) -> float:
     cloud has no interior roof cell to measure."""
     epoch = cloud if isinstance(cloud, Epoch) else read_epoch(cloud)
     m = _building_mask(epoch.classification, epoch.building_id)
-    density, cells = _roof_cell_density(_cells(epoch.xyz[m], epoch.origin), epoch.xyz[m, 2])
+    density, cells = roof_cell_density(_cells(epoch.xyz[m], epoch.origin), epoch.xyz[m, 2])
     if cells == 0:
         raise PointCloudError(_NO_ROOF.format(source=epoch.source))
     return density
@@ -110,7 +103,7 @@ def thin_to_density(in_las: str | os.PathLike, out_las: str | os.PathLike, pts_p
     names = set(las.point_format.dimension_names)
     m = _building_mask(las.classification, las["building_id"] if "building_id" in names else None)
     cells, z = _las_cells(las, m)
-    before, n_cells = _roof_cell_density(cells, z)
+    before, n_cells = roof_cell_density(cells, z)
     if n_cells == 0:
         raise PointCloudError(_NO_ROOF.format(source=in_las))
     if pts_per_m2 > before:
@@ -135,7 +128,7 @@ def _keep_probability(cells, z, u, target, p) -> tuple[float, float]:
     best = (p, math.nan)
     for _ in range(12):
         kept = u < p
-        d = _roof_cell_density(cells[kept], z[kept])[0]
+        d = roof_cell_density(cells[kept], z[kept])[0]
         if math.isfinite(d) and (math.isnan(best[1]) or abs(d - target) < abs(best[1] - target)):
             best = (p, d)
         if not math.isfinite(d) or d <= 0:

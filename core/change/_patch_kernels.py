@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from ._cell_kernels import row_bounds
+from ..grid.cells import row_bounds
 from ._feature_kernels import _lower_bound
 
 _JIT = dict(nogil=True, cache=True, error_model="numpy")

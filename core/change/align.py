@@ -129,7 +129,7 @@ def sample_mask(index: np.ndarray | range, n_total: int, max_points: int) -> np.
     share = min(1.0, max_points / max(int(n_total), 1))
     if share >= 1.0:
         return np.ones(n, bool)
-    from ._cell_kernels import splitmix_below
+    from ..grid.cells import splitmix_below
 
     # compiled: the numpy expression made five 8-byte temporaries of a whole epoch (3 s and
     # 3 GB for 75 M points); the same bits. 2 % under: a sample rarely tops max_points

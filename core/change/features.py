@@ -519,7 +519,7 @@ def compute_features(xyz, radius: float, features: Sequence[str] | None = None, 
                 at = first if query_index is None else query_index[first]
                 once = compute_features(xyz, radius, names, workers=workers, query_index=at, progress=scaled)
             return {k: v[inverse] for k, v in once.items()}
-    from ._cell_kernels import row_bounds
+    from ..grid.cells import row_bounds
 
     origin = row_bounds(xyz)[0]
     cols = [np.ascontiguousarray(xyz[:, k] - origin[k]) for k in range(3)]

@@ -247,7 +247,7 @@ class ColumnGrid:
             self.starts = np.zeros(2, np.int64)
             self.px = self.py = self.pz = np.zeros(0)
             return
-        from ._cell_kernels import row_bounds
+        from ..grid.cells import row_bounds
 
         lo, hi = row_bounds(xyz[:, :2])
         span = np.maximum(hi - lo, 1e-9)
@@ -359,7 +359,7 @@ def voxel_core_points(xyz: np.ndarray, spacing_m: float) -> np.ndarray:
         return np.zeros(0, np.int64)
     if not (math.isfinite(spacing_m) and spacing_m > 0):
         raise M3C2Error(f"core point spacing must be a positive number of metres, got {spacing_m!r}")
-    from ._cell_kernels import row_bounds
+    from ..grid.cells import row_bounds
 
     lo = row_bounds(xyz)[0]
     ijk = np.floor((xyz - lo) / spacing_m).astype(np.int64)

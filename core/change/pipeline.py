@@ -29,7 +29,7 @@ import numpy as np
 from ..errors import QuakeScanError
 from ..formats.pointcloud import Epoch, without_noise
 from ..runtime.progress import ProgressCallback
-from ._cell_kernels import row_bounds
+from ..grid.cells import row_bounds
 from .features import FEATURES, compute_features
 from .split import STATISTICS, SplitSettings, building_changes, nearest_neighbours
 from .surface import SURFACE_DESCRIPTORS, SurfaceSettings
@@ -288,7 +288,7 @@ class GridIndex:
             self.order = np.zeros(0, np.int64)
             self.starts = np.zeros(2, np.int64)
             return
-        from ._cell_kernels import bucket_order, column_bounds, grid_keys
+        from ..grid.cells import bucket_order, column_bounds, grid_keys
 
         self.lo, self.hi = column_bounds(xy)  # one pass: numpy's min and max read the columns strided, four times
         lo0, lo1 = float(self.lo[0]), float(self.lo[1])
@@ -506,7 +506,7 @@ def grouped_by_id(ids: np.ndarray, uniq: np.ndarray) -> tuple[np.ndarray, np.nda
     np.unique gives them; within an ID in point order, as a stable argsort gives them) and
     where each ID's run starts. A counting sort of the IDs' ranks: a 75 M-point epoch's
     stable argsort took 8 s and its 8-byte index and sorted copy 1.2 GB."""
-    from ._cell_kernels import bucket_order
+    from ..grid.cells import bucket_order
 
     rank = np.empty(len(ids), np.int32 if len(uniq) < 2 ** 31 else np.int64)
     step = 1 << 22
@@ -661,7 +661,8 @@ def _surface_geometry(pre: Epoch, post: Epoch, settings: PipelineSettings):
     (`quakescan.distributed` finds the same densities block by block)."""
     if settings.surface is None:
         return None
-    from .surface import SurfaceGeometry, planimetric_density
+    from ..grid.density import planimetric_density
+    from .surface import SurfaceGeometry
 
     d_pre = planimetric_density(pre.xyz, pre.building_id > 0)
     d_post = planimetric_density(post.xyz, post.building_id > 0)

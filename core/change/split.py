@@ -51,7 +51,7 @@ def morton_order(xyz: np.ndarray, bits: int = 16) -> np.ndarray:
     on a million points)."""
     if len(xyz) == 0:
         return np.zeros(0, np.int64)
-    from ._cell_kernels import row_bounds
+    from ..grid.cells import row_bounds
 
     lo, hi = row_bounds(xyz)
     span = np.maximum(hi - lo, 1e-9)

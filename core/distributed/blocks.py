@@ -3,7 +3,7 @@
 The tiling step of a distributed classification. The file is read in chunks (laspy's chunk
 iterator: memory holds one chunk, never the cloud), each point gets its building ID (the
 file's `building_id` or the footprint that holds it), and is appended to the file of its
-block: a square of `block_cells` density cells (1 m, `quakescan.change.surface.DENSITY_CELL_M`)
+block: a square of `block_cells` density cells (1 m, `quakescan.grid.density.DENSITY_CELL_M`)
 in the pair's local frame. A block holds each point once; the halo a tile needs is read
 from the blocks around it when the tile is described, so one tiling serves every halo.
 
@@ -39,7 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..change.surface import DENSITY_CELL_M
+from ..grid.density import DENSITY_CELL_M
 from ..formats.pointcloud import PointCloudError, noise_mask, read_point_range
 
 # The stored point: the file's integers, so a float64 coordinate is made once, on reading.
@@ -580,7 +580,7 @@ def _sorted_runs(keys: np.ndarray, codes: np.ndarray, columns: dict, seen: set, 
     run's key (`run_keys`), start and end. The records are packed in block order (one
     counting sort, one compiled loop: gathering whole records was the stream's slowest
     step)."""
-    from ..change._cell_kernels import stable_order
+    from ..grid.cells import stable_order
     from ._record_kernels import pack_records
 
     n = len(keys)

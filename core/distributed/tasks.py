@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..change.surface import DENSITY_CELL_M
+from ..grid.density import DENSITY_CELL_M
 from .blocks import EpochFile, block_runs, read_box, read_records, read_runs, stored_points, worker_footprints
 
 # the eight neighbours a roof cell needs occupied to count as interior (roof_cell_density)
@@ -97,7 +97,7 @@ def group_roof_cells(folder: str, keys, block_cells: int, building_only: bool = 
 
 
 def block_roof_cells(folder: str, key, block_cells: int, building_only: bool = True, transform=None) -> dict:
-    """One block's share of `quakescan.change.surface.planimetric_density`.
+    """One block's share of `quakescan.grid.density.planimetric_density`.
 
     Per density cell of the block (its points with a building ID, or all points): the
     number of points within ROOF_BAND_M of the cell's highest one. Cells whose eight
@@ -141,9 +141,9 @@ def _roof_cells(xyz: np.ndarray, key, block_cells: int) -> dict:
 def _roof_cells_of(ci, cj, z, span, key, block_cells: int) -> dict:
     """`block_roof_cells` of points given by their density cells (ci, cj) and heights z
     (`span`: the cells' min i, min j, max i, max j): the block's cells as a dense grid, each
-    cell's top-band count compiled (`_top_band_counts`), its neighbours looked up by
+    cell's top-band count compiled (`roof_band_counts`), its neighbours looked up by
     shifting the grid."""
-    from ..change.surface import _top_band_counts
+    from ..grid.density import roof_band_counts
 
     out = {"key": list(key), "hist": {}, "edge": [], "sum": 0, "cells": 0, "occupied_edge": []}
     if not len(z):
@@ -153,7 +153,7 @@ def _roof_cells_of(ci, cj, z, span, key, block_cells: int) -> dict:
     span = np.asarray(span, dtype=np.int64)
     lo = np.minimum(span[:2], b0)  # a block's points lie in its cells; the grid holds any that do not
     sx, sy = (np.maximum(span[2:], b1) - lo + 1).tolist()
-    counts = _top_band_counts((ci - lo[0]) * sy + (cj - lo[1]), z, sx * sy)
+    counts = roof_band_counts((ci - lo[0]) * sy + (cj - lo[1]), z, sx * sy)
     counts = counts.reshape(sx, sy)
     occupied = counts > 0
     gi, gj = np.arange(sx) + lo[0], np.arange(sy) + lo[1]

@@ -407,7 +407,7 @@ def register_samples(pre_sample, post_sample, post, settings: PipelineSettings, 
 def max_displacement_m(a, xyz: np.ndarray) -> float:
     """How far the alignment moves any corner of the cloud's bounding box (translation and
     rotation together: a small rotation moves the far edge of a large tile the most)."""
-    from ..change._cell_kernels import column_bounds
+    from ..grid.cells import column_bounds
 
     lo, hi = column_bounds(np.asarray(xyz, dtype=np.float64))
     corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
