@@ -57,13 +57,10 @@ import math
 
 import numpy as np
 
-# Bumped whenever these descriptors' computation changes (with surface.DESCRIPTOR_VERSION in the
-# training tables' keys). 2: courtyards stay outside the inner area, the radius floor 0.5 -> 0.25 m;
-# 3: a fallen return must be surrounded by the surface it fell through; 4: and not lie on a wall;
-# 5: a wall is a surface steeper than 63 deg up to 2 m above, within a point spacing.
-OPENINGS_VERSION = 5
-OPENING_DESCRIPTORS = ("o_fallen", "o_fallen_null", "o_fallen_excess", "o_fallen_ground", "o_fallen_largest",
-                       "o_fallen_scatter")
+from .descriptors import names_of as family_names
+
+# the names and the version (OPENINGS_VERSION) of these descriptors: quakescan.change.descriptors
+OPENING_DESCRIPTORS = family_names("openings")
 SEE_THROUGH_M = 1.0
 EXPECTED_NEIGHBOURS = 3.0
 MIN_RADIUS_M = 0.25

@@ -28,8 +28,9 @@ import numpy as np
 
 from ..errors import QuakeScanError
 from ..formats.pointcloud import Epoch, without_noise
-from ..runtime.progress import ProgressCallback
 from ..grid.cells import row_bounds
+from ..runtime.progress import ProgressCallback
+from . import descriptors as registry
 from .features import FEATURES, compute_features
 from .split import STATISTICS, SplitSettings, building_changes, nearest_neighbours
 from .surface import SURFACE_DESCRIPTORS, SurfaceSettings
@@ -116,9 +117,10 @@ class PipelineSettings:
         if isinstance(self.surface, dict):
             self.surface = SurfaceSettings.from_json(self.surface)
         self.surface_descriptors = tuple(self.surface_descriptors)
-        unknown = [c for c in self.surface_descriptors if c not in SURFACE_DESCRIPTORS]
+        known = registry.names()
+        unknown = [c for c in self.surface_descriptors if c not in known]
         if unknown:
-            raise PipelineError(f"unknown surface descriptors {unknown}; known: {', '.join(SURFACE_DESCRIPTORS)}")
+            raise PipelineError(f"unknown surface descriptors {unknown}; known: {', '.join(known)}")
         if self.per_point_lod and self.surface is None:
             raise PipelineError("per-point levels of detection need the surface settings (their M3C2 core points)")
         if not self.paper_descriptors and self.surface is None:
@@ -224,9 +226,10 @@ def settings_for_descriptors(names: Sequence[str], radius_m: float, split: dict 
 
     Refuses a column that no point feature or change produces: a model for other features."""
     feats, bad = [], []
-    surface_cols = [c for c in names if c in SURFACE_DESCRIPTORS]
+    known = registry.names()
+    surface_cols = [c for c in names if c in known]
     for col in names:
-        if col == "share_changed" or col in SURFACE_DESCRIPTORS:
+        if col == "share_changed" or col in known:
             continue
         base, _, stat = col.rpartition("_")
         if stat not in STATISTICS or not (base in FEATURES or base in EXTRA_CHANGES):
@@ -236,7 +239,7 @@ def settings_for_descriptors(names: Sequence[str], radius_m: float, split: dict 
     if bad:
         raise PipelineError(f"the model asks for descriptors {bad} that this QuakeScan cannot compute "
                             f"(point features: {', '.join(FEATURES)}; statistics: {', '.join(STATISTICS)}; "
-                            f"surface descriptors: {', '.join(SURFACE_DESCRIPTORS)})")
+                            f"surface descriptors: {', '.join(known)})")
     newer = _newer_keys(stored or {})
     newer["paper_descriptors"] = "share_changed" in names
     newer["surface_descriptors"] = tuple(surface_cols)  # none: surface settings only for per-point LoDs
@@ -708,7 +711,8 @@ def _describe_tile(pre, post, pre_index, post_index, bids, members, settings: Pi
         ground = pre.classification[pre_r] == GROUND_CLASS if pre.classification is not None else None
         surf, cores, qual = describe_surfaces(pre.xyz[pre_r], pre.building_id[pre_r], ground, post.xyz[post_r],
                                               bids, settings.surface, geometry, workers=workers,
-                                              quality=True, facing_counts=facing_counts, facing_out=facing_out)
+                                              quality=True, facing_counts=facing_counts, facing_out=facing_out,
+                                              wanted=settings.surface_descriptors)
         for b in bids:
             descriptors[b].update({k: surf[b][k] for k in settings.surface_descriptors})
             quality[b] = qual[b]

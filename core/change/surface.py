@@ -92,8 +92,10 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from ..errors import QuakeScanError
-from ..grid.density import planimetric_density
 from ..grid.cells import column_bounds, row_bounds, stable_order
+from ..grid.density import planimetric_density
+from . import descriptors as registry
+from .descriptors import names_of, transferring
 from .detectability import min_lowering_m
 from .m3c2 import ColumnGrid, M3C2Settings, cylinder_radius, m3c2, orient_normals, voxel_core_points
 from .openings import OPENING_DESCRIPTORS
@@ -104,14 +106,7 @@ GROUND_CLASS = 2
 _BAND_STRIDE_M = 1.0e4
 # share of a cell's pre-event points at the post-event height that makes it a surface seen before
 LOWER_SURFACE_SHARE = 0.2
-# Bumped whenever a descriptor's computation changes: cached training tables made with another
-# version are not reused (quakescan.learning.trainset), and a model records the version it was trained on.
-# The openings per return (`quakescan.change.openings`) have a version of their own, OPENINGS_VERSION:
-# the shipped model does not read them yet, and a change of theirs is no reason to warn about it.
-DESCRIPTOR_VERSION = 16
-RASTER_DESCRIPTORS = ("s_lowered_1m", "s_lowered_storey", "s_lowered_half", "s_raised", "s_volume_loss",
-                      "s_volume_gain", "s_height_ratio_mean", "s_height_ratio_p10", "s_post_gap",
-                      "s_debris_ring", "s_debris_volume", "s_see_through", "s_interior_seen")
+RASTER_DESCRIPTORS = names_of("raster") + names_of("interior")
 # a post-event point this far (or its level of detection, if larger) below every pre-event point of
 # its cell's 3 x 3 neighbourhood was seen through the roof: a floor under a hole, rubble inside
 SEE_THROUGH_M = 1.0
@@ -128,15 +123,11 @@ INTERIOR_NEIGHBOURHOOD_M = 1.0
 # light well, a gap between roofs) the other hit a few times. At 4 pts/m² a patch needs
 # 1.7 m² (7 cells of 0.5 m); above ln(1000) / 0.75 m² = 9.2 pts/m², 3 cells, as every patch does.
 MISSED_CHANCE = 1e-3
-CORE_DESCRIPTORS = ("m_changed", "m_lost", "m_roof_changed", "m_wall_changed", "m_holes", "m_wall_holes",
-                    "m_upper_changed",
-                    "m_lower_changed", "m_inward", "m_outward", "m_coherent", "m_largest_patch", "m_distance_p10",
-                    "m_distance_median", "m_distance_p90", "m_lod_median")
+CORE_DESCRIPTORS = names_of("core")
 SURFACE_DESCRIPTORS = RASTER_DESCRIPTORS + CORE_DESCRIPTORS + OPENING_DESCRIPTORS
-# the descriptors whose meaning does not depend on the sensor's noise: the signed distances and
-# the level of detection of the significant core points describe the sensor on an unchanged
-# real roof (quakescan.learning.default_model reads these; bench_transfer measures the others)
-NOISE_FREE_DESCRIPTORS = tuple(n for n in SURFACE_DESCRIPTORS if not n.startswith(("m_distance", "m_lod")))
+# the built-in descriptors whose meaning does not depend on the sensor's noise (the signed distances
+# and the level of detection describe the sensor on an unchanged roof): what the shipped model reads
+NOISE_FREE_DESCRIPTORS = transferring(SURFACE_DESCRIPTORS)
 
 
 class SurfaceError(QuakeScanError):
@@ -335,7 +326,7 @@ def _neighbour_offsets(width: int, radius_cells: int, disc_m: float | None = Non
 def describe_surfaces(pre_xyz: np.ndarray, pre_bid: np.ndarray, pre_ground: np.ndarray, post_xyz: np.ndarray,
                       bids, settings: SurfaceSettings, geom: SurfaceGeometry, *, workers: int = -1,
                       quality: bool = False, facing_counts: np.ndarray | None = None,
-                      facing_out: dict | None = None):
+                      facing_out: dict | None = None, wanted=None):
     """Surface descriptors of the buildings `bids` from the points of a region around them.
 
     pre_xyz/post_xyz: (n, 3) local-frame points of the region (every kind of point);
@@ -353,7 +344,10 @@ def describe_surfaces(pre_xyz: np.ndarray, pre_bid: np.ndarray, pre_ground: np.n
     the same way among the core points of all of `bids` (`_lost`): `facing_out`, when given,
     receives those counts ("facing_counts", `count_by_facing`), and `facing_counts` given
     replaces them, so buildings described in parts (a tile split to fit a worker's memory)
-    are judged against the counts of the whole tile."""
+    are judged against the counts of the whole tile.
+
+    Every registered family (`quakescan.change.descriptors.register`) that names one of
+    `wanted` (default: every one) is computed per building from its `BuildingView`."""
     from ..runtime.workers import kernel_threads
     from .features import compute_features
 
@@ -385,6 +379,7 @@ def describe_surfaces(pre_xyz: np.ndarray, pre_bid: np.ndarray, pre_ground: np.n
     ground_finder = _GroundFinder(pre_sorted, pre_xyz[pre_ground] if pre_ground is not None else None,
                                   settings.ground_search_m)
     descriptors, members, core_of, qual, grounds, outline_core = {}, {}, {}, {}, {}, {}
+    added = [f for f in registry.computed_per_building() if wanted is None or set(f.names) & set(wanted)]
     for bid in bids:
         a, b = np.searchsorted(sorted_bid, [bid, bid + 1])
         idx = order[a:b]
@@ -398,6 +393,9 @@ def describe_surfaces(pre_xyz: np.ndarray, pre_bid: np.ndarray, pre_ground: np.n
         descriptors[bid]["s_interior_seen"] = interior.share(pre_xyz[idx], settings.min_patch_cells, own_density)
         descriptors[bid].update(_openings(pre_xyz[idx], pre_key[idx], own_density, interior, ground, lo, c, width,
                                           settings))
+        for family in added:
+            view = _building_view(pre_xyz[idx], pre_key[idx], own_density, interior, ground, lo, c, width, settings)
+            descriptors[bid].update(registry.checked(family, family.compute(view)))
         if quality:
             cells = np.unique(pre_key[idx])
             inside = np.isin(post_key, cells)
@@ -527,6 +525,22 @@ def _openings(own: np.ndarray, own_keys: np.ndarray, own_density: float, interio
     over = np.isin(keys, np.unique(own_keys))
     d_post = planimetric_density(post[over]) if over.any() else 0.0
     return opening_descriptors(own, pre, post, ground, own_density, d_post, settings.min_share)
+
+
+def _building_view(own: np.ndarray, own_keys: np.ndarray, own_density: float, interior: _InteriorView,
+                   ground: float, lo, c: float, width: int, settings: SurfaceSettings) -> registry.BuildingView:
+    own_lo, own_hi = row_bounds(own[:, :2])
+
+    def post_over() -> np.ndarray:
+        post = interior.post.in_box(own_lo - c, own_hi + c)  # every point of the building's cells
+        keys = (np.floor((post[:, 0] - lo[0]) / c).astype(np.int64) * width
+                + np.floor((post[:, 1] - lo[1]) / c).astype(np.int64))
+        return post[np.isin(keys, np.unique(own_keys))]
+
+    return registry.BuildingView(own=own, ground=ground, density=own_density, cell_m=c, settings=settings,
+                                 pre_near=lambda reach: interior.pre.in_box(own_lo - reach, own_hi + reach),
+                                 post_near=lambda reach: interior.post.in_box(own_lo - reach, own_hi + reach),
+                                 post_over=post_over)
 
 
 def _facades(own: np.ndarray, interior: _InteriorView, building_keys, ground: float, lo, c: float,

@@ -81,7 +81,7 @@ def model_settings(model: DamageModel, source: str = "model") -> PipelineSetting
                          "retrain it with `quakescan train`") from None
     version = (model.provenance or {}).get("descriptor_version")
     if settings.surface is not None and version is not None:
-        from ..change.surface import DESCRIPTOR_VERSION
+        from ..change.descriptors import DESCRIPTOR_VERSION
 
         if version != DESCRIPTOR_VERSION:
             log.warning("%s: trained on surface descriptors of version %s, this QuakeScan computes version %s: "

@@ -35,7 +35,8 @@ from pathlib import Path
 import numpy as np
 
 from ..change.pipeline import PipelineSettings
-from ..change.surface import DESCRIPTOR_VERSION, NOISE_FREE_DESCRIPTORS, SurfaceSettings
+from ..change.descriptors import DESCRIPTOR_VERSION
+from ..change.surface import NOISE_FREE_DESCRIPTORS, SurfaceSettings
 from ..runtime.progress import accepts_old_say, stage_log
 from .model_selection import MIN_CITIES_TO_GROUP, cv_groups
 

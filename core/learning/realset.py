@@ -217,9 +217,8 @@ def _drone_versions(pair: RealPair) -> dict:
 
 def pair_rows(work: Path, data: Path, pair: RealPair, settings, workers: int = -1) -> dict:
     """x, y, building_id, density, cells of one real pair (cached with its fingerprint)."""
-    from ..change.openings import OPENINGS_VERSION
     from ..change.pipeline import describe_pair, descriptor_matrix
-    from ..change.surface import DESCRIPTOR_VERSION
+    from ..change.descriptors import code_versions
     from ..injection.inject import InjectSettings, inject
     from ..results.evaluation import read_grade_csv, to_target_grade
     from .classification import load_pair
@@ -234,8 +233,7 @@ def pair_rows(work: Path, data: Path, pair: RealPair, settings, workers: int = -
     table = folder / "rows.npz"
     fp = fingerprint.make("real-pair", {"cloud": fingerprint.content(cloud), "footprints": fingerprint.content(footprints)},
                           {"pair": pair.spec(), "pipeline": settings.to_json()},
-                          {"realset": VERSION, "descriptors": DESCRIPTOR_VERSION, "openings": OPENINGS_VERSION,
-                           **_drone_versions(pair)})
+                          {"realset": VERSION, **code_versions(settings.surface_descriptors), **_drone_versions(pair)})
     if fingerprint.is_current(table, fp):
         with np.load(table) as d:
             return {k: d[k] for k in d.files}

@@ -310,11 +310,13 @@ def combine_tables(clean: TransferTable, realistic: TransferTable) -> TransferTa
 
 def _settings_key(settings, labels: str = "simulator") -> str:
     """Tables are reused only for the same settings, labels and descriptor code."""
-    from ..change.surface import DESCRIPTOR_VERSION
+    from ..change.descriptors import code_versions
 
-    from ..change.openings import OPENINGS_VERSION
-
-    doc = {"settings": settings.to_json(), "descriptor_version": DESCRIPTOR_VERSION, "openings": OPENINGS_VERSION}
+    versions = code_versions(settings.surface_descriptors)
+    doc = {"settings": settings.to_json(), "descriptor_version": versions.pop("descriptors"),
+           "openings": versions.pop("openings")}
+    if versions:  # registered families' versions (the built-in ones alone keep the keys they had)
+        doc["families"] = versions
     if labels != "simulator":  # keeps the keys of tables made before labels were a choice
         doc["labels"] = labels
     return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()[:12]
@@ -325,19 +327,13 @@ def _table_fingerprint(pair: PairSpec, scenes: Path, settings, labels: str):
     seeds), the scenes' scene.json by content (it records the generator's settings and every
     building's grade, and its mesh follows from them: hashing meshes on every rerun would cost
     more than it guards), the descriptor settings, the labels and the descriptor code."""
-    from ..change.surface import DESCRIPTOR_VERSION
+    from ..change.descriptors import code_versions
 
     return fingerprint.make("transfer-table",
                             inputs={"pre": fingerprint.content(scenes / "pre" / "scene.json"),
                                     "post": fingerprint.content(scenes / pair.post_scene / "scene.json")},
                             settings={"pair": asdict(pair), "settings": settings.to_json(), "labels": labels},
-                            code={"descriptors": DESCRIPTOR_VERSION, "openings": _openings_version()})
-
-
-def _openings_version() -> int:
-    from ..change.openings import OPENINGS_VERSION
-
-    return OPENINGS_VERSION
+                            code=code_versions(settings.surface_descriptors))
 
 
 def generate_city(city: CitySpec, folder: Path) -> None:

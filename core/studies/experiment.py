@@ -131,7 +131,7 @@ def _table(pre: Path, posts: list, cache: Path, settings, workers) -> dict:
     `posts`: (post cloud, grade) where grade is one grade for every building or a
     {building ID: grade} truth (a mixed city)."""
     from ..change.pipeline import describe_pair, descriptor_matrix
-    from ..change.surface import DESCRIPTOR_VERSION
+    from ..change.descriptors import DESCRIPTOR_VERSION
     from ..learning.classification import load_pair
 
     inputs = json.dumps([settings.to_json(), Path(pre).name, [Path(p).name for p, _ in posts]], sort_keys=True)
