@@ -49,4 +49,6 @@ def test_the_docs_tour_runs_end_to_end(tmp_path):
     tour = runpy.run_path(str(ROOT / "docs" / "examples" / "api_tour.py"))
     res = tour["main"](tmp_path / "tour")
     assert res["buildings"] == 12 and res["rows"] == 12 and res["trained_rows"] >= 2
-    assert 0.0 <= res["overall_accuracy"] <= 1.0
+    # the shipped model grades simulated held-out cities at 85-95 % (BENCHMARKS.md); grading every
+    # building of this mixed city "no damage" would score its undamaged share, a quarter
+    assert res["overall_accuracy"] >= 0.5

@@ -38,6 +38,13 @@ def test_files_join_and_skip_not_assessable(tmp_path):
     assert ev.per_grade[5]["f1"] == 1.0
     plot_confusion(ev, tmp_path / "c.png")
     assert (tmp_path / "c.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # the two buildings (truth 0 -> 0, 5 -> 5) are the matrix's only dark blue cells: top left and
+    # bottom right, so the dark pixels lie on the falling diagonal of the picture
+    from matplotlib.image import imread
+
+    rgb = imread(tmp_path / "c.png")[..., :3]
+    y, x = np.nonzero((rgb[..., 2] > rgb[..., 0] + 0.2) & (rgb[..., 2] < 0.6))
+    assert len(x) > 500 and np.corrcoef(x, y)[0, 1] > 0.9
 
 
 def test_bad_tables(tmp_path):

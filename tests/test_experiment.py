@@ -2,6 +2,7 @@
 process and as Dask tasks."""
 import json
 
+import numpy as np
 import pytest
 
 from quakescan.cli import main
@@ -18,7 +19,9 @@ def test_tiny_paper_experiment_writes_the_report(tmp_path, capsys):
     assert set(doc["results"]) == set(CLASSIFIERS) == set(PAPER_TABLE)
     for res in doc["results"].values():
         assert res["n"] + res["not_assessable"] == 6
-        assert 0.0 <= res["overall_accuracy"] <= 1.0
+        confusion = np.array(res["confusion"]["rows_truth_columns_prediction"])
+        assert confusion.sum() == res["n"]  # every assessable test building counted once
+        assert res["overall_accuracy"] == pytest.approx(np.trace(confusion) / res["n"])
     text = (out / "README.md").read_text()
     assert text.count("| generic ULS | OA |") == 1 and "(95.1)" in text  # the paper's number beside ours
     assert "mixed city (1 × grade 0, 1 × grade 3" in text

@@ -4,7 +4,7 @@ from pathlib import Path
 
 from quakescan import grades
 from quakescan.learning.model import GRADE_LABELS
-from quakescan.results.evaluation import GRADE_NAMES as EVALUATION_NAMES
+from quakescan.results.evaluation import TARGET_SHORT_NAMES as EVALUATION_NAMES
 
 REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:

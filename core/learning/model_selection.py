@@ -18,7 +18,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from ..results.evaluation import GRADE_NAMES, binary_metrics, to_target_grade
+from ..results.evaluation import TARGET_SHORT_NAMES, binary_metrics, to_target_grade
 from .model import ModelError, decided_by_rule, native_threads, train_damage_forest
 
 PROBABILITY_FLOOR = 1e-15  # log-loss of a probability 0 given to the true grade: log(1e-15) ≈ -34.5
@@ -143,7 +143,7 @@ def comparison_table(scores: Sequence[CandidateScore]) -> str:
     """A markdown table, one line per candidate: overall accuracy (lowest–highest fold),
     macro F1, F1 per grade, damaged-vs-undamaged F1, log-loss, Brier score, fit seconds."""
     grades = sorted({g for s in scores for g in s.f1_per_grade})
-    head = (["candidate", "OA (folds)", "macro F1"] + [f"F1 {GRADE_NAMES.get(g, f'grade {g}')}" for g in grades]
+    head = (["candidate", "OA (folds)", "macro F1"] + [f"F1 {TARGET_SHORT_NAMES.get(g, f'grade {g}')}" for g in grades]
             + ["damaged F1", "log-loss", "Brier", "fit s"])
     rows = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for s in scores:

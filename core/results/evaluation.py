@@ -18,7 +18,7 @@ from ..errors import QuakeScanError
 from ..grades import short_name
 
 TARGET_GRADES = (0, 3, 4, 5)
-GRADE_NAMES = {g: short_name(g) for g in TARGET_GRADES}  # tables and plots: the paper's short names
+TARGET_SHORT_NAMES = {g: short_name(g) for g in TARGET_GRADES}  # tables and plots: the paper's short names
 NOT_AVAILABLE = "n/a"
 
 
@@ -89,7 +89,7 @@ class Evaluation:
 
     def table(self) -> str:
         rows = ["| class | OA | precision | recall | F1 |", "|---|---|---|---|---|"]
-        named = [(GRADE_NAMES[g], self.per_grade[g]) for g in TARGET_GRADES]
+        named = [(TARGET_SHORT_NAMES[g], self.per_grade[g]) for g in TARGET_GRADES]
         for name, m in named + [("damaged vs undamaged", self.damaged)]:
             rows.append(f"| {name} | " + " | ".join(metric_text(m, k) for k in ("oa", "precision", "recall", "f1"))
                         + " |")
@@ -207,7 +207,7 @@ def plot_confusion(ev: Evaluation, path: str | os.PathLike, title: str = "Damage
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    names = [GRADE_NAMES[g] for g in TARGET_GRADES]
+    names = [TARGET_SHORT_NAMES[g] for g in TARGET_GRADES]
     fig, ax = plt.subplots(figsize=(4.8, 4.2), dpi=120)
     ax.imshow(ev.confusion, cmap="Blues")
     for i in range(len(names)):

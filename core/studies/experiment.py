@@ -40,8 +40,8 @@ import numpy as np
 
 from ..learning.model import train_damage_forest, train_forest
 from ..results.evaluation import (
-    GRADE_NAMES,
     TARGET_GRADES,
+    TARGET_SHORT_NAMES,
     Evaluation,
     evaluate_grades,
     metric_text,
@@ -463,7 +463,7 @@ def _cell(m: dict) -> tuple:
 
 
 def comparison_table(results: dict) -> str:
-    cols = [("damaged", "damaged vs undamaged")] + [(g, GRADE_NAMES[g]) for g in TARGET_GRADES]
+    cols = [("damaged", "damaged vs undamaged")] + [(g, TARGET_SHORT_NAMES[g]) for g in TARGET_GRADES]
     lines = ["| classifier | metric | " + " | ".join(c for _, c in cols) + " |",
              "|---|---|" + "---|" * len(cols)]
     for name, ev in results.items():
@@ -507,7 +507,7 @@ def ablation_table(ablation: dict) -> str:
 def shipped_text(ev: Evaluation | None) -> str:
     if ev is None:
         return "The shipped default model was not found; no comparison with it."
-    f1 = ", ".join(f"{GRADE_NAMES[g]} {metric_text(ev.per_grade[g], 'f1', unit='')}" for g in TARGET_GRADES)
+    f1 = ", ".join(f"{TARGET_SHORT_NAMES[g]} {metric_text(ev.per_grade[g], 'f1', unit='')}" for g in TARGET_GRADES)
     # "quakescan.trainset" as in the reports of record (now quakescan.learning.trainset): the
     # report's text stays the same bytes
     return (f"The shipped default model (`core/data/default_model.skops`: the transfer training set of "
