@@ -53,6 +53,14 @@ LOD_FEATURES = ("eigenvalue1", "eigenvalue2", "eigenvalue3", "num_neighbours")
 # holds too few points for stable eigenvalues; above 10 m it spans whole buildings and
 # its cost grows with r². The paper uses 1.0-4.0 m.
 RADIUS_RANGE_M = (0.5, 10.0)
+
+
+def radius_problem(r) -> str | None:
+    """What is wrong with a neighbourhood radius (settings, a model file), or None: the one rule."""
+    if isinstance(r, bool) or not isinstance(r, (int, float, np.integer, np.floating)) or not (
+            math.isfinite(r) and RADIUS_RANGE_M[0] <= r <= RADIUS_RANGE_M[1]):
+        return f"must lie in [{RADIUS_RANGE_M[0]:g}, {RADIUS_RANGE_M[1]:g}] m, got {r!r}"
+    return None
 MAX_MIN_POINTS = 1_000_000
 MAX_TILE_M = 10_000.0
 
@@ -94,10 +102,9 @@ class PipelineSettings:
     min_cells: int = 0
 
     def __post_init__(self):
-        r = self.radius_m
-        if isinstance(r, bool) or not isinstance(r, (int, float, np.integer, np.floating)) or not (
-                math.isfinite(r) and RADIUS_RANGE_M[0] <= r <= RADIUS_RANGE_M[1]):
-            raise PipelineError(f"radius must lie in [{RADIUS_RANGE_M[0]:g}, {RADIUS_RANGE_M[1]:g}] m, got {r!r}")
+        problem = radius_problem(self.radius_m)
+        if problem:
+            raise PipelineError(f"radius {problem}")
         if not isinstance(self.split, SplitSettings):
             raise PipelineError(f"split settings must be SplitSettings, got {self.split!r}")
         for name in ("min_points_pre", "min_points_post"):

@@ -544,14 +544,13 @@ def _check_archive_size(path: Path) -> None:
 def _check_settings(path, meta: dict) -> None:
     """Refuse settings no QuakeScan writes: a radius or levels of detection out of range (an
     edited file would classify every building at settings it was never trained on)."""
-    from ..change.pipeline import RADIUS_RANGE_M
+    from ..change.pipeline import radius_problem
     from ..change.split import SplitSettings
 
-    r = meta.get("radius_m")
-    if isinstance(r, bool) or not isinstance(r, (int, float)) or not (
-            np.isfinite(r) and RADIUS_RANGE_M[0] <= r <= RADIUS_RANGE_M[1]):
-        raise ModelError(f"{path}: radius_m must lie in [{RADIUS_RANGE_M[0]:g}, {RADIUS_RANGE_M[1]:g}] m, got "
-                         f"{r!r} (edited or foreign file)")
+    problem = radius_problem(meta.get("radius_m"))
+    if problem:
+        raise ModelError(f"{path}: radius_m {problem} (edited or foreign file)")
+    r = meta["radius_m"]
     stored = meta.get("split", {})
     if not isinstance(stored, dict):
         raise ModelError(f"{path}: split settings must be a dict, got {stored!r}")
