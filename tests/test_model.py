@@ -55,6 +55,18 @@ def test_missing_features_are_named(model):
         m.predict_proba({"a": x[:, 0], "b": x[:, 1]})
 
 
+def test_rows_as_a_matrix_give_the_tables_probabilities(model):
+    """The classify run's path (descriptor_matrix of the rows) and the table path are one."""
+    from quakescan.change.pipeline import BuildingRow, descriptor_matrix
+
+    m, x = model
+    rows = [BuildingRow(i + 1, 10, 10, True, "", {"c": v[2], "a": v[0], "b": v[1]}) for i, v in enumerate(x)]
+    np.testing.assert_array_equal(m.predict_proba_matrix(descriptor_matrix(rows, m.feature_names)),
+                                  m.predict_proba({"a": x[:, 0], "b": x[:, 1], "c": x[:, 2]}))
+    with pytest.raises(ModelError, match=r"reads 3 features a row, got a matrix of shape \(200, 2\)"):
+        m.predict_proba_matrix(x[:, :2])
+
+
 def test_tampered_file_is_refused_without_running_it(tmp_path, model):
     import skops.io as sio
 

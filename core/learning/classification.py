@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from ..change.detectability import of_building
-from ..change.pipeline import PipelineSettings, describe_pair, settings_for_descriptors
+from ..change.pipeline import PipelineSettings, describe_pair, descriptor_matrix, settings_for_descriptors
 from ..errors import QuakeScanError
 from ..formats.pointcloud import (
     Epoch,
@@ -201,8 +201,7 @@ def predict_rows(rows, model: DamageModel, rule: bool | None = None, unseen_dama
             ask.append((res, r, seen))
         out.append(res)
     if ask:
-        table = {n: np.array([r.descriptors[n] for _, r, _ in ask]) for n in model.feature_names}
-        proba = model.predict_proba(table)
+        proba = model.predict_proba_matrix(descriptor_matrix([r for _, r, _ in ask], model.feature_names))
         # the grade is what the data show (the model's own answer); its probabilities, and so
         # its confidence, count what they could not show
         said = np.argmax(proba, axis=1)

@@ -99,7 +99,15 @@ class DamageModel:
         if missing:
             raise ModelError(f"the model needs features {missing} that the data lacks "
                              f"(model features: {self.feature_names})")
-        x = np.column_stack([np.asarray(table[f], dtype=np.float64) for f in self.feature_names])
+        return self.predict_proba_matrix(np.column_stack([np.asarray(table[f], dtype=np.float64)
+                                                          for f in self.feature_names]))
+
+    def predict_proba_matrix(self, x: np.ndarray) -> np.ndarray:
+        """(n, n_classes) probabilities from an (n, len(feature_names)) matrix in `feature_names`'
+        order (`quakescan.change.pipeline.descriptor_matrix` of the rows)."""
+        x = np.asarray(x, dtype=np.float64)
+        if x.ndim != 2 or x.shape[1] != len(self.feature_names):
+            raise ModelError(f"the model reads {len(self.feature_names)} features a row, got a matrix of shape {x.shape}")
         proba = self.estimator.predict_proba(x)
         if self.temperature != 1.0:
             from .reliability import temper
