@@ -531,3 +531,16 @@ def test_compiled_cell_tops_are_numpys_to_the_last_bit(offset):
         got = _CellTops(xyz, lo, 0.7, width, 0.35)
         for name, want in _cell_tops_numpy(xyz, lo, 0.7, width, 0.35).items():
             np.testing.assert_array_equal(getattr(got, name), want, err_msg=name)
+
+
+def test_points_grouped_by_the_caller_give_the_same_descriptors():
+    """The pipeline hands its grouping of the points by building to describe_surfaces (one
+    grouping a run); the function's own grouping gives the same rows."""
+    rng = np.random.default_rng(12)
+    pre, post = scene(rng, 40, False), scene(rng, 40, True)
+    s = SurfaceSettings()
+    geom = SurfaceGeometry.for_pair(s, 40, 40)
+    own = describe_surfaces(pre[0], pre[1], pre[2] == 2, post[0], [1], s, geom, workers=1)[0]
+    given = describe_surfaces(pre[0], pre[1], pre[2] == 2, post[0], [1], s, geom, workers=1,
+                              groups={1: np.flatnonzero(pre[1] == 1)})[0]
+    assert given == own and own[1]["s_lowered_1m"] > 0.3

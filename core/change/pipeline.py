@@ -719,7 +719,8 @@ def _describe_tile(pre, post, pre_index, post_index, bids, members, settings: Pi
         surf, cores, qual = describe_surfaces(pre.xyz[pre_r], pre.building_id[pre_r], ground, post.xyz[post_r],
                                               bids, settings.surface, geometry, workers=workers,
                                               quality=True, facing_counts=facing_counts, facing_out=facing_out,
-                                              wanted=settings.surface_descriptors)
+                                              wanted=settings.surface_descriptors,
+                                              groups={b: np.searchsorted(pre_r, members[b]) for b in bids})
         for b in bids:
             descriptors[b].update({k: surf[b][k] for k in settings.surface_descriptors})
             quality[b] = qual[b]

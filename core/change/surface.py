@@ -326,7 +326,7 @@ def _neighbour_offsets(width: int, radius_cells: int, disc_m: float | None = Non
 def describe_surfaces(pre_xyz: np.ndarray, pre_bid: np.ndarray, pre_ground: np.ndarray, post_xyz: np.ndarray,
                       bids, settings: SurfaceSettings, geom: SurfaceGeometry, *, workers: int = -1,
                       quality: bool = False, facing_counts: np.ndarray | None = None,
-                      facing_out: dict | None = None, wanted=None):
+                      facing_out: dict | None = None, wanted=None, groups: dict | None = None):
     """Surface descriptors of the buildings `bids` from the points of a region around them.
 
     pre_xyz/post_xyz: (n, 3) local-frame points of the region (every kind of point);
@@ -347,7 +347,9 @@ def describe_surfaces(pre_xyz: np.ndarray, pre_bid: np.ndarray, pre_ground: np.n
     are judged against the counts of the whole tile.
 
     Every registered family (`quakescan.change.descriptors.register`) that names one of
-    `wanted` (default: every one) is computed per building from its `BuildingView`."""
+    `wanted` (default: every one) is computed per building from its `BuildingView`.
+    `groups`: {building ID: ascending indices of its points in `pre_xyz`}, when the caller has
+    grouped the points already (the pipeline has); otherwise they are grouped here."""
     from ..runtime.workers import kernel_threads
     from .features import compute_features
 
@@ -372,8 +374,10 @@ def describe_surfaces(pre_xyz: np.ndarray, pre_bid: np.ndarray, pre_ground: np.n
     n3 = _neighbour_offsets(width, 1)
     ring_offsets = _neighbour_offsets(width, int(math.ceil(settings.debris_ring_m / c)), settings.debris_ring_m, c)
 
-    order = stable_order(pre_bid)
-    sorted_bid = pre_bid[order]
+    if groups is None:
+        order = stable_order(pre_bid)
+        sorted_bid = pre_bid[order]
+        groups = {bid: order[slice(*np.searchsorted(sorted_bid, [bid, bid + 1]))] for bid in bids}
     pre_sorted = _XSorted(pre_xyz)
     interior = _InteriorView(pre_sorted, _XSorted(post_xyz), max(INTERIOR_CELL_M, 0.5 * c))
     ground_finder = _GroundFinder(pre_sorted, pre_xyz[pre_ground] if pre_ground is not None else None,
@@ -381,8 +385,7 @@ def describe_surfaces(pre_xyz: np.ndarray, pre_bid: np.ndarray, pre_ground: np.n
     descriptors, members, core_of, qual, grounds, outline_core = {}, {}, {}, {}, {}, {}
     added = [f for f in registry.computed_per_building() if wanted is None or set(f.names) & set(wanted)]
     for bid in bids:
-        a, b = np.searchsorted(sorted_bid, [bid, bid + 1])
-        idx = order[a:b]
+        idx = groups[bid]
         if len(idx) == 0:
             raise SurfaceError(f"building {bid} has no pre-event points in its region")
         ground = grounds[bid] = ground_finder.height(pre_xyz[idx])
