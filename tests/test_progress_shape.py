@@ -74,7 +74,7 @@ def test_every_parallel_function_takes_workers_defaulting_to_every_core():
     assert len(defaults) >= 15 and set(defaults.values()) == {-1}
 
 
-def test_the_api_takes_workers_and_still_its_old_name(tmp_path):
+def test_the_api_takes_workers(tmp_path):
     from quakescan.acquisition.scan import scan
     from quakescan.acquisition.survey import preset
     from quakescan.errors import QuakeScanError
@@ -85,11 +85,8 @@ def test_the_api_takes_workers_and_still_its_old_name(tmp_path):
     scene = box_city(rows=1, cols=1)
     with pytest.raises(QuakeScanError, match="workers: the number of worker threads must be an integer >= 1"):
         scan(scene, preset("paper"), tmp_path / "a.las", workers=0)
-    with pytest.warns(DeprecationWarning, match=r"scan\(threads=...\) is deprecated"), \
-            pytest.raises(QuakeScanError, match="worker threads must be an integer >= 1"):
-        scan(scene, preset("paper"), tmp_path / "a.las", threads=-4)
-    with pytest.raises(TypeError, match="not both"):
-        scan(scene, preset("paper"), tmp_path / "a.las", workers=2, threads=2)
+    with pytest.raises(TypeError, match="threads"):  # its old name is gone
+        scan(scene, preset("paper"), tmp_path / "a.las", threads=2)
     assert not (tmp_path / "a.las").exists()
 
 

@@ -57,7 +57,6 @@ from typing import Any
 from ..errors import QuakeScanError, SurveyError
 from ..runtime import settings_file
 from ..runtime.progress import ProgressCallback
-from ..runtime.workers import accepts_old_threads
 
 # Modules (of this package) that register the built-in sensors, in the order of `kinds()`.
 BUILTIN = ("sensor_lidar", "sensor_dim")
@@ -160,7 +159,6 @@ def check_settings(kind: str, settings) -> Sensor:
     return sensor
 
 
-@accepts_old_threads
 def simulate(kind: str, scene, settings, out_path: str | os.PathLike, seed: int = 0, workers: int = -1,
              progress: ProgressCallback | None = None, source: str = "scene"):
     """Acquire the Scene `scene` with the sensor `kind` and `settings` into `out_path`;
