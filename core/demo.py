@@ -19,7 +19,7 @@ from pathlib import Path
 
 from .errors import QuakeScanError
 from .generator import generate
-from .runtime.progress import ProgressCallback, accepts_old_say, in_stage, stage_log
+from .runtime.progress import ProgressCallback, in_stage, stage_log
 
 # The demo city stands in L'Aquila (the paper's test region), in UTM zone 33N: its
 # GeoJSON, maps and clouds land there in QGIS or CloudCompare.
@@ -78,7 +78,6 @@ def check_demo_options(seed, buildings) -> None:
         raise DemoError(f"demo --seed: expected an integer in 0..{2 ** 31 - 2}, got {seed!r}")
 
 
-@accepts_old_say
 def run_demo(out_dir, seed: int = 0, buildings: int = 30, progress: ProgressCallback | None = None,
              progress_factory=None) -> dict:
     """The whole chain into out_dir (module doc). `progress` counts three stages: "scan pre",

@@ -158,7 +158,7 @@ def _stage_plan(tmp_path, monkeypatch):
     return finished_tables(tmp_path, monkeypatch, ts.default_plan(0, "quick"), TABLE_SETTINGS), TABLE_SETTINGS
 
 
-def test_stage_messages_are_log_records_and_the_old_say_still_gets_them(tmp_path, monkeypatch, capsys, caplog):
+def test_stage_messages_are_log_records(tmp_path, monkeypatch, capsys, caplog):
     from quakescan.learning.trainset import build
 
     plan, settings = _stage_plan(tmp_path, monkeypatch)
@@ -170,11 +170,6 @@ def test_stage_messages_are_log_records_and_the_old_say_still_gets_them(tmp_path
     assert messages[0].startswith("training set 1/3:") and messages[-1].startswith("training set: ")
     n = len(plan.cities) + len(plan.pairs)
     assert steps == [(k, n) for k in range(1, n + 1)]
-    said = []
-    with pytest.warns(DeprecationWarning, match=r"build\(say=...\) is deprecated"):
-        build(tmp_path, plan, settings, say=said.append)
-    assert said == messages
-    assert logging.getLogger("quakescan.stages").handlers == []  # the old keyword's handler is gone again
 
 
 def test_the_cli_shows_stage_messages_on_stderr_unless_quiet(tmp_path, monkeypatch, capsys):
