@@ -60,10 +60,10 @@ def test_every_progress_parameter_has_the_one_shape():
 
 def test_no_other_progress_or_message_callback_is_left():
     """The old shapes are gone from the signatures: `say(str)` (now log records) and the demo's
-    `progress_factory(label)` (kept only as its deprecated keyword)."""
+    `progress_factory(label)` (now `progress(done, total, stage)`)."""
     old = {name: sorted({"say", "progress_factory", "on_progress"} & set(inspect.signature(fn).parameters))
            for name, fn in FUNCTIONS.items()}
-    assert {k: v for k, v in old.items() if v} == {"quakescan.demo.run_demo": ["progress_factory"]}
+    assert {k: v for k, v in old.items() if v} == {}
 
 
 def test_every_parallel_function_takes_workers_defaulting_to_every_core():
