@@ -31,7 +31,6 @@ from .formats.scene import Scene, read_scene, write_scene
 from .learning.classification import PairData, default_model_path, load_pair, model_settings
 from .learning.model import DamageModel, load_model as _load_model, save_model
 from .results.evaluation import Evaluation, evaluate_files
-from .runtime.workers import accepts_old_threads
 
 __all__ = ["acquire", "read_scene", "write_scene", "read_epoch", "read_pair", "describe", "train",
            "load_model", "save_model", "classify", "evaluate", "inject", "sensor_kinds",
@@ -48,7 +47,6 @@ def sensor_kinds() -> tuple[str, ...]:
     return tuple(sensors.kinds())
 
 
-@accepts_old_threads
 def acquire(scene: PathLike | Scene, out: PathLike, kind: str = "uls", settings=None, *, seed: int = 0,
             workers: int = -1) -> Acquired:
     """Acquire a scene with a simulated sensor into a LAS/LAZ epoch (`quakescan.acquisition.acquire`).
@@ -71,8 +69,7 @@ def acquire(scene: PathLike | Scene, out: PathLike, kind: str = "uls", settings=
     seed : int
         Seeds the sensor's noise: the same scene, settings and seed give the same bytes.
     workers : int
-        Worker threads (-1: every core; `threads`, its old name, still works). The bytes do
-        not depend on it.
+        Worker threads (-1: every core). The bytes do not depend on it.
 
     Returns
     -------
@@ -108,7 +105,6 @@ def read_pair(pre: PathLike, post: PathLike, footprints: PathLike | None = None,
     return load_pair(pre, post, footprints, id_field)
 
 
-@accepts_old_threads
 def describe(pre: PathLike | PairData, post: PathLike | None = None, *, footprints: PathLike | None = None,
              model: PathLike | DamageModel | None = None, workers: int = -1) -> list[BuildingRow]:
     """Change descriptors of every building of a pair, as `model` reads them
@@ -122,7 +118,7 @@ def describe(pre: PathLike | PairData, post: PathLike | None = None, *, footprin
     model : path or DamageModel, optional
         Whose descriptors and settings to compute (default: the shipped model).
     workers : int
-        Worker threads (-1: every core; `threads`, its old name, still works).
+        Worker threads (-1: every core).
 
     Returns
     -------
@@ -137,7 +133,6 @@ def describe(pre: PathLike | PairData, post: PathLike | None = None, *, footprin
     return describe_pair(pair.pre, pair.post, settings, workers=workers)
 
 
-@accepts_old_threads
 def train(pairs: Sequence[tuple], *, descriptors: str = "surface", test_size: float = 0.3, seed: int = 0,
           classifier: dict | None = None, workers: int = -1):
     """Train a damage model on described pairs with known grades (`quakescan.learning.training.train`).
@@ -157,7 +152,7 @@ def train(pairs: Sequence[tuple], *, descriptors: str = "surface", test_size: fl
         `quakescan.learning.model.fit_classifier` arguments, e.g. {"kind": "hgb"} or
         {"kind": "rf", "n_estimators": 300, "max_depth": None, "calibration": "sigmoid"}.
     workers : int
-        Worker threads (-1: every core; `threads`, its old name, still works).
+        Worker threads (-1: every core).
 
     Returns
     -------
@@ -185,7 +180,6 @@ def load_model(path: PathLike | None = None) -> DamageModel:
     return _load_model(default_model_path() if path is None else path)
 
 
-@accepts_old_threads
 def classify(pre: PathLike, post: PathLike, out_dir: PathLike, *, footprints: PathLike | None = None,
              model: PathLike | None = None, workers: int = -1, **options) -> dict:
     """Grade every building of a pair and write the results (`quakescan.learning.classification.classify`).
@@ -202,7 +196,7 @@ def classify(pre: PathLike, post: PathLike, out_dir: PathLike, *, footprints: Pa
     model : path, optional
         Default: the shipped model.
     workers : int
-        Worker threads (-1: every core; `threads`, its old name, still works).
+        Worker threads (-1: every core).
     **options
         `align` (None: check registration, align when needed), `write_las`, `laz`, `force`,
         `id_field`, `progress` (a `quakescan.runtime.progress.ProgressCallback`: called with (done, total)).

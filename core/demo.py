@@ -14,12 +14,11 @@ generator as a separate process.
 from __future__ import annotations
 
 import json
-import warnings
 from pathlib import Path
 
 from .errors import QuakeScanError
 from .generator import generate
-from .runtime.progress import ProgressCallback, accepts_old_say, in_stage, stage_log
+from .runtime.progress import ProgressCallback, in_stage, stage_log
 
 # The demo city stands in L'Aquila (the paper's test region), in UTM zone 33N: its
 # GeoJSON, maps and clouds land there in QGIS or CloudCompare.
@@ -78,16 +77,9 @@ def check_demo_options(seed, buildings) -> None:
         raise DemoError(f"demo --seed: expected an integer in 0..{2 ** 31 - 2}, got {seed!r}")
 
 
-@accepts_old_say
-def run_demo(out_dir, seed: int = 0, buildings: int = 30, progress: ProgressCallback | None = None,
-             progress_factory=None) -> dict:
+def run_demo(out_dir, seed: int = 0, buildings: int = 30, progress: ProgressCallback | None = None) -> dict:
     """The whole chain into out_dir (module doc). `progress` counts three stages: "scan pre",
-    "scan post" and "classify"; stage messages go to the logger `quakescan.stages`.
-    `progress_factory(stage)`, the old form (a reporter per stage), still works, deprecated."""
-    if progress_factory is not None:
-        warnings.warn("run_demo(progress_factory=...) is deprecated: pass progress(done, total, stage)",
-                      DeprecationWarning, stacklevel=3)
-        progress = _per_stage(progress_factory)
+    "scan post" and "classify"; stage messages go to the logger `quakescan.stages`."""
     check_demo_options(seed, buildings)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -114,14 +106,3 @@ def run_demo(out_dir, seed: int = 0, buildings: int = 30, progress: ProgressCall
     stage_log.info(f"demo 5/5: maps -> {result / 'damage_map.png'}, {result / 'damage_map.html'} (opens offline)")
     return {"summary": summary, "evaluation": ev, "result": result}
 
-
-def _per_stage(progress_factory) -> ProgressCallback:
-    """One progress callback from the old `progress_factory(stage)` (None or a (done, total) reporter per stage)."""
-    reporters: dict = {}
-
-    def progress(done: int, total: int, stage: str = "") -> None:
-        if stage not in reporters:
-            reporters[stage] = progress_factory(stage)
-        if reporters[stage] is not None:
-            reporters[stage](done, total)
-    return progress

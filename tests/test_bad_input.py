@@ -213,7 +213,7 @@ def test_classify_output_that_is_a_file_is_refused(pair, tmp_path, capsys, targe
                                         ("--lod-height", "100"), ("--lod-curvature", "0"),
                                         ("--min-changed-share", "1.5"), ("--threads", "0")])
 def test_train_flags_out_of_range_name_the_flag(pair, tmp_path, capsys, flag, value):
-    code, _, err = run(["train", "--pair", pair / "pre.las", pair / "post.las", "-o", tmp_path / "m.skops",
+    code, _, err = run(["train", "--pre", pair / "pre.las", "--post", pair / "post.las", "-o", tmp_path / "m.skops",
                         flag, value], capsys)
     assert code == 2 and flag in err and value in err
     assert not (tmp_path / "m.skops").exists()
@@ -225,14 +225,14 @@ def test_train_flags_out_of_range_name_the_flag(pair, tmp_path, capsys, flag, va
     (["experiment", "paper", "--seed", "-1"], "--seed"),
     (["experiment", "paper", "--test-mix", "0:5,7:3"], "--test-mix"),
     (["experiment", "paper", "--lod-height", "-1"], "--lod-height"),
-    (["robustness", "pre", "post", "--seed", "-1"], "--seed"),
-    (["robustness", "pre", "post", "--threads", "-4"], "--threads"),
-    (["robustness", "pre", "post", "--radii", "1,-1"], "--radii"),
+    (["robustness", "--pre", "pre", "--post", "post", "--seed", "-1"], "--seed"),
+    (["robustness", "--pre", "pre", "--post", "post", "--threads", "-4"], "--threads"),
+    (["robustness", "--pre", "pre", "--post", "post", "--radii", "1,-1"], "--radii"),
     (["training-set", "--seed", "-1"], "--seed"),
     (["training-set", "--threads", "0"], "--threads"),
-    (["calibrate-lod", "a.las", "b.las", "--seed", "-1"], "--seed"),
-    (["calibrate-lod", "a.las", "b.las", "--quantile", "2"], "--quantile"),
-    (["calibrate-lod", "a.las", "b.las", "--radius", "0"], "--radius"),
+    (["calibrate-lod", "--pre", "a.las", "--post", "b.las", "--seed", "-1"], "--seed"),
+    (["calibrate-lod", "--pre", "a.las", "--post", "b.las", "--quantile", "2"], "--quantile"),
+    (["calibrate-lod", "--pre", "a.las", "--post", "b.las", "--radius", "0"], "--radius"),
     (["features", "a.las", "-o", "b.las", "--radius", "-1"], "--radius"),
     (["classify", "--pre", "a.las", "--post", "b.las", "--threads", "0"], "--threads"),
 ])
@@ -242,8 +242,8 @@ def test_other_commands_name_a_flag_out_of_range(tmp_path, capsys, argv, flag):
     assert not (tmp_path / "out").exists()
 
 
-@pytest.mark.parametrize("argv", [["experiment", "paper"], ["robustness", "pre", "post"], ["training-set"],
-                                  ["evaluate", "r.csv", "--truth", "t.csv"]])
+@pytest.mark.parametrize("argv", [["experiment", "paper"], ["robustness", "--pre", "pre", "--post", "post"],
+                                  ["training-set"], ["evaluate", "r.csv", "--truth", "t.csv"]])
 def test_report_folders_that_are_files_are_refused(tmp_path, capsys, argv):
     out = tmp_path / "report"
     out.write_text("keep me")
@@ -402,7 +402,7 @@ def test_calibrate_lod_checks_the_pair_as_classify_does(pair, tmp_path, capsys, 
         second = write_cloud(tmp_path / "second.las", xyz + [10_000.0, 0.0, 0.0], bid)
     else:
         second = write_cloud(tmp_path / "second.las", xyz, bid, crs="EPSG:32631")
-    code, _, err = run(["calibrate-lod", pair / "pre.las", second], capsys)
+    code, _, err = run(["calibrate-lod", "--pre", pair / "pre.las", "--post", second], capsys)
     assert code == 2 and str(second) in err
     assert ("no overlap" in err) if case == "10 km apart" else ("differs" in err and "EPSG:32631" in err)
 
@@ -519,7 +519,7 @@ def test_a_truth_csv_listing_a_building_twice_is_refused(pair, tmp_path, capsys)
     result.write_text("building_id,assessable,predicted_grade\n1,1,0\n2,1,3\n")
     code, _, err = run(["evaluate", result, "--truth", truth], capsys)
     assert code == 2 and str(truth) in err and "building 1 is listed twice" in err and "line 4" in err
-    code, _, err = run(["train", "--pair", pair / "pre.las", pair / "post.las", "--truth", truth,
+    code, _, err = run(["train", "--pre", pair / "pre.las", "--post", pair / "post.las", "--truth", truth,
                         "-o", tmp_path / "m.skops"], capsys)
     assert code == 2 and str(truth) in err and "building 1 is listed twice" in err
 

@@ -147,13 +147,13 @@ def test_a_plan_of_too_many_lines_is_refused_before_it_is_made(tmp_path, capsys)
     assert "flight lines" in err and "more than 10,000" in err
 
 
-def test_library_scan_refuses_bad_seed_and_threads(tmp_path):
+def test_library_scan_refuses_bad_seed_and_workers(tmp_path):
     from quakescan.acquisition.scan import scan
     from quakescan.acquisition.survey import preset
     from quakescan.errors import QuakeScanError
 
     for kw, text in (({"seed": -1}, "seed must be an integer >= 0"), ({"seed": True}, "seed must be"),
-                     ({"threads": -4}, "threads must be an integer >= 1")):
+                     ({"workers": -4}, "workers: the number of worker threads must be an integer >= 1")):
         with pytest.raises(QuakeScanError, match=text):
             scan(box_city(rows=1, cols=1), preset("paper"), tmp_path / "a.las", **kw)
 

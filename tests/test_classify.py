@@ -89,7 +89,6 @@ def test_cli_train_classify_evaluate(city, tmp_path, capsys):
     model = tmp_path / "m.skops"
     assert main(["train", "--pre", str(d / "pre.las"), "--post", str(d / "post.las"), "--truth", str(d / "truth.csv"),
                  "--trees", "10", "--test-size", "0", "-o", str(model)]) == 0
-    assert "note:" not in capsys.readouterr().err  # the form to use; the other tests keep the old --pair
     assert load_model(model).provenance["n_rows"] == 6
     assert main(["classify", "--pre", str(d / "pre.las"), "--post", str(d / "post.las"), "--model", str(model),
                  "--no-las", "-o", str(tmp_path / "r")]) == 0
@@ -151,7 +150,7 @@ def test_bad_training_input(city, tmp_path, capsys):
     bad.write_text("building_id,grade\n1,7\n")
     with pytest.raises(TrainingError, match="line 2: grade 7"):
         read_truth_csv(bad)
-    assert main(["train", "--pair", str(d / "pre.las"), str(d / "post.las"), "--truth", str(bad), "--truth",
+    assert main(["train", "--pre", str(d / "pre.las"), "--post", str(d / "post.las"), "--truth", str(bad), "--truth",
                  str(bad), "-o", str(tmp_path / "m.skops")]) == 2
     assert "2 --truth files for 1 pair:" in capsys.readouterr().err
 
@@ -206,7 +205,7 @@ def test_footprints_that_hit_nothing_or_some_buildings(city, tmp_path, capsys):
 def test_train_on_surface_descriptors_asks_the_model_about_every_building(city, tmp_path):
     d, grades = city
     out = tmp_path / "surface.skops"
-    assert main(["train", "--pair", str(d / "pre.las"), str(d / "post.las"), "--descriptors", "surface",
+    assert main(["train", "--pre", str(d / "pre.las"), "--post", str(d / "post.las"), "--descriptors", "surface",
                  "--trees", "10", "--test-size", "0", "-o", str(out)]) == 0
     model = load_model(out)
     assert model.no_change_rule is False and "share_changed" not in model.feature_names
@@ -221,8 +220,8 @@ def test_train_on_surface_descriptors_asks_the_model_about_every_building(city, 
 def test_train_with_per_point_levels_of_detection_round_trips_through_the_model(city, tmp_path):
     d, grades = city
     out = tmp_path / "pp.skops"
-    assert main(["train", "--pair", str(d / "pre.las"), str(d / "post.las"), "--per-point-lod", "--trees", "10",
-                 "--test-size", "0", "-o", str(out)]) == 0
+    assert main(["train", "--pre", str(d / "pre.las"), "--post", str(d / "post.las"), "--per-point-lod",
+                 "--trees", "10", "--test-size", "0", "-o", str(out)]) == 0
     s = model_settings(load_model(out))
     assert s.per_point_lod and s.paper_descriptors and s.surface is not None and s.surface_descriptors == ()
     classify(d / "pre.las", d / "post.las", tmp_path / "res", model_path=out, write_las=False)

@@ -132,7 +132,8 @@ def test_calibrate_lod_takes_footprints_for_real_clouds(ahn3, tmp_path, capsys):
     las, fp = ahn3
     pre, post = _split(las, tmp_path, lambda n: np.random.default_rng(5).random(n) < 0.5,
                        lambda n: ~(np.random.default_rng(5).random(n) < 0.5))
-    assert main(["calibrate-lod", str(pre), str(post), "--footprints", str(fp), "-o", str(tmp_path / "lod.json")]) == 0
+    assert main(["calibrate-lod", "--pre", str(pre), "--post", str(post), "--footprints", str(fp),
+                 "-o", str(tmp_path / "lod.json")]) == 0
     lod = json.loads((tmp_path / "lod.json").read_text())
     assert lod["points"] > 10_000 and lod["lod_height_m"] >= 0.3 and lod["lod_curvature"] >= 0.2
     assert "--lod-height" in capsys.readouterr().out

@@ -173,7 +173,7 @@ def test_robustness_command_writes_the_report(tmp_path, capsys):
     pre = write_scene(box_city(rows=1, cols=2, height=9.0), tmp_path / "pre")
     post = write_scene(box_city(rows=1, cols=2, height=(9.0, 4.0), epoch="post", grades=(0, 5)), tmp_path / "post")
     out = tmp_path / "rob"
-    assert main(["robustness", str(pre), str(post), "-o", str(out), "--radii", "1.0,2.0"]) == 0
+    assert main(["robustness", "--pre", str(pre), "--post", str(post), "-o", str(out), "--radii", "1.0,2.0"]) == 0
     text = capsys.readouterr().out
     assert "best radius" in text
     report = json.loads((out / "robustness.json").read_text())

@@ -101,17 +101,28 @@ def test_cli_page_check_sees_a_flag_the_parser_lacks(monkeypatch):
 def test_train_takes_pre_post_pairs_and_refuses_unmatched_ones(tmp_path, capsys):
     assert main(["train", "--pre", "a.las", "--pre", "b.las", "--post", "c.las", "-o", str(tmp_path / "m")]) == 2
     assert "train: 2 --pre and 1 --post" in capsys.readouterr().err
-    assert main(["train", "--pre", "a.las", "--post", "b.las", "--pair", "c.las", "d.las",
-                 "-o", str(tmp_path / "m")]) == 2
-    assert "not both" in capsys.readouterr().err
     assert main(["train", "-o", str(tmp_path / "m")]) == 2
     assert "no training pair" in capsys.readouterr().err
 
 
-def test_robustness_takes_pre_post_and_the_old_positional_form(tmp_path, capsys):
-    assert main(["robustness", "only_one", "-o", str(tmp_path / "r")]) == 2
-    assert "robustness: only one scene (only_one)" in capsys.readouterr().err
-    assert main(["robustness", "a", "b", "--pre", "a", "--post", "b", "-o", str(tmp_path / "r")]) == 2
-    assert "not both" in capsys.readouterr().err
+def test_robustness_takes_pre_post(tmp_path, capsys):
     assert main(["robustness", "--pre", "a", "-o", str(tmp_path / "r")]) == 2
     assert "--pre PRE_SCENE --post POST_SCENE" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv,unrecognised", [
+    (["train", "--pair", "a.las", "b.las", "-o", "m.skops"], "--pair a.las b.las"),
+    (["calibrate-lod", "a.las", "b.las"], "a.las b.las"),
+    (["robustness", "pre", "post", "-o", "report"], "pre post"),
+])
+def test_the_old_pair_forms_are_usage_errors(tmp_path, monkeypatch, capsys, argv, unrecognised):
+    """The forms before --pre/--post (removed after 0.1) end in argparse's usage error, exit 2,
+    naming what it did not recognise; nothing runs and nothing is written."""
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as e:
+        main(argv)
+    assert e.value.code == 2
+    out, err = capsys.readouterr()
+    assert out == "" and err.startswith("usage: quakescan ")
+    assert f"quakescan: error: unrecognized arguments: {unrecognised}" in err
+    assert "Traceback" not in err and list(tmp_path.iterdir()) == []

@@ -122,25 +122,15 @@ def test_progress_forced_when_stderr_is_not_a_terminal_and_results_on_stdout(pai
 
 
 def test_quiet_prints_nothing_on_stderr(pair, capsys, tmp_path):
-    """-q before or after the command: no progress (even with --progress) and no note of an old form."""
+    """-q before or after the command: no progress (even with --progress)."""
     pre, post = pair
-    assert main(["-q", "calibrate-lod", str(pre), str(post), "--progress"]) == 0
+    assert main(["-q", "calibrate-lod", "--pre", str(pre), "--post", str(post), "--progress"]) == 0
     out, err = capsys.readouterr()
     assert err == "" and "levels of detection" in out
-    assert main(["calibrate-lod", str(pre), str(post), "-q"]) == 0
+    assert main(["calibrate-lod", "--pre", str(pre), "--post", str(post), "--progress", "-q"]) == 0
     assert capsys.readouterr().err == ""
-    assert main(["calibrate-lod", str(pre), str(post)]) == 0  # without -q the old form gets its note
-    err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "note:" in err and "--pre FIRST --post SECOND" in err
     assert main(["-q", "survey-template", "-o", str(tmp_path / "s.json")]) == 0
     assert capsys.readouterr().err == ""
-
-
-def test_both_pair_forms_at_once_are_refused(pair, capsys):
-    pre, post = pair
-    assert main(["calibrate-lod", str(pre), str(post), "--pre", str(pre), "--post", str(post)]) == 2
-    assert "calibrate-lod: give the clouds as --pre/--post or as positional FIRST SECOND, not both" in \
-        capsys.readouterr().err
 
 
 @pytest.mark.slow

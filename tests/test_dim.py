@@ -119,10 +119,10 @@ def test_paper_preset_spacing_matches_the_lAquila_dim_clouds(tmp_path):
 def test_same_seed_same_bytes(tmp_path):
     scene = box_city(rows=1, cols=2)
     calls = []
-    simulate_dim(scene, QUICK, tmp_path / "a.las", seed=3, threads=2, progress=lambda d, t: calls.append((d, t)))
+    simulate_dim(scene, QUICK, tmp_path / "a.las", seed=3, workers=2, progress=lambda d, t: calls.append((d, t)))
     assert calls and calls[-1][0] == calls[-1][1]
-    simulate_dim(scene, QUICK, tmp_path / "b.las", seed=3, threads=1)
-    simulate_dim(scene, QUICK, tmp_path / "c.las", seed=4, threads=2)
+    simulate_dim(scene, QUICK, tmp_path / "b.las", seed=3, workers=1)
+    simulate_dim(scene, QUICK, tmp_path / "c.las", seed=4, workers=2)
     a, b, c = ((tmp_path / f"{k}.las").read_bytes() for k in "abc")
     assert a == b
     assert a != c

@@ -77,8 +77,9 @@ def test_calibrate_lod_command(tmp_path, capsys):
 
     scan_box_pair(tmp_path, HEIGHTS)
     out = tmp_path / "lod.json"
-    assert main(["calibrate-lod", str(tmp_path / "pre.las"), str(tmp_path / "post.las"), "-o", str(out)]) == 0
+    assert main(["calibrate-lod", "--pre", str(tmp_path / "pre.las"), "--post", str(tmp_path / "post.las"),
+                 "-o", str(out)]) == 0
     assert "--lod-height 0.300 --lod-curvature 0.200" in capsys.readouterr().out
     assert json.loads(out.read_text())["lod_curvature"] == 0.2
-    assert main(["calibrate-lod", str(tmp_path / "pre.las"), str(tmp_path / "nope.las")]) == 2
+    assert main(["calibrate-lod", "--pre", str(tmp_path / "pre.las"), "--post", str(tmp_path / "nope.las")]) == 2
     assert "nope.las" in capsys.readouterr().err

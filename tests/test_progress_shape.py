@@ -60,10 +60,10 @@ def test_every_progress_parameter_has_the_one_shape():
 
 def test_no_other_progress_or_message_callback_is_left():
     """The old shapes are gone from the signatures: `say(str)` (now log records) and the demo's
-    `progress_factory(label)` (kept only as its deprecated keyword)."""
+    `progress_factory(label)` (now `progress(done, total, stage)`)."""
     old = {name: sorted({"say", "progress_factory", "on_progress"} & set(inspect.signature(fn).parameters))
            for name, fn in FUNCTIONS.items()}
-    assert {k: v for k, v in old.items() if v} == {"quakescan.demo.run_demo": ["progress_factory"]}
+    assert {k: v for k, v in old.items() if v} == {}
 
 
 def test_every_parallel_function_takes_workers_defaulting_to_every_core():
@@ -74,7 +74,7 @@ def test_every_parallel_function_takes_workers_defaulting_to_every_core():
     assert len(defaults) >= 15 and set(defaults.values()) == {-1}
 
 
-def test_the_api_takes_workers_and_still_its_old_name(tmp_path):
+def test_the_api_takes_workers(tmp_path):
     from quakescan.acquisition.scan import scan
     from quakescan.acquisition.survey import preset
     from quakescan.errors import QuakeScanError
@@ -85,11 +85,8 @@ def test_the_api_takes_workers_and_still_its_old_name(tmp_path):
     scene = box_city(rows=1, cols=1)
     with pytest.raises(QuakeScanError, match="workers: the number of worker threads must be an integer >= 1"):
         scan(scene, preset("paper"), tmp_path / "a.las", workers=0)
-    with pytest.warns(DeprecationWarning, match=r"scan\(threads=...\) is deprecated"), \
-            pytest.raises(QuakeScanError, match="worker threads must be an integer >= 1"):
-        scan(scene, preset("paper"), tmp_path / "a.las", threads=-4)
-    with pytest.raises(TypeError, match="not both"):
-        scan(scene, preset("paper"), tmp_path / "a.las", workers=2, threads=2)
+    with pytest.raises(TypeError, match="threads"):  # its old name is gone
+        scan(scene, preset("paper"), tmp_path / "a.las", threads=2)
     assert not (tmp_path / "a.las").exists()
 
 
@@ -161,7 +158,7 @@ def _stage_plan(tmp_path, monkeypatch):
     return finished_tables(tmp_path, monkeypatch, ts.default_plan(0, "quick"), TABLE_SETTINGS), TABLE_SETTINGS
 
 
-def test_stage_messages_are_log_records_and_the_old_say_still_gets_them(tmp_path, monkeypatch, capsys, caplog):
+def test_stage_messages_are_log_records(tmp_path, monkeypatch, capsys, caplog):
     from quakescan.learning.trainset import build
 
     plan, settings = _stage_plan(tmp_path, monkeypatch)
@@ -173,11 +170,6 @@ def test_stage_messages_are_log_records_and_the_old_say_still_gets_them(tmp_path
     assert messages[0].startswith("training set 1/3:") and messages[-1].startswith("training set: ")
     n = len(plan.cities) + len(plan.pairs)
     assert steps == [(k, n) for k in range(1, n + 1)]
-    said = []
-    with pytest.warns(DeprecationWarning, match=r"build\(say=...\) is deprecated"):
-        build(tmp_path, plan, settings, say=said.append)
-    assert said == messages
-    assert logging.getLogger("quakescan.stages").handlers == []  # the old keyword's handler is gone again
 
 
 def test_the_cli_shows_stage_messages_on_stderr_unless_quiet(tmp_path, monkeypatch, capsys):

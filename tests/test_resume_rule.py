@@ -235,13 +235,13 @@ def test_training_set_tables_of_another_pair_are_described_again(tmp_path, monke
 
     monkeypatch.setattr(quakescan.acquisition.acquire, "acquire", no_acquire)
     with pytest.raises(Boom):  # no table yet: the first pair is acquired
-        build(tmp_path, plan, TABLE_SETTINGS, say=lambda s: None)
+        build(tmp_path, plan, TABLE_SETTINGS)
     for p in plan.pairs:  # finished tables, as build records them
         path = tmp_path / "tables" / f"{p.name}.{key}.npz"
         np.savez(path, **fake)
         fingerprint.record(path, ts._table_fingerprint(p, tmp_path / "scenes" / p.city, TABLE_SETTINGS, plan.labels))
     acquired.clear()
-    assert len(build(tmp_path, plan, TABLE_SETTINGS, say=lambda s: None).y) == len(plan.pairs)
+    assert len(build(tmp_path, plan, TABLE_SETTINGS).y) == len(plan.pairs)
     assert acquired == []
     first = plan.pairs[0]
     settings = dict(first.pre["settings"])
@@ -250,12 +250,12 @@ def test_training_set_tables_of_another_pair_are_described_again(tmp_path, monke
     changed = replace(plan, pairs=[replace(first, pre={**first.pre, "settings": settings}), *plan.pairs[1:]])
     assert changed.pairs[0].name == first.name
     with pytest.raises(Boom):  # the same pair name, another acquisition: not the table on disk
-        build(tmp_path, changed, TABLE_SETTINGS, say=lambda s: None)
+        build(tmp_path, changed, TABLE_SETTINGS)
     assert acquired == [f"pre.{first.pre['kind']}.{first.pre_seed}.las"]
     (tmp_path / "scenes" / plan.pairs[1].city / "pre" / "scene.json").write_text('{"regenerated": 1}')
     acquired.clear()
     with pytest.raises(Boom):  # the pair's scene changed: described again
-        build(tmp_path, plan, TABLE_SETTINGS, say=lambda s: None)
+        build(tmp_path, plan, TABLE_SETTINGS)
 
 
 # generation ---------------------------------------------------------------------------------

@@ -371,7 +371,7 @@ def test_thin_keeps_attributes(box_pair):
 def test_cli_two_stages_and_bad_spacing(experiment, tmp_path, capsys):
     root, _, _, _ = experiment
     out = tmp_path / "cli"  # stage 2 = an unchanged rescan of the pre-event scene
-    args = ["robustness", str(root / "pre"), str(root / "post"), str(root / "pre"), "-o", str(out),
+    args = ["robustness", "--pre", str(root / "pre"), "--post", str(root / "post"), str(root / "pre"), "-o", str(out),
             "--radii", "1,2", "--threads", "2", "--sample", "2000"]
     assert main(args + ["--spacing", "0.2"]) == 0
     assert "over 2 stages" in capsys.readouterr().out

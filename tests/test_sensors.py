@@ -51,7 +51,7 @@ def _centres(scene: Scene, step: int):
     return scene.vertices[scene.faces[faces]].mean(axis=1), faces
 
 
-def simulate_centres(scene: Scene, settings: FaceCentres, out_path, *, seed, threads, progress, source):
+def simulate_centres(scene: Scene, settings: FaceCentres, out_path, *, seed, workers, progress, source):
     started = time.perf_counter()
     xyz, faces = _centres(scene, settings.step)
     building = scene.face_building[faces].astype(np.uint32)

@@ -26,7 +26,6 @@ from ..formats.scene import Scene, read_scene
 from ..runtime.atomic import write_json
 from ..runtime.fingerprint import Fingerprint, make, scene_fingerprint
 from ..runtime.progress import ProgressCallback
-from ..runtime.workers import accepts_old_threads
 from . import sensors
 
 log = logging.getLogger(__name__)
@@ -146,7 +145,6 @@ def _read_record(path: Path) -> dict | None:
     return data if isinstance(data, dict) else None
 
 
-@accepts_old_threads
 def acquire(scene: str | os.PathLike | Scene, acquisition: Acquisition, out_path: str | os.PathLike,
             seed: int = 0, workers: int = -1, progress: ProgressCallback | None = None) -> Acquired:
     """Acquire `scene` (a bundle folder or a Scene) with `acquisition` into `out_path`

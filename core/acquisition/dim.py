@@ -70,7 +70,7 @@ from ..errors import QuakeScanError, SurveyError
 from ..formats.pointcloud import LasChunkWriter, PointChunk
 from ..formats.scene import Scene
 from ..runtime.progress import ProgressCallback
-from ..runtime.workers import EVERY_CORE, accepts_old_threads, check_workers
+from ..runtime.workers import EVERY_CORE, check_workers
 from .dim_cameras import plan_cameras
 from .dim_edges import crease_segments, smooth
 from .dim_pieces import interval, make_pieces, work_chunks
@@ -235,7 +235,6 @@ class _Sim:
         return pts, disp, g, cam, stats
 
 
-@accepts_old_threads
 def simulate_dim(scene: Scene, photo_survey: PhotoSurvey, out_path: str | os.PathLike, seed: int = 0,
                  progress: ProgressCallback | None = None, workers: int = -1, source: str = "scene") -> DimSummary:
     """Simulate a DIM point cloud of `scene` from `photo_survey` and write it to `out_path`.

@@ -19,7 +19,7 @@ from ..errors import QuakeScanError, SceneError, SurveyError
 from ..formats.pointcloud import LasChunkWriter, make_header
 from ..formats.scene import Scene, check_crs
 from ..runtime.progress import ProgressCallback
-from ..runtime.workers import EVERY_CORE, accepts_old_threads, check_workers
+from ..runtime.workers import EVERY_CORE, check_workers
 from .beams import Simulator
 from .las_output import label_counts, las_offset
 from .pulses import Batch, pulse_count
@@ -68,7 +68,6 @@ def _batches(survey: Survey, plan: FlightPlan, batch_rays: int):
             number += 1
 
 
-@accepts_old_threads
 def scan(scene: Scene, survey: Survey, out_path: str | os.PathLike, seed: int = 0,
          workers: int = -1, batch_rays: int = DEFAULT_BATCH_RAYS,
          lines: list | None = None, progress: ProgressCallback | None = None, source: str = "scene",

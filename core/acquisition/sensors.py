@@ -26,8 +26,7 @@ registers provides:
   `quakescan.acquisition.las_output.las_offset`, extra dimensions building_id, grade and surface of the face
   a point lies on): writing through `quakescan.formats.pointcloud.LasChunkWriter` gives all of it and
   makes the file appear only when complete. The same scene, settings and seed give the
-  same bytes whatever `workers` (worker threads, -1: every core; a sensor that names it
-  `threads`, the old name, gets it so); `progress` is None or a
+  same bytes whatever `workers` (worker threads, -1: every core); `progress` is None or a
   `quakescan.runtime.progress.ProgressCallback`, called with (done, total); `source` names
   the scene in messages. It raises
   `quakescan.errors.SceneError` or `SurveyError` when it cannot acquire the scene (nothing to
@@ -46,7 +45,6 @@ registers provides:
 from __future__ import annotations
 
 import importlib
-import inspect
 import math
 import os
 import re
@@ -57,7 +55,6 @@ from typing import Any
 from ..errors import QuakeScanError, SurveyError
 from ..runtime import settings_file
 from ..runtime.progress import ProgressCallback
-from ..runtime.workers import accepts_old_threads
 
 # Modules (of this package) that register the built-in sensors, in the order of `kinds()`.
 BUILTIN = ("sensor_lidar", "sensor_dim")
@@ -160,17 +157,13 @@ def check_settings(kind: str, settings) -> Sensor:
     return sensor
 
 
-@accepts_old_threads
 def simulate(kind: str, scene, settings, out_path: str | os.PathLike, seed: int = 0, workers: int = -1,
              progress: ProgressCallback | None = None, source: str = "scene"):
     """Acquire the Scene `scene` with the sensor `kind` and `settings` into `out_path`;
     returns the sensor's summary. No sidecar and no resuming: `quakescan.acquisition.acquire.acquire`
     adds them."""
     sensor = check_settings(kind, settings)
-    # a sensor written before the knob was `workers` takes it as `threads`: same meaning
-    knob = "workers" if "workers" in inspect.signature(sensor.simulate).parameters else "threads"
-    return sensor.simulate(scene, settings, out_path, seed=seed, progress=progress, source=source,
-                           **{knob: workers})
+    return sensor.simulate(scene, settings, out_path, seed=seed, workers=workers, progress=progress, source=source)
 
 
 # Draws of random settings ------------------------------------------------------------

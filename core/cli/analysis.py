@@ -11,7 +11,7 @@ from ..errors import QuakeScanError
 from ..runtime.atomic import write_json
 from ..runtime.workers import EVERY_CORE
 from .options import (PROGRESS_HELP, THREADS_HELP, add_dask_options, dask_client_for, check_cloud_output,
-                      check_file_output, check_number, check_seed, check_threads, csv_list, old_form)
+                      check_file_output, check_number, check_seed, check_threads, csv_list)
 from .reporting import reporter
 
 
@@ -47,17 +47,10 @@ def cmd_features(args) -> int:
 
 
 def _first_and_second(args) -> tuple:
-    """The two clouds of `calibrate-lod`: --pre/--post, or the older positional FIRST SECOND."""
-    if args.first is None and args.second is None:
-        if not (args.pre and args.post):
-            raise QuakeScanError("calibrate-lod: give both clouds: --pre FIRST --post SECOND")
-        return args.pre, args.post
-    if args.pre or args.post:
-        raise QuakeScanError("calibrate-lod: give the clouds as --pre/--post or as positional FIRST SECOND, not both")
-    if args.second is None:
-        raise QuakeScanError(f"calibrate-lod: only one cloud ({args.first}); give --pre FIRST --post SECOND")
-    old_form(args, "calibrate-lod FIRST SECOND", "calibrate-lod --pre FIRST --post SECOND")
-    return args.first, args.second
+    """The two clouds of `calibrate-lod`: --pre FIRST --post SECOND."""
+    if not (args.pre and args.post):
+        raise QuakeScanError("calibrate-lod: give both clouds: --pre FIRST --post SECOND")
+    return args.pre, args.post
 
 
 def cmd_calibrate_lod(args) -> int:
@@ -183,8 +176,6 @@ def add_features(sub) -> None:
 def add_calibrate_lod(sub) -> None:
     lc = sub.add_parser("calibrate-lod", help="levels of detection of the changed/unchanged split, measured on "
                         "two acquisitions of the same undamaged buildings (use them with train --lod-*)")
-    lc.add_argument("first", nargs="?", help="old form of --pre FIRST (still accepted)")
-    lc.add_argument("second", nargs="?", help="old form of --post SECOND (still accepted)")
     lc.add_argument("--pre", metavar="FIRST", help="LAS/LAZ of undamaged buildings with building IDs")
     lc.add_argument("--post", metavar="SECOND", help="the same buildings acquired again with the same scanner "
                     "or camera")

@@ -1,5 +1,5 @@
-"""The options several commands share: their help, the checks of their values (named after the
-flag), and the old forms still accepted."""
+"""The options several commands share: their help and the checks of their values (named after the
+flag)."""
 from __future__ import annotations
 
 import contextlib
@@ -10,14 +10,13 @@ import numpy as np
 
 from ..errors import QuakeScanError
 from ..runtime.workers import EVERY_CORE
-from .reporting import note
 
 # One knob with one default in every command: -1, every core, as the library's `workers`
 # (`quakescan.runtime.workers`); outputs are the same bytes whatever it is, so the fastest is the default.
 THREADS_HELP = "worker threads, >= 1, or -1 for every core (default: -1); the results do not depend on it"
 PROGRESS_HELP = ("show progress (done/total, %%, elapsed, ETA) even when stderr is not a terminal; "
                  "on a terminal it is shown unless -q")
-QUIET_HELP = "no progress, stage messages or notes on stderr (warnings and errors stay)"
+QUIET_HELP = "no progress or stage messages on stderr (warnings and errors stay)"
 
 
 def add_dask_options(parser, workers_help: str, scheduler_help: str) -> None:
@@ -97,7 +96,3 @@ def check_threads(value) -> None:
     """--threads: the library's `workers` (`quakescan.runtime.workers`), a count >= 1 or -1 for every core."""
     if value != EVERY_CORE and value < 1:
         raise QuakeScanError(f"--threads: expected a number of worker threads >= 1 (or -1: every core), got {value}")
-
-
-def old_form(args, form: str, use: str) -> None:
-    note(args, f"`{form}` is the old form of this argument; `{use}` is the form to use")

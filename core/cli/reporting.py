@@ -1,5 +1,5 @@
-"""What the command line shows: the progress reporter, stage messages, notes and printed
-lines that survive a closed pipe."""
+"""What the command line shows: the progress reporter, stage messages and printed lines that
+survive a closed pipe."""
 from __future__ import annotations
 
 import contextlib
@@ -117,12 +117,6 @@ def stage_messages(args):
             stages.removeHandler(handler)
         stages.setLevel(level)
         stages.propagate = propagate
-
-
-def note(args, message: str) -> None:
-    """A one-line note on stderr (an old form of an argument, ...), unless `-q`."""
-    if not getattr(args, "quiet", False):
-        print(f"quakescan: note: {message}", file=sys.stderr)
 
 
 def echo(*args, **kwargs) -> None:

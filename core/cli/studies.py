@@ -9,7 +9,7 @@ from ..errors import QuakeScanError
 from ..runtime.output_folder import exclusive_run
 from ..runtime.workers import EVERY_CORE
 from .options import (PROGRESS_HELP, THREADS_HELP, add_dask_options, dask_client_for, check_folder_output, check_number,
-                      check_seed, check_threads, old_form)
+                      check_seed, check_threads)
 from .reporting import reporter
 
 
@@ -33,16 +33,7 @@ def cmd_demo(args) -> int:
 
 
 def _robustness_scenes(args) -> tuple:
-    """Pre-event scene and post-event scene(s) of `robustness`: --pre/--post, or the older
-    positional PRE POST [POST2 ...]."""
-    if args.scenes:
-        if args.pre or args.post:
-            raise QuakeScanError("robustness: give the scenes as --pre/--post or as positional PRE POST, not both")
-        if len(args.scenes) < 2:
-            raise QuakeScanError(f"robustness: only one scene ({args.scenes[0]}); "
-                                 "give --pre PRE --post POST [POST2 …]")
-        old_form(args, "robustness PRE POST …", "robustness --pre PRE --post POST …")
-        return args.scenes[0], args.scenes[1:]
+    """Pre-event scene and post-event scene(s) of `robustness`: --pre PRE --post POST [POST2 ...]."""
     if not (args.pre and args.post):
         raise QuakeScanError("robustness: give the scenes: --pre PRE_SCENE --post POST_SCENE [POST2 …]")
     return args.pre, args.post
@@ -138,8 +129,6 @@ def add_demo(sub) -> None:
 def add_robustness(sub) -> None:
     rb = sub.add_parser("robustness", help="which change features agree between ULS and DIM clouds (paper's "
                         "robust-feature selection)")
-    rb.add_argument("scenes", nargs="*", metavar="SCENE", help="old form of --pre PRE --post POST …: "
-                    "PRE POST [POST2 …] (still accepted)")
     rb.add_argument("--pre", help="pre-event scene bundle folder")
     rb.add_argument("--post", nargs="+", help="post-event scene bundle folder(s) of the same buildings; several: "
                     "demolition stages in order (robust = ULS and DIM agree at every stage)")

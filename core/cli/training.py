@@ -10,20 +10,15 @@ from ..errors import QuakeScanError
 from ..runtime.output_folder import exclusive_run
 from ..runtime.workers import EVERY_CORE
 from .options import (PROGRESS_HELP, THREADS_HELP, add_dask_options, dask_client_for, check_file_output,
-                      check_folder_output, check_number, check_seed, check_threads, csv_list, old_form)
+                      check_folder_output, check_number, check_seed, check_threads, csv_list)
 from .reporting import reporter
 
 
 def _training_pairs(args) -> list:
-    """The pairs of `train`: --pre/--post (repeated, in order), or the older --pair PRE POST."""
+    """The pairs of `train`: --pre/--post (repeated, in order)."""
     pre, post = args.pre or [], args.post or []
     if len(pre) != len(post):
         raise QuakeScanError(f"train: {len(pre)} --pre and {len(post)} --post: give one --post per --pre")
-    if args.pair and pre:
-        raise QuakeScanError("train: give the pairs as --pre/--post or as --pair, not both")
-    if args.pair:
-        old_form(args, "--pair PRE POST", "--pre PRE --post POST")
-        return [tuple(p) for p in args.pair]
     if not pre:
         raise QuakeScanError("train: no training pair; give --pre PRE --post POST (repeat both for more pairs)")
     return list(zip(pre, post))
@@ -74,15 +69,15 @@ def cmd_train(args) -> int:
     check_seed(args.seed)
     check_threads(args.threads)
     _check_split_flags(args)
-    args.pair = _training_pairs(args)
+    given = _training_pairs(args)
     out = Path(args.output)
-    check_file_output(out, [p for pair in args.pair for p in pair] + list(args.truth or []) + [args.footprints])
-    if args.truth and len(args.truth) != len(args.pair):
-        n = len(args.pair)
+    check_file_output(out, [p for pair in given for p in pair] + list(args.truth or []) + [args.footprints])
+    if args.truth and len(args.truth) != len(given):
+        n = len(given)
         raise TrainingError(f"{len(args.truth)} --truth files for {n} pair{'s' * (n != 1)}: give one per pair "
                             "or none (then grades come from the post epochs' grade dimension)")
     pairs = [TrainingPair(pre, post, args.truth[k] if args.truth else None, args.footprints)
-             for k, (pre, post) in enumerate(args.pair)]
+             for k, (pre, post) in enumerate(given)]
     settings = _pipeline_settings(args)
     model, ev, table = train(pairs, settings, n_estimators=args.trees, max_depth=args.depth,
                              test_size=args.test_size, seed=args.seed, workers=args.threads,
@@ -134,8 +129,6 @@ def add_train(sub) -> None:
     tr.add_argument("--pre", action="append", help="pre-event point cloud of a pair (repeat --pre and --post "
                     "for more pairs, in the same order)")
     tr.add_argument("--post", action="append", help="post-event point cloud of a pair")
-    tr.add_argument("--pair", nargs=2, action="append", metavar=("PRE", "POST"),
-                    help="old form of --pre PRE --post POST (still accepted)")
     tr.add_argument("--truth", action="append", help="CSV building_id,grade per pair (default: the post "
                     "epoch's grade dimension)")
     tr.add_argument("--footprints", help="GeoJSON footprints when the clouds have no building_id")

@@ -37,7 +37,7 @@ import numpy as np
 from ..change.pipeline import PipelineSettings
 from ..change.descriptors import DESCRIPTOR_VERSION
 from ..change.surface import NOISE_FREE_DESCRIPTORS, SurfaceSettings
-from ..runtime.progress import accepts_old_say, stage_log
+from ..runtime.progress import stage_log
 from .model_selection import MIN_CITIES_TO_GROUP, cv_groups
 
 # The training set's tables hold every surface descriptor (so that an ablation can put any of
@@ -198,7 +198,6 @@ def fit_default_model(table, plan, config: dict, scores, *, seed: int = 0, comma
                        no_change_rule=False)
 
 
-@accepts_old_say
 def transfer_training_table(work: Path, *, seed: int = 0, size: str = "full", scenes: str = "both",
                             damage: str = "patterns", small: bool = False, workers: int = -1,
                             keep_clouds: bool = True):
@@ -226,7 +225,6 @@ def transfer_training_table(work: Path, *, seed: int = 0, size: str = "full", sc
     return plan, combine_tables(clean, real)
 
 
-@accepts_old_say
 def calibrate_on_real_points(model, table, full, config: dict, real_pairs, *, seed: int = 0) -> dict:
     """Set `model.temperature` from the real-point rows' out-of-fold probabilities
     (`quakescan.learning.real_calibration`) and record how in its provenance."""

@@ -45,7 +45,7 @@ import numpy as np
 from ..errors import QuakeScanError
 from ..runtime import fingerprint
 from ..runtime.atomic import open_replacing, replacing, write_json
-from ..runtime.progress import ProgressCallback, accepts_old_say, stage_log
+from ..runtime.progress import ProgressCallback, stage_log
 
 log = logging.getLogger(__name__)
 
@@ -521,7 +521,6 @@ def _pair_task(after: list, out_dir: str, pair: dict, settings: dict, labels: st
         return pair_table(out_dir, pair, settings, labels, workers=1, discard=discard)
 
 
-@accepts_old_say
 def build(out_dir, plan: TrainingPlan, settings, *, workers: int = -1,
           progress: ProgressCallback | None = None, client=None, keep_clouds: bool = True) -> TransferTable:
     """Generate, acquire and describe everything the plan asks for under out_dir; returns the

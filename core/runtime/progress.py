@@ -14,10 +14,8 @@ and which a script shows with `logging.basicConfig(level=logging.INFO)`.
 """
 from __future__ import annotations
 
-import functools
 import logging
-import warnings
-from typing import Callable, Protocol
+from typing import Protocol
 
 # One logger for the stage messages of every multi-step function: the command line shows it
 # without showing the other modules' INFO details, which stay behind -v.
@@ -38,34 +36,3 @@ def in_stage(progress: ProgressCallback | None, stage: str) -> ProgressCallback 
     if progress is None:
         return None
     return lambda done, total, inner="": progress(done, total, f"{stage} {inner}" if inner else stage)
-
-
-class _Forward(logging.Handler):
-    def __init__(self, say: Callable[[str], None]):
-        super().__init__(logging.INFO)
-        self.say = say
-
-    def emit(self, record: logging.LogRecord) -> None:
-        self.say(record.getMessage())
-
-
-def accepts_old_say(fn):
-    """The `say=` keyword that the multi-step functions took before their stage messages were
-    log lines: still honoured (its callable gets every stage message of the call) with a
-    DeprecationWarning, for one release."""
-    @functools.wraps(fn)
-    def wrapper(*args, say: Callable[[str], None] | None = None, **kwargs):
-        if say is None:
-            return fn(*args, **kwargs)
-        warnings.warn(f"{fn.__name__}(say=...) is deprecated: stage messages are INFO records of the logger "
-                      f"'quakescan.stages'", DeprecationWarning, stacklevel=2)
-        handler, level = _Forward(say), stage_log.level
-        stage_log.addHandler(handler)
-        if stage_log.getEffectiveLevel() > logging.INFO:
-            stage_log.setLevel(logging.INFO)
-        try:
-            return fn(*args, **kwargs)
-        finally:
-            stage_log.removeHandler(handler)
-            stage_log.setLevel(level)
-    return wrapper

@@ -2,14 +2,11 @@
 
 Every function that runs in parallel takes `workers: int = -1`: a number of threads >= 1, or
 -1 for every core (scipy's and scikit-learn's convention; None is taken as -1, the meaning it
-had where it was the default). Outputs never depend on it. The scanner and the DIM simulator
-took it as `threads` before: `accepts_old_threads` keeps that keyword working for one release.
+had where it was the default). Outputs never depend on it.
 """
 from __future__ import annotations
 
 import contextlib
-import functools
-import warnings
 
 from ..errors import QuakeScanError
 
@@ -24,20 +21,6 @@ def check_workers(workers, where: str = "") -> int:
         raise QuakeScanError(f"{where + ': ' if where else ''}workers: the number of worker threads must be an "
                              f"integer >= 1 (or -1: every core), got {workers!r}")
     return workers
-
-
-def accepts_old_threads(fn):
-    """Let `fn(..., workers=...)` also be called as `fn(..., threads=...)`, with a DeprecationWarning."""
-    @functools.wraps(fn)
-    def wrapper(*args, threads=None, **kwargs):
-        if threads is not None:
-            if kwargs.get("workers", EVERY_CORE) not in (None, EVERY_CORE):
-                raise TypeError(f"{fn.__name__}: give workers or threads (its old name), not both")
-            warnings.warn(f"{fn.__name__}(threads=...) is deprecated: the keyword is `workers`", DeprecationWarning,
-                          stacklevel=2)
-            kwargs["workers"] = threads
-        return fn(*args, **kwargs)
-    return wrapper
 
 
 @contextlib.contextmanager

@@ -50,7 +50,7 @@ from ..results.evaluation import (
 )
 from ..runtime import fingerprint
 from ..runtime.atomic import open_replacing, write_text
-from ..runtime.progress import ProgressCallback, accepts_old_say, stage_log
+from ..runtime.progress import ProgressCallback, stage_log
 
 log = logging.getLogger(__name__)
 
@@ -211,7 +211,6 @@ def _levels_of_detection(s: ExperimentSettings, pre: Path, rescan: Path, cache: 
     return lod
 
 
-@accepts_old_say
 def run_paper_experiment(out_dir, settings: ExperimentSettings | None = None, *, workers: int = -1,
                          progress: ProgressCallback | None = None, client=None) -> dict:
     """Run everything and write the report to out_dir; returns {classifier: Evaluation}.
