@@ -466,7 +466,7 @@ def test_compiled_patches_and_neighbour_counts_are_numpys(spacing, table, monkey
 
     if not table:
         monkeypatch.setattr(K, "TABLE_PER_POINT", -10 ** 9)
-    from quakescan.change.surface import _coherence, _patch_sizes
+    from quakescan.change.core_points import coherence, patch_sizes
 
     rng = np.random.default_rng(31)
     g = np.arange(0, 20, 0.5)
@@ -477,14 +477,14 @@ def test_compiled_patches_and_neighbour_counts_are_numpys(spacing, table, monkey
         changed = rng.random(len(xyz)) < share
         changed[:400] |= (roof[:400, 0] > 5) & (roof[:400, 0] < 8)  # one real patch
         valid = changed | (rng.random(len(xyz)) < 0.7)
-        np.testing.assert_array_equal(_patch_sizes(xyz, changed, spacing), R.patch_sizes(xyz, changed, spacing))
-        coherent, largest = _coherence(xyz, changed, valid, spacing)
+        np.testing.assert_array_equal(patch_sizes(xyz, changed, spacing), R.patch_sizes(xyz, changed, spacing))
+        coherent, largest = coherence(xyz, changed, valid, spacing)
         want_coherent, want_largest = R.coherence(xyz, changed, valid, spacing)
         np.testing.assert_array_equal(coherent, want_coherent)
         assert largest == want_largest >= 2
     assert (len(K.voxel_keys(xyz, spacing).first) > 0) == table
     none = np.zeros(len(xyz), bool)
-    assert not _patch_sizes(xyz, none, spacing).any() and _coherence(xyz, none, none, spacing)[1] == 0
+    assert not patch_sizes(xyz, none, spacing).any() and coherence(xyz, none, none, spacing)[1] == 0
 
 
 def _cell_tops_numpy(xyz, lo, cell, width, layer_m):

@@ -7,7 +7,7 @@ import numpy as np
 
 
 def patch_sizes(xyz, changed, spacing) -> np.ndarray:
-    """`surface._patch_sizes`."""
+    """`core_points.patch_sizes`."""
     sizes = np.zeros(len(xyz), np.int64)
     if not changed.any():
         return sizes
@@ -58,7 +58,7 @@ def voxel_lookup(xyz, spacing):
 
 
 def coherence(xyz, changed, valid, spacing):
-    """`surface._coherence`."""
+    """`core_points.coherence`."""
     if not changed.any():
         return np.zeros(len(xyz), bool), 0
     neighbour = voxel_lookup(xyz, spacing)
