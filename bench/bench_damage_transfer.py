@@ -74,7 +74,7 @@ def city(work: Path, damage: str) -> tuple[Path, dict, float, list]:
 
 
 def main(argv=None) -> int:
-    from quakescan.learning.classification import DEFAULT_MODEL
+    from quakescan.learning.default_model import DEFAULT_MODEL
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--work", default=str(ROOT / "out" / "bench_damage_transfer"))
@@ -150,7 +150,7 @@ def cross_generator(training_work: Path, model_path: str, tests: dict) -> dict:
     import numpy as np
 
     from quakescan.change.pipeline import descriptor_matrix
-    from quakescan.learning.classification import model_settings
+    from quakescan.learning.prediction import model_settings
     from quakescan.learning.default_model import (CANDIDATES, TABLE_SETTINGS, cv_groups, model_columns, training_rows,
                                     transfer_training_table)
     from quakescan.learning.model import fit_classifier, load_model

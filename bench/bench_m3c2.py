@@ -59,7 +59,7 @@ def main(argv=None) -> int:
 
     from quakescan.change.features import compute_features
     from quakescan.change.m3c2 import ColumnGrid, M3C2Settings, m3c2
-    from quakescan.learning.classification import load_pair
+    from quakescan.formats.pair import load_pair
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--work", default=str(ROOT / "out" / "bench_m3c2"))

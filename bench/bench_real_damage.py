@@ -238,7 +238,7 @@ def no_change_across_sensors(work: Path, model: str) -> list:
     from quakescan.acquisition.acquire import Acquisition, acquire
     from quakescan.acquisition.dim_settings import preset_dim
     from quakescan.acquisition.survey import preset
-    from quakescan.learning.classification import classify
+    from quakescan.assessment.run import classify
 
     acq = {"uls": Acquisition("uls", preset("paper")), "dim": Acquisition("dim", preset_dim("paper")),
            "als": Acquisition("als", preset("als"))}
@@ -268,7 +268,7 @@ def low_buildings(work: Path, model: str) -> list:
     from quakescan.acquisition.dim_settings import preset_dim
     from quakescan.acquisition.survey import preset
     from quakescan.demo import generate
-    from quakescan.learning.classification import classify
+    from quakescan.assessment.run import classify
     from quakescan.learning.trainset import scene_footprints
 
     city = work / "low" / "city"
@@ -306,7 +306,7 @@ def drone_after_archive(work: Path, model: str, sensors=DRONE_SENSORS) -> list:
     from quakescan.formats.footprints import read_footprints
     from quakescan.injection.inject import InjectSettings, inject
     from quakescan.injection.surface_model import surface_scene
-    from quakescan.learning.classification import classify
+    from quakescan.assessment.run import classify
 
     pre, other = halves(work, DRONE_SPLIT)
     las = laspy.read(other)
@@ -345,7 +345,8 @@ def drone_after_archive(work: Path, model: str, sensors=DRONE_SENSORS) -> list:
 
 def main(argv=None) -> int:
     from quakescan.injection.inject import InjectSettings, inject
-    from quakescan.learning.classification import DEFAULT_MODEL, classify
+    from quakescan.assessment.run import classify
+    from quakescan.learning.default_model import DEFAULT_MODEL
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--work", default=str(ROOT / "out" / "bench_real_damage"))

@@ -67,7 +67,7 @@ def halves(las_path: Path, out: Path) -> tuple[Path, Path]:
 def describe(pre: Path, post: Path, footprints: Path, settings, limits) -> dict:
     """{descriptor: values over the assessable buildings} and the buildings' densities."""
     from quakescan.change.pipeline import quality_gate, describe_pair
-    from quakescan.learning.classification import load_pair
+    from quakescan.formats.pair import load_pair
 
     data = load_pair(pre, post, footprints)
     rows = [quality_gate(r, limits) for r in describe_pair(data.pre, data.post, settings)]
@@ -176,7 +176,8 @@ def main(argv=None) -> int:
     p.add_argument("--variants", default="clean,realistic")
     p.add_argument("--no-write", action="store_true")
     a = p.parse_args(argv)
-    from quakescan.learning.classification import default_model_path, model_settings
+    from quakescan.learning.default_model import default_model_path
+    from quakescan.learning.prediction import model_settings
     from quakescan.learning.model import load_model
 
     t0 = time.perf_counter()

@@ -69,8 +69,9 @@ COPY_STEP_M = 600.0  # the big city is 576 m wide: copies 600 m apart never shar
 ID_STEP = 100_000  # building IDs of copy k: k * ID_STEP + the source's
 ISSUE_PAIR_COPIES = 2  # the city's 37.4 M points an epoch twice: issue 16's "2 x 75 M-point pair"
 ROWS = ("single", "cluster", "half", "large", "trainset", "graded", "copc", "model")
-LOAD_MODEL = ("import time; from quakescan.learning import classification as cl; t = time.perf_counter(); "
-              "cl.load_model(cl.default_model_path()); print(time.perf_counter() - t)")
+LOAD_MODEL = ("import time; from quakescan.learning.default_model import default_model_path; "
+              "from quakescan.learning.model import load_model; t = time.perf_counter(); "
+              "load_model(default_model_path()); print(time.perf_counter() - t)")
 
 
 class TreeSampler:

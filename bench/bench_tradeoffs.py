@@ -175,7 +175,7 @@ class Study:
         if key in self._desc:
             return self._desc[key]
         from quakescan.change.pipeline import PipelineSettings, describe_pair, descriptor_matrix
-        from quakescan.learning.classification import load_pair
+        from quakescan.formats.pair import load_pair
 
         settings = PipelineSettings(radius_m=radius, core_point_step=step)
         acq = self.acquisition(tag, part)
@@ -202,7 +202,7 @@ class Study:
     # one row -------------------------------------------------------------------
     def row(self, knob: str, value, *, train_tags=("beam single",), test_tag="beam single", radius=1.5,
             step=1, trees=100) -> dict:
-        from quakescan.learning.classification import predict_rows
+        from quakescan.learning.prediction import predict_rows
         from quakescan.learning.model import DamageModel, train_damage_forest
         from quakescan.results.evaluation import evaluate_grades
 

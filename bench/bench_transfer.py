@@ -17,7 +17,7 @@ Rows (the shipped model only, nothing trained on the test data):
 
 Every row also runs the previous shipped model (the paper's generic-ULS forest, from git)
 on the same clouds in the same run ("before"). Each classification goes through
-`quakescan classify` (`quakescan.learning.classification.classify`) and reports its describe and total seconds.
+`quakescan classify` (`quakescan.assessment.run.classify`) and reports its describe and total seconds.
 
 Ablation (same run, same test rows): the model's classifier refitted on the training set's
 tables without each descriptor group, and the other classifier candidates, scored on the
@@ -125,7 +125,7 @@ def previous_model(work: Path) -> Path | None:
 
 
 def run_classify(pre, post, out_dir, model, footprints=None):
-    from quakescan.learning.classification import classify
+    from quakescan.assessment.run import classify
 
     t0 = time.perf_counter()
     summary = classify(pre, post, out_dir, model_path=model, footprints_path=footprints, write_las=False,
@@ -152,7 +152,7 @@ def flagged(csv_path: Path) -> tuple:
 
 
 def main(argv=None) -> int:
-    from quakescan.learning.classification import DEFAULT_MODEL
+    from quakescan.learning.default_model import DEFAULT_MODEL
     from quakescan.learning.model import load_model
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -318,7 +318,7 @@ def _describe_rows(pre, post, settings, footprints=None, limits=None):
     """Assessable rows of a pair; `limits`: the shipped model's pipeline settings, whose
     density and coverage limits decide what is assessable (as classify does)."""
     from quakescan.change.pipeline import quality_gate, describe_pair
-    from quakescan.learning.classification import load_pair
+    from quakescan.formats.pair import load_pair
 
     data = load_pair(pre, post, footprints)
     rows = describe_pair(data.pre, data.post, settings)
@@ -366,7 +366,7 @@ def ablation(work: Path, model, training_work: Path, city: Path, pairs: dict, re
     """Refit the shipped classifier without each descriptor group (and the other candidates)
     on the training set; score all on the same test rows."""
     from quakescan.change.pipeline import descriptor_matrix
-    from quakescan.learning.classification import model_settings
+    from quakescan.learning.prediction import model_settings
     from quakescan.learning.default_model import CANDIDATES, TABLE_SETTINGS, cv_groups, training_rows, transfer_training_table
     from quakescan.learning.model import fit_classifier
     from quakescan.results.evaluation import evaluate_grades, read_truth

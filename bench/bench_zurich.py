@@ -190,7 +190,7 @@ def source_folder(work: Path) -> Path:
 
 
 def main(argv=None) -> int:
-    from quakescan.learning.classification import DEFAULT_MODEL
+    from quakescan.learning.default_model import DEFAULT_MODEL
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--work", default=str(ROOT / "out" / "bench_zurich"))

@@ -25,7 +25,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
-from quakescan.learning.classification import DEFAULT_MODEL  # noqa: E402
+from quakescan.learning.default_model import DEFAULT_MODEL  # noqa: E402
 from quakescan.learning.default_model import make_default_model, recalibrate_default_model  # noqa: E402
 
 

@@ -28,7 +28,9 @@ from .change.pipeline import BuildingRow, describe_pair, training_settings
 from .errors import QuakeScanError
 from .formats.pointcloud import Epoch, read_epoch
 from .formats.scene import Scene, read_scene, write_scene
-from .learning.classification import PairData, default_model_path, load_pair, model_settings
+from .formats.pair import PairData, load_pair
+from .learning.default_model import default_model_path
+from .learning.prediction import model_settings
 from .learning.model import DamageModel, load_model as _load_model, save_model
 from .results.evaluation import Evaluation, evaluate_files
 
@@ -90,7 +92,7 @@ def acquire(scene: PathLike | Scene, out: PathLike, kind: str = "uls", settings=
 def read_pair(pre: PathLike, post: PathLike, footprints: PathLike | None = None,
               id_field: str | None = None) -> PairData:
     """Both epochs in the pre-event epoch's local frame, with building IDs
-    (`quakescan.learning.classification.load_pair`).
+    (`quakescan.formats.pair.load_pair`).
 
     Parameters
     ----------
@@ -182,7 +184,7 @@ def load_model(path: PathLike | None = None) -> DamageModel:
 
 def classify(pre: PathLike, post: PathLike, out_dir: PathLike, *, footprints: PathLike | None = None,
              model: PathLike | None = None, workers: int = -1, **options) -> dict:
-    """Grade every building of a pair and write the results (`quakescan.learning.classification.classify`).
+    """Grade every building of a pair and write the results (`quakescan.assessment.run.classify`).
 
     Parameters
     ----------
@@ -206,7 +208,7 @@ def classify(pre: PathLike, post: PathLike, out_dir: PathLike, *, footprints: Pa
     dict
         The run's summary (also in summary.json): counts per grade, timings, alignment.
     """
-    from .learning.classification import classify as run
+    from .assessment.run import classify as run
 
     return run(pre, post, out_dir, model_path=model, footprints_path=footprints, workers=workers, **options)
 

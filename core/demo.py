@@ -91,7 +91,7 @@ def run_demo(out_dir, seed: int = 0, buildings: int = 30, progress: ProgressCall
     scan_scene(city / "pre", out / "pre.las", seed=seed * 2 + 1, progress=in_stage(progress, "scan pre"))
     scan_scene(city / "post", out / "post.las", seed=seed * 2 + 2, progress=in_stage(progress, "scan post"))
     stage_log.info("demo 3/5: classifying every building with the shipped model")
-    from .learning.classification import classify
+    from .assessment.run import classify
 
     result = out / "result"
     summary = classify(out / "pre.las", out / "post.las", result, progress=in_stage(progress, "classify"))

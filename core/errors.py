@@ -17,6 +17,10 @@ class PointCloudError(QuakeScanError):
     """A point cloud file cannot be read or written as asked."""
 
 
+class ClassifyError(QuakeScanError):
+    """Classification cannot run as asked (its inputs do not make a pair it can grade)."""
+
+
 class ResultsError(QuakeScanError):
     """A result file cannot be read or written."""
 

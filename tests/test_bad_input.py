@@ -358,7 +358,7 @@ def test_a_corrupt_checkpoint_is_discarded_and_recomputed(pair, tmp_path, capsys
 
 
 def test_a_checkpoint_line_with_missing_keys_redoes_its_tile(pair, tmp_path, capsys):
-    from quakescan.learning.classify_run import RowCheckpoint
+    from quakescan.assessment.record import RowCheckpoint
 
     path = tmp_path / ".checkpoint.jsonl"
     path.write_text('{"fingerprint": "abc"}\n{"building_id": 1, "n_pre": 5}\n')

@@ -8,7 +8,8 @@ import pytest
 
 from quakescan.change.pipeline import PipelineSettings
 from quakescan.cli import main
-from quakescan.learning.classification import classify, model_settings
+from quakescan.assessment.run import classify
+from quakescan.learning.prediction import model_settings
 from quakescan.learning.model import ModelError, load_model, save_model
 from quakescan.learning.training import (
     TrainingError,
@@ -110,7 +111,7 @@ def test_identical_epochs_flag_no_building(city, tmp_path):
 
 
 def test_interrupted_classification_resumes(city, tmp_path, monkeypatch):
-    import quakescan.learning.classification as C
+    import quakescan.assessment.in_process as C
 
     d, _ = city
     out = tmp_path / "res"
@@ -294,7 +295,7 @@ def test_an_automatic_alignment_must_fit_the_stable_points_markedly_better(monke
     at least MIN_FIT_GAIN of the rmse (0.0313 m before)."""
     from quakescan.change import align
     from quakescan.change.pipeline import PipelineSettings
-    from quakescan.learning import classification as cl
+    from quakescan.change import registration as cl
 
     turn = align.Alignment(_turn_about_z(0.1198, [150.0, 150.0, 1.0]), 0.031330, rmse_after, rmse_after, 0.99, 9, 9,
                            np.array([150.0, 150.0, 1.0]))
@@ -313,13 +314,13 @@ def test_outline_points_by_building_are_each_buildings_points_in_order():
     """The outlines' lazily copied x/y per building (no footprints) are the building's points in
     point order, as grouping by a stable argsort gives them; no building for IDs <= 0 or absent."""
     from quakescan.formats.pointcloud import Epoch
-    from quakescan.learning.classification import _XYByBuilding
+    from quakescan.assessment.in_process import XYByBuilding
 
     rng = np.random.default_rng(8)
     ids = rng.choice([0, 2, 5, 9, -1], 5_000).astype(np.int32)
     xyz = rng.uniform(0, 50, (5_000, 3))
     e = Epoch(xyz, np.zeros(3), np.full(5_000, 6, np.uint8), building_id=ids)
-    by = _XYByBuilding(e)
+    by = XYByBuilding(e)
     for b in (2, 5, 9):
         np.testing.assert_array_equal(by.get(b), xyz[ids == b, :2])
     assert by.get(0) is None and by.get(-1) is None and by.get(7) is None

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from quakescan.cli import main
-from quakescan.learning.classification import classify, load_pair
+from quakescan.assessment.run import classify
+from quakescan.formats.pair import load_pair
 
 pytestmark = pytest.mark.realdata
 

@@ -86,8 +86,8 @@ def test_real_halves_as_copc_with_footprints_classify_on_two_workers_as_one_proc
     """AHN3 tile 2 as two random halves (seed 5), each written as COPC: building IDs come from
     the footprints, in the tile tasks; both runs write the same files, byte for byte."""
     distributed = pytest.importorskip("distributed")
-    from quakescan.distributed.classify import classify_distributed
-    from quakescan.learning.classification import classify
+    from quakescan.distributed.engine import classify_distributed
+    from quakescan.assessment.run import classify
 
     las = laspy.read(shared_data / "ahn3_cropped_2.laz")
     half = np.random.default_rng(5).random(las.header.point_count) < 0.5

@@ -84,7 +84,7 @@ def test_settings_json_round_trip_with_and_without_the_step():
 
 def test_a_model_trained_with_a_step_classifies_with_it():
     """The step is part of what a model stores; classification rebuilds it from the model."""
-    from quakescan.learning.classification import model_settings
+    from quakescan.learning.prediction import model_settings
     from quakescan.learning.model import DamageModel
 
     settings = PipelineSettings(core_point_step=4)

@@ -151,7 +151,7 @@ def test_the_pipeline_measures_each_buildings_area_and_lowering_resolution():
 
     from quakescan.change.pipeline import PipelineSettings, describe_pair
     from quakescan.change.surface import SurfaceSettings
-    from quakescan.learning.classify_run import detectability_counts
+    from quakescan.assessment.record import detectability_counts
 
     rng = np.random.default_rng(6)
     pre, post = scene(rng, 30, False), scene(rng, 30, False)
@@ -169,7 +169,7 @@ def test_the_pipeline_measures_each_buildings_area_and_lowering_resolution():
         classes = [0, 3, 4, 5]
         feature_names = []
 
-    from quakescan.learning.classification import predict_rows
+    from quakescan.learning.prediction import predict_rows
 
     (res,) = predict_rows([row], Model(), rule=True)
     assert (res.detectable_grade, res.min_opening_m2, res.min_lowering_m) == \

@@ -9,7 +9,8 @@ import laspy
 import numpy as np
 import pytest
 
-from quakescan.learning.classification import DEFAULT_MODEL, classify
+from quakescan.assessment.run import classify
+from quakescan.learning.default_model import DEFAULT_MODEL
 from quakescan.learning.model import load_model, save_model
 from tests.scenes import scan_box_pair
 
@@ -50,7 +51,7 @@ def _same_outputs(a: Path, b: Path, las: str | None = "post_grades.las"):
 
 
 def _run(pair, out, client, **kw):
-    from quakescan.distributed.classify import classify_distributed
+    from quakescan.distributed.engine import classify_distributed
 
     return classify_distributed(pair / "pre.las", pair / "post.las", out, client, model_path=pair / "model.skops",
                                 block_cells=BLOCK_CELLS, chunk_points=50_000, **kw)
@@ -99,7 +100,7 @@ def test_an_offset_post_epoch_is_aligned_as_one_process_aligns_it(pair, cluster,
     single = classify(pair / "pre.las", tmp_path / "post_shifted.las", tmp_path / "single",
                       model_path=pair / "model.skops")
     assert single["registration"]["applied"]
-    from quakescan.distributed.classify import classify_distributed
+    from quakescan.distributed.engine import classify_distributed
 
     caplog.clear()
     with caplog.at_level("INFO", logger="quakescan"):
@@ -205,7 +206,7 @@ def test_tiles_finished_before_the_registration_check_answers_are_kept_for_a_res
     """The tiles start unmoved while the check runs. A client interrupted before it answers
     keeps their rows (a checkpoint of their own), and the resumed run uses them once its own
     check finds no alignment: the files one process writes."""
-    from quakescan.distributed.classify import UNMOVED_CHECKPOINT
+    from quakescan.distributed.engine import UNMOVED_CHECKPOINT
 
     out = tmp_path / "dask"
     calls = []
@@ -237,7 +238,7 @@ def test_a_paper_descriptor_tile_whose_nearest_points_lie_beyond_its_halo_is_wid
     """Building 2 loses all but a 2 m strip at one end: its query points' nearest post-event
     points lie up to ~12 m away, beyond the first halo (radius + 10 m) from the far end."""
     from quakescan.change.pipeline import PipelineSettings
-    from quakescan.distributed.classify import classify_distributed
+    from quakescan.distributed.engine import classify_distributed
     from quakescan.learning.training import TrainingPair, train
 
     scan_box_pair(tmp_path, (9.0, 4.0, 9.0, 3.0, 9.0, 12.0))
@@ -299,7 +300,7 @@ def test_the_graded_cloud_is_made_in_parts_by_the_workers_and_compressed_as_one_
     """The workers make the graded cloud's records of the post-event file's parts; the client
     puts them behind one header: the .laz one process writes, byte for byte but the header's
     creation day."""
-    from quakescan.distributed import classify as dc
+    from quakescan.distributed import engine as dc
 
     made = []
     real = dc.part_bounds
@@ -441,7 +442,7 @@ def test_an_array_is_mapped_anew_by_default_and_kept_in_the_heap_once_tuned():
 
 
 def test_a_tile_over_the_memory_budget_is_split_into_quarters_by_building_centre():
-    from quakescan.distributed.classify import MAX_SPLIT_DEPTH, split_tile
+    from quakescan.distributed.engine import MAX_SPLIT_DEPTH, split_tile
 
     # a 100 m tile (1, 2) holding four buildings, one in each quarter, and 100 bytes a building
     centres = {1: (110.0, 210.0), 2: (160.0, 210.0), 3: (110.0, 260.0), 4: (190.0, 290.0)}
@@ -467,7 +468,7 @@ def test_tiles_too_large_for_the_workers_memory_are_split_and_give_the_same_file
     """The shipped model's 150 m tiles hold all six buildings of the box city together; with a
     per-point cost that puts every tile over a 1 GB worker's budget the client splits them down
     to one building a task, and the files are those of one process with whole tiles."""
-    from quakescan.distributed import classify as dc
+    from quakescan.distributed import engine as dc
 
     scan_box_pair(tmp_path, (9.0, 4.0, 9.0, 3.0, 9.0, 12.0))
     single = classify(tmp_path / "pre.las", tmp_path / "post.las", tmp_path / "single")
@@ -532,7 +533,7 @@ def test_an_epoch_streamed_in_parts_is_the_epoch_streamed_whole(pair, tmp_path):
     the same records in every block, in the same order, and the same stats (counts, boxes,
     samples, map, hulls)."""
     from quakescan.distributed import blocks
-    from quakescan.distributed.classify import part_bounds
+    from quakescan.distributed.engine import part_bounds
 
     f = blocks.open_epoch_file(pair / "pre.las")
     origin = blocks.default_origin(f)
@@ -616,7 +617,7 @@ def test_blocks_are_deleted_beside_the_results_their_manifest_first(tmp_path, mo
     reading blocks half deleted."""
     import threading
 
-    from quakescan.distributed import classify as dc
+    from quakescan.distributed import engine as dc
 
     from quakescan.runtime.output_folder import own_subfolder
 
@@ -641,7 +642,7 @@ def test_blocks_are_deleted_beside_the_results_their_manifest_first(tmp_path, mo
 
 def test_blocks_of_an_interrupted_run_are_kept_only_for_the_same_inputs_and_layout(tmp_path):
     from quakescan.distributed import blocks
-    from quakescan.distributed.classify import MANIFEST, kept_epochs
+    from quakescan.distributed.engine import MANIFEST, kept_epochs
     from quakescan.runtime.output_folder import FOLDER_MARKER
 
     (tmp_path / FOLDER_MARKER).write_text("")  # the store is QuakeScan's (tests/test_safe_folder_deletes.py)
@@ -662,7 +663,7 @@ def test_blocks_of_an_interrupted_run_are_kept_only_for_the_same_inputs_and_layo
 
 
 def test_parts_are_two_a_worker_and_never_smaller_than_a_chunk():
-    from quakescan.distributed.classify import PART_POINTS, part_bounds
+    from quakescan.distributed.engine import PART_POINTS, part_bounds
 
     assert part_bounds(1_000, 2, 100) == [0, 250, 500, 750, 1000]  # two a worker
     assert part_bounds(1_000, 2, 400) == [0, 333, 667, 1000]  # no part under a chunk: 3, not 4
@@ -674,7 +675,7 @@ def test_parts_are_two_a_worker_and_never_smaller_than_a_chunk():
 def test_a_model_file_that_does_not_load_stops_the_tiling_and_is_named(pair, cluster, tmp_path):
     """The model is read while the workers stream the epochs: a file that is not a model stops
     the run with its name, and its streaming tasks are cancelled."""
-    from quakescan.distributed.classify import classify_distributed
+    from quakescan.distributed.engine import classify_distributed
     from quakescan.errors import QuakeScanError
 
     bad = tmp_path / "not_a_model.skops"

@@ -125,7 +125,7 @@ def test_the_post_epoch_read_beside_the_pre_epoch_is_in_its_frame(tmp_path):
     """load_pair reads both epochs at once, the post epoch in the frame the pre-event file's
     header gives: the same arrays as reading one after the other."""
     from quakescan.formats.pointcloud import epoch_origin
-    from quakescan.learning.classification import load_pair
+    from quakescan.formats.pair import load_pair
 
     _labelled_las(tmp_path / "a.las", np.arange(3_000) % 5, seed=1)
     _labelled_las(tmp_path / "b.las", np.arange(2_000) % 5, seed=2)

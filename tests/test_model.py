@@ -153,7 +153,7 @@ def test_a_forest_that_never_saw_grade_0_still_reports_it_by_rule():
     """Only destroyed buildings changed in training: the forest knows one grade; a building
     without changes is still "no damage" with p_0 = 1 in the results."""
     from quakescan.change.pipeline import BuildingRow
-    from quakescan.learning.classification import predict_rows
+    from quakescan.learning.prediction import predict_rows
     from quakescan.learning.model import train_damage_forest
 
     names = ["share_changed", "height_median"]
@@ -315,7 +315,7 @@ def test_a_model_file_of_the_first_format_loads_and_predicts_as_before(tmp_path)
     import skops.io as sio
 
     from quakescan.change.pipeline import BuildingRow, PipelineSettings
-    from quakescan.learning.classification import predict_rows
+    from quakescan.learning.prediction import predict_rows
 
     settings = PipelineSettings()
     names = settings.descriptor_names()
@@ -357,7 +357,7 @@ def test_a_model_file_saved_before_the_rename_to_quakescan_loads_and_predicts(tm
     (commit 1dc0058 and before). skops records only numpy, sklearn and builtins types, never
     the library's, so such a file loads without any `core` package; a file saved now records
     the same kinds of types, which is what keeps every older file loadable."""
-    from quakescan.learning.classification import DEFAULT_MODEL
+    from quakescan.learning.default_model import DEFAULT_MODEL
 
     m = load_model(DEFAULT_MODEL)
     probe = np.random.default_rng(0).random((3, len(m.feature_names)))
@@ -370,7 +370,8 @@ def test_a_model_file_saved_before_the_rename_to_quakescan_loads_and_predicts(tm
 
 
 def test_the_shipped_model_is_the_transfer_model_with_its_limits_and_provenance():
-    from quakescan.learning.classification import DEFAULT_MODEL, model_settings
+    from quakescan.learning.default_model import DEFAULT_MODEL
+    from quakescan.learning.prediction import model_settings
     from quakescan.learning.default_model import MODEL_DESCRIPTORS
 
     m = load_model(DEFAULT_MODEL)
@@ -432,7 +433,7 @@ def test_a_model_without_the_rule_is_asked_about_unchanged_buildings(tmp_path):
     import skops.io as sio
 
     from quakescan.change.pipeline import BuildingRow
-    from quakescan.learning.classification import predict_rows
+    from quakescan.learning.prediction import predict_rows
     from quakescan.learning.model import TRUSTED_TYPES, VERSION_ALL_ROWS, train_damage_forest
 
     names = ["share_changed", "height_median"]
@@ -482,7 +483,7 @@ def test_confidence_is_the_predicted_class_probability_and_margin_its_lead():
 
 def test_predict_rows_puts_the_confidence_on_each_building(model):
     from quakescan.change.pipeline import BuildingRow
-    from quakescan.learning.classification import predict_rows
+    from quakescan.learning.prediction import predict_rows
 
     m, x = model
     names = ["share_changed", "b", "c"]

@@ -143,7 +143,7 @@ def test_random_halves_of_a_real_tile_show_no_fall_beyond_the_swapped_null(share
 
     from quakescan.change.pipeline import describe_pair, settings_for_descriptors
     from quakescan.change.surface import SURFACE_DESCRIPTORS
-    from quakescan.learning.classification import load_pair
+    from quakescan.formats.pair import load_pair
 
     las = laspy.read(shared_data / "ahn3_cropped_2.laz")
     settings = settings_for_descriptors(SURFACE_DESCRIPTORS, 1.5)

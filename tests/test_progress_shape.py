@@ -49,7 +49,7 @@ def test_every_progress_parameter_has_the_one_shape():
     # the long functions of every kind: scanning, DIM, features, description, training, experiments
     for expected in ("quakescan.acquisition.scan.scan", "quakescan.acquisition.dim.simulate_dim", "quakescan.change.features.compute_features",
                      "quakescan.change.pipeline.describe_pair", "quakescan.learning.training.training_table",
-                     "quakescan.learning.trainset.build", "quakescan.demo.run_demo", "quakescan.learning.classification.classify",
+                     "quakescan.learning.trainset.build", "quakescan.demo.run_demo", "quakescan.assessment.run.classify",
                      "quakescan.change.lod.calibrate", "quakescan.studies.robustness.run.run_experiment",
                      "quakescan.studies.experiment.run_paper_experiment", "quakescan.acquisition.acquire.acquire"):
         assert expected in with_progress

@@ -167,7 +167,7 @@ def test_experiment_clouds_are_reacquired_when_their_scene_changed(tmp_path, cap
 
 
 def test_experiment_tables_and_levels_of_detection_follow_their_inputs_and_settings(tmp_path, monkeypatch):
-    import quakescan.learning.classification
+    import quakescan.formats.pair
     import quakescan.change.lod
     import quakescan.change.pipeline
     from quakescan.change.lod import LevelsOfDetection
@@ -188,7 +188,7 @@ def test_experiment_tables_and_levels_of_detection_follow_their_inputs_and_setti
         return LevelsOfDetection(lod_height_m=0.3, lod_curvature=0.2, height_at_quantile_m=0.1,
                                  curvature_at_quantile=0.1, quantile=0.999, points=5000, radius_m=1.0)
 
-    monkeypatch.setattr(quakescan.learning.classification, "load_pair", lambda pre, post: type("P", (), {"pre": pre, "post": post}))
+    monkeypatch.setattr(quakescan.formats.pair, "load_pair", lambda pre, post: type("P", (), {"pre": pre, "post": post}))
     monkeypatch.setattr(quakescan.change.pipeline, "describe_pair", describe_pair)
     monkeypatch.setattr(quakescan.change.lod, "calibrate", calibrate)
     monkeypatch.setattr("quakescan.formats.pointcloud.read_epoch", lambda p, origin=None: type("E", (), {"origin": None}))

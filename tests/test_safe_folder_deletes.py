@@ -7,7 +7,7 @@ import pytest
 
 from quakescan.cli import main
 from quakescan.learning import model_cache
-from quakescan.learning.classification import ClassifyError, classify
+from quakescan.errors import ClassifyError
 from quakescan.runtime.output_folder import FOLDER_MARKER, own_subfolder, remove_own_subfolder
 from tests.safe_folder_pair import RESULTS, names, pair  # noqa: F401  (a fixture)
 
@@ -22,7 +22,7 @@ def _user_folder(path):
 
 @pytest.mark.parametrize("name", [".blocks", ".graded"])
 def test_a_users_working_folder_name_is_refused_and_kept(pair, tmp_path, name):  # noqa: F811
-    from quakescan.distributed.classify import classify_distributed
+    from quakescan.distributed.engine import classify_distributed
 
     out = tmp_path / "out"
     _user_folder(out / name)

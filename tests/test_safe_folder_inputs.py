@@ -8,7 +8,8 @@ from quakescan.cli import main
 from quakescan.formats.footprints import footprints_from_scene, write_footprints
 from quakescan.formats.scene import read_scene, write_scene
 from quakescan.formats.synthetic import box_city
-from quakescan.learning.classification import ClassifyError, classify
+from quakescan.assessment.run import classify
+from quakescan.errors import ClassifyError
 from tests.safe_folder_pair import names, pair  # noqa: F401  (a fixture)
 from tests.scenes import HEIGHTS, UTM
 

@@ -12,7 +12,8 @@ import time
 import pytest
 
 from quakescan.cli import main
-from quakescan.learning.classification import ClassifyError, classify
+from quakescan.assessment.run import classify
+from quakescan.errors import ClassifyError
 from quakescan.runtime.output_folder import LOCK_NAME, exclusive_run
 from tests.safe_folder_pair import RESULTS, names, pair  # noqa: F401  (a fixture)
 

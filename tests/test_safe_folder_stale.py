@@ -6,7 +6,7 @@ import logging
 
 import pytest
 
-from quakescan.learning.classification import classify
+from quakescan.assessment.run import classify
 from tests.safe_folder_pair import RESULTS, names, pair  # noqa: F401  (a fixture)
 
 WITHOUT_LAS = [n for n in RESULTS if n != "post_grades.las"]

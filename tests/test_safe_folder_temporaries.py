@@ -7,7 +7,8 @@ import pytest
 
 from quakescan.cli import main
 from quakescan.errors import PointCloudError, ResultsError
-from quakescan.learning.classification import ClassifyError, classify
+from quakescan.assessment.run import classify
+from quakescan.errors import ClassifyError
 from quakescan.runtime.atomic import (
     TEMP_MARKER,
     Temporary,

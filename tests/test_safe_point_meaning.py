@@ -11,7 +11,7 @@ import pytest
 
 from quakescan.change.align import stable_mask
 from quakescan.formats.pointcloud import PointCloudError, acquisition_start, epoch_order_warning, read_epoch
-from quakescan.learning.classification import classify
+from quakescan.assessment.run import classify
 from tests.safe_folder_pair import pair  # noqa: F401  (a fixture)
 
 
@@ -66,7 +66,7 @@ def test_noise_is_never_stable_ground_for_the_registration():
 
 @pytest.mark.slow
 def test_the_dask_path_leaves_noise_out_as_one_process_does(pair, tmp_path):  # noqa: F811
-    from quakescan.distributed.classify import classify_distributed
+    from quakescan.distributed.engine import classify_distributed
     from quakescan.distributed.cluster import dask_client
 
     post = with_noise(pair / "post.las", tmp_path / "post_noisy.las", 1, 300, 7, seed=2)

@@ -120,7 +120,8 @@ def fifo(tmp_path):
 
 
 def test_a_device_or_fifo_given_as_an_input_is_refused_as_not_a_regular_file(tmp_path, fifo):
-    from quakescan.learning.classification import ClassifyError, classify
+    from quakescan.assessment.run import classify
+    from quakescan.errors import ClassifyError
 
     for special in ("/dev/zero", fifo):
         with pytest.raises(FootprintError, match="footprint file is not a regular file"):

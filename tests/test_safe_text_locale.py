@@ -14,7 +14,7 @@ SCRIPT = r'''
 import locale, sys
 assert locale.getpreferredencoding(False).lower() in ("ansi_x3.4-1968", "ascii", "us-ascii"), locale.getpreferredencoding(False)
 import shapely.geometry
-from quakescan.learning.classification import write_building_results
+from quakescan.assessment.record import write_building_results
 from quakescan.results import writers as R
 from quakescan.results.evaluation import evaluate_files
 from quakescan.formats.footprints import Footprints

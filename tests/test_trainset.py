@@ -125,7 +125,7 @@ def test_a_plan_naming_a_city_it_lacks_is_refused(tmp_path):
 
 @pytest.mark.slow
 def test_quick_training_set_builds_resumes_and_trains_a_model_that_classifies_cross_source_pairs(tmp_path):
-    from quakescan.learning.classification import classify
+    from quakescan.assessment.run import classify
     from quakescan.learning.model import load_model, save_model
 
     from quakescan.cli import main

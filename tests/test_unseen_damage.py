@@ -106,7 +106,7 @@ def _row(bid, wall_density):
 
 @pytest.mark.parametrize("rule", [False, True])
 def test_predict_rows_counts_unseen_damage_by_default(rule):
-    from quakescan.learning.classification import predict_rows
+    from quakescan.learning.prediction import predict_rows
 
     # an airborne laser's walls (0.3 returns per m² of facade) beside a drone's (20)
     rows = [_row(1, 0.3), _row(2, 20.0)]
@@ -155,7 +155,7 @@ def test_a_prior_that_cannot_be_used_is_named(text, message):
 
 
 def test_predict_rows_takes_a_prior_and_keeps_the_model_s_grades():
-    from quakescan.learning.classification import predict_rows
+    from quakescan.learning.prediction import predict_rows
     from quakescan.learning.unseen_damage import PriorError
 
     rows = [_row(1, 0.3), _row(2, 20.0)]
@@ -170,7 +170,7 @@ def test_predict_rows_takes_a_prior_and_keeps_the_model_s_grades():
 
 def test_classify_refuses_a_prior_before_reading_the_clouds(tmp_path):
     from quakescan.learning.unseen_damage import PriorError
-    from quakescan.learning.classification import classify
+    from quakescan.assessment.run import classify
 
     pre, post = tmp_path / "pre.las", tmp_path / "post.las"
     pre.write_bytes(b"not read"), post.write_bytes(b"not read")

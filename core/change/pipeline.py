@@ -527,7 +527,7 @@ def grouped_by_id(ids: np.ndarray, uniq: np.ndarray) -> tuple[np.ndarray, np.nda
     return order, starts[:-1]
 
 
-def _members_by_id(ids: np.ndarray) -> Callable[[int], np.ndarray]:
+def members_by_id(ids: np.ndarray) -> Callable[[int], np.ndarray]:
     """bid -> indices of its points, ascending (what a stable argsort's run gives)."""
     uniq, counts = id_counts(ids)
     order, starts = grouped_by_id(ids, uniq)
@@ -584,7 +584,7 @@ def describe_tile(pre: Epoch, post: Epoch, bids: Sequence[int], settings: Pipeli
     others are described together."""
     pre_ids, post_ids = pre.building_id, post.building_id
     rows, ok, members = [], [], {}
-    pre_of, post_of = _members_by_id(pre_ids), _members_by_id(post_ids)
+    pre_of, post_of = members_by_id(pre_ids), members_by_id(post_ids)
     for bid in sorted(int(b) for b in bids):
         m, p = pre_of(bid), post_of(bid)
         why = _degenerate(pre.xyz, m, post.xyz, p, settings)

@@ -56,7 +56,7 @@ def _first_and_second(args) -> tuple:
 def cmd_calibrate_lod(args) -> int:
     """Levels of detection of the split from two acquisitions of the same undamaged buildings."""
     from ..change.lod import calibrate
-    from ..learning.classification import load_pair
+    from ..formats.pair import load_pair
 
     check_number("--radius", args.radius, low=0.0, low_open=True)
     check_number("--quantile", args.quantile, 0.5, 1.0, low_open=True, high_open=True)
@@ -84,7 +84,7 @@ def cmd_calibrate_lod(args) -> int:
 
 
 def cmd_classify(args) -> int:
-    from ..learning.classification import classify
+    from ..assessment.run import classify
 
     check_threads(args.threads)
     if args.workers is not None or args.scheduler:
@@ -128,7 +128,7 @@ def cmd_classify(args) -> int:
 def _classify_on_dask(args) -> dict:
     """classify with its tiles as Dask tasks: a LocalCluster of --workers processes, or the
     cluster of --scheduler; the dashboard's address printed before the work starts."""
-    from ..distributed.classify import classify_distributed
+    from ..distributed.engine import classify_distributed
 
     with dask_client_for(args, args.memory_limit) as client:
         return classify_distributed(args.pre, args.post, args.output, client, model_path=args.model,

@@ -441,7 +441,7 @@ def stream_epoch(f: EpochFile, origin: np.ndarray, folder: Path, *, block_cells:
 
                 ids = np.asarray(checked_building_ids(chunk["building_id"], f.path), dtype=np.int64)
             noise = noise_mask(cls)
-            if noise.any():  # in no building, as `classification.load_pair` sets them
+            if noise.any():  # in no building, as `quakescan.formats.pair.load_pair` sets them
                 ids[noise] = 0
                 stats.noise += int(noise.sum())
             groups = _Groups.of(ids)

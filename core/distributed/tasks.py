@@ -311,7 +311,7 @@ def describe_tile_task(store: str, tile: dict, settings_json: dict, geometry: di
 
 
 def registration_task(store: str, settings_json: dict, align, names: dict, post_bounds, workers: int = -1) -> dict:
-    """`quakescan.learning.classification.register_samples` in a worker: the registration
+    """`quakescan.change.registration.register_samples` in a worker: the registration
     check's ICP is the run's longest single step, and in a worker it runs beside the tiles
     instead of holding up the client (a laptop, often). Returns the record, the
     alignment (or None) and the check's log messages, for the client to show: a worker's log
@@ -322,7 +322,7 @@ def registration_task(store: str, settings_json: dict, align, names: dict, post_
     import logging
 
     from ..change.pipeline import PipelineSettings
-    from ..learning import classification as cl
+    from ..change import registration
 
     class Keep(logging.Handler):
         def __init__(self):
@@ -333,7 +333,7 @@ def registration_task(store: str, settings_json: dict, align, names: dict, post_
             self.messages.append((record.levelno, record.getMessage()))
 
     keep = Keep()
-    loggers = [logging.getLogger(cl.__name__), logging.getLogger("quakescan.change.align")]
+    loggers = [logging.getLogger(registration.__name__), logging.getLogger("quakescan.change.align")]
     levels = [lg.level for lg in loggers]
     for lg in loggers:
         lg.addHandler(keep)
@@ -341,8 +341,9 @@ def registration_task(store: str, settings_json: dict, align, names: dict, post_
     summary = dict(names)
     pre_sample, post_sample = (stable_sample(Path(store) / f"{name}.npz") for name in ("pre", "post"))
     try:
-        record = cl.register_samples(pre_sample, post_sample, None, PipelineSettings.from_json(settings_json), align,
-                                     summary, post_bounds=np.asarray(post_bounds, dtype=np.float64), workers=workers)
+        record = registration.register_samples(pre_sample, post_sample, None, PipelineSettings.from_json(settings_json),
+                                               align, summary, post_bounds=np.asarray(post_bounds, dtype=np.float64),
+                                               workers=workers)
     finally:
         for lg, level in zip(loggers, levels):
             lg.removeHandler(keep)

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import QuakeScanError, read_json_file
+from ..errors import ClassifyError, QuakeScanError, read_json_file
 
 log = logging.getLogger(__name__)
 
@@ -229,6 +229,19 @@ def assign_buildings(x: np.ndarray, y: np.ndarray, footprints: Footprints) -> np
         inside = shapely.contains_xy(footprints.polygons[k], x[cand], y[cand])
         out[cand[inside]] = footprints.ids[k]
     return out
+
+
+def no_footprint_contains_a_point(footprints_path, fp: Footprints, points_x) -> ClassifyError:
+    """The error of footprints that hold no pre-event point (`points_x`: the epoch's x range)."""
+    b = fp.bounds()
+    return ClassifyError(f"{footprints_path}: no footprint contains a pre-event point (footprints span "
+                         f"x {b[:, 0].min():.1f}..{b[:, 2].max():.1f}, y {b[:, 1].min():.1f}..{b[:, 3].max():.1f}; "
+                         f"points x {[round(float(v), 1) for v in points_x]}); wrong CRS?")
+
+
+def footprints_without_points(fp: Footprints | None, hit) -> list[int]:
+    """The IDs of the footprints no point of either epoch fell in (`hit`: the IDs that got points)."""
+    return [] if fp is None else sorted(int(i) for i in fp.ids if int(i) not in hit)
 
 
 def assign_buildings_reference(x, y, footprints: Footprints) -> np.ndarray:

@@ -38,7 +38,19 @@ from ..change.pipeline import PipelineSettings
 from ..change.descriptors import DESCRIPTOR_VERSION
 from ..change.surface import NOISE_FREE_DESCRIPTORS, SurfaceSettings
 from ..runtime.progress import stage_log
+from .model import ModelError
 from .model_selection import MIN_CITIES_TO_GROUP, cv_groups
+
+DEFAULT_MODEL = Path(__file__).resolve().parents[1] / "data" / "default_model.skops"
+
+
+def default_model_path() -> Path:
+    """The shipped model's file (the one `classify` applies unless given another)."""
+    if not DEFAULT_MODEL.is_file():
+        raise ModelError(f"{DEFAULT_MODEL}: the shipped default model is missing; rebuild it with "
+                         "`python blender_scripts/make_default_model.py` or pass --model")
+    return DEFAULT_MODEL
+
 
 # The training set's tables hold every surface descriptor (so that an ablation can put any of
 # them back); the model uses those whose meaning does not depend on the sensor's noise: the

@@ -166,7 +166,7 @@ def decided_by_rule(x: np.ndarray, names) -> np.ndarray:
     """Rows a classification decides without the forest: no changed point, so no damage
     (Zahs et al.: "buildings with no changed points would directly be considered as
     undamaged"). The one rule of training (`train_damage_forest`) and classifying
-    (`quakescan.learning.classification.predict_rows`, through `changed_share`)."""
+    (`quakescan.learning.prediction.predict_rows`, through `changed_share`)."""
     names = list(names)
     column = changed_share_column(names)
     if column is None:

@@ -221,7 +221,7 @@ def pair_rows(work: Path, data: Path, pair: RealPair, settings, workers: int = -
     from ..change.descriptors import code_versions
     from ..injection.inject import InjectSettings, inject
     from ..results.evaluation import read_grade_csv, to_target_grade
-    from .classification import load_pair
+    from ..formats.pair import load_pair
 
     source = {s.name: s for s in SOURCES}[pair.source]
     cloud = data / source.cloud

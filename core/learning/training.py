@@ -24,7 +24,7 @@ from ..errors import QuakeScanError
 from ..formats.pointcloud import GRADE_UNKNOWN, Epoch
 from ..results.evaluation import Evaluation, evaluate_grades, read_grade_csv, to_target_grade
 from ..runtime.progress import ProgressCallback, in_stage
-from .classification import load_pair
+from ..formats.pair import load_pair
 from .model import DamageModel, grouped_split, predict_grades, train_damage_forest
 
 log = logging.getLogger(__name__)

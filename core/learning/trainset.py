@@ -419,7 +419,7 @@ def pair_table(out_dir, pair: dict, settings: dict, labels: str = "simulator", w
     from ..acquisition.acquire import Acquisition, acquire
     from ..change.pipeline import PipelineSettings, describe_pair, descriptor_matrix
     from ..results.evaluation import to_target_grade
-    from .classification import load_pair
+    from ..formats.pair import load_pair
 
     out, spec, config = Path(out_dir), PairSpec(**pair), PipelineSettings.from_json(settings)
     scenes = out / "scenes" / spec.city

@@ -30,7 +30,7 @@ earthquake of intensity VIII; EMS-98's own tables give "few", "many", "most" per
 vulnerability class) gives it as a prior: every probability is reweighted by π_g
 (`with_prior`), the unseen share included, as the formula says for π_g / π_0 other than 1.
 
-The grade stays the model's (`quakescan.learning.classification.predict_rows`): it says what
+The grade stays the model's (`quakescan.learning.prediction.predict_rows`): it says what
 the data show, and the probabilities what that answer is worth given what they cannot show.
 Unseen damage could only ever be guessed from the prior, and a guess is not a grade: taken as
 one it would call the undamaged buildings of every airborne archive damaged.

@@ -132,7 +132,7 @@ def _table(pre: Path, posts: list, cache: Path, settings, workers) -> dict:
     {building ID: grade} truth (a mixed city)."""
     from ..change.pipeline import describe_pair, descriptor_matrix
     from ..change.descriptors import DESCRIPTOR_VERSION
-    from ..learning.classification import load_pair
+    from ..formats.pair import load_pair
 
     inputs = json.dumps([settings.to_json(), Path(pre).name, [Path(p).name for p, _ in posts]], sort_keys=True)
     cache = cache.with_name(f"{cache.name}_{hashlib.sha256(inputs.encode()).hexdigest()[:10]}.npz")
@@ -226,7 +226,7 @@ def run_paper_experiment(out_dir, settings: ExperimentSettings | None = None, *,
     caches and numbers as one process makes: either run resumes the other's."""
     from ..change.pipeline import PipelineSettings
     from ..generator import generate
-    from ..learning.classification import predict_rows
+    from ..learning.prediction import predict_rows
     from ..learning.model import DamageModel
 
     s = settings or ExperimentSettings()
@@ -429,7 +429,7 @@ def _table_after_lod(pre: Path, posts: list, cache: Path, lod, workers) -> dict:
 def _describe_after_lod(pre: Path, post: Path, lod, workers) -> list:
     """The test pair's building rows with the split of the measured levels of detection."""
     from ..change.pipeline import PipelineSettings, describe_pair
-    from ..learning.classification import load_pair
+    from ..formats.pair import load_pair
 
     pair = load_pair(pre, post)
     return describe_pair(pair.pre, pair.post, PipelineSettings(split=lod.split()), workers=workers)
@@ -439,7 +439,9 @@ def shipped_default(pre: Path, post: Path, truth_dir: Path, workers) -> Evaluati
     """The shipped default model (trained on the transfer training set, not on this experiment's
     data) applied as it is to the test pair: what a user gets without training anything."""
     from ..change.pipeline import describe_pair
-    from ..learning.classification import default_model_path, load_pair, model_settings, predict_rows
+    from ..formats.pair import load_pair
+    from ..learning.default_model import default_model_path
+    from ..learning.prediction import model_settings, predict_rows
     from ..learning.model import ModelError, load_model
 
     try:

@@ -1,4 +1,4 @@
-"""`quakescan classify --workers N | --scheduler ADDRESS`: the classification as Dask tasks.
+"""`quakescan classify --workers N | --scheduler ADDRESS`: the classify run's engine on Dask.
 
 The client never holds an epoch. It streams both files chunk by chunk into square blocks
 on disk (`quakescan.distributed.blocks`), keeping per building its point counts and x/y box.
@@ -24,13 +24,16 @@ from pathlib import Path
 
 import numpy as np
 
+from ..assessment import record
+from ..assessment.engine import ReadPair
+from ..assessment.run import classify
+from ..change.registration import check_max_points
+from ..errors import ClassifyError
+from ..formats.footprints import footprints_without_points, no_footprint_contains_a_point
 from ..formats.pointcloud import PointCloudError, check_coordinates_fit_crs, check_not_all_noise
-from ..learning import classification as cl
-from ..learning import classify_run as run
 from ..runtime.output_folder import empty_own_subfolder, is_own_subfolder, remove_own_subfolder
-from ..runtime.progress import ProgressCallback
 from . import blocks as bk
-from .cluster import dashboard_address, dask_client  # noqa: F401  (moved; still importable here)
+from .cluster import dashboard_address
 
 log = logging.getLogger(__name__)
 
@@ -66,168 +69,168 @@ REGISTRATION_PRIORITY = 10 ** 9
 MAX_SPLIT_DEPTH = 12  # quarters of a 150 m tile down to 4 cm: buildings sharing one centre stay together
 
 
-def classify_distributed(pre_path, post_path, out_dir, client, *, model_path=None, footprints_path=None,
-                         id_field=None, align: bool | None = None, progress: ProgressCallback | None = None,
-                         write_las: bool = True, laz: bool | None = None, force: bool = False,
-                         unseen_damage: bool = True, prior: dict | None = None, csv_raw: bool = False,
-                         block_cells: int = BLOCK_CELLS, chunk_points: int = bk.CHUNK_POINTS,
-                         on_stage=None) -> dict:
-    """`quakescan.learning.classification.classify` with the tiles described by the workers of
-    `client` (a dask.distributed Client). Same files, same rows; the summary adds "dask".
-    `progress(done, total, stage)`: the points of each epoch streamed into blocks (stages
-    "tiling pre", "tiling post"), then the buildings described (no stage), as `classify`."""
-    with run.claimed_output_folder(out_dir, "classify", pre_path, post_path, footprints_path, model_path,
-                                  working_folders=(STORE_NAME, GRADED_NAME)):
-        return _classify_distributed(pre_path, post_path, out_dir, client, model_path=model_path,
-                                     footprints_path=footprints_path, id_field=id_field, align=align,
-                                     progress=progress, write_las=write_las, laz=laz, force=force,
-                                     unseen_damage=unseen_damage, prior=prior, csv_raw=csv_raw, block_cells=block_cells,
-                                     chunk_points=chunk_points, on_stage=on_stage)
+class DaskEngine:
+    """The classify run's engine on the workers of `client` (a dask.distributed Client): the
+    epochs streamed into blocks, the densities and the tiles described by the workers, the
+    graded cloud's records made by them. Same files, same rows as one process; the summary
+    adds "dask". `on_stage(name)`: called as each stage begins (tiling, densities, tiles,
+    results, graded cloud). One engine object serves one run at a time."""
 
+    working_folders = (STORE_NAME, GRADED_NAME)
 
-def _classify_distributed(pre_path, post_path, out_dir, client, *, model_path=None, footprints_path=None,
-                          id_field=None, align: bool | None = None, progress: ProgressCallback | None = None,
-                          write_las: bool = True, laz: bool | None = None, force: bool = False,
-                          unseen_damage: bool = True, prior: dict | None = None, csv_raw: bool = False,
-                          block_cells: int = BLOCK_CELLS, chunk_points: int = bk.CHUNK_POINTS,
-                          on_stage=None) -> dict:
-    """`classify_distributed` in the output folder it has claimed."""
-    t0 = time.perf_counter()
-    out = Path(out_dir)
-    options = run.run_options(id_field, write_las, laz, unseen_damage, prior, csv_raw)
-    model_path, run_fp, done = run.begin(pre_path, post_path, out, model_path=model_path,
-                                         footprints_path=footprints_path, align=align, options=options, force=force)
-    if done is not None:
-        return done
-    marks: list = []  # (stage, when it began): the summary's seconds per stage
+    def __init__(self, client, *, block_cells: int = BLOCK_CELLS, chunk_points: int = bk.CHUNK_POINTS,
+                 on_stage=None):
+        self.client, self.block_cells, self.chunk_points, self.on_stage = client, block_cells, chunk_points, on_stage
 
-    def stage(name):
-        marks.append((name, time.perf_counter()))
-        if on_stage:
-            on_stage(name)
+    def _stage(self, pair, name):
+        pair.stages.append((name, time.perf_counter()))
+        if self.on_stage:
+            self.on_stage(name)
 
-    pre_f, post_f = bk.open_epoch_file(pre_path), bk.open_epoch_file(post_path)
-    fp = _read_footprints(footprints_path, id_field, pre_f, post_f)
-    crs = _pair_crs(pre_f, post_f, fp)
-    origin = bk.default_origin(pre_f)
-    out.mkdir(parents=True, exist_ok=True)
-    store = out / STORE_NAME
-    run.retire_previous_results(out)  # before the first write
-    sample = None if align is False else cl.check_max_points(align)
-    stage("tiling")
-    footprints = None if footprints_path is None else {"path": str(Path(footprints_path).resolve()),
-                                                       "id_field": id_field}
-    loaded: dict = {}
+    def read(self, job, load):
+        pre_path, post_path, out = job.pre_path, job.post_path, job.out
+        pre_f, post_f = bk.open_epoch_file(pre_path), bk.open_epoch_file(post_path)
+        fp = _read_footprints(job.footprints_path, job.id_field, pre_f, post_f)
+        crs = _pair_crs(pre_f, post_f, fp)
+        origin = bk.default_origin(pre_f)
+        out.mkdir(parents=True, exist_ok=True)
+        store = out / STORE_NAME
+        job.before_first_write()
+        sample = None if job.align is False else check_max_points(job.align)
+        pair = ReadPair(points={}, noise_points={}, crs=crs, footprints=fp, footprint_ids_without_points=[],
+                        map_xy=None, outline_points=None, outline_origin=(0.0, 0.0))
+        self._stage(pair, "tiling")
+        footprints = None if job.footprints_path is None else {"path": str(Path(job.footprints_path).resolve()),
+                                                               "id_field": job.id_field}
 
-    def load_model():  # the client's own work while the workers stream: the model is read meanwhile
-        loaded["model"] = cl.load_model(model_path)
-        loaded["settings"] = cl.model_settings(loaded["model"], str(model_path))
-        from ..results.writers import import_map_modules
+        def meanwhile():  # the client's own work while the workers stream: the model is read meanwhile
+            load()
+            from ..results.writers import import_map_modules
 
-        import_map_modules()
+            import_map_modules()
 
-    pre_s, post_s = _tiled_epochs(client, store, run_fp.digest, pre_f, post_f, origin, fp, footprints, block_cells,
-                                  sample, chunk_points, progress, meanwhile=load_model)
-    model, settings = loaded["model"], loaded["settings"]
-    for path, stats in ((pre_path, pre_s), (post_path, post_s)):
-        check_not_all_noise(stats.noise, stats.n, path)
-    if fp is not None and not pre_s.counts:
-        raise run.no_footprint_contains_a_point(footprints_path, fp, (pre_f.mins[0], pre_f.maxs[0]))
-    if not (set(pre_s.counts) | set(post_s.counts)):
-        raise run.ClassifyError(f"{pre_path}: no point belongs to a building (all building IDs are 0)")
-    summary = run.run_summary(pre_path, post_path, model_path, model, settings, {"pre": pre_s.n, "post": post_s.n},
-                              {"pre": pre_s.noise, "post": post_s.noise}, crs)
-    t_read = time.perf_counter()
-    stage("densities")
+        pre_s, post_s = _tiled_epochs(self.client, store, job.digest, pre_f, post_f, origin, fp, footprints,
+                                      self.block_cells, sample, self.chunk_points, job.progress, meanwhile=meanwhile)
+        for path, stats in ((pre_path, pre_s), (post_path, post_s)):
+            check_not_all_noise(stats.noise, stats.n, path)
+        if fp is not None and not pre_s.counts:
+            raise no_footprint_contains_a_point(job.footprints_path, fp, (pre_f.mins[0], pre_f.maxs[0]))
+        if not (set(pre_s.counts) | set(post_s.counts)):
+            raise ClassifyError(f"{pre_path}: no point belongs to a building (all building IDs are 0)")
+        pair.points = {"pre": pre_s.n, "post": post_s.n}
+        pair.noise_points = {"pre": pre_s.noise, "post": post_s.noise}
+        pair.footprint_ids_without_points = footprints_without_points(fp, set(pre_s.counts) | set(post_s.counts))
+        pair.map_xy = pre_s.map_xy + origin[:2]
+        pair.outline_points = pre_s.hulls if fp is None else None
+        pair.state = _DaskPair(pre_f, post_f, pre_s, post_s, origin, store, footprints)
+        return pair
 
-    def check_registration():
-        """The registration check as a task of its own (None when it is off). Submitted after
-        the densities are gathered: its ICP holds a worker's GIL for up to a second at a time
-        (open3d's normal estimation), and a density result kept on that worker waited for it
-        (the densities took 2.5 s on two workers for 0.8 s of tasks)."""
-        if align is False:
-            summary["registration"] = {"mode": "off", "checked": False}
+    def describe(self, job, pair, settings, summary):
+        client, block_cells, d = self.client, self.block_cells, pair.state
+        align = job.align
+        self._stage(pair, "densities")
+
+        def check_registration():
+            """The registration check as a task of its own (None when it is off). Submitted after
+            the densities are gathered: its ICP holds a worker's GIL for up to a second at a time
+            (open3d's normal estimation), and a density result kept on that worker waited for it
+            (the densities took 2.5 s on two workers for 0.8 s of tasks)."""
+            if align is False:
+                summary["registration"] = {"mode": "off", "checked": False}
+                return None
+            from .tasks import registration_task
+
+            # The samples (up to 2 x 12 MB) are read by the task from the tiling's saved stats: inside
+            # the task they would make a large graph (held by the scheduler), and scattered they
+            # would be lost with the worker holding them. The check runs first (its priority),
+            # beside the tiles. One thread, as a tile: open3d would take every core.
+            return client.submit(registration_task, str(d.store), settings.to_json(), align,
+                                 {"pre": summary["pre"], "post": summary["post"]}, d.post_s.bounds, 1,
+                                 pure=False, priority=REGISTRATION_PRIORITY)
+
+        def settle(checked) -> list | None:
+            """The registration check's answer into the summary and the log: the alignment's
+            transform when one is applied, else None."""
+            for level, message in checked["messages"]:
+                log.log(level, "%s", message)
+            summary["registration"] = checked["record"]
+            if checked["alignment"] is not None:
+                summary["alignment"] = checked["alignment"]
+            if summary["registration"].get("applied"):
+                return summary["alignment"]["transform"]
             return None
-        from .tasks import registration_task
 
-        # The samples (up to 2 x 12 MB) are read by the task from the tiling's saved stats: inside
-        # the task they would make a large graph (held by the scheduler), and scattered they
-        # would be lost with the worker holding them. The check runs first (its priority),
-        # beside the tiles. One thread, as a tile: open3d would take every core.
-        return client.submit(registration_task, str(store), settings.to_json(), align,
-                             {"pre": summary["pre"], "post": summary["post"]}, post_s.bounds, 1,
-                             pure=False, priority=REGISTRATION_PRIORITY)
+        # The tiles start before the check has answered, as if the epochs were aligned (almost
+        # always: an alignment is applied only past `MIN_FIT_GAIN`): on two workers the check's
+        # seconds no longer hold up the tiles. When it applies an alignment, they are cancelled
+        # and described again from the moved post-event epoch.
+        registration = None
+        try:
+            geometry = _pair_geometry(client, d.store, d.pre_s, d.post_s, settings, block_cells, None)
+            registration = check_registration()
+            self._stage(pair, "tiles")
+            d.budget = tile_memory_budget(client)
+            rows, resumed, d.widened, d.split = _describe_tiles(client, d.store, d.pre_s, d.post_s, settings,
+                                                                geometry, block_cells, None, 0.0, job.out,
+                                                                job.digest, job.progress, d.budget,
+                                                                pending=registration, settle=settle)
+        except _Realign as moved:
+            d.transform, shift = moved.transform, float(summary["registration"]["offset_m"])
+            geometry = _pair_geometry(client, d.store, d.pre_s, d.post_s, settings, block_cells, d.transform)
+            rows, resumed, d.widened, d.split = _describe_tiles(client, d.store, d.pre_s, d.post_s, settings,
+                                                                geometry, block_cells, d.transform, shift, job.out,
+                                                                job.digest, job.progress, d.budget)
+        except BaseException:
+            if registration is not None:
+                client.cancel([registration])
+            raise
+        return rows, resumed
 
-    def settle(checked) -> list | None:
-        """The registration check's answer into the summary and the log: the alignment's
-        transform when one is applied, else None."""
-        for level, message in checked["messages"]:
-            cl.log.log(level, "%s", message)
-        summary["registration"] = checked["record"]
-        if checked["alignment"] is not None:
-            summary["alignment"] = checked["alignment"]
-        if summary["registration"].get("applied"):
-            return summary["alignment"]["transform"]
-        return None
+    def described(self, job, pair):
+        self._stage(pair, "results")
+        pair.state.deleting = _delete_store(pair.state.store)
 
-    # The tiles start before the check has answered, as if the epochs were aligned (almost
-    # always: an alignment is applied only past `MIN_FIT_GAIN`): on two workers the check's
-    # seconds no longer hold up the tiles. When it applies an alignment, they are cancelled
-    # and described again from the moved post-event epoch.
-    transform, shift = None, 0.0
-    registration = None
-    try:
-        geometry = _pair_geometry(client, store, pre_s, post_s, settings, block_cells, None)
-        registration = check_registration()
-        stage("tiles")
-        budget = tile_memory_budget(client)
-        rows, resumed, widened, split = _describe_tiles(client, store, pre_s, post_s, settings, geometry,
-                                                        block_cells, None, 0.0, out, run_fp.digest, progress,
-                                                        budget, pending=registration, settle=settle)
-    except _Realign as moved:
-        transform, shift = moved.transform, float(summary["registration"]["offset_m"])
-        geometry = _pair_geometry(client, store, pre_s, post_s, settings, block_cells, transform)
-        rows, resumed, widened, split = _describe_tiles(client, store, pre_s, post_s, settings, geometry,
-                                                        block_cells, transform, shift, out, run_fp.digest,
-                                                        progress, budget)
-    except BaseException:
-        if registration is not None:
-            client.cancel([registration])
-        raise
-    rows += run.footprint_rows(fp, rows, run.footprints_without_points(fp, set(pre_s.counts) | set(post_s.counts)))
-    rows.sort(key=lambda r: r.building_id)
-    t_describe = time.perf_counter()
-    stage("results")
-    deleting = _delete_store(store)
-    res = cl.predict_rows(rows, model, unseen_damage=unseen_damage, prior=prior)
-    summary["unseen_damage"] = bool(unseen_damage)
-    summary["prior"] = options.get("prior", "equal (the model's)")
-    from ..results import writers as results
+    def write_graded_cloud(self, job, pair, path, grade_by_building):
+        d = pair.state
+        self._stage(pair, "graded cloud")
+        _write_graded_cloud(self.client, path, d.post_f, d.origin, pair.crs, d.footprints, d.transform,
+                            grade_by_building, max(d.post_s.counts, default=0), self.chunk_points,
+                            job.out / GRADED_NAME, job.progress)
 
-    outlines = results.building_outlines(res, fp, pre_s.hulls if fp is None else None, (0.0, 0.0))
-    run.write_building_results(out, res, model.grades, fp, outlines, crs, pre_s.map_xy + origin[:2],
-                              f"Damage grades: {Path(post_path).name}", csv_raw=csv_raw)
-    t_graded = time.perf_counter()
-    if write_las:
-        stage("graded cloud")
-        graded = run.graded_cloud_path(out, post_path, laz)
-        _write_graded_cloud(client, graded, post_f, origin, crs, footprints, transform,
-                            {r.building_id: r.grade for r in res}, max(post_s.counts, default=0), chunk_points,
-                            out / GRADED_NAME, progress)
-        summary["post_grades"] = str(graded)
-    t_graded = time.perf_counter() - t_graded
-    summary["dask"] = {"workers": len(client.scheduler_info().get("workers", {})),
-                       "dashboard": dashboard_address(client), "block_m": bk.block_m(block_cells),
-                       "tiles_widened": widened, "tiles_split": split,
-                       "tile_memory_budget_bytes": int(budget) if np.isfinite(budget) else None}
-    seconds = {"read": round(t_read - t0, 2), "describe": round(t_describe - t_read, 2),
-               "graded_cloud": round(t_graded, 2), "total": round(time.perf_counter() - t0, 2),
-               "stages": _stage_seconds(marks, time.perf_counter())}
-    run.finish(out, summary, res, options=options, digest=run_fp.digest, resumed=resumed, seconds=seconds)
-    for done_with in (".checkpoint.jsonl", UNMOVED_CHECKPOINT):
-        (out / done_with).unlink(missing_ok=True)
-    deleting.join()
-    return summary
+    def add_to_summary(self, pair, summary, seconds, end):
+        d = pair.state
+        summary["dask"] = {"workers": len(self.client.scheduler_info().get("workers", {})),
+                           "dashboard": dashboard_address(self.client), "block_m": bk.block_m(self.block_cells),
+                           "tiles_widened": d.widened, "tiles_split": d.split,
+                           "tile_memory_budget_bytes": int(d.budget) if np.isfinite(d.budget) else None}
+        seconds["stages"] = _stage_seconds(pair.stages, end)
+
+    def close(self, job, pair):
+        for done_with in (".checkpoint.jsonl", UNMOVED_CHECKPOINT):
+            (job.out / done_with).unlink(missing_ok=True)
+        if pair.state.deleting is not None:
+            pair.state.deleting.join()
+
+
+class _DaskPair:
+    """The Dask engine's state of one run: the files, their tiling, the block store, the alignment."""
+
+    def __init__(self, pre_f, post_f, pre_s, post_s, origin, store, footprints):
+        self.pre_f, self.post_f, self.pre_s, self.post_s = pre_f, post_f, pre_s, post_s
+        self.origin, self.store, self.footprints = origin, store, footprints
+        self.transform, self.budget, self.widened, self.split = None, float("inf"), 0, 0
+        self.deleting = None
+
+
+def classify_distributed(pre_path, post_path, out_dir, client, *, block_cells: int = BLOCK_CELLS,
+                         chunk_points: int = bk.CHUNK_POINTS, on_stage=None, **options) -> dict:
+    """`quakescan.assessment.run.classify` with the tiles described by the workers of `client`
+    (the `DaskEngine`); `options` are `classify`'s. `progress(done, total, stage)`: the points
+    of each epoch streamed into blocks (stages "tiling pre", "tiling post"), then the buildings
+    described (no stage), as `classify`."""
+    return classify(pre_path, post_path, out_dir,
+                    engine=DaskEngine(client, block_cells=block_cells, chunk_points=chunk_points, on_stage=on_stage),
+                    **options)
 
 
 def _delete_store(store: Path):
@@ -256,14 +259,14 @@ def _read_footprints(footprints_path, id_field, pre_f, post_f):
     if footprints_path is None:
         for f in (pre_f, post_f):
             if "building_id" not in f.dimensions:
-                raise run.ClassifyError(f"{f.path}: no building_id dimension; give building footprints "
+                raise ClassifyError(f"{f.path}: no building_id dimension; give building footprints "
                                        "(--footprints F.geojson in the clouds' CRS)")
         return None
     from ..formats.footprints import read_footprints
 
     fp = read_footprints(footprints_path, id_field)
     if fp.crs and pre_f.crs and fp.crs != pre_f.crs:
-        raise run.ClassifyError(f"{footprints_path}: footprints are in {fp.crs} but the point clouds in {pre_f.crs}; "
+        raise ClassifyError(f"{footprints_path}: footprints are in {fp.crs} but the point clouds in {pre_f.crs}; "
                                "reproject the footprints")
     return fp
 
@@ -304,7 +307,7 @@ def _tiled_epochs(client, store: Path, digest: str, pre_f, post_f, origin, fp, f
         if meanwhile:
             meanwhile()
         return kept
-    empty_own_subfolder(store, run.ClassifyError)
+    empty_own_subfolder(store, ClassifyError)
     n_workers = max(1, len(client.scheduler_info().get("workers", {})))
     pair_bytes = sum(Path(f.path).stat().st_size for f in (pre_f, post_f))
     futures = {}
@@ -319,7 +322,7 @@ def _tiled_epochs(client, store: Path, digest: str, pre_f, post_f, origin, fp, f
             fut = client.submit(stream_part, str(folder), f.to_json(), origin.tolist(), part, a, b, block_cells,
                                 footprints, name == "pre" and fp is None,
                                 None if sample is None else (f.n, sample),
-                                run.map_step(f.n) if name == "pre" else None, chunk_points, pair_bytes, pure=False,
+                                record.map_step(f.n) if name == "pre" else None, chunk_points, pair_bytes, pure=False,
                                 key=f"stream-{name}-{part}-{run_token()}")
             futures[fut] = (name, part, b - a)
     if meanwhile:
@@ -444,9 +447,9 @@ def _describe_tiles(client, store, pre_s, post_s, settings, geometry, block_cell
     tiles: dict[tuple, list[int]] = {}
     for b in ok:
         tiles.setdefault(tile_key(pre_s.lo[b], pre_s.hi[b], settings.tile_m), []).append(b)
-    ckpt = run.RowCheckpoint(out / ".checkpoint.jsonl", digest)
+    ckpt = record.RowCheckpoint(out / ".checkpoint.jsonl", digest)
     # rows described before the registration check answered, unmoved: valid unless it aligns
-    unmoved = run.RowCheckpoint(out / UNMOVED_CHECKPOINT, digest) if pending is not None else None
+    unmoved = record.RowCheckpoint(out / UNMOVED_CHECKPOINT, digest) if pending is not None else None
     known = {**unmoved.rows, **ckpt.rows} if unmoved is not None else ckpt.rows
     resumed = 0
     total, finished = len(ok), 0
@@ -647,7 +650,7 @@ def _write_graded_cloud(client, path, post_f, origin, crs, footprints, transform
     from ..results.writers import grade_header, source_extra_dims, write_grade_records
     from .tasks import graded_part
 
-    empty_own_subfolder(folder, run.ClassifyError)
+    empty_own_subfolder(folder, ClassifyError)
     n_workers = max(1, len(client.scheduler_info().get("workers", {})))
     bounds = part_bounds(post_f.n, n_workers, chunk_points)
     grades = {int(b): (None if g is None else int(g)) for b, g in grade_by_building.items()}
@@ -682,5 +685,5 @@ def _write_graded_cloud(client, path, post_f, origin, crs, footprints, transform
     remove_own_subfolder(folder)
 
 
-__all__ = ["BLOCK_CELLS", "classify_distributed", "dashboard_address", "dask_client",
-           "split_tile", "tile_memory_bytes", "tile_memory_budget"]
+__all__ = ["BLOCK_CELLS", "DaskEngine", "classify_distributed", "split_tile", "tile_memory_bytes",
+           "tile_memory_budget"]

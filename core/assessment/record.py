@@ -1,7 +1,7 @@
-"""A classification's folder and record, whichever way its rows are described (in one process,
-`quakescan.learning.classification`, or on Dask, `quakescan.distributed.classify`): the
-output folder claimed, the run's options and fingerprint, the up-to-date test, the rows of
-footprints without points, the result files, and the summary written last.
+"""A classification's folder and record, whichever engine describes its rows: the output
+folder claimed, the run's options and fingerprint, the up-to-date test, the tiles'
+checkpoint, the rows of footprints without points, the result files, and the summary
+written last.
 """
 from __future__ import annotations
 
@@ -14,8 +14,9 @@ from pathlib import Path
 import numpy as np
 
 from ..change.pipeline import BuildingRow
-from ..errors import QuakeScanError, ResultsError, check_input_file
+from ..errors import ClassifyError, ResultsError, check_input_file
 from ..formats.pointcloud import epoch_order_warning
+from ..learning.default_model import default_model_path
 from ..runtime import fingerprint, output_folder
 from ..runtime.atomic import (
     check_output_name,
@@ -26,23 +27,8 @@ from ..runtime.atomic import (
     write_text,
 )
 from ..runtime.text_safety import json_text
-from .model import ModelError
 
 log = logging.getLogger(__name__)
-
-DEFAULT_MODEL = Path(__file__).resolve().parents[1] / "data" / "default_model.skops"
-
-
-class ClassifyError(QuakeScanError):
-    """Classification cannot run as asked."""
-
-
-def default_model_path() -> Path:
-    if not DEFAULT_MODEL.is_file():
-        raise ModelError(f"{DEFAULT_MODEL}: the shipped default model is missing; rebuild it with "
-                         "`python blender_scripts/make_default_model.py` or pass --model")
-    return DEFAULT_MODEL
-
 
 def warn_of_epoch_order(pre_path, post_path, summary: dict) -> None:
     """Say so (on the console and in the summary's "warnings") when the files date the
@@ -309,19 +295,6 @@ def begin(pre_path, post_path, out, *, model_path, footprints_path, align: bool 
     run_fp = run_fingerprint(pre_path, post_path, footprints_path, model_path, align, options)
     done = finished_summary(out, run_fp)
     return model_path, run_fp, (None if force or done is None else {**done, "up_to_date": True})
-
-
-def no_footprint_contains_a_point(footprints_path, fp, points_x) -> ClassifyError:
-    """The error of footprints that hold no pre-event point (`points_x`: the epoch's x range)."""
-    b = fp.bounds()
-    return ClassifyError(f"{footprints_path}: no footprint contains a pre-event point (footprints span "
-                         f"x {b[:, 0].min():.1f}..{b[:, 2].max():.1f}, y {b[:, 1].min():.1f}..{b[:, 3].max():.1f}; "
-                         f"points x {[round(float(v), 1) for v in points_x]}); wrong CRS?")
-
-
-def footprints_without_points(fp, hit) -> list[int]:
-    """The IDs of the footprints no point of either epoch fell in (`hit`: the IDs that got points)."""
-    return [] if fp is None else sorted(int(i) for i in fp.ids if int(i) not in hit)
 
 
 def footprint_rows(fp, rows, without_points) -> list:
