@@ -131,10 +131,14 @@ def cmd_dim_survey_template(args) -> int:
     return 0
 
 
-def _add_common(parser, survey_help: str, seed_help: str) -> None:
+def _add_common(parser, survey_help: str, seed_help: str, after_survey=()) -> None:
+    """The options of every acquiring command; `after_survey`: (flags, options) of a kind's own
+    settings overrides, listed after --survey."""
     parser.add_argument("scene", help="scene bundle folder (scene.json + mesh.ply)")
     parser.add_argument("-o", "--output", required=True, help="output point cloud, .las or .laz")
     parser.add_argument("--survey", default=None, help=survey_help)
+    for flags, options in after_survey:
+        parser.add_argument(*flags, **options)
     parser.add_argument("--seed", type=int, default=0, help=seed_help)
     parser.add_argument("--threads", type=int, default=EVERY_CORE, help=THREADS_HELP)
 
@@ -156,9 +160,9 @@ def add_acquire(sub) -> None:
 
 def add_scan(sub) -> None:
     s = sub.add_parser("scan", help="scan a scene bundle with a virtual UAV laser scanner")
+    beam = (("--beam",), {"choices": ("single", "adaptive", "full"), "help": "override the survey's beam model"})
     _add_common(s, "preset name (paper, als) or survey JSON file (default paper)",
-                "seed of the range noise (same seed, same bytes)")
-    s.add_argument("--beam", choices=("single", "adaptive", "full"), help="override the survey's beam model")
+                "seed of the range noise (same seed, same bytes)", after_survey=(beam,))
     s.add_argument("--trajectory", help="also write the platform trajectory as CSV (also when the scan is "
                    "up to date)")
     s.add_argument("--summary", help="summary JSON path (default: OUTPUT.summary.json)")
