@@ -76,8 +76,9 @@ def acquire(scene: PathLike | Scene, out: PathLike, kind: str = "uls", settings=
     Returns
     -------
     Acquired
-        `path`, the sidecar's `record` and `resumed` (True when an up-to-date cloud of the
-        same acquisition was already there and nothing was simulated).
+        `path`, the sidecar's `record`, `resumed` (True when an up-to-date cloud of the
+        same acquisition was already there and nothing was simulated) and the sensor's
+        `summary` of a cloud simulated now.
     """
     from .acquisition import sensors
 

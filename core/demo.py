@@ -4,8 +4,8 @@ generate (the add-on's headless generator: a mixed city, a grade drawn per build
 in L'Aquila, EPSG:32633)
 → scan both epochs with the paper's survey → classify with the shipped model → evaluate
 against the generator's grades → map. Every step writes atomically and is skipped when its
-output is there and current (`quakescan.runtime.fingerprint`), so an interrupted demo continues where it
-stopped.
+output is there and current (`quakescan.runtime.fingerprint`; the clouds by
+`quakescan.acquisition.acquire`'s rule), so an interrupted demo continues where it stopped.
 
 The generator needs Blender's Python: the `bpy` module in this environment (set-up
 installs it) or a `blender` binary on PATH. `quakescan` itself never imports bpy; it runs the
@@ -31,20 +31,13 @@ class DemoError(QuakeScanError):
 
 
 def scan_scene(scene_dir: Path, out: Path, seed: int, progress: ProgressCallback | None = None) -> None:
-    """Scan with the paper's survey unless `out` is current (`quakescan.runtime.fingerprint`): the scene's
-    files by path, size and time, so that a city regenerated in place is scanned again even
-    where its bytes came out the same (the demo always did), the survey and the seed."""
+    """Scan with the paper's survey unless `out` is current (`quakescan.acquisition.acquire`'s rule: the
+    record beside the cloud holds the same scene, survey and seed, and the cloud is the file
+    it recorded)."""
     from .acquisition import sensors
-    from .formats.scene import read_scene
-    from .runtime import fingerprint
+    from .acquisition.acquire import Acquisition, acquire
 
-    survey = sensors.get("uls").default()
-    scene_dir = Path(scene_dir)
-    fp = fingerprint.make("demo-scan", inputs={name: fingerprint.stat(scene_dir / name)
-                                               for name in ("scene.json", "mesh.ply")},
-                          settings={"survey": survey.to_json(), "seed": seed})
-    fingerprint.reuse_or_make(out, fp, lambda: sensors.simulate("uls", read_scene(scene_dir), survey, out, seed=seed,
-                                                                progress=progress, source=str(scene_dir)))
+    acquire(scene_dir, Acquisition("uls", sensors.get("uls").default()), out, seed=seed, progress=progress)
 
 
 def las_is_complete(path: Path) -> bool:

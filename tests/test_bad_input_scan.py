@@ -175,8 +175,8 @@ def test_photo_survey_fields_are_range_checked(tmp_path, capsys, scene_dir, fiel
     assert f"{survey}: " in err and text in err
 
 
-@pytest.mark.parametrize("flag, value, text", [("--seed", "-1", "seed must be an integer >= 0"),
-                                               ("--threads", "-4", "threads must be an integer >= 1")])
+@pytest.mark.parametrize("flag, value, text", [("--seed", "-1", "--seed: expected an integer >= 0"),
+                                               ("--threads", "-4", "--threads: expected a number of worker threads")])
 def test_dim_seed_and_threads(tmp_path, capsys, scene_dir, flag, value, text):
     assert text in _error(capsys, ["dim", str(scene_dir), "-o", str(tmp_path / "d.las"), flag, value])
 

@@ -203,20 +203,19 @@ def test_trajectory_lines_are_the_points_source_ids(tmp_path):
 
 
 def test_demo_rescans_a_scene_regenerated_after_its_scan(tmp_path):
-    """The demo skips a scan newer than its scene and redoes one older (a city regenerated,
-    e.g. moved to the demo's CRS by a newer QuakeScan)."""
-    import os
-
+    """The demo skips a scan of the scene it was made from, even rewritten with the same
+    content, and redoes one whose scene changed (a city regenerated, e.g. moved to the demo's
+    CRS by a newer QuakeScan)."""
     from quakescan.demo import scan_scene
 
     scene_dir = write_scene(box_city(rows=1, cols=1), tmp_path / "scene")
     out = tmp_path / "pre.las"
     scan_scene(scene_dir, out, seed=1)
     first = out.stat().st_mtime_ns
+    write_scene(box_city(rows=1, cols=1), scene_dir)  # regenerated, the same city
     scan_scene(scene_dir, out, seed=1)
     assert out.stat().st_mtime_ns == first
-    later = first + 10**9
-    os.utime(scene_dir / "scene.json", ns=(later, later))
+    write_scene(box_city(rows=1, cols=1, origin=(367000.0, 4690000.0, 0.0)), scene_dir)  # moved
     scan_scene(scene_dir, out, seed=1)
     assert out.stat().st_mtime_ns > first  # rescanned
 

@@ -126,3 +126,19 @@ def test_the_old_pair_forms_are_usage_errors(tmp_path, monkeypatch, capsys, argv
     assert out == "" and err.startswith("usage: quakescan ")
     assert f"quakescan: error: unrecognized arguments: {unrecognised}" in err
     assert "Traceback" not in err and list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("argv, kind", [(["scan", "s", "-o", "a.las"], "uls"), (["dim", "s", "-o", "a.las"], "dim"),
+                                        (["acquire", "s", "--kind", "als", "-o", "a.las"], "als")])
+def test_scan_and_dim_are_acquire_of_the_built_in_kinds(argv, kind):
+    from quakescan.cli.acquisition import cmd_acquire
+
+    args = build_parser().parse_args(argv)
+    assert args.func is cmd_acquire and args.kind == kind
+    assert args.survey == (None if argv[0] == "acquire" else "paper")  # acquire: the sensor's default preset
+
+
+def test_acquire_needs_a_kind(capsys):
+    with pytest.raises(SystemExit) as e:
+        build_parser().parse_args(["acquire", "s", "-o", "a.las"])
+    assert e.value.code == 2 and "--kind" in capsys.readouterr().err

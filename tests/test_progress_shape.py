@@ -143,8 +143,8 @@ def test_every_threads_flag_has_one_default_and_one_meaning():
     (sub,) = [a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction)]
     flags = {name: next(a for a in cmd._actions if "--threads" in a.option_strings)
              for name, cmd in sub.choices.items() if any("--threads" in a.option_strings for a in cmd._actions)}
-    assert set(flags) == {"scan", "dim", "robustness", "training-set", "experiment", "features", "calibrate-lod",
-                          "train", "classify"}
+    assert set(flags) == {"acquire", "scan", "dim", "robustness", "training-set", "experiment", "features",
+                          "calibrate-lod", "train", "classify"}
     assert {(a.default, a.type, a.help) for a in flags.values()} == {(-1, int, THREADS_HELP)}
     assert "-1 for every core (default: -1)" in THREADS_HELP
 

@@ -135,15 +135,30 @@ def test_acquire_redoes_a_cloud_of_other_settings_or_another_size(tmp_path):
     assert not acquire(scene, Acquisition("als", als_for_density(5.0)), out, seed=2).resumed
 
 
-def test_an_acquisition_record_of_before_output_bytes_is_still_reused(tmp_path):
+def test_an_acquisition_record_without_the_output_s_digest_is_acquired_again_once(tmp_path):
+    """A record of an older QuakeScan (no fingerprint, size or SHA-256 of its cloud) is not
+    trusted: the cloud is made again once, with a record a rerun reuses."""
     scene = box_city(rows=1, cols=1)
     out = tmp_path / "a.las"
     acquire(scene, Acquisition("als", als_for_density(4.0)), out, seed=1)
     sidecar = out.with_name(out.name + ".acquisition.json")
     record = json.loads(sidecar.read_text())
-    del record["output_bytes"]
+    for key in ("fingerprint", "output_file"):
+        del record[key]
     sidecar.write_text(json.dumps(record))
+    assert not acquire(scene, Acquisition("als", als_for_density(4.0)), out, seed=1).resumed
     assert acquire(scene, Acquisition("als", als_for_density(4.0)), out, seed=1).resumed
+
+
+def test_acquire_redoes_a_cloud_of_the_recorded_size_but_other_bytes(tmp_path):
+    scene = box_city(rows=1, cols=1)
+    out = tmp_path / "a.las"
+    acquire(scene, Acquisition("als", als_for_density(4.0)), out, seed=1)
+    data = bytearray(out.read_bytes())
+    data[-1] ^= 0xFF  # replaced by a file of the same size
+    out.write_bytes(bytes(data))
+    assert not acquire(scene, Acquisition("als", als_for_density(4.0)), out, seed=1).resumed
+    assert out.read_bytes()[-1] != data[-1]
 
 
 # experiment ---------------------------------------------------------------------------------

@@ -1,6 +1,7 @@
 """The sensor registry (core/acquisition/sensors.py): a sensor defined here, registered like a built-in
 one, runs through `acquire` to a LAS epoch that reads back as what it sampled."""
 import dataclasses
+import hashlib
 import json
 import time
 from dataclasses import dataclass
@@ -141,3 +142,108 @@ def test_the_built_in_sensors_and_their_defaults():
         default = sensor.default()
         assert sensor.load_settings(sensor.default_preset) == default
         assert sensor.from_values(dataclasses.asdict(default), "x") == default
+
+
+def test_a_registered_sensor_has_one_record_and_one_resume_rule(tmp_path, centres_sensor):
+    """The record beside the cloud holds the fingerprint and the file's size and SHA-256: a
+    second run reuses the cloud, a truncated one is acquired again, the same bytes."""
+    scene = box_city(rows=1, cols=2, origin=UTM)
+    acq = Acquisition("centres", FaceCentres(step=2))
+    out = tmp_path / "c.las"
+    first = acquire(scene, acq, out, seed=1)
+    record = json.loads(sidecar_path(out).read_text())
+    data = out.read_bytes()
+    assert record["output_file"] == {"bytes": len(data), "sha256": hashlib.sha256(data).hexdigest()}
+    assert record["fingerprint"] == first.record["fingerprint"] and first.summary.points == len(scene.faces[::2])
+    again = acquire(scene, acq, out, seed=1)
+    assert again.resumed and again.summary is None and again.record == record
+    out.write_bytes(data[:-10])
+    cut = acquire(scene, acq, out, seed=1)
+    assert not cut.resumed and out.read_bytes() == data
+
+
+def test_quakescan_acquire_runs_a_registered_sensor(tmp_path, capsys, centres_sensor):
+    """`quakescan acquire --kind K` reaches any kind registered in the process."""
+    from quakescan.cli import main
+    from quakescan.formats.scene import write_scene
+
+    scene_dir = write_scene(box_city(rows=1, cols=2, origin=UTM), tmp_path / "scene")
+    out = tmp_path / "c.las"
+    args = ["acquire", str(scene_dir), "--kind", "centres", "-o", str(out), "--seed", "2"]
+    assert main(args + ["--dry-run"]) == 0
+    assert "centres: no estimate" in capsys.readouterr().out and not out.exists()
+    assert main(args) == 0
+    assert f"centres: {len(read_epoch(out))} points" in capsys.readouterr().out
+    summary = json.loads((tmp_path / "c.las.summary.json").read_text())
+    record = json.loads(sidecar_path(out).read_text())
+    assert summary["face_centres"]["name"] == "centres" and summary["output_file"] == record["output_file"]
+    assert record["acquisition"]["kind"] == "centres" and record["seed"] == 2
+    data = out.read_bytes()
+    assert main(args) == 0
+    assert "up to date (same scene, face centres and seed)" in capsys.readouterr().out
+    out.write_bytes(data[:-10])
+    assert main(args) == 0
+    assert "up to date" not in capsys.readouterr().out and out.read_bytes() == data
+    assert main(["acquire", str(scene_dir), "--kind", "nope", "-o", str(out)]) == 2
+    assert "kind must be one of" in capsys.readouterr().err
+
+
+@dataclass(frozen=True)
+class Estimate:
+    points: int
+    megabytes: float = 1.0
+    large_points: int = 10
+    max_points: int = 1000
+
+    @property
+    def large(self):
+        return self.points > self.large_points
+
+    @property
+    def too_large(self):
+        return self.points > self.max_points
+
+    def describe(self):
+        return f"toy plan: {self.points} points"
+
+
+def test_a_sensor_s_estimate_and_checkpoint_are_hooks_acquire_uses(tmp_path, capsys, centres_sensor):
+    """A sensor with an estimate and a checkpoint registers them; `acquire` and the command use
+    them for any kind, as for the built-in laser scanners."""
+    from quakescan.cli import main
+    from quakescan.formats.scene import write_scene
+
+    calls = []
+
+    def simulate(scene, settings, out_path, *, seed, workers, progress, source, checkpoint=None, fingerprint=""):
+        calls.append((checkpoint, fingerprint))
+        return simulate_centres(scene, settings, out_path, seed=seed, workers=workers, progress=progress,
+                                source=source)
+
+    hooked = sensors.register(dataclasses.replace(
+        centres_sensor, kind="hooked", simulate=simulate,
+        estimate=lambda scene, settings, out: Estimate(len(scene.faces[::settings.step])),
+        checkpoint=lambda out: out.with_name(out.name + ".part-done")))
+    try:
+        scene_dir = write_scene(box_city(rows=1, cols=2, origin=UTM), tmp_path / "scene")
+        out = tmp_path / "h.las"
+        got = acquire(scene_dir, Acquisition("hooked", FaceCentres()), tmp_path / "lib.las")
+        assert calls == [(None, "")] and not got.resumed  # the library keeps no checkpoint unless asked
+        args = ["acquire", str(scene_dir), "--kind", "hooked", "-o", str(out)]
+        assert main(args + ["--dry-run"]) == 0
+        n = len(box_city(rows=1, cols=2).faces)
+        assert capsys.readouterr().out == f"toy plan: {n} points\n" and not out.exists()
+        assert main(args) == 0
+        assert "warning: a large acquisition" in capsys.readouterr().err
+        record = json.loads(sidecar_path(out).read_text())
+        assert calls[-1] == (tmp_path / "h.las.part-done", record["fingerprint"])
+        hooked_big = dataclasses.replace(hooked, kind="hooked-big",
+                                         estimate=lambda scene, settings, out: Estimate(10_000))
+        sensors.register(hooked_big)
+        assert main(["acquire", str(scene_dir), "--kind", "hooked-big", "-o", str(tmp_path / "big.las")]) == 2
+        assert "beyond the limit of 0 M points" in capsys.readouterr().err and not (tmp_path / "big.las").exists()
+        assert main(["acquire", str(scene_dir), "--kind", "hooked-big", "-o", str(tmp_path / "big.las"),
+                     "--force"]) == 0
+    finally:
+        sensors.unregister("hooked")
+        sensors.unregister("hooked-big")

@@ -166,7 +166,7 @@ def test_dim_sees_crowns_as_opaque_surfaces(tmp_path):
 
 
 def test_scene_fingerprint_sees_the_porous_faces_and_transmission():
-    from quakescan.acquisition.acquire import scene_fingerprint
+    from quakescan.runtime.fingerprint import scene_fingerprint
     plain = box_city(rows=1, cols=1)
     a = with_trees(plain, [(20.0, 5.0, 5.0, 3.0)])
     b = with_trees(plain, [(20.0, 5.0, 5.0, 3.0)], transmission=0.2)

@@ -1,7 +1,7 @@
 """From pulses to points: how the scanner's rays become returns, noisy ranges, intensities
 and packed LAS records, one batch of pulses at a time (`Simulator.run_batch`, run on the
-worker threads of `quakescan.acquisition.scan`; compiled loops in `_scan_kernels`, their
-numpy references in `_scan_reference`, `fast=False`).
+worker threads of `quakescan.acquisition.scan`; the loops it runs, compiled (`_scan_kernels`) or their
+numpy references (`_scan_reference`), are chosen once by the scan and handed to the `Simulator`).
 
 Numerics: rays are cast by `quakescan.acquisition.raycast.RayCaster` (local origin, float32 only at the
 Embree boundary, hits refined in float64), so a scene at UTM coordinates gives the same
@@ -44,21 +44,25 @@ import numpy as np
 from ..errors import PointCloudError
 from ..formats.pointcloud import SCALE, PointChunk
 from .pulses import Batch, Pulses, pulse_count
-from ._scan_reference import loops
+from ._scan_reference import loops as choose_loops
 from .raycast import RayCaster
 from .survey import FlightLine, Survey
 
 
 class Simulator:
-    def __init__(self, caster: RayCaster, survey: Survey, seed: int, shift=None, header=None, fast=True):
+    def __init__(self, caster: RayCaster, survey: Survey, seed: int, shift=None, header=None, loops=None):
         """`shift` turns local coordinates into LAS-offset coordinates; with a LAS `header`
-        batches come back as packed records; `fast=False` runs the numpy reference."""
+        batches come back as packed records; `loops`: the module whose loops it runs
+        (`_scan_reference.loops`; default the compiled ones)."""
         self.caster = caster
         self.survey = survey
         self.seed = seed
         self.shift = np.asarray(caster.local_origin if shift is None else shift, dtype=np.float64)
         self.header = header
-        self.fast = fast
+        self.loops = choose_loops(True) if loops is None else loops
+        # The compiled loops also fuse the single-ray path into one pass (the references form
+        # the same points step by step).
+        self.fused = hasattr(self.loops, "refine_and_pack")
         # neighbour at the same angle in the next scan line, counted in in-FOV pulses
         self.ppl = max(1, int(round(survey.pulses_per_line * survey.fov_fraction)))
         self.ppl_raw = max(1, int(round(survey.pulses_per_line)))
@@ -102,7 +106,7 @@ class Simulator:
         return laspy.ScaleAwarePointRecord(a, h.point_format, h.scales, h.offsets)
 
     def pulses(self, line: FlightLine, j0: int, j1: int) -> Pulses:
-        return Pulses(self.survey, line, j0, j1, self.caster.local_origin, self.box, self.fast)
+        return Pulses(self.survey, line, j0, j1, self.caster.local_origin, self.box, self.loops)
 
     # --- one batch -------------------------------------------------------------------
     def run_batch(self, batch: Batch):
@@ -112,12 +116,12 @@ class Simulator:
         stats = {"pulses_swept": batch.j1 - batch.j0, "pulses_emitted": pulses.n_fov, "pulses_cast": len(pulses),
                  "rays_cast": 0, "pulses_with_sub_rays": 0}
         shift = self.line_shift(batch.line.index)
-        if s.beam == "single" and self.fast and self.header is not None:
+        if s.beam == "single" and self.fused and self.header is not None:
             return self._single_fused(batch, pulses, shift, stats)
-        o, d, o32, d32 = pulses.rays(self.fast)
+        o, d, o32, d32 = pulses.rays()
         # Every output point: a ray (row of o/d: the pulse's central ray) and a pulse index.
         if s.beam == "single":
-            face, t = self.caster.cast(o, d, s.max_range_m, o32, d32, self.fast,
+            face, t = self.caster.cast(o, d, s.max_range_m, o32, d32, self.loops,
                                        self.ray_ids(batch.line, pulses.j))
             stats["rays_cast"] = len(pulses)
             ray = np.flatnonzero(face >= 0)
@@ -159,19 +163,16 @@ class Simulator:
         """The single-ray beam with the compiled loops: float32 rays → Embree → one pass that
         refines, adds noise and packs (same bytes as the general path, fewer passes)."""
 
-        from ._scan_kernels import pulse_rays32, refine_and_pack
-
-        s, c, h = self.survey, self.caster, self.header
+        s, c, h, loop = self.survey, self.caster, self.header, self.loops
         ln = batch.line
-        o32, d32, cs = pulse_rays32(pulses.t, pulses.theta, ln.t_start, pulses.start_local, pulses.velocity,
+        o32, d32, cs = loop.pulse_rays32(pulses.t, pulses.theta, ln.t_start, pulses.start_local, pulses.velocity,
                                     pulses.down, pulses.right)
         face = c.embree_faces(o32, d32, s.max_range_m)
         if c.face_porous is not None:
-            from ._scan_kernels import pulse_rays
             from .vegetation import pass_porous
 
             def rays_of(idx):  # float64 rays of the few pulses that hit a crown, as refine_and_pack forms them
-                return pulse_rays(pulses.t[idx], pulses.theta[idx], ln.t_start, pulses.start_local, pulses.velocity,
+                return loop.pulse_rays(pulses.t[idx], pulses.theta[idx], ln.t_start, pulses.start_local, pulses.velocity,
                                   pulses.down, pulses.right)[:2]
             face = pass_porous(c, rays_of, None, face, float(s.max_range_m), self.ray_ids(ln, pulses.j))
         stats["rays_cast"] = len(pulses)
@@ -180,7 +181,7 @@ class Simulator:
         noise = (rng.standard_normal(hits, dtype=np.float32) if s.range_noise_sigma_m > 0
                  else np.zeros(hits, np.float32))
         a = np.empty(hits, dtype=h.point_format.dtype())
-        m, ok, mins, maxs, by_return, by_face = refine_and_pack(
+        m, ok, mins, maxs, by_return, by_face = loop.refine_and_pack(
             face, pulses.t, cs, ln.t_start, pulses.start_local, pulses.velocity, pulses.down, pulses.right,
             c.normals, c.plane_d, float(s.max_range_m), noise, s.range_noise_sigma_m, shift, SCALE,
             pulses.theta, pulses.forward, pulses.edge, np.uint16(ln.index + 1),
@@ -197,14 +198,11 @@ class Simulator:
 
         c, sigma = self.caster, self.survey.range_noise_sigma_m
         n_faces = len(c.face_surface)
-        if self.header is not None and self.fast:
-
-            from ._scan_kernels import pack_points
-
+        if self.header is not None and self.fused:
             h = self.header
             # np.empty, not zeros: the kernel writes every byte of every point
             a = np.empty(len(ray), dtype=h.point_format.dtype())
-            ok, mins, maxs, by_return, by_face = pack_points(
+            ok, mins, maxs, by_return, by_face = self.loops.pack_points(
                 ray, pulse, face, rng_m, noise, sigma, ret.astype(np.uint8), nret.astype(np.uint8), o, d,
                 shift, SCALE, pulses.t, pulses.theta, pulses.forward, pulses.edge, np.uint16(line_index + 1),
                 c.face_building, c.face_grade, c.face_surface, c.face_class, c.normals, c.face_reflectance,
@@ -249,14 +247,14 @@ class Simulator:
         for part, offset, rays in ((before, 0, None), (pulses, before.n_fov, (o, d, o32, d32)),
                                    (after, before.n_fov + pulses.n_fov, None)):
             if rays is None:
-                rays = part.rays(self.fast)
-            f_, t_ = self.caster.cast(rays[0], rays[1], s.max_range_m, rays[2], rays[3], self.fast,
+                rays = part.rays()
+            f_, t_ = self.caster.cast(rays[0], rays[1], s.max_range_m, rays[2], rays[3], self.loops,
                                       self.ray_ids(line, part.j))
             stats["rays_cast"] += len(part)
             segments.append((offset + part.rank, rays[0], rays[1], np.where(f_ >= 0, t_, 0.0), f_))
         offsets = np.array(self.neighbour_offsets, np.int64)
-        flag = loops(self.fast).flag_discontinuities_rows(n_ext, tuple(segments), offsets, self.caster.normals,
-                                                          s.adaptive_edge_m)[1]
+        flag = self.loops.flag_discontinuities_rows(n_ext, tuple(segments), offsets, self.caster.normals,
+                                                    s.adaptive_edge_m)[1]
         face, t = segments[1][4], np.where(segments[1][4] >= 0, segments[1][3], np.inf)
         flagged = np.flatnonzero(flag)
         stats["pulses_with_sub_rays"] += len(flagged)
@@ -281,10 +279,10 @@ class Simulator:
         if n == 0:
             return (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros(0, np.uint8),
                     np.zeros(0, np.uint8))
-        loop = loops(self.fast)
+        loop = self.loops
         sub = loop.sub_rays(dirs, plane_normal, self.sub_offsets)
         org = np.repeat(origins, k, axis=0)
-        face, t = self.caster.cast(org, sub, s.max_range_m, fast=self.fast,
+        face, t = self.caster.cast(org, sub, s.max_range_m, loops=loop,
                                    ray_ids=self.ray_ids(ids[0], ids[1], k) if ids is not None else None)
         stats["rays_cast"] += n * k
         if count:

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ._scan_reference import loops
+from ._scan_reference import loops as choose_loops
 from .survey import FlightLine, Survey
 
 
@@ -49,10 +49,12 @@ class Pulses:
     """The pulses of line `line` with indices in [j0, j1) that leave the scanner inside the
     FOV and can reach the scene's box: times, scan angles, flags and their rank among all
     pulses inside the FOV (1-D, cheap); their rays on demand. `n_fov` counts all pulses
-    inside the FOV, aimed at the scene or not."""
+    inside the FOV, aimed at the scene or not. `loops`: the module whose loops compute them
+    (`_scan_reference.loops`; default the compiled ones)."""
 
     def __init__(self, survey: Survey, line: FlightLine, j0: int, j1: int, local_origin: np.ndarray,
-                 box: np.ndarray, fast: bool = True):
+                 box: np.ndarray, loops=None):
+        self.loops = choose_loops(True) if loops is None else loops
         self.line = line
         h = line.heading
         pitch = math.radians(survey.scan_pitch_deg)
@@ -65,7 +67,7 @@ class Pulses:
         half_fov = math.radians(survey.fov_deg) / 2 + 1e-12
         aim_lo, aim_hi = self._angle_window(box, line.t_start + j0 / survey.pulse_rate_hz,
                                             line.t_start + (j1 - 1) / survey.pulse_rate_hz) if j1 > j0 else (0, 0)
-        self.j, self.t, self.theta, self.forward, self.edge, self.rank, self.n_fov = loops(fast).fov_pulses(
+        self.j, self.t, self.theta, self.forward, self.edge, self.rank, self.n_fov = self.loops.fov_pulses(
             lo, hi, line.t_start, survey.pulse_rate_hz, survey.scan_rate_hz, survey.gps_start_s,
             survey.sweep_rad / 2, half_fov, survey.deflector == "oscillating_mirror", aim_lo, aim_hi)
 
@@ -89,7 +91,7 @@ class Pulses:
     def __len__(self):
         return len(self.j)
 
-    def rays(self, fast: bool = True):
+    def rays(self):
         """(origins, directions, origins32, directions32) of the pulses, local frame."""
-        return loops(fast).pulse_rays(self.t, self.theta, self.line.t_start, self.start_local, self.velocity,
-                                      self.down, self.right)
+        return self.loops.pulse_rays(self.t, self.theta, self.line.t_start, self.start_local, self.velocity,
+                                     self.down, self.right)

@@ -14,7 +14,7 @@ import numpy as np
 from ..errors import SceneError
 from ..formats.pointcloud import BUILDING_CLASS, GRADE_UNKNOWN, GROUND_CLASS, UNCLASSIFIED
 from ..formats.scene import GROUND, VEGETATION, Scene
-from ._scan_reference import loops
+from ._scan_reference import loops as choose_loops
 
 
 class RayCaster:
@@ -66,14 +66,15 @@ class RayCaster:
         self._embree.run(np.zeros((1, 3), np.float32), np.array([[0, 0, 1]], np.float32))
 
     def cast(self, origins: np.ndarray, directions: np.ndarray, max_range: float,
-             origins32=None, directions32=None, fast: bool = True, ray_ids=None):
+             origins32=None, directions32=None, loops=None, ray_ids=None):
         """Cast rays (local frame, float64 (n, 3), unit directions).
 
         Returns (face, t): face index per ray (-1 = no hit) and the float64 distance to
         the hit on that face's plane (inf where there is no hit). Embree releases the GIL,
         so calls from several threads run in parallel. `origins32`/`directions32` skip the
-        float32 conversion when the caller has them; `fast=False` refines with the numpy
-        reference instead of the compiled loop. `ray_ids` (`quakescan.acquisition.vegetation.RayIds`) lets
+        float32 conversion when the caller has them; `loops` is the module whose
+        `refine_hits` refines them (`_scan_reference.loops`; default the compiled one).
+        `ray_ids` (`quakescan.acquisition.vegetation.RayIds`) lets
         rays pass porous faces (tree crowns); without it every face is opaque (DIM).
         """
         o32 = origins.astype(np.float32) if origins32 is None else origins32
@@ -83,7 +84,8 @@ class RayCaster:
             from .vegetation import pass_porous
 
             face = pass_porous(self, origins, directions, face, max_range, ray_ids)
-        return face, loops(fast).refine_hits(origins, directions, face, self.normals, self.plane_d, float(max_range))
+        refine = (choose_loops(True) if loops is None else loops).refine_hits
+        return face, refine(origins, directions, face, self.normals, self.plane_d, float(max_range))
 
     def embree_faces(self, origins32: np.ndarray, directions32: np.ndarray, max_range: float) -> np.ndarray:
         """Face hit by each float32 ray (int32, -1 = none); Embree alone, GIL released.

@@ -20,6 +20,7 @@ from ..formats.pointcloud import LasChunkWriter, make_header
 from ..formats.scene import Scene, check_crs
 from ..runtime.progress import ProgressCallback
 from ..runtime.workers import EVERY_CORE, check_workers
+from ._scan_reference import loops
 from .beams import Simulator
 from .las_output import label_counts, las_offset
 from .pulses import Batch, pulse_count
@@ -77,8 +78,8 @@ def scan(scene: Scene, survey: Survey, out_path: str | os.PathLike, seed: int = 
 
     `lines` replaces the planned flight lines (tests use a single line); `progress` is
     called with (pulses_done, pulses_total). Same scene, survey and seed give the same
-    bytes, whatever `workers` (threads; -1: every core). `fast=False` runs the numpy reference of the
-    compiled loops (same bytes, slower).
+    bytes, whatever `workers` (threads; -1: every core). `fast` chooses the loops once, for the whole
+    scan: `fast=False` runs the numpy reference of the compiled loops (same bytes, slower).
 
     `checkpoint`: a folder where every finished flight line is kept
     (`quakescan.acquisition.scan_checkpoint`); a rerun of the same scan (same `fingerprint`, the caller's
@@ -121,7 +122,7 @@ def scan(scene: Scene, survey: Survey, out_path: str | os.PathLike, seed: int = 
                                         temporary=saved.las_part)
             las_writer.keep_partial_as = saved.partial_las
     with las_writer as writer, ThreadPoolExecutor(max_workers=threads) as pool:
-        sim = Simulator(caster, survey, seed, shift=shift, header=writer.header, fast=fast)
+        sim = Simulator(caster, survey, seed, shift=shift, header=writer.header, loops=loops(fast))
         pending: deque = deque()
         line_return = np.zeros(16, np.int64)
         line_face = np.zeros(len(scene.faces), np.int64)
@@ -216,12 +217,20 @@ class FlightPlanEstimate:
     area_km2: float
 
     @property
+    def large_points(self) -> int:
+        return LARGE_SCAN_POINTS
+
+    @property
+    def max_points(self) -> int:
+        return MAX_SCAN_POINTS
+
+    @property
     def large(self) -> bool:
-        return self.points > LARGE_SCAN_POINTS
+        return self.points > self.large_points
 
     @property
     def too_large(self) -> bool:
-        return self.points > MAX_SCAN_POINTS
+        return self.points > self.max_points
 
     def describe(self) -> str:
         return (f"flight plan: {self.lines} lines, {self.line_km:.1f} km, {self.flight_time_s / 60:.1f} min of "

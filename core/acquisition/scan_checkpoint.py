@@ -1,6 +1,7 @@
 """Finished flight lines of a scan, kept so that an interrupted scan resumes from them.
 
-A checkpoint is a folder beside the output (`OUT.las.lines/`, the CLI's choice) holding:
+A checkpoint is a folder beside the output (`OUT.las.lines/`, the laser sensors' `checkpoint` hook,
+`quakescan.acquisition.sensor_lidar.line_checkpoint`) holding:
 
 - `key.json`: what the lines were scanned from (`plan_key`: the caller's fingerprint, the
   scene, survey, seed, batch size and flight lines). A folder with another key is emptied:
@@ -38,8 +39,8 @@ _KEY = "key.json"
 
 
 def plan_key(fingerprint: str, scene, survey, seed: int, batch_rays: int, lines) -> str:
-    """The checkpoint key (`quakescan.runtime.fingerprint`): the caller's fingerprint (the CLI's of the
-    scene bundle's files), and what the scan's bytes depend on — the scene's arrays, origin,
+    """The checkpoint key (`quakescan.runtime.fingerprint`): the caller's fingerprint (`acquire`'s of
+    the acquisition), and what the scan's bytes depend on — the scene's arrays, origin,
     CRS and labels, the survey, the seed, the batch size and the flight lines — so that a
     library caller without a fingerprint cannot resume from another scan's lines either."""
     lines_doc = [np.concatenate([ln.start, ln.heading, [ln.length_m, ln.t_start, ln.speed_m_s]]).tolist()

@@ -1,6 +1,7 @@
 """Laser scanning as registered sensors: `uls` (UAV laser scanning) and `als` (airborne
 laser scanning from an aircraft), both a `quakescan.acquisition.survey.Survey` flown by
-`quakescan.acquisition.scan.scan`, and the flight trajectory a scan's survey flies (`write_trajectory`).
+`quakescan.acquisition.scan.scan`, with the scan's cost estimate and its flight-line checkpoint as their
+hooks, and the flight trajectory a scan's survey flies (`write_trajectory`).
 
 Ranges of their random settings (`quakescan.acquisition.acquire.random_acquisition`; rates and
 densities log-uniformly, since their effects are multiplicative, everything else uniformly;
@@ -80,10 +81,21 @@ def _errors(s: Survey) -> str:
     return f"noise {s.range_noise_sigma_m:.3f} mis {s.strip_misalignment_m:.3f}"
 
 
-def _simulate(scene, survey: Survey, out_path, *, seed, workers, progress, source):
+def _simulate(scene, survey: Survey, out_path, *, seed, workers, progress, source, checkpoint=None, fingerprint=""):
     # Looked up on the module at call time, so that what replaces `quakescan.acquisition.scan.scan` (a test
     # that must see no scan) replaces it here too.
-    return _scan.scan(scene, survey, out_path, seed=seed, workers=workers, progress=progress, source=source)
+    return _scan.scan(scene, survey, out_path, seed=seed, workers=workers, progress=progress, source=source,
+                      checkpoint=checkpoint, fingerprint=fingerprint)
+
+
+def _estimate(scene, survey: Survey, out_path):
+    return _scan.estimate_scan(scene, survey, laz=Path(out_path).suffix.lower() == ".laz")
+
+
+def line_checkpoint(out_path) -> Path:
+    """OUT.lines beside the cloud OUT: the scan's finished flight lines (`quakescan.acquisition.scan_checkpoint`)."""
+    out = Path(out_path)
+    return out.with_name(out.name + ".lines")
 
 
 def write_trajectory(scene, survey: Survey, path: str | os.PathLike) -> None:
@@ -97,7 +109,7 @@ def write_trajectory(scene, survey: Survey, path: str | os.PathLike) -> None:
                    header="gps_time_s,x_m,y_m,z_m,heading_deg,line", comments="")
 
 
-register(Sensor("uls", Survey, _simulate, preset, label_uls, default_preset="paper",
-                settings_name="survey", load=load_survey, random=random_uls))
-register(Sensor("als", Survey, _simulate, preset, label_als, default_preset="als",
-                settings_name="survey", load=load_survey, random=random_als))
+register(Sensor("uls", Survey, _simulate, preset, label_uls, default_preset="paper", settings_name="survey",
+                load=load_survey, random=random_uls, estimate=_estimate, checkpoint=line_checkpoint))
+register(Sensor("als", Survey, _simulate, preset, label_als, default_preset="als", settings_name="survey",
+                load=load_survey, random=random_als, estimate=_estimate, checkpoint=line_checkpoint))

@@ -2,11 +2,13 @@
 and `simulate`, the one call that runs any of them.
 
 Built in: `uls` and `als` (laser scanning, `quakescan.acquisition.sensor_lidar`) and `dim` (dense image
-matching of a photo flight, `quakescan.acquisition.sensor_dim`). `quakescan.acquisition.acquire` (acquisitions, their
-sidecars and random draws, hence the training set), `quakescan.studies.experiment`, `quakescan.studies.robustness`,
-`quakescan.demo` and `quakescan dim` reach a sensor only through this registry; `quakescan scan`
-calls `quakescan.acquisition.scan.scan` itself for what only it has (flight-line checkpoints, the plan's
-cost before it flies).
+matching of a photo flight, `quakescan.acquisition.sensor_dim`). Everything that acquires a scene
+reaches a sensor only through this registry and `quakescan.acquisition.acquire` (the cloud's record
+and its resume rule, random draws, hence the training set): the commands `quakescan acquire
+--kind K`, `scan` and `dim`, `quakescan.studies.experiment`, `quakescan.studies.robustness` and
+`quakescan.demo`. What only some sensors have (a cost estimate before the run, a checkpoint
+an interrupted run continues from) are optional hooks of their `Sensor`, used by `acquire`
+for any kind that has them.
 
 A new sensor is one module that calls `register(Sensor(...))` when it is imported, and
 its module name added to `BUILTIN` (the one place that imports the built-in sensors; a
@@ -25,8 +27,8 @@ registers provides:
   contract of `quakescan.formats.pointcloud` (LAS 1.4 point format 6, 1 mm scale, offset
   `quakescan.acquisition.las_output.las_offset`, extra dimensions building_id, grade and surface of the face
   a point lies on): writing through `quakescan.formats.pointcloud.LasChunkWriter` gives all of it and
-  makes the file appear only when complete. The same scene, settings and seed give the
-  same bytes whatever `workers` (worker threads, -1: every core); `progress` is None or a
+  makes the file appear only when complete. The same scene, settings and seed give the same
+  bytes whatever `workers` (worker threads, -1: every core); `progress` is None or a
   `quakescan.runtime.progress.ProgressCallback`, called with (done, total); `source` names
   the scene in messages. It raises
   `quakescan.errors.SceneError` or `SurveyError` when it cannot acquire the scene (nothing to
@@ -41,6 +43,15 @@ registers provides:
   (`quakescan.acquisition.acquire.random_acquisition`); the same generator state gives the same
   settings. The built-in sensors draw the flight-line direction first
   (`LINE_DIRECTION_DEG`), then their own values.
+- optional `estimate(scene, settings, out_path)`: what the run will cost, before it runs,
+  from the plan alone: an object with `describe()` (one line), `points`, `megabytes`,
+  `large` (announced before it starts) and `too_large` (refused unless forced)
+  (`quakescan acquire --dry-run` prints it).
+- optional `checkpoint(out_path)`: the folder beside the output where the sensor keeps the
+  finished part of a run; with it `simulate` also takes `checkpoint` (that folder, or None
+  for none) and `fingerprint` (the digest of what is acquired, `acquire`'s), and a rerun of
+  the same acquisition continues from the folder, writing the same bytes as an
+  uninterrupted run, and removes it when the output is complete.
 """
 from __future__ import annotations
 
@@ -50,6 +61,7 @@ import os
 import re
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 from ..errors import QuakeScanError, SurveyError
@@ -80,6 +92,8 @@ class Sensor:
     settings_name: str = "settings"
     load: Callable[[str | os.PathLike], Any] | None = None
     random: Callable[[Any], Any] | None = None
+    estimate: Callable[..., Any] | None = None
+    checkpoint: Callable[[Path], Path] | None = None
 
     def default(self):
         """The settings used when none are given: preset `default_preset`."""
@@ -158,12 +172,20 @@ def check_settings(kind: str, settings) -> Sensor:
 
 
 def simulate(kind: str, scene, settings, out_path: str | os.PathLike, seed: int = 0, workers: int = -1,
-             progress: ProgressCallback | None = None, source: str = "scene"):
+             progress: ProgressCallback | None = None, source: str = "scene",
+             checkpoint: str | os.PathLike | None = None, fingerprint: str = ""):
     """Acquire the Scene `scene` with the sensor `kind` and `settings` into `out_path`;
-    returns the sensor's summary. No sidecar and no resuming: `quakescan.acquisition.acquire.acquire`
-    adds them."""
+    returns the sensor's summary. `checkpoint` and `fingerprint` as the sensor's `checkpoint`
+    hook says (a checkpoint folder for a sensor without the hook is an error). No record and
+    no resuming of a finished cloud: `quakescan.acquisition.acquire.acquire` adds them."""
     sensor = check_settings(kind, settings)
-    return sensor.simulate(scene, settings, out_path, seed=seed, workers=workers, progress=progress, source=source)
+    resume = {}
+    if checkpoint is not None:
+        if sensor.checkpoint is None:
+            raise QuakeScanError(f"sensor {kind!r} keeps no checkpoint (it registered no `checkpoint`)")
+        resume = {"checkpoint": checkpoint, "fingerprint": fingerprint}
+    return sensor.simulate(scene, settings, out_path, seed=seed, workers=workers, progress=progress, source=source,
+                           **resume)
 
 
 # Draws of random settings ------------------------------------------------------------

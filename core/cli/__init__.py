@@ -24,6 +24,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", required=True)
 
     studies.add_demo(sub)
+    acquisition.add_acquire(sub)
     acquisition.add_scan(sub)
     scenes.add_import_cityjson(sub)
     scenes.add_validate(sub)

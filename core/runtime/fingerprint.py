@@ -13,13 +13,13 @@ Identity of an input file:
   gigabytes, hashing one takes longer than many runs that reuse it, and every writer of
   the library replaces a cloud by renaming a new file over it (`quakescan.runtime.atomic`), which always
   gives it a new time; a moved or copied cloud counts as new (redone, never wrongly reused).
-- `scene_fingerprint(scene)`: a scene bundle's scene.json and mesh bytes, or a Scene's arrays.
+- `scene_fingerprint(scene)`: a Scene's arrays and manifest (a bundle is read first).
 
 Where it is stored:
 - beside the output, `OUT.fingerprint.json` (`is_current`, `record`, `forget`), with the
   output's size, so that a truncated or replaced output is made again; or
-- inside the output's own JSON record where its format has one (a scan's summary, classify's
-  summary.json, an acquisition's record): `matches(doc, fp)`.
+- inside the output's own JSON record where its format has one (classify's summary.json, a
+  simulated cloud's acquisition record, `quakescan.acquisition.acquire`): `matches(doc, fp)`.
 
 `forget` comes before the output is made again, `record` after it is complete: an
 interruption in between leaves an output without a fingerprint, which is redone.
@@ -66,35 +66,23 @@ def stat(path: str | os.PathLike | None) -> dict | None:
 
 
 def scene_fingerprint(scene) -> str:
-    """A hash of a scene: the bytes of scene.json and its mesh for a bundle folder, the arrays
-    and manifest for a Scene object (the same scene in the two forms hashes differently: an
-    output made from one is made again from the other). A bundle without a readable
-    scene.json still hashes (its reader says what is wrong when the scene is needed)."""
-    h = hashlib.sha256()
-    if hasattr(scene, "vertices"):
-        import numpy as np
+    """A hash of a `quakescan.formats.scene.Scene`: its arrays, buildings, CRS, epoch, units and
+    porous faces — all a simulator sees, so that a bundle read from disk and the same scene
+    in memory hash alike, and a bundle rewritten with other bytes but the same scene does
+    not make its clouds again."""
+    import numpy as np
 
-        h.update(b"scene-object")
-        for a in (scene.vertices, scene.faces, scene.face_building, scene.face_surface, scene.origin):
-            a = np.ascontiguousarray(a)
-            h.update(f"{a.dtype.str}{a.shape}".encode())
-            h.update(a.tobytes())
-        h.update(json.dumps([b.to_json() for b in scene.buildings], sort_keys=True).encode())
-        h.update(json.dumps([scene.crs, scene.epoch, scene.units]).encode())
-        if scene.has_porous:  # only then: fingerprints of scenes without vegetation stay what they were
-            h.update(np.ascontiguousarray(scene.face_porous, dtype=bool).tobytes())
-            h.update(json.dumps(scene.transmission).encode())
-        return h.hexdigest()
-    folder = Path(scene)
-    manifest = folder / "scene.json"
-    try:
-        data = json.loads(manifest.read_bytes())
-    except (OSError, ValueError):
-        data = None
-    mesh = data.get("mesh", "mesh.ply") if isinstance(data, dict) else "mesh.ply"
-    h.update(b"scene-bundle")
-    for path in (manifest, folder / str(mesh)):
-        h.update(path.read_bytes() if path.is_file() else b"<missing>")
+    h = hashlib.sha256()
+    h.update(b"scene-object")
+    for a in (scene.vertices, scene.faces, scene.face_building, scene.face_surface, scene.origin):
+        a = np.ascontiguousarray(a)
+        h.update(f"{a.dtype.str}{a.shape}".encode())
+        h.update(a.tobytes())
+    h.update(json.dumps([b.to_json() for b in scene.buildings], sort_keys=True).encode())
+    h.update(json.dumps([scene.crs, scene.epoch, scene.units]).encode())
+    if scene.has_porous:  # only then: fingerprints of scenes without vegetation stay what they were
+        h.update(np.ascontiguousarray(scene.face_porous, dtype=bool).tobytes())
+        h.update(json.dumps(scene.transmission).encode())
     return h.hexdigest()
 
 
