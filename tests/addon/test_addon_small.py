@@ -198,10 +198,10 @@ def _check_city(folder, n):
 
 @needs_bpy
 def test_small_mixed_city_through_demo_generate(tmp_path):
-    from quakescan.demo import generate
+    from quakescan.generator import GenerationSpec, generate
     mix = {0: 3, 3: 3, 4: 3, 5: 3}
     out = tmp_path / "small"
-    generate("small", "mixed", None, 3, out, grade_mix=mix)
+    generate(GenerationSpec("small", "mixed", None, 3, out, grade_mix=mix))
     _check_city(out / "pre", 12)
     doc, sc = _check_city(out / "post", 12)
     assert collections.Counter(b.grade for b in sc.buildings) == mix
