@@ -1,6 +1,7 @@
 """The add-on's headless scene generator (blender_scripts/generate_scenes.py), run as a
 separate process: `quakescan` never imports bpy. It needs Blender's Python: the `bpy` module
-in this environment (set-up installs it) or a `blender` binary on PATH.
+in this environment (set-up installs it) or a `blender` binary on PATH. A job is one
+`GenerationSpec`, handed to the generator as one JSON file (`--spec`).
 
 Below every command that makes scenes (the demo, the training set, the injector, the
 experiments), so none of them imports another to reach it.
