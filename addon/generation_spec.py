@@ -13,7 +13,6 @@ holds the two to each other).
 from __future__ import annotations
 
 import json
-import math
 import sys
 from dataclasses import MISSING, asdict, dataclass, fields, replace
 from pathlib import Path

@@ -46,8 +46,8 @@ def spacing(path: Path) -> tuple[float, float]:
 def main():
     from quakescan.acquisition.dim import simulate_dim
     from quakescan.acquisition.dim_settings import preset_dim
-    from quakescan.generator import GenerationSpec, generate
     from quakescan.formats.scene import read_scene
+    from quakescan.generator import GenerationSpec, generate
 
     if not (SCENE / "scene.json").is_file():
         generate(GenerationSpec("generic", "paper", 112, 1, SCENE.parent, force=True))

@@ -129,8 +129,8 @@ def scanned_region_city(tmp_path_factory):
     scanned with the airborne preset."""
     from quakescan.acquisition.scan import scan
     from quakescan.acquisition.survey import preset
-    from quakescan.generator import GenerationSpec, generate
     from quakescan.formats.scene import read_scene
+    from quakescan.generator import GenerationSpec, generate
 
     folder = tmp_path_factory.mktemp("region_city")
     generate(GenerationSpec("region", "mixed", 12, 4, folder / "city"))
