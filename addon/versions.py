@@ -2,7 +2,7 @@
 it (standard library only: the generator reads them before Blender's modules load).
 
 A bundle records the version it was made with (scene.json "generator"); one of another
-version is made again, not reused (blender_scripts/generate_scenes.py `bundle_state`).
+version is made again, not reused (addon/generation.py `generator_info`, the record compared).
 """
 
 # Bumped whenever the add-on makes different bundles from the same settings. 2: walls another

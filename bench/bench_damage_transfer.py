@@ -48,12 +48,13 @@ def city(work: Path, damage: str) -> tuple[Path, dict, float, list]:
     from quakescan.acquisition.acquire import Acquisition, acquire
     from quakescan.acquisition.dim_settings import preset_dim
     from quakescan.acquisition.survey import preset
-    from quakescan.demo import generate
     from quakescan.formats.scene import read_scene
+    from quakescan.generator import GenerationSpec, generate
 
     folder = work / f"city_{damage}"
     t0 = time.perf_counter()
-    generate("region", "mixed", None, TEST_SEED, folder, grade_mix=TEST_MIX, damage=damage, force=True)
+    generate(GenerationSpec("region", "mixed", None, TEST_SEED, folder, grade_mix=TEST_MIX, damage=damage,
+                            force=True))
     seconds = time.perf_counter() - t0
     fallback = []
     if damage != "patterns":

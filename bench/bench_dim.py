@@ -46,11 +46,11 @@ def spacing(path: Path) -> tuple[float, float]:
 def main():
     from quakescan.acquisition.dim import simulate_dim
     from quakescan.acquisition.dim_settings import preset_dim
-    from quakescan.demo import generate
     from quakescan.formats.scene import read_scene
+    from quakescan.generator import GenerationSpec, generate
 
     if not (SCENE / "scene.json").is_file():
-        generate("generic", "paper", 112, 1, SCENE.parent, force=True)
+        generate(GenerationSpec("generic", "paper", 112, 1, SCENE.parent, force=True))
     scene = read_scene(SCENE)
     simulate_dim(scene, preset_dim("paper").replace(oblique_cameras=0), Path(tempfile.gettempdir()) / "warm.las")
     rows = []

@@ -48,21 +48,23 @@ def previous_model() -> Path | None:
 
 
 def ensure_big_pair() -> tuple[Path, Path]:
-    from quakescan.demo import generate, scan_scene
+    from quakescan.demo import scan_scene
+    from quakescan.generator import GenerationSpec, generate
 
     big = WORK / "big"
     if not (big / "pre.las").is_file() or not (big / "post_destruction.las").is_file():
-        generate("generic", "paper", BIG_BUILDINGS, 2, big / "city", force=True)
+        generate(GenerationSpec("generic", "paper", BIG_BUILDINGS, 2, big / "city", force=True))
         scan_scene(big / "city" / "pre", big / "pre.las", seed=21)
         scan_scene(big / "city" / "post_destruction", big / "post_destruction.las", seed=25)
     return big / "pre.las", big / "post_destruction.las"
 
 
 def ensure_pair() -> tuple[Path, Path]:
-    from quakescan.demo import generate, scan_scene
+    from quakescan.demo import scan_scene
+    from quakescan.generator import GenerationSpec, generate
 
     if not (WORK / "pre.las").is_file() or not (WORK / "post_destruction.las").is_file():
-        generate("generic", "paper", 112, 1, WORK / "generic", force=True)
+        generate(GenerationSpec("generic", "paper", 112, 1, WORK / "generic", force=True))
         scan_scene(WORK / "generic" / "pre", WORK / "pre.las", seed=11)
         scan_scene(WORK / "generic" / "post_destruction", WORK / "post_destruction.las", seed=15)
     return WORK / "pre.las", WORK / "post_destruction.las"

@@ -267,12 +267,12 @@ def low_buildings(work: Path, model: str) -> list:
     from quakescan.acquisition.acquire import Acquisition, acquire
     from quakescan.acquisition.dim_settings import preset_dim
     from quakescan.acquisition.survey import preset
-    from quakescan.demo import generate
+    from quakescan.generator import GenerationSpec, generate
     from quakescan.assessment.run import classify
     from quakescan.learning.trainset import scene_footprints
 
     city = work / "low" / "city"
-    generate("small", "mixed", None, LOW_SEED, city, grade_mix=LOW_MIX)
+    generate(GenerationSpec("small", "mixed", None, LOW_SEED, city, grade_mix=LOW_MIX))
     rows = []
     for kind, acq in (("ULS", Acquisition("uls", preset("paper"))), ("DIM", Acquisition("dim", preset_dim("paper")))):
         clouds = []

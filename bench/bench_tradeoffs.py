@@ -70,16 +70,16 @@ def say(msg: str) -> None:
 def ensure_scenes(cfg: dict) -> tuple[Path, Path]:
     """The training and test scene bundles, generated once (into *.part, then renamed); the
     folder names carry what made them, so a changed size or mix is generated anew."""
-    from quakescan.demo import generate
+    from quakescan.generator import GenerationSpec, generate
 
     scenes = cfg["work"] / "scenes"
     mix = "_".join(f"{g}x{n}" for g, n in sorted(cfg["test_mix"].items()))
     train = scenes / f"train_generic_{cfg['train_buildings']}_seed{TRAIN_SEED}"
     test = scenes / f"test_region_{mix}_seed{TEST_SEED}"
     jobs = ((train, ("pre", "post_heavy", "post_extreme", "post_destruction"),
-             lambda out: generate("generic", "paper", cfg["train_buildings"], TRAIN_SEED, out)),
+             lambda out: generate(GenerationSpec("generic", "paper", cfg["train_buildings"], TRAIN_SEED, out))),
             (test, ("pre", "post"),
-             lambda out: generate("region", "mixed", None, TEST_SEED, out, grade_mix=cfg["test_mix"])))
+             lambda out: generate(GenerationSpec("region", "mixed", None, TEST_SEED, out, grade_mix=cfg["test_mix"]))))
     for folder, needed, make in jobs:
         if all((folder / s / "scene.json").is_file() for s in needed):
             continue

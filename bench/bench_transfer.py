@@ -88,11 +88,11 @@ def test_city(work: Path, realistic: bool = False) -> tuple:
     from quakescan.acquisition.acquire import Acquisition, acquire
     from quakescan.acquisition.dim_settings import preset_dim
     from quakescan.acquisition.survey import preset
-    from quakescan.demo import generate
+    from quakescan.generator import GenerationSpec, generate
 
     city = work / ("test_city_realistic" if realistic else "test_city")
     look = {"details": "typical", "streetscape": "typical"} if realistic else {}
-    generate("region", "mixed", None, TEST_SEED, city, grade_mix=TEST_MIX, force=True, **look)
+    generate(GenerationSpec("region", "mixed", None, TEST_SEED, city, grade_mix=TEST_MIX, force=True, **look))
     work = work / "realistic" if realistic else work
     acq = {"uls": Acquisition("uls", preset("paper")), "dim": Acquisition("dim", preset_dim("paper")),
            "als": Acquisition("als", preset("als"))}

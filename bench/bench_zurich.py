@@ -147,9 +147,9 @@ def city(work: Path, damage: str, seed: int) -> tuple[Path, dict, float, int]:
     from quakescan.acquisition.acquire import Acquisition, acquire
     from quakescan.acquisition.dim_settings import preset_dim
     from quakescan.acquisition.survey import preset
-    from quakescan.demo import generate
     from quakescan.formats.cityjson import import_cityjson
     from quakescan.formats.scene import read_scene, write_scene
+    from quakescan.generator import GenerationSpec, generate
 
     source = source_folder(work)
     if not (source / "scene.json").is_file():
@@ -160,8 +160,8 @@ def city(work: Path, damage: str, seed: int) -> tuple[Path, dict, float, int]:
     n = len(read_scene(source).building_ids)
     folder = work / f"seed_{seed}" / f"city_{damage}"
     t0 = time.perf_counter()
-    generate("bundle", "mixed", None, seed, folder, grade_mix=scaled_mix(n), source=source, damage=damage,
-             force=True)
+    generate(GenerationSpec("bundle", "mixed", None, seed, folder, grade_mix=scaled_mix(n), source=source,
+                            damage=damage, force=True))
     seconds = time.perf_counter() - t0
     fallback = 0
     if damage != "patterns":

@@ -55,25 +55,25 @@ written to a temporary folder and renamed into place, so DIR/<scene> is either c
 absent. A complete bundle made with the same settings is skipped (resume after an
 interruption); one made with other settings stops the run unless --force. The same
 settings give the same bytes. Progress goes to stderr.
+
+--spec FILE.json gives the whole job as one JSON document instead of the options above, its
+keys the fields of addon/generation_spec.py `GenerationSpec` (one an option: set_name,
+dataset, buildings, seed, out, source, grade_mix, grades, details, streetscape, origin, crs,
+damage, settle_steps, force, jobs), as `quakescan.generator.generate` writes it. This script
+only reads the job and hands it to addon/generation.py, which makes it.
 """
 from __future__ import annotations
 
 import argparse
 import json
-import os
-import shutil
 import sys
-import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parent.parent
-PROG = "generate_scenes.py"
-# addon/citygen.py's SETS and "bundle" (spelt out: the arguments are parsed before the add-on is importable)
-SETS = ("generic", "region", "small", "bundle")
 
 
 def addon_module(name: str = ""):
-    """The add-on, or its submodule `name` ("geometry.shell"): the addon/ folder beside
+    """The add-on, or its submodule `name` ("generation"): the addon/ folder beside
     blender_scripts/ in a checkout, else the installed add-on `quakescan_damage` (a wheel ships
     this script as quakescan/blender_scripts/, two levels below site-packages)."""
     import importlib
@@ -90,9 +90,10 @@ def addon_module(name: str = ""):
     return importlib.import_module(f"{package}.{name}" if name else package)
 
 
-# The add-on's own versions (addon/versions.py: beside the patterns that change them)
-GENERATOR_VERSION = addon_module("versions").GENERATOR_VERSION
-PHYSICS_VERSION = addon_module("versions").PHYSICS_VERSION
+# the job's fields and choices: standard library only, so read before Blender's modules load
+generation_spec = addon_module("generation_spec")
+# a --jobs child's share, given beside --spec (argparse.SUPPRESS: not for users)
+CHILD_OPTIONS = ("--only-scenes", "--collapse-claims")
 
 
 def library_module(name: str):
@@ -115,10 +116,6 @@ def library_module(name: str):
             sys.modules["quakescan"] = module
             spec.loader.exec_module(module)
     return importlib.import_module(f"quakescan.{name}")
-
-
-def log(msg: str) -> None:
-    print(f"[{PROG}] {msg}", file=sys.stderr, flush=True)
 
 
 def _script_argv(argv):
@@ -149,14 +146,18 @@ def _seed(text):
 
 
 def parse_args(argv):
-    p = argparse.ArgumentParser(prog=PROG, description="Generate labelled pre-/post-event scene bundles "
-                                "(scene.json + mesh.ply) of a procedural city with EMS-98 damage.")
-    p.add_argument("--set", dest="set_name", required=True, choices=SETS,
+    """The checked job of the command line, and a --jobs child's share ({"only_scenes": ...,
+    "collapse_claims": ...}); a refused one exits 2 with the reason, as argparse does."""
+    p = argparse.ArgumentParser(prog=generation_spec.PROG, description="Generate labelled pre-/post-event scene "
+                                "bundles (scene.json + mesh.ply) of a procedural city with EMS-98 damage.")
+    p.add_argument("--spec", default=None, help="the whole job as a JSON file (addon/generation_spec.py: its keys "
+                   "the fields of GenerationSpec), instead of the options below")
+    p.add_argument("--set", dest="set_name", choices=generation_spec.SETS,
                    help="generic European town, L'Aquila-like historic centre, small buildings (garden sheds, "
                    "garages, row houses, small houses), or the buildings of an existing scene bundle (--source)")
     p.add_argument("--source", help="--set bundle: scene bundle folder whose buildings and terrain are used "
                    "(e.g. one imported from CityJSON); the output keeps its origin and CRS")
-    p.add_argument("--dataset", required=True, choices=("paper", "mixed"),
+    p.add_argument("--dataset", choices=generation_spec.DATASETS,
                    help="paper: pre + one post scene per grade 3/4/5; mixed: pre + post with mixed grades")
     p.add_argument("--buildings", type=_positive_int, default=None,
                    help="number of buildings (default 112); --set bundle: use a seeded sample of this many of "
@@ -168,7 +169,7 @@ def parse_args(argv):
                    help="--set bundle --dataset mixed: a JSON file {\"building ID\": grade, ...} giving the post-event "
                    "grade of each listed building (others stay at 0), as `quakescan inject` asks")
     p.add_argument("--seed", type=_seed, default=0, help="random seed (default 0)")
-    p.add_argument("--details", choices=("none", "typical"), default="none",
+    p.add_argument("--details", choices=generation_spec.DETAILS, default="none",
                    help="roof and facade details (dormers, chimneys, skylights, overhangs, balconies, antennas, "
                    "solar panels, rooftop structures, annexes, terraces): none (clean shells, default) or typical "
                    "(frequencies by typology, addon/citygen.py); --set bundle: roof-top details on the roof faces")
@@ -177,12 +178,12 @@ def parse_args(argv):
                    "bundles' origin (e.g. 367000,4690000 with --crs EPSG:32633: L'Aquila); default 0,0,0")
     p.add_argument("--crs", default=None,
                    help="procedural sets: the CRS the bundles name, e.g. EPSG:32633 (default: none)")
-    p.add_argument("--out", required=True, help="output folder (created)")
+    p.add_argument("--out", help="output folder (created)")
     p.add_argument("--force", action="store_true", help="regenerate bundles made with other settings")
-    p.add_argument("--streetscape", choices=("none", "typical"), default="none",
+    p.add_argument("--streetscape", choices=generation_spec.STREETSCAPES, default="none",
                    help="typical: trees, hedges, parked cars and street furniture at the set's density; "
                    "post-event scenes keep the trees and get their own cars (default none)")
-    p.add_argument("--damage", choices=("patterns", "physics", "both"), default="patterns",
+    p.add_argument("--damage", choices=generation_spec.DAMAGES, default="patterns",
                    help="how grades 4-5 are made: parametric patterns (default), collapse by rigid-body physics "
                    "(addon/physics.py), or both (a seeded half of those buildings each); lower grades always get "
                    "the patterns")
@@ -192,32 +193,27 @@ def parse_args(argv):
                    help="processes at once (default 1): scenes are made in parallel, and with --damage "
                    "physics|both the collapses of each scene are shared out first (each depends only on its "
                    "building and its neighbours), so --jobs 2 halves a physics run on 2 cores; same bytes as --jobs 1")
-    p.add_argument("--only-scenes", default=None, help=argparse.SUPPRESS)  # a --jobs child's share
-    p.add_argument("--collapse-claims", default=None, help=argparse.SUPPRESS)  # a --jobs child simulating collapses
+    p.add_argument("--only-scenes", default=None, help=argparse.SUPPRESS)
+    p.add_argument("--collapse-claims", default=None, help=argparse.SUPPRESS)
     args = p.parse_args(argv)
-    args.argv = list(argv)
-    if args.set_name == "bundle" and not args.source:
-        p.error("--set bundle needs --source SCENE_DIR")
-    if args.grade_mix is not None:
-        if args.dataset != "mixed":
-            p.error("--grade-mix is only used with --dataset mixed")
-        total = sum(args.grade_mix.values())
-        if args.buildings is not None and args.buildings != total:
-            p.error(f"--buildings {args.buildings} disagrees with --grade-mix, which sums to {total}")
-        args.buildings = total
-    if args.grades is not None:
-        if args.set_name != "bundle" or args.dataset != "mixed":
-            p.error("--grades is only used with --set bundle --dataset mixed")
-        if args.grade_mix is not None:
-            p.error("--grades and --grade-mix both set the grades: give one")
-    if args.set_name == "bundle" and (args.origin is not None or args.crs):
-        p.error("--origin and --crs are not used with --set bundle: the output keeps the source's")
-    if args.set_name != "bundle":
-        if args.source:
-            p.error("--source is only used with --set bundle")
-        if args.buildings is None:
-            args.buildings = 112
-    return args
+    share = {"only_scenes": args.only_scenes, "collapse_claims": args.collapse_claims}
+    if args.spec is not None:
+        given = sorted({a.split("=")[0] for a in argv if a.startswith("--")} - {"--spec", *CHILD_OPTIONS})
+        if given:
+            p.error(f"--spec gives the whole job: {', '.join(given)} cannot come with it")
+        try:
+            return generation_spec.GenerationSpec.read(args.spec), share
+        except generation_spec.SpecError as e:
+            p.error(str(e))
+    missing = [f"--{k.replace('_', '-')}" if k != "set_name" else "--set"
+               for k in ("set_name", "dataset", "out") if getattr(args, k) is None]
+    if missing:
+        p.error(f"the following arguments are required: {', '.join(missing)}")
+    try:
+        spec = generation_spec.GenerationSpec(**{f: getattr(args, f) for f in generation_spec.FIELDS})
+        return spec.checked(), share
+    except generation_spec.SpecError as e:
+        p.error(str(e))
 
 
 def _origin(text):
@@ -235,64 +231,6 @@ def _grade_mix(text):
         return library_module("grades").parse_grade_counts(text)
     except ValueError as e:
         raise argparse.ArgumentTypeError(str(e)) from None
-
-
-def read_grades(path, ids) -> dict:
-    """{building ID: grade} of a --grades file, every source building present (0 where unlisted).
-    Raises ValueError naming the file and what is wrong."""
-    try:
-        raw = json.loads(Path(path).read_text())
-    except (OSError, ValueError) as e:
-        raise ValueError(f"--grades {path}: cannot read it as JSON ({e})") from None
-    if not isinstance(raw, dict):
-        raise ValueError(f"--grades {path}: expected an object {{\"building ID\": grade}}, got {type(raw).__name__}")
-    grades = {int(i): 0 for i in ids}
-    for key, g in raw.items():
-        try:
-            bid = int(key)
-        except ValueError:
-            raise ValueError(f"--grades {path}: {key!r} is not a building ID") from None
-        if bid not in grades:
-            raise ValueError(f"--grades {path}: building {bid} is not in the --source bundle")
-        if isinstance(g, bool) or not isinstance(g, int) or not 0 <= g <= 5:
-            raise ValueError(f"--grades {path}: building {bid}: grade must be an integer 0-5, got {g!r}")
-        grades[bid] = g
-    return grades
-
-
-def scene_list(dataset, ids, seed, grade_mix=None, grades=None):
-    citygen = addon_module("citygen")
-    if dataset == "paper":
-        return [("pre", None)] + [(name, g) for name, g in citygen.PAPER_SCENES]
-    if grades is not None:
-        return [("pre", None), ("post", grades)]
-    if grade_mix:
-        return [("pre", None), ("post", citygen.exact_grades(ids, grade_mix, seed))]
-    return [("pre", None), ("post", citygen.mixed_grades(ids, seed))]
-
-
-def generator_info(args, scene_name):
-    info = {"script": PROG, "version": GENERATOR_VERSION, "set": args.set_name, "dataset": args.dataset,
-            "buildings": args.buildings, "seed": args.seed, "scene": scene_name}
-    if getattr(args, "details", "none") != "none":  # absent for "none": older bundles stay resumable
-        info["details"] = args.details
-    if getattr(args, "grade_mix", None):
-        info["grade_mix"] = {str(g): n for g, n in sorted(args.grade_mix.items())}
-    if getattr(args, "grades_map", None) is not None:  # absent without --grades: older bundles stay valid
-        info["grades"] = {str(b): g for b, g in sorted(args.grades_map.items()) if g}
-    if args.set_name == "bundle":
-        info["source"] = {"name": Path(args.source).resolve().name, "sha256": getattr(args, "source_sha256", None)}
-    if getattr(args, "streetscape", "none") != "none":  # absent with none: older bundles stay valid
-        info["streetscape"] = args.streetscape
-    if getattr(args, "origin", None) is not None:  # absent by default: older bundles stay valid
-        info["origin"] = list(args.origin)
-    if getattr(args, "crs", None):
-        info["crs"] = args.crs
-    if getattr(args, "damage", "patterns") != "patterns":  # absent with patterns: older bundles stay valid
-        info["damage"] = args.damage
-        info["settle_steps"] = args.settle_steps
-        info["physics_version"] = PHYSICS_VERSION
-    return info
 
 
 def bundle_state(folder: Path, info: dict) -> str:
@@ -318,401 +256,14 @@ def bundle_state(folder: Path, info: dict) -> str:
     return "done" if stored.digest == wanted.digest else "different"
 
 
-def _swap_into_place(tmp: Path, final: Path):
-    old = None
-    if final.exists():
-        old = final.with_name(f".{final.name}.old-{os.getpid()}")
-        os.replace(final, old)
-    os.replace(tmp, final)
-    if old is not None:
-        shutil.rmtree(old, ignore_errors=True)
-
-
-def source_sha256(folder) -> str:
-    """Digest of a source bundle's scene.json and mesh (resume only when the source is the same)."""
-    import hashlib
-    h = hashlib.sha256()
-    folder = Path(folder)
-    manifest = folder / "scene.json"
-    h.update(manifest.read_bytes())
-    try:
-        mesh = json.loads(manifest.read_text()).get("mesh", "mesh.ply")
-    except (json.JSONDecodeError, AttributeError):
-        mesh = "mesh.ply"
-    if isinstance(mesh, str) and (folder / mesh).is_file():
-        h.update((folder / mesh).read_bytes())
-    return h.hexdigest()
-
-
-def bundle_ids(args, manifest) -> list:
-    """IDs of the source buildings used: all, or a seeded sample of --buildings of them."""
-    import numpy as np
-    ids = sorted(int(b["id"]) for b in manifest["buildings"])
-    if args.buildings is None or args.buildings >= len(ids):
-        return ids
-    rng = np.random.default_rng([args.seed, 404])
-    return sorted(int(i) for i in rng.choice(ids, size=args.buildings, replace=False))
-
-
-def build_bundle_pre(args, pre, manifest):
-    """Import the source's terrain and chosen buildings into `pre` and prepare them for damage
-    (labels, storey splits, coarse interiors; a per-building damage seed from --seed)."""
-    import numpy as np
-
-    io_import, scene_tools = addon_module("io_import"), addon_module("scene_tools")
-    ids = bundle_ids(args, manifest)
-    info = io_import.import_bundle(args.source, pre, building_ids=ids)
-    for obj in info["buildings"]:
-        io_import.prepare_for_damage(obj)
-        obj.qs_building.seed = int(np.random.default_rng([args.seed, 505, obj.qs_building.building_id])
-                                   .integers(0, 2 ** 31 - 1))
-        obj.qs_building.patterns_json = "[]"
-        if args.details != "none":
-            scene_tools.add_roof_details(obj)
-    return ids, info
-
-
-def add_streetscape(args, pre, plan):
-    """Trees, hedges, furniture and cars around the buildings of collection `pre` (a CityPlan's
-    footprints, or the xy extents of an imported bundle's buildings on its terrain).
-    Returns (streetscape, footprints, bounds, ground_z, density set) for the post scenes."""
-    scene_tools, street_objects = addon_module("scene_tools"), addon_module("street_objects")
-    streetscape = addon_module("streetscape")
-    objs = scene_tools.scene_objects(pre)
-    if plan is not None:
-        footprints, bounds, ground_z, set_name = streetscape.plan_footprints(plan), plan.bounds, None, plan.set_name
-    else:
-        footprints = street_objects.building_footprints(objs)
-        terrain = street_objects.terrain_mesh(objs)
-        if terrain is None:
-            raise RuntimeError("--streetscape needs a terrain in the --source bundle (faces with building_id 0)")
-        bounds = street_objects.terrain_bounds(terrain[0])
-        ground_z = streetscape.terrain_height_function(*terrain)
-        set_name = "bundle"
-    t0 = time.perf_counter()
-    scape = streetscape.plan_streetscape(footprints, bounds, set_name, args.seed, ground_z)
-    street_objects.add_objects(pre, scape)
-    log(f"pre: streetscape {len(scape.trees)} trees, {len(scape.hedges)} hedges, {len(scape.cars)} cars, "
-        f"{len(scape.furniture)} furniture in {time.perf_counter() - t0:.1f} s")
-    return scape, footprints, bounds, ground_z, set_name
-
-
-def run(args) -> int:
-    t_start = time.perf_counter()
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        log(f"error: --out {out} exists and is not a folder")
-        return 2
-    try:
-        import bpy  # noqa: F401
-    except ImportError:
-        log("error: bpy is not available: run inside Blender (blender -b --factory-startup "
-            "--python-exit-code 1 -P blender_scripts/generate_scenes.py -- ...) or install the bpy module "
-            "(pip install bpy==5.0.1)")
-        return 1
-    try:
-        import numpy  # noqa: F401
-    except ImportError:
-        import bpy
-        log(f"error: numpy is not available to the Python {sys.version.split()[0]} of Blender "
-            f"{bpy.app.version_string}: Blender's own builds bundle it; for Debian's blender install "
-            "python3-numpy (apt-get install python3-numpy)")
-        return 1
-    import bpy
-    addon = addon_module()
-    citygen, io_export, scene_tools = addon_module("citygen"), addon_module("io_export"), addon_module("scene_tools")
-    post_scene = addon_module("post_scene")
-    ShellSpec = addon_module("geometry.shell").ShellSpec
-
-    if not hasattr(bpy.types.Object, "qs_building"):
-        addon.register()
-
-    origin, crs, manifest, plan = (0.0, 0.0, 0.0), None, None, None
-    if args.set_name == "bundle":
-        io_import = addon_module("io_import")
-        try:
-            manifest = io_import.read_bundle(args.source)[0]  # the whole bundle is checked up front
-            args.source_sha256 = source_sha256(args.source)
-        except (io_import.BundleError, OSError) as e:
-            log(f"error: --source: {e}")
-            return 2
-        ids = bundle_ids(args, manifest)
-        origin, crs = manifest.get("origin", [0.0, 0.0, 0.0]), manifest.get("crs")
-        if args.grades is not None:
-            try:
-                args.grades_map = read_grades(args.grades, ids)
-            except ValueError as e:
-                log(f"error: {e}")
-                return 2
-    else:
-        plan = citygen.city_plan(args.set_name, args.buildings, args.seed, details=args.details)
-        ids = [b.id for b in plan.buildings]
-    scenes = scene_list(args.dataset, ids, args.seed, args.grade_mix, getattr(args, "grades_map", None))
-    todo = []
-    for name, grades in scenes:
-        info = generator_info(args, name)
-        state = bundle_state(out / name, info)
-        if state == "done":
-            log(f"{name}: complete bundle with the same settings exists, skipped")
-            continue
-        if state == "different" and not args.force:
-            log(f"error: {out / name} holds a bundle made with other settings; use another --out or --force")
-            return 1
-        todo.append((name, grades, info))
-    if args.only_scenes is not None:
-        share = set(args.only_scenes.split(","))
-        todo = [t for t in todo if t[0] in share]
-    if not todo:
-        log("nothing to do")
-        return 0
-    out.mkdir(parents=True, exist_ok=True)
-    if args.jobs > 1 and args.collapse_claims is None:
-        if collapse_scenes(args, todo):
-            code = run_collapse_jobs(args, out)
-            if code:
-                return code
-        if len(todo) > 1:
-            return run_jobs(args, todo, len(ids))
-
-    scene = bpy.data.scenes.new("quakescan_generate")
-    pre = bpy.data.collections.new("pre")
-    scene.collection.children.link(pre)
-    created_collections = [pre]
-    try:
-        t0 = time.perf_counter()
-        if plan is None:
-            build_bundle_pre(args, pre, manifest)
-            n = len(ids)
-        else:
-            x0, y0, x1, y1 = plan.bounds
-            scene_tools.create_terrain_object(pre, x0, y0, x1, y1)
-            n = len(plan.buildings)
-            step = max(1, n // 10)
-            for k, b in enumerate(plan.buildings):
-                spec = ShellSpec(**b.shell)
-                scene_tools.create_building_object(pre, spec, b.id, location=(b.location[0], b.location[1], 0.0),
-                                                   rotation_z=b.rotation, vulnerability_class=b.vulnerability_class,
-                                                   seed=b.seed)
-                if (k + 1) % step == 0 or k + 1 == n:
-                    log(f"pre: built {k + 1}/{n} buildings")
-        street = None
-        if args.streetscape != "none":
-            street = add_streetscape(args, pre, plan)
-        pre_objs = scene_tools.scene_objects(pre)
-        log(f"pre: {n} buildings built in {time.perf_counter() - t0:.1f} s")
-        if args.collapse_claims is not None:
-            simulate_collapses(args, collapse_scenes(args, todo), pre_objs, out, Path(args.collapse_claims), street)
-            todo = []
-        for name, grades, info in todo:
-            t0 = time.perf_counter()
-            tmp = out / f".{name}.tmp-{os.getpid()}"
-            shutil.rmtree(tmp, ignore_errors=True)
-            if name == "pre":
-                objs = pre_objs
-                coll = None
-            else:
-                coll = bpy.data.collections.new(name)
-                scene.collection.children.link(coll)
-                created_collections.append(coll)
-
-                def progress(i, total, name=name):
-                    if i % max(1, total // 10) == 0 or i == total:
-                        log(f"{name}: damaged {i}/{total} objects")
-                def fallback(obj, message, name=name):
-                    log(f"{name}: {message}; {obj.name} gets the patterns instead")
-                damage = dict(damage=args.damage, settle_steps=args.settle_steps, on_fallback=fallback)
-                if args.damage != "patterns":  # collapses simulated by --jobs children, where they exist
-                    collapse_parts = addon_module("collapse_parts")
-                    damage["collapses"] = collapse_parts.loader(parts_folder(out, name), info)
-                if street is None:
-                    post_scene.make_post_scene(pre_objs, coll, grades=grades, on_progress=progress, **damage)
-                else:  # trees, hedges, furniture copied; the pre-event cars replaced by this scene's
-                    street_objects, streetscape = addon_module("street_objects"), addon_module("streetscape")
-                    post_scene.make_post_scene([o for o in pre_objs if not street_objects.is_car_object(o)], coll,
-                                                grades=grades, on_progress=progress, **damage)
-                    scape, footprints, bounds, ground_z, set_name = street
-                    cars = streetscape.post_event_cars(scape, footprints, bounds, set_name, args.seed, name, ground_z)
-                    street_objects.add_objects(coll, streetscape.Streetscape(cars=cars), kinds=("cars",),
-                                               suffix=".post")
-                objs = scene_tools.scene_objects(coll)
-            if plan is None:  # keeps the source's float64 coordinates, origin and CRS
-                rep = io_import.export_bundle(tmp, objs, epoch="pre" if name == "pre" else "post",
-                                              origin=origin, crs=crs, extra={"generator": info})
-            else:
-                rep = io_export.export_objects(tmp, objs, epoch="pre" if name == "pre" else "post",
-                                               origin=getattr(args, "origin", None) or (0.0, 0.0, 0.0),
-                                               crs=getattr(args, "crs", None) or None,
-                                               extra={"generator": info})
-            _swap_into_place(tmp, out / name)
-            shutil.rmtree(parts_folder(out, name), ignore_errors=True)  # in the bundle now
-            log(f"{name}: wrote {out / name} ({rep['buildings']} buildings, {rep['faces']} faces) "
-                f"in {time.perf_counter() - t0:.1f} s")
-            if coll is not None:
-                scene_tools.remove_collection_objects(coll)
-    finally:
-        for coll in created_collections:
-            scene_tools.remove_collection_objects(coll)
-            bpy.data.collections.remove(coll)
-        bpy.data.scenes.remove(scene)
-        for p in out.glob(f".*.tmp-{os.getpid()}"):
-            shutil.rmtree(p, ignore_errors=True)
-    log(f"done in {time.perf_counter() - t_start:.1f} s")
-    return 0
-
-
-def _scene_cost(grades, damage: str, buildings: int = 1) -> int:
-    """A scene costs one unit, and with physics 50 more per grade-4/5 building (a collapse
-    takes seconds, a pattern milliseconds). `grades`: a dict (building -> grade, mixed
-    datasets) or one grade for all `buildings` (paper scenes)."""
-    if damage == "patterns" or grades is None:
-        return 1
-    heavy = (sum(1 for g in grades.values() if g >= 4) if isinstance(grades, dict)
-             else buildings * (int(grades) >= 4))
-    return 1 + heavy * 50
-
-
-def job_shares(todo, jobs: int, damage: str, buildings: int = 1) -> list:
-    """Scene names split into at most `jobs` shares of about equal cost (_scene_cost).
-    Largest first onto the cheapest share; deterministic."""
-    def cost(grades):
-        return _scene_cost(grades, damage, buildings)
-    shares = [[0, []] for _ in range(min(jobs, len(todo)))]
-    for name, grades, _ in sorted(todo, key=lambda t: -cost(t[1])):
-        low = min(shares, key=lambda s: s[0])
-        low[0] += cost(grades)
-        low[1].append(name)
-    return [names for _, names in shares if names]
-
-
-def _child_command(argv: list) -> list:
-    """This script again with `argv`: in Blender's binary when it runs there, else with the
-    Python that has the bpy module."""
-    import bpy
-    binary = bpy.app.binary_path
-    if binary and "python" not in Path(binary).name.lower():
-        return [binary, "-b", "--factory-startup", "--python-exit-code", "1", "-P", str(Path(__file__).resolve()),
-                "--", *argv]
-    return [sys.executable, str(Path(__file__).resolve()), *argv]
-
-
-def run_jobs(args, todo, buildings: int) -> int:
-    """Make `todo`'s scenes in args.jobs child processes at once, each its share; every child
-    writes its bundles atomically, so an interrupted run resumes as a single process does."""
-    import subprocess
-    base = _without_jobs(args.argv)
-    shares = job_shares(todo, args.jobs, args.damage, buildings)
-    log(f"{len(todo)} scenes in {len(shares)} processes: " + "; ".join(",".join(s) for s in shares))
-    procs = [subprocess.Popen(_child_command([*base, "--only-scenes", ",".join(s)])) for s in shares]
-    codes = [p.wait() for p in procs]
-    failed = [",".join(s) for s, c in zip(shares, codes) if c]
-    if failed:
-        log(f"error: the process making {'; '.join(failed)} failed (see above); finished scenes are kept")
-        return 1
-    return 0
-
-
-def parts_folder(out: Path, scene: str) -> Path:
-    """Where --jobs children leave a scene's collapses until the scene is written."""
-    return out / f".{scene}.collapses"
-
-
-def collapse_scenes(args, todo) -> list:
-    """The scenes of `todo` with buildings that may collapse by physics, costliest first (a
-    grade-5 collapse takes about three times a grade-4 one: every storey falls)."""
-    if args.damage == "patterns":
-        return []
-
-    def cost(grades):
-        gs = list(grades.values()) if isinstance(grades, dict) else [int(grades)]
-        return sum(3 if g >= 5 else 1 if g == 4 else 0 for g in gs) / len(gs)
-    heavy = [t for t in todo if t[1] is not None and cost(t[1]) > 0]
-    return sorted(heavy, key=lambda t: -cost(t[1]))
-
-
-def simulate_collapses(args, scenes, pre_objs, out: Path, claims: Path, street=None):
-    """A --jobs child's share of the collapses: every child walks the same list (scenes
-    costliest first, buildings in order) and simulates those it claims first (a file created
-    exclusively in `claims`), so the processes stay busy until the last collapse; each is
-    written to its scene's parts folder (collapse_parts), those already there are skipped."""
-    collapse_parts, scene_tools = addon_module("collapse_parts"), addon_module("scene_tools")
-    post_scene = addon_module("post_scene")
-    DamageError = scene_tools.DamageError
-    if street is not None:
-        street_objects = addon_module("street_objects")
-        pre_objs = [o for o in pre_objs if not street_objects.is_car_object(o)]
-    done = 0
-    for name, grades, info in scenes:
-        colliders = post_scene.PhysicsColliders(pre_objs, grades, args.damage)
-        folder = parts_folder(out, name)
-        for src in colliders.sources:
-            pg = src.qs_building
-            if not colliders.collapses(src):
-                continue
-            if collapse_parts.is_done(folder, info, pg.building_id):
-                continue
-            try:
-                os.close(os.open(claims / f"{name}-{pg.building_id}", os.O_CREAT | os.O_EXCL | os.O_WRONLY))
-            except FileExistsError:
-                continue  # another process has it
-            t0 = time.perf_counter()
-            try:
-                obj, rec = post_scene.collapse_copy(src, colliders, settle_steps=args.settle_steps)
-            except DamageError as e:
-                collapse_parts.save(folder, info, pg.building_id, error=str(e))
-                log(f"{name}: building {pg.building_id} did not come to rest ({time.perf_counter() - t0:.1f} s)")
-            else:
-                try:
-                    collapse_parts.save(folder, info, pg.building_id, obj, rec)
-                finally:
-                    post_scene.remove_object(obj)
-                log(f"{name}: building {pg.building_id} collapsed in {time.perf_counter() - t0:.1f} s")
-            done += 1
-    log(f"{done} collapses simulated")
-
-
-def run_collapse_jobs(args, out: Path) -> int:
-    """Simulate the collapses of the scenes to make in args.jobs child processes at once
-    (simulate_collapses); the scenes are written afterwards from their parts."""
-    import subprocess
-    claims = out / f".collapse-claims-{os.getpid()}"
-    shutil.rmtree(claims, ignore_errors=True)
-    claims.mkdir(parents=True)
-    try:
-        base = _without_jobs(args.argv)
-        log(f"collapses in {args.jobs} processes")
-        procs = [subprocess.Popen(_child_command([*base, "--collapse-claims", str(claims)])) for _ in range(args.jobs)]
-        codes = [p.wait() for p in procs]
-    finally:
-        shutil.rmtree(claims, ignore_errors=True)
-    if any(codes):
-        log("error: a process simulating collapses failed (see above); finished collapses are kept")
-        return 1
-    return 0
-
-
-def _without_jobs(argv) -> list:
-    """The command line without --jobs: each child does its share alone."""
-    base, skip = [], False
-    for a in argv:
-        if skip:
-            skip = False
-            continue
-        if a == "--jobs":
-            skip = True
-            continue
-        if a.startswith("--jobs="):
-            continue
-        base.append(a)
-    return base
-
-
 def main(argv=None) -> int:
     """`argv`: the script's own arguments (default: from sys.argv, after '--' in Blender)."""
-    args = parse_args(_script_argv(sys.argv) if argv is None else list(argv))
+    spec, share = parse_args(_script_argv(sys.argv) if argv is None else list(argv))
     try:
-        return run(args)
+        return addon_module("generation").run(spec, bundle_state=bundle_state, script=Path(__file__).resolve(),
+                                              **share)
     except Exception as e:  # report and fail with a non-zero status (also inside Blender)
-        log(f"error: {type(e).__name__}: {e}")
+        generation_spec.log(f"error: {type(e).__name__}: {e}")
         raise
 
 

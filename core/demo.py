@@ -17,7 +17,7 @@ import json
 from pathlib import Path
 
 from .errors import QuakeScanError
-from .generator import generate
+from .generator import GenerationSpec, generate
 from .runtime.progress import ProgressCallback, in_stage, stage_log
 
 # The demo city stands in L'Aquila (the paper's test region), in UTM zone 33N: its
@@ -79,7 +79,7 @@ def run_demo(out_dir, seed: int = 0, buildings: int = 30, progress: ProgressCall
     city = out / "city"
     stage_log.info(f"demo 1/5: generating a mixed city of {buildings} buildings (seed {seed}) -> {city}")
     # force: a demo folder from an older QuakeScan (its city at another place) is regenerated, then rescanned
-    generate("generic", "mixed", buildings, seed, city, origin=DEMO_ORIGIN, crs=DEMO_CRS, force=True)
+    generate(GenerationSpec("generic", "mixed", buildings, seed, city, origin=DEMO_ORIGIN, crs=DEMO_CRS, force=True))
     stage_log.info("demo 2/5: scanning the pre- and post-event scenes with the paper's UAV survey")
     scan_scene(city / "pre", out / "pre.las", seed=seed * 2 + 1, progress=in_stage(progress, "scan pre"))
     scan_scene(city / "post", out / "post.las", seed=seed * 2 + 2, progress=in_stage(progress, "scan post"))

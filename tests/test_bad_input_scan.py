@@ -357,7 +357,7 @@ def test_the_generators_own_refusals_do_not_name_its_script(monkeypatch, tmp_pat
     monkeypatch.setattr(quakescan.generator, "generator_command", lambda args: ["generator", *args])
     monkeypatch.setattr(quakescan.generator.subprocess, "run", lambda *a, **k: Refused())
     with pytest.raises(QuakeScanError, match=r"the scene generator refused .*--seed: seed must be") as e:
-        quakescan.generator.generate("generic", "mixed", 3, 5, tmp_path)
+        quakescan.generator.generate(quakescan.generator.GenerationSpec("generic", "mixed", 3, 5, tmp_path))
     assert "usage" not in str(e.value)
 
 

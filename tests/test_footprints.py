@@ -129,11 +129,11 @@ def scanned_region_city(tmp_path_factory):
     scanned with the airborne preset."""
     from quakescan.acquisition.scan import scan
     from quakescan.acquisition.survey import preset
-    from quakescan.demo import generate
     from quakescan.formats.scene import read_scene
+    from quakescan.generator import GenerationSpec, generate
 
     folder = tmp_path_factory.mktemp("region_city")
-    generate("region", "mixed", 12, 4, folder / "city")
+    generate(GenerationSpec("region", "mixed", 12, 4, folder / "city"))
     scene = read_scene(folder / "city" / "pre")
     scan(scene, preset("als"), folder / "pre.las", seed=1)
     return scene, folder / "pre.las"

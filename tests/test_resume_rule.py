@@ -279,9 +279,9 @@ def test_generated_bundles_are_reused_only_with_the_same_generator_record(tmp_pa
     spec = importlib.util.spec_from_file_location("generate_scenes", REPO / "blender_scripts" / "generate_scenes.py")
     gen = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(gen)
-    args = gen.parse_args(["--set", "generic", "--dataset", "mixed", "--buildings", "4", "--seed", "1",
-                           "--out", str(tmp_path)])
-    info = gen.generator_info(args, "pre")
+    job, _ = gen.parse_args(["--set", "generic", "--dataset", "mixed", "--buildings", "4", "--seed", "1",
+                             "--out", str(tmp_path)])
+    info = gen.addon_module("generation").generator_info(job, "pre")
     folder = tmp_path / "pre"
     assert gen.bundle_state(folder, info) == "missing"
     folder.mkdir()

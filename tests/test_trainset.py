@@ -1,6 +1,7 @@
 """The transfer training set (core/learning/trainset.py) and the shipped model's recipe (core/learning/default_model.py)."""
 import json
-from dataclasses import asdict
+from dataclasses import asdict, replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -56,7 +57,7 @@ def test_small_building_cities_are_added_after_the_others_and_acquired_from_the_
 
 
 def test_physics_twins_copy_their_cities_and_acquisitions_and_change_nothing_else():
-    from quakescan.learning.trainset import PHYSICS_TWINS, _scene_look
+    from quakescan.learning.trainset import PHYSICS_TWINS, city_job
 
     full, both = default_plan(0, "full"), default_plan(0, "full", damage="both")
     # the patterns plan is what it was (no damage key in its records: old manifests read the same)
@@ -69,7 +70,9 @@ def test_physics_twins_copy_their_cities_and_acquisitions_and_change_nothing_els
     for t in twins:
         b = base[t.name.removesuffix("-physics")]
         assert asdict(t) == {**asdict(b), "name": t.name, "damage": "physics"}
-        assert _scene_look(t) == {"damage": "physics"} and _scene_look(b) == {}
+        folder = Path("scenes") / "city"
+        assert city_job(t, folder) == replace(city_job(b, folder), damage="physics")
+        assert (city_job(b, folder).damage, city_job(b, folder).details) == ("patterns", "none")
         # acquired exactly as the twin: same acquisitions and seeds, pair for pair
         strip = [(p.post_scene, p.pre, p.post, p.pre_seed, p.post_seed) for p in both.pairs]
         assert ([s for p, s in zip(both.pairs, strip) if p.city == t.name]
@@ -249,6 +252,6 @@ def test_a_city_made_by_another_generator_is_made_again_not_refused(monkeypatch,
     from quakescan.learning import trainset as T
 
     calls = []
-    monkeypatch.setattr(generator, "generate", lambda *a, **kw: calls.append(kw))
+    monkeypatch.setattr(generator, "generate", calls.append)
     T.generate_city(T.CitySpec("generic_m0", "generic", "mixed", 100, None, {0: 2, 5: 1}), tmp_path / "generic_m0")
-    assert calls and all(kw.get("force") is True for kw in calls)
+    assert calls and all(job.force is True for job in calls)

@@ -179,9 +179,9 @@ def test_scene_fingerprint_sees_the_porous_faces_and_transmission():
 
 @pytest.mark.skipif(__import__("importlib").util.find_spec("bpy") is None, reason="bpy module not installed")
 def test_demo_generate_passes_the_streetscape_through(tmp_path):
-    from quakescan.demo import generate
-    generate("generic", "mixed", 6, 1, tmp_path / "street", streetscape="typical")
-    generate("generic", "mixed", 6, 1, tmp_path / "plain")
+    from quakescan.generator import GenerationSpec, generate
+    generate(GenerationSpec("generic", "mixed", 6, 1, tmp_path / "street", streetscape="typical"))
+    generate(GenerationSpec("generic", "mixed", 6, 1, tmp_path / "plain"))
     street, plain = read_scene(tmp_path / "street" / "pre"), read_scene(tmp_path / "plain" / "pre")
     assert street.has_porous and (street.face_surface == OBJECT).any()
     assert plain.face_porous is None and (plain.face_surface < VEGETATION).all()

@@ -221,7 +221,7 @@ def choose_grades(settings: InjectSettings, model, fps) -> dict:
 
 def _damaged_scenes(model, grades: dict, settings: InjectSettings, scenes: Path):
     """The generator's pre- and post-event bundles of the proxies with these grades."""
-    from ..generator import generate
+    from ..generator import GenerationSpec, generate
     from ..formats.scene import read_scene, write_scene
 
     proxy_dir = scenes / "proxy"
@@ -230,8 +230,8 @@ def _damaged_scenes(model, grades: dict, settings: InjectSettings, scenes: Path)
     write_json(grades_file, {str(b): g for b, g in sorted(grades.items()) if g > 0 and b in model.buildings},
                error=InjectionError)
     stage_log.info("inject: damaging the proxies with the add-on's patterns (%s)", settings.damage)
-    generate("bundle", "mixed", None, settings.seed, scenes / "generated", source=proxy_dir, damage=settings.damage,
-             grades_file=grades_file)
+    generate(GenerationSpec("bundle", "mixed", None, settings.seed, scenes / "generated", source=proxy_dir,
+                            damage=settings.damage, grades=grades_file))
     return read_scene(scenes / "generated" / "pre"), read_scene(scenes / "generated" / "post")
 
 

@@ -336,38 +336,39 @@ def _table_fingerprint(pair: PairSpec, scenes: Path, settings, labels: str):
                             code=code_versions(settings.surface_descriptors))
 
 
-def generate_city(city: CitySpec, folder: Path) -> None:
-    """The city's scene bundles under `folder`: skipped by the generator when up to date,
-    made again when another generator version or other settings made them (the folder is
-    this training set's own cache, `force`)."""
-    from ..generator import generate
+def city_job(city: CitySpec, folder: Path):
+    """The generator's job for the city's scene bundles under `folder` (a
+    `quakescan.generator.GenerationSpec`): `force`, since the folder is this training set's
+    own cache, so bundles another generator version or other settings made are made again."""
+    from ..generator import GenerationSpec
 
     if city.source == "rotterdam":
         from ..formats.cityjson import IMPORT_VERSION
 
         source = folder.parent / f"{city.name}_source_v{IMPORT_VERSION}"
-        if not (source / "scene.json").is_file():
-            from ..formats.cityjson import import_cityjson
-            from ..formats.scene import write_scene
-
-            if not ROTTERDAM.is_file():
-                raise TrainingSetError(f"{ROTTERDAM}: the Rotterdam CityJSON model is missing (the shared "
-                                       "data folder sits beside the repository)")
-            with replacing(source, TrainingSetError) as tmp:
-                write_scene(densest_cluster(import_cityjson(ROTTERDAM)), tmp)
-        generate("bundle", city.dataset, city.buildings, city.seed, folder, grade_mix=city.grade_mix, source=source,
-                 force=True, **_scene_look(city))
+        job = GenerationSpec("bundle", city.dataset, city.buildings, city.seed, folder, source=source)
     else:
-        generate(city.source, city.dataset, None if city.grade_mix else city.buildings, city.seed, folder,
-                 grade_mix=city.grade_mix, force=True, **_scene_look(city))
+        job = GenerationSpec(city.source, city.dataset, None if city.grade_mix else city.buildings, city.seed, folder)
+    return replace(job, grade_mix=city.grade_mix, details=city.details, streetscape=city.streetscape,
+                   damage=city.damage, force=True)
 
 
-def _scene_look(city: CitySpec) -> dict:
-    """The generator's detail and streetscape options a city asks for (none: the bare call)."""
-    look = {k: v for k, v in (("details", city.details), ("streetscape", city.streetscape)) if v != "none"}
-    if city.damage != "patterns":
-        look["damage"] = city.damage
-    return look
+def generate_city(city: CitySpec, folder: Path) -> None:
+    """The city's scene bundles under `folder` (`city_job`): skipped by the generator when up
+    to date; a Rotterdam city's source bundle imported first where it is missing."""
+    from ..generator import generate
+
+    job = city_job(city, folder)
+    if city.source == "rotterdam" and not (job.source / "scene.json").is_file():
+        from ..formats.cityjson import import_cityjson
+        from ..formats.scene import write_scene
+
+        if not ROTTERDAM.is_file():
+            raise TrainingSetError(f"{ROTTERDAM}: the Rotterdam CityJSON model is missing (the shared "
+                                   "data folder sits beside the repository)")
+        with replacing(job.source, TrainingSetError) as tmp:
+            write_scene(densest_cluster(import_cityjson(ROTTERDAM)), tmp)
+    generate(job)
 
 
 def densest_cluster(scene, radius_m: float = CLUSTER_RADIUS_M, margin_m: float = 20.0):

@@ -225,7 +225,7 @@ def run_paper_experiment(out_dir, settings: ExperimentSettings | None = None, *,
     each worker its own ray-casting scene); every worker must reach out_dir. The same files,
     caches and numbers as one process makes: either run resumes the other's."""
     from ..change.pipeline import PipelineSettings
-    from ..generator import generate
+    from ..generator import GenerationSpec, generate
     from ..learning.prediction import predict_rows
     from ..learning.model import DamageModel
 
@@ -256,17 +256,17 @@ def run_paper_experiment(out_dir, settings: ExperimentSettings | None = None, *,
                    "each" + (f", and a mixed city {s.mixed_training_mix} each" if mixed else "")
                    + f") and the test city {s.test_mix}" + ("" if client is None else " (Dask tasks from here on)"))
     # the data folder is the experiment's own cache: bundles of another generator are made again
-    made = {"generic": run("generate-generic", generate, "generic", "paper", s.buildings, s.seed, data / "generic",
-                           force=True),
-            "region": run("generate-region", generate, "region", "paper", s.buildings, s.seed + 1, data / "region",
-                          force=True),
-            "test": run("generate-test", generate, "region", "mixed", None, s.seed + 2, data / "test",
-                        grade_mix=s.test_mix, force=True)}
+    made = {"generic": run("generate-generic", generate, GenerationSpec("generic", "paper", s.buildings, s.seed,
+                                                                        data / "generic", force=True)),
+            "region": run("generate-region", generate, GenerationSpec("region", "paper", s.buildings, s.seed + 1,
+                                                                      data / "region", force=True)),
+            "test": run("generate-test", generate, GenerationSpec("region", "mixed", None, s.seed + 2, data / "test",
+                                                                  grade_mix=s.test_mix, force=True))}
     if mixed:
-        made["generic_mixed"] = run("generate-generic-mixed", generate, "generic", "mixed", None, s.seed + 3,
-                                    data / "generic_mixed", grade_mix=s.mixed_training_mix, force=True)
-        made["region_mixed"] = run("generate-region-mixed", generate, "region", "mixed", None, s.seed + 4,
-                                   data / "region_mixed", grade_mix=s.mixed_training_mix, force=True)
+        made["generic_mixed"] = run("generate-generic-mixed", generate, GenerationSpec(
+            "generic", "mixed", None, s.seed + 3, data / "generic_mixed", grade_mix=s.mixed_training_mix, force=True))
+        made["region_mixed"] = run("generate-region-mixed", generate, GenerationSpec(
+            "region", "mixed", None, s.seed + 4, data / "region_mixed", grade_mix=s.mixed_training_mix, force=True))
     step("generate")
 
     stage_log.info("experiment 2/5: acquiring the clouds (ULS: paper survey; DIM: paper photo flight)")

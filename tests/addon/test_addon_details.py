@@ -36,19 +36,13 @@ PLAN_DIGESTS_GENERATOR_VERSION = 3
 
 
 def test_new_plans_come_with_a_new_generator_version():
-    import importlib.util
+    from addon import generation, generation_spec, versions
 
-    from conftest import REPO
-
-    spec = importlib.util.spec_from_file_location("generate_scenes_version",
-                                                  REPO / "blender_scripts" / "generate_scenes.py")
-    gen = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(gen)
-    from addon import versions
-
-    assert versions.GENERATOR_VERSION == gen.GENERATOR_VERSION == PLAN_DIGESTS_GENERATOR_VERSION, (
+    assert versions.GENERATOR_VERSION == PLAN_DIGESTS_GENERATOR_VERSION, (
         "the pinned plan digests belong to another generator version: bump addon/versions.py's "
         "GENERATOR_VERSION and PLAN_DIGESTS_GENERATOR_VERSION together when the plans change")
+    job = generation_spec.GenerationSpec("generic", "mixed", 4, 1, "o").checked()
+    assert generation.generator_info(job, "pre")["version"] == versions.GENERATOR_VERSION
 
 
 @pytest.mark.parametrize("set_name", citygen.SETS)
@@ -469,21 +463,21 @@ def test_generator_details_flag(tmp_path, bpy_registered, capsys):
     assert len(read_scene(tmp_path / "b" / "pre").faces) > len(n.faces)
 
 
-def test_demo_generate_passes_details(monkeypatch, tmp_path):
+def test_the_librarys_generate_passes_details(monkeypatch, tmp_path):
     import subprocess
+    from pathlib import Path
 
     from quakescan import generator
     seen = {}
 
-    def fake_run(cmd, **kw):
-        seen["cmd"] = cmd
+    def fake_run(cmd, **kw):  # the job file exists while the generator runs
+        seen["spec"] = json.loads(Path(cmd[cmd.index("--spec") + 1]).read_text())
         return subprocess.CompletedProcess(cmd, 0, "", "")
     monkeypatch.setattr(generator.subprocess, "run", fake_run)
-    generator.generate("generic", "mixed", 4, 1, tmp_path, details="typical")
-    assert "--details" in seen["cmd"]
-    assert seen["cmd"][seen["cmd"].index("--details") + 1] == "typical"
-    generator.generate("generic", "mixed", 4, 1, tmp_path)
-    assert "--details" not in seen["cmd"]
+    generator.generate(generator.GenerationSpec("generic", "mixed", 4, 1, tmp_path, details="typical"))
+    assert seen["spec"]["details"] == "typical"
+    generator.generate(generator.GenerationSpec("generic", "mixed", 4, 1, tmp_path))
+    assert seen["spec"]["details"] == "none"
 
 
 @pytest.mark.parametrize("party", [[], [1, 3]])

@@ -7,6 +7,8 @@ import sys
 
 import pytest
 
+from addon import generation
+from addon.generation_jobs import job_shares
 from conftest import BLENDER, HAVE_BPY, REPO
 
 SCRIPT = REPO / "blender_scripts" / "generate_scenes.py"
@@ -44,13 +46,13 @@ def test_bad_arguments_exit_2(gen, capsys):
 def test_a_grades_file_fixes_each_listed_building_and_names_what_is_wrong(gen, tmp_path, capsys):
     f = tmp_path / "g.json"
     f.write_text('{"3": 4, "5": 0}')
-    assert gen.read_grades(f, [3, 5, 9]) == {3: 4, 5: 0, 9: 0}
+    assert generation.read_grades(f, [3, 5, 9]) == {3: 4, 5: 0, 9: 0}
     for text, wanted in (('{"7": 3}', "building 7 is not in the --source bundle"),
                          ('{"3": 6}', "grade must be an integer 0-5, got 6"), ('{"3": true}', "got True"),
                          ('[1, 2]', "expected an object"), ('{"x": 1}', "'x' is not a building ID"), ("{", "cannot read")):
         f.write_text(text)
         with pytest.raises(ValueError, match=wanted):
-            gen.read_grades(f, [3, 5, 9])
+            generation.read_grades(f, [3, 5, 9])
     for argv in (["--set", "generic", "--dataset", "mixed", "--grades", str(f), "--out", "x"],
                  ["--set", "bundle", "--source", "s", "--dataset", "mixed", "--grades", str(f), "--grade-mix", "0:1",
                   "--out", "x"]):
@@ -61,8 +63,8 @@ def test_a_grades_file_fixes_each_listed_building_and_names_what_is_wrong(gen, t
 
 
 def test_blender_style_arguments(gen):
-    a = gen.parse_args(gen._script_argv(["blender", "-b", "-P", "x.py", "--", "--set", "region", "--dataset",
-                                         "mixed", "--out", "o"]))
+    a, _ = gen.parse_args(gen._script_argv(["blender", "-b", "-P", "x.py", "--", "--set", "region", "--dataset",
+                                            "mixed", "--out", "o"]))
     assert (a.set_name, a.dataset, a.buildings, a.seed) == ("region", "mixed", 112, 0)
 
 
@@ -209,16 +211,16 @@ def test_job_shares_balance_collapses_by_physics(gen):
     todo = [("pre", None, {}), ("post_heavy", {1: 3, 2: 3}, {}), ("post_extreme", {1: 4, 2: 4}, {}),
             ("post_destruction", {1: 5, 2: 5}, {})]
     # with physics the two collapse scenes go to different processes, one cheap scene beside each
-    shares = gen.job_shares(todo, 2, "physics")
+    shares = job_shares(todo, 2, "physics")
     assert len(shares) == 2 and all(len(s) == 2 for s in shares)
     assert {"post_extreme", "post_destruction"} == {n for s in shares for n in s if n.endswith(("extreme", "destruction"))}
     assert not any({"post_extreme", "post_destruction"} <= set(s) for s in shares)
     # paper scenes: one grade for every building
     paper = [("pre", None, {}), ("post_heavy", 3, {}), ("post_extreme", 4, {}), ("post_destruction", 5, {})]
-    shares = gen.job_shares(paper, 2, "physics", buildings=112)
+    shares = job_shares(paper, 2, "physics", buildings=112)
     assert not any({"post_extreme", "post_destruction"} <= set(s) for s in shares) and len(shares) == 2
-    assert sorted(sum(gen.job_shares(todo, 8, "patterns"), [])) == sorted(t[0] for t in todo)
-    assert len(gen.job_shares(todo, 8, "patterns")) == 4 and len(gen.job_shares(todo, 1, "physics")) == 1
+    assert sorted(sum(job_shares(todo, 8, "patterns"), [])) == sorted(t[0] for t in todo)
+    assert len(job_shares(todo, 8, "patterns")) == 4 and len(job_shares(todo, 1, "physics")) == 1
 
 
 @pytest.mark.skipif(BLENDER is None, reason="no blender binary on PATH")
@@ -256,13 +258,13 @@ def test_bad_grade_mix_exits_2(gen, argv, tmp_path):
 
 
 def test_origin_and_crs_arguments(gen, capsys):
-    a = gen.parse_args(["--set", "generic", "--dataset", "mixed", "--out", "o", "--origin", "367000,4690000",
-                        "--crs", "EPSG:32633"])
+    a, _ = gen.parse_args(["--set", "generic", "--dataset", "mixed", "--out", "o", "--origin", "367000,4690000",
+                           "--crs", "EPSG:32633"])
     assert a.origin == (367000.0, 4690000.0, 0.0) and a.crs == "EPSG:32633"
-    info = gen.generator_info(a, "pre")
+    info = generation.generator_info(a, "pre")
     assert info["origin"] == [367000.0, 4690000.0, 0.0] and info["crs"] == "EPSG:32633"
-    plain = gen.parse_args(["--set", "generic", "--dataset", "mixed", "--out", "o"])
-    assert "origin" not in gen.generator_info(plain, "pre") and "crs" not in gen.generator_info(plain, "pre")
+    plain, _ = gen.parse_args(["--set", "generic", "--dataset", "mixed", "--out", "o"])
+    assert not {"origin", "crs"} & set(generation.generator_info(plain, "pre"))
     for argv in (["--origin", "1,2,3,4"], ["--origin", "east"], ["--origin", "nan,0"], ["--origin", "1e300,0"],
                  ["--set", "bundle", "--source", "s", "--crs", "EPSG:32633"]):
         base = ["--set", "generic", "--dataset", "mixed", "--out", "o"]

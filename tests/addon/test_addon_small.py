@@ -172,11 +172,13 @@ def test_small_typical_details():
 
 
 def test_generator_offers_every_set():
+    from addon import generation_spec
+
     spec = importlib.util.spec_from_file_location("generate_scenes", SCRIPT)
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
-    assert mod.SETS == (*citygen.SETS, "bundle")
-    a = mod.parse_args(["--set", "small", "--dataset", "mixed", "--grade-mix", "0:3,3:3", "--out", "o"])
+    assert generation_spec.SETS == (*citygen.SETS, "bundle")
+    a, _ = mod.parse_args(["--set", "small", "--dataset", "mixed", "--grade-mix", "0:3,3:3", "--out", "o"])
     assert (a.set_name, a.buildings) == ("small", 6)
 
 
@@ -197,11 +199,11 @@ def _check_city(folder, n):
 
 
 @needs_bpy
-def test_small_mixed_city_through_demo_generate(tmp_path):
-    from quakescan.demo import generate
+def test_small_mixed_city_through_the_librarys_generator(tmp_path):
+    from quakescan.generator import GenerationSpec, generate
     mix = {0: 3, 3: 3, 4: 3, 5: 3}
     out = tmp_path / "small"
-    generate("small", "mixed", None, 3, out, grade_mix=mix)
+    generate(GenerationSpec("small", "mixed", None, 3, out, grade_mix=mix))
     _check_city(out / "pre", 12)
     doc, sc = _check_city(out / "post", 12)
     assert collections.Counter(b.grade for b in sc.buildings) == mix
