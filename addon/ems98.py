@@ -222,6 +222,42 @@ _add(Pattern("chimney_loss", "Chimney loss", (MASONRY,), (2, 3), {
 PATTERN_NAMES = tuple(PATTERNS)
 
 
+def register(p: Pattern, primary: float = 0.0, secondary: float = 0.0) -> None:
+    """Add a pattern to the catalogue (its bmesh function is registered beside it,
+    `addon.geometry.patterns.register_pattern`). `primary`: its weight among the primary
+    choices for each of its (grade, material) pairs; `secondary`: among its materials'
+    secondary damage; 0: applied only when asked for by name. A weight changes which pattern
+    other buildings of those grades draw (the choice is shared), never a pattern's own draws
+    (`pattern_salt`)."""
+    global PATTERN_NAMES
+    if p.name in PATTERNS:
+        raise ValueError(f"damage pattern {p.name!r} is already in the catalogue")
+    if not p.name.isidentifier() or "+" in p.name:
+        raise ValueError(f"damage pattern name {p.name!r}: a Python identifier (it names a manifest entry)")
+    for weight, what in ((primary, "primary"), (secondary, "secondary")):
+        if not weight >= 0.0:
+            raise ValueError(f"damage pattern {p.name!r}: {what} weight {weight!r} must be >= 0")
+    PATTERNS[p.name] = p
+    PATTERN_NAMES = tuple(PATTERNS)
+    if primary > 0.0:
+        for grade in p.grades:
+            for material in p.materials:
+                PRIMARY.setdefault((grade, material), []).append((p.name, float(primary)))
+    if secondary > 0.0:
+        for material in p.materials:
+            SECONDARY.setdefault(material, []).append((p.name, float(secondary)))
+
+
+def unregister(name: str) -> None:
+    """Take a registered pattern out of the catalogue and of every choice table."""
+    global PATTERN_NAMES
+    PATTERNS.pop(name, None)
+    PATTERN_NAMES = tuple(PATTERNS)
+    for table in (PRIMARY, SECONDARY):
+        for key, entries in table.items():
+            table[key] = [(e, w) for e, w in entries if name not in e.split("+")]
+
+
 def param_specs(pattern: str, grade: int | None = None, material: str | None = None) -> dict[str, Param]:
     """The parameters of `pattern` with grade- and material-specific ranges applied."""
     try:

@@ -37,6 +37,26 @@ FUNCTIONS = {
 assert set(FUNCTIONS) == set(ems98.PATTERN_NAMES), "pattern table and functions disagree"
 
 
+def register_pattern(pattern: ems98.Pattern, function, primary: float = 0.0, secondary: float = 0.0) -> None:
+    """A new damage pattern: its catalogue entry (`ems98.register`, with its choice weights)
+    and its bmesh function ``fn(bm, spec, rng, building_id, **params) -> dict``, whose keyword
+    parameters must be the pattern's `params` (each grade's overrides included)."""
+    accepted = set(inspect.signature(function).parameters) - {"bm", "spec", "rng", "building_id"}
+    wanted = set(pattern.params).union(*(set(o) for o in pattern.grade_params.values()))
+    if not wanted <= accepted and not any(p.kind == p.VAR_KEYWORD
+                                          for p in inspect.signature(function).parameters.values()):
+        raise ValueError(f"damage pattern {pattern.name!r}: its function takes no parameter(s) "
+                         f"{sorted(wanted - accepted)}")
+    ems98.register(pattern, primary, secondary)
+    FUNCTIONS[pattern.name] = function
+
+
+def unregister_pattern(name: str) -> None:
+    """Take a pattern registered with `register_pattern` out again."""
+    ems98.unregister(name)
+    FUNCTIONS.pop(name, None)
+
+
 def pattern_rng(seed: int, *salt: int) -> np.random.Generator:
     """The random generator of one building's damage: same seed and salt → same draws."""
     return np.random.default_rng([int(seed) & 0xFFFFFFFF, *[int(s) & 0xFFFFFFFF for s in salt]])
