@@ -57,32 +57,92 @@ def test_the_library_never_imports_blender():
         assert not bad, f"{path.relative_to(ROOT)} imports {bad}"
 
 
-@pytest.mark.parametrize("package", ["quakescan", "quakescan_damage"])
-def test_no_import_cycle_even_through_imports_inside_functions(package):
-    """A module imported inside a function is loaded on use, but it is a dependency all the
-    same: a circle of them is one room that cannot be understood, tested or moved alone."""
-    mods = _modules(package)
+def _import_cycle(mods: dict, package: str, root: Path = ROOT) -> str | None:
+    """The first circle of imports among `mods` ({path: module name}), imports inside
+    functions included, as 'a -> b -> a'; None when there is none."""
     names = {name.removesuffix(".__init__") for name in mods.values()}
     graph = {}
     for path, name in mods.items():
         me = name.removesuffix(".__init__")
-        deps = {d.removesuffix(".__init__") for d in _imports(path, package, False)}
+        deps = {d.removesuffix(".__init__") for d in _imports(path, package, False, root)}
         graph[me] = {d for d in deps if d in names and d not in (package, me)}
-    state = {}
+    state: dict = {}
 
     def visit(n, stack):
         state[n] = "open"
         for d in sorted(graph.get(n, ())):
             if state.get(d) == "open":
-                raise AssertionError("import cycle: " + " -> ".join(stack[stack.index(d):] + [d]))
-            if d not in state:
-                visit(d, stack + [d])
+                return " -> ".join(stack[stack.index(d):] + [d])
+            if d not in state and (found := visit(d, stack + [d])):
+                return found
         state[n] = "done"
+        return None
 
     for n in sorted(graph):
-        if n not in state:
-            visit(n, [n])
-    assert len(graph) > (40 if package == "quakescan" else 10)  # the walk saw the package
+        if n not in state and (found := visit(n, [n])):
+            return found
+    return None
+
+
+@pytest.mark.parametrize("package", ["quakescan", "quakescan_damage"])
+def test_no_import_cycle_even_through_imports_inside_functions(package):
+    """A module imported inside a function is loaded on use, but it is a dependency all the
+    same: a circle of them is one room that cannot be understood, tested or moved alone."""
+    mods = _modules(package)
+    cycle = _import_cycle(mods, package)
+    assert cycle is None, "import cycle: " + str(cycle)
+    assert len(mods) > (40 if package == "quakescan" else 10)  # the walk saw the package
+
+
+def test_the_cycle_rule_sees_a_circle_closed_inside_a_function(tmp_path):
+    (tmp_path / "core" / "change").mkdir(parents=True)
+    a, b, c = (tmp_path / "core" / "change" / f"{n}.py" for n in "abc")
+    a.write_text("from . import b\n")
+    b.write_text("def f():\n    from .c import g\n")
+    c.write_text("def g():\n    from .a import x\n")
+    mods = {a: "quakescan.change.a", b: "quakescan.change.b", c: "quakescan.change.c"}
+    assert _import_cycle(mods, "quakescan", tmp_path) == ("quakescan.change.a -> quakescan.change.b -> "
+                                                          "quakescan.change.c -> quakescan.change.a")
+    c.write_text("def g():\n    return 1\n")
+    assert _import_cycle(mods, "quakescan", tmp_path) is None
+
+
+def _private_imports(modules: dict, root: Path = ROOT) -> list[str]:
+    """'a imports b._name' for every private name (one leading underscore) a module imports
+    from a module of another package of the library: a package's private names are its own."""
+    bad = []
+    for path, name in modules.items():
+        me = name.rsplit(".", 1)[0] if not name.endswith(".__init__") else name.removesuffix(".__init__")
+        parts = name.split(".")
+        tree = ast.parse(path.read_text(), str(path))
+        for n in ast.walk(tree):
+            if not isinstance(n, ast.ImportFrom):
+                continue
+            target = ".".join(parts[:-n.level] + ([n.module] if n.module else [])) if n.level else (n.module or "")
+            if not target.startswith("quakescan"):
+                continue
+            for a in n.names:
+                full = f"{target}.{a.name}"
+                owner = full.rsplit(".", 1)[0]
+                private = a.name.startswith("_") and not a.name.startswith("__")
+                if private and owner.rsplit(".", 1)[0] != me and owner != me:
+                    bad.append(f"{name} imports {full}")
+    return sorted(bad)
+
+
+def test_no_private_name_is_imported_across_packages():
+    bad = _private_imports(_modules("quakescan"))
+    assert not bad, ", ".join(bad)
+
+
+def test_the_private_name_rule_sees_a_private_import_from_another_package(tmp_path):
+    (tmp_path / "core" / "results").mkdir(parents=True)
+    bad = tmp_path / "core" / "results" / "bad.py"
+    bad.write_text("def f():\n    from ..formats.pointcloud import _crs_of\n")
+    own = tmp_path / "core" / "results" / "own.py"
+    own.write_text("from .writers import _rgb8\nfrom . import _kernels\n")
+    found = _private_imports({bad: "quakescan.results.bad", own: "quakescan.results.own"}, tmp_path)
+    assert found == ["quakescan.results.bad imports quakescan.formats.pointcloud._crs_of"]
 
 
 # The stages in the order data flows through them (docs/layout.md): a module may import only

@@ -106,7 +106,7 @@ def open_epoch_file(path) -> EpochFile:
     import laspy
 
     from ..formats.copc import is_copc
-    from ..formats.pointcloud import _crs_of, check_point_cloud_path
+    from ..formats.pointcloud import crs_of, check_point_cloud_path
 
     path = check_point_cloud_path(path)
     try:
@@ -117,7 +117,7 @@ def open_epoch_file(path) -> EpochFile:
                    if "building_id" in names else None)
             return EpochFile(str(path), int(h.point_count), [float(v) for v in h.scales],
                              [float(v) for v in h.offsets], [float(v) for v in h.mins], [float(v) for v in h.maxs],
-                             _crs_of(h, path), names, is_copc(h), ids)
+                             crs_of(h, path), names, is_copc(h), ids)
     except PointCloudError:
         raise
     except Exception as e:

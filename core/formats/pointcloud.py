@@ -388,7 +388,9 @@ class Epoch:
         return np.array(row_bounds(self.xyz[:, :2])) + self.origin[:2]
 
 
-def _crs_of(header, path) -> str | None:
+def crs_of(header, path) -> str | None:
+    """The CRS a LAS header names ("EPSG:n" where it has an EPSG code, else its WKT), or None;
+    an unreadable one is said on the log, not raised: the footprints or the other epoch may name it."""
     try:
         crs = header.parse_crs()
     except Exception as e:
@@ -523,7 +525,7 @@ def read_epoch(path: str | os.PathLike, origin=None, chunk_points: int = 4_000_0
         raise PointCloudError(f"{path}: holds {at} points, its header says {n} (the file is cut short?)")
     if "building_id" in extras:
         extras["building_id"] = _signed_ids(extras["building_id"])
-    crs = _crs_of(h, path)
+    crs = crs_of(h, path)
     if n:
         from ..grid.cells import column_bounds  # one pass, where numpy's min and max read it six times
 
