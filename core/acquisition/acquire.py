@@ -216,9 +216,11 @@ class PlannedAcquisition:
 
 
 def plan(scene: str | os.PathLike | Scene, acquisition: Acquisition, out_path: str | os.PathLike,
-         seed: int = 0) -> PlannedAcquisition:
+         seed: int = 0, reuse: bool = True) -> PlannedAcquisition:
     """The acquisition of `scene` (a bundle folder, which is read, or a Scene) into
-    `out_path` (.las/.laz), checked and fingerprinted, not run (see `acquire`)."""
+    `out_path` (.las/.laz), checked and fingerprinted, not run (see `acquire`). `reuse`
+    False: a cloud already there is not looked at (`reusable` None), so a forced run does not
+    hash the file it replaces."""
     if not isinstance(acquisition, Acquisition):
         raise QuakeScanError(f"acquire: acquisition must be an Acquisition (kind one of {sensors.kinds()}), "
                              f"got {type(acquisition).__name__}")
@@ -230,7 +232,8 @@ def plan(scene: str | os.PathLike | Scene, acquisition: Acquisition, out_path: s
     source = "scene object" if isinstance(scene, Scene) else str(scene)
     loaded = scene if isinstance(scene, Scene) else read_scene(scene)
     fp = cloud_fingerprint(acquisition, int(seed), scene_fingerprint(loaded))
-    return PlannedAcquisition(loaded, source, acquisition, out, int(seed), fp, reusable_record(out, fp))
+    return PlannedAcquisition(loaded, source, acquisition, out, int(seed), fp,
+                              reusable_record(out, fp) if reuse else None)
 
 
 def acquire(scene: str | os.PathLike | Scene, acquisition: Acquisition, out_path: str | os.PathLike,

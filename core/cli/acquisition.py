@@ -51,8 +51,8 @@ def cmd_acquire(args) -> int:
     survey_file = spec if Path(spec).is_file() else None  # else a preset's name
     refuse_replacing_inputs([out, summary_path, sidecar_path(out), trajectory, checkpoint],
                             scene_files(scene_dir) + [(survey_file, "survey file")], command=args.command)
-    planned = plan(scene_dir, acquisition, out, seed=args.seed)
-    if planned.reusable is not None and not args.force:
+    planned = plan(scene_dir, acquisition, out, seed=args.seed, reuse=not args.force)
+    if planned.reusable is not None:
         if trajectory:
             _write_trajectory(planned, trajectory)
         echo(f"{out}: up to date (same scene, {sensor.settings_name} and seed); use --force to {words['again']}"
