@@ -323,7 +323,7 @@ class _Hulls:
     def add(self, groups: "_Groups", xy: np.ndarray) -> None:
         import shapely
 
-        from ..results.writers import hull_candidates
+        from ..results.outlines import hull_candidates
 
         order = groups.order
         for b, s, t in zip(groups.ids.tolist(), groups.starts.tolist(), groups.ends.tolist()):

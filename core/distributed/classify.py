@@ -122,7 +122,7 @@ def _classify_distributed(pre_path, post_path, out_dir, client, *, model_path=No
     def load_model():  # the client's own work while the workers stream: the model is read meanwhile
         loaded["model"] = cl.load_model(model_path)
         loaded["settings"] = cl.model_settings(loaded["model"], str(model_path))
-        from ..results.writers import import_map_modules
+        from ..results.png_map import import_map_modules
 
         import_map_modules()
 
@@ -202,9 +202,9 @@ def _classify_distributed(pre_path, post_path, out_dir, client, *, model_path=No
     res = cl.predict_rows(rows, model, unseen_damage=unseen_damage, prior=prior)
     summary["unseen_damage"] = bool(unseen_damage)
     summary["prior"] = options.get("prior", "equal (the model's)")
-    from ..results import writers as results
+    from ..results.outlines import building_outlines
 
-    outlines = results.building_outlines(res, fp, pre_s.hulls if fp is None else None, (0.0, 0.0))
+    outlines = building_outlines(res, fp, pre_s.hulls if fp is None else None, (0.0, 0.0))
     run.write_building_results(out, res, model.grades, fp, outlines, crs, pre_s.map_xy + origin[:2],
                               f"Damage grades: {Path(post_path).name}", csv_raw=csv_raw)
     t_graded = time.perf_counter()
@@ -644,7 +644,7 @@ def _write_graded_cloud(client, path, post_f, origin, crs, footprints, transform
     import laspy
     from dask.distributed import as_completed
 
-    from ..results.writers import grade_header, source_extra_dims, write_grade_records
+    from ..results.graded_cloud import grade_header, source_extra_dims, write_grade_records
     from .tasks import graded_part
 
     empty_own_subfolder(folder, run.ClassifyError)

@@ -200,7 +200,7 @@ def stream_part(folder: str, epoch_json: dict, origin: list, part: int, start: i
 def graded_part(out_file: str, epoch_json: dict, origin: list, start: int, stop: int, footprints: dict | None,
                 transform, grade_by_building: dict, max_id: int, chunk_points: int) -> int:
     """Points start..stop of the post-event file as point records of the graded cloud
-    (`quakescan.results.writers.grade_records`: every attribute of the file, aligned as the
+    (`quakescan.results.graded_cloud.grade_records`: every attribute of the file, aligned as the
     tiles saw them, building ID, grade and colour), appended raw to `out_file` (written under
     a temporary name, complete or absent); the client puts the parts' records behind one
     header. Returns the number of points."""
@@ -209,7 +209,7 @@ def graded_part(out_file: str, epoch_json: dict, origin: list, start: int, stop:
     from ..change.align import apply_transform
     from ..formats.footprints import assign_buildings
     from ..formats.pointcloud import noise_mask
-    from ..results.writers import grade_header, grade_records, source_chunks_format7, source_extra_dims
+    from ..results.graded_cloud import grade_header, grade_records, source_chunks_format7, source_extra_dims
     from ..runtime.atomic import open_replacing
 
     f = EpochFile(**epoch_json)

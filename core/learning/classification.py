@@ -169,7 +169,7 @@ def predict_rows(rows, model: DamageModel, rule: bool | None = None, unseen_dama
     probabilities (damage assumed to show). `prior` {grade: share}: the mix of grades the user
     expects, for the equal one the model's probabilities carry (`unseen_damage.with_prior`);
     the grades stay the model's."""
-    from ..results.writers import BuildingResult
+    from ..results.building_result import BuildingResult
 
     rule = model.no_change_rule if rule is None else bool(rule)
     classes = model.classes
@@ -250,7 +250,8 @@ def _classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=
               write_las: bool = True, laz: bool | None = None, force: bool = False, unseen_damage: bool = True,
               prior: dict | None = None, csv_raw: bool = False) -> dict:
     """`classify` in the output folder it has claimed."""
-    from ..results import writers as results
+    from ..results.graded_cloud import write_grade_las
+    from ..results.outlines import building_outlines
 
     t0 = time.perf_counter()
     out = Path(out_dir)
@@ -284,14 +285,14 @@ def _classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=
     summary["prior"] = options.get("prior", "equal (the model's)")
     out.mkdir(parents=True, exist_ok=True)
     fp = data.footprints
-    outlines = results.building_outlines(res, fp, _XYByBuilding(pre) if fp is None else None, pre.origin)
+    outlines = building_outlines(res, fp, _XYByBuilding(pre) if fp is None else None, pre.origin)
     write_building_results(out, res, model.grades, fp, outlines, pre.crs,
                            pre.xyz[:: map_step(len(pre)), :2] + pre.origin[:2], f"Damage grades: {Path(post_path).name}",
                            csv_raw=csv_raw)
     t_graded = time.perf_counter()
     if write_las:
         graded = graded_cloud_path(out, post_path, laz)
-        results.write_grade_las(graded, post.xyz, post.origin, post.crs, post.building_id,
+        write_grade_las(graded, post.xyz, post.origin, post.crs, post.building_id,
                                 {r.building_id: r.grade for r in res}, source=post_path)
         summary["post_grades"] = str(graded)
     t_graded = time.perf_counter() - t_graded
