@@ -100,7 +100,7 @@ def tiny_model(path, radius_m=1.5, split_edit=None, estimator=None, grades=(0, 3
     """A model file for the default paper descriptors (a small forest on random rows)."""
     from sklearn.ensemble import RandomForestClassifier
 
-    from quakescan.change.pipeline import PipelineSettings
+    from quakescan.change.settings import PipelineSettings
     from quakescan.learning.model import DamageModel, save_model
 
     settings = PipelineSettings()
@@ -670,7 +670,7 @@ def test_align_with_too_few_stable_points_names_both_epochs(tmp_path, capsys):
 # ------------------------------------------------------------------------- caches elsewhere
 
 def test_an_unreadable_experiment_cache_is_recomputed(pair, tmp_path, caplog):
-    from quakescan.change.pipeline import PipelineSettings
+    from quakescan.change.settings import PipelineSettings
     from quakescan.studies.experiment import _table
 
     settings = PipelineSettings()

@@ -155,7 +155,8 @@ def test_heavy_unresolved_is_a_building_graded_0_that_cannot_resolve_3():
 def test_the_pipeline_measures_each_buildings_area_and_lowering_resolution():
     from test_surface import epoch, scene
 
-    from quakescan.change.pipeline import PipelineSettings, describe_pair
+    from quakescan.change.pipeline import describe_pair
+    from quakescan.change.settings import PipelineSettings
     from quakescan.change.surface import SurfaceSettings
     from quakescan.learning.classify_run import detectability_counts
 

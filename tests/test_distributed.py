@@ -236,7 +236,7 @@ def test_tiles_finished_before_the_registration_check_answers_are_kept_for_a_res
 def test_a_paper_descriptor_tile_whose_nearest_points_lie_beyond_its_halo_is_widened(tmp_path, cluster):
     """Building 2 loses all but a 2 m strip at one end: its query points' nearest post-event
     points lie up to ~12 m away, beyond the first halo (radius + 10 m) from the far end."""
-    from quakescan.change.pipeline import PipelineSettings
+    from quakescan.change.settings import PipelineSettings
     from quakescan.distributed.classify import classify_distributed
     from quakescan.learning.training import TrainingPair, train
 
@@ -839,7 +839,7 @@ def test_chunk_frame_makes_the_coordinates_bounds_and_blocks_numpy_makes():
 
 
 def test_group_boxes_are_the_x_y_extent_of_each_group():
-    from quakescan.change.pipeline import grouped_by_id, id_counts
+    from quakescan.change.tiling import grouped_by_id, id_counts
     from quakescan.distributed._record_kernels import group_boxes
 
     rng = np.random.default_rng(5)

@@ -103,7 +103,7 @@ def test_a_multi_stage_function_names_its_stages(pair):
     """training_table counts each pair's buildings as a stage named after its post-event file
     (it took progress(name, done, total) before); a single-stage callee inside it reports
     (done, total) only and gets the stage filled in."""
-    from quakescan.change.pipeline import PipelineSettings
+    from quakescan.change.settings import PipelineSettings
     from quakescan.learning.training import TrainingPair, training_table
 
     calls = []

@@ -95,7 +95,7 @@ def test_cr_or_lf_in_an_id_never_splits_a_row_and_evaluate_reads_the_file(tmp_pa
 @pytest.fixture(scope="module")
 def text_id_run(tmp_path_factory):
     """A scanned pair, its footprints with hostile text IDs, a small model."""
-    from quakescan.change.pipeline import PipelineSettings
+    from quakescan.change.settings import PipelineSettings
     from quakescan.formats.footprints import footprints_from_scene, write_footprints
     from quakescan.formats.synthetic import box_city
     from quakescan.learning.model import save_model

@@ -3,7 +3,8 @@ box buildings, the same answers at very different densities, and the quality gat
 import numpy as np
 import pytest
 
-from quakescan.change.pipeline import PipelineSettings, describe_pair
+from quakescan.change.pipeline import describe_pair
+from quakescan.change.settings import PipelineSettings
 from quakescan.change.surface import (
     SURFACE_DESCRIPTORS,
     SurfaceError,

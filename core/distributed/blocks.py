@@ -538,7 +538,7 @@ def _unique_keys(keys: np.ndarray) -> list[tuple[int, int]]:
 @dataclass
 class _Groups:
     """A chunk's points grouped by building ID: the IDs (ascending), the point indices in ID
-    then file order (a counting sort: `quakescan.change.pipeline.grouped_by_id`) and each
+    then file order (a counting sort: `quakescan.change.tiling.grouped_by_id`) and each
     ID's run."""
 
     ids: np.ndarray
@@ -548,7 +548,7 @@ class _Groups:
 
     @classmethod
     def of(cls, ids: np.ndarray) -> "_Groups":
-        from ..change.pipeline import grouped_by_id, id_counts
+        from ..change.tiling import grouped_by_id, id_counts
 
         u, counts = id_counts(ids)
         order, starts = grouped_by_id(ids, u)

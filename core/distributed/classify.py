@@ -436,7 +436,8 @@ def _describe_tiles(client, store, pre_s, post_s, settings, geometry, block_cell
     raises _Realign."""
     from dask.distributed import as_completed
 
-    from ..change.pipeline import quality_gate, rows_by_counts, tile_key
+    from ..change.pipeline import quality_gate, rows_by_counts
+    from ..change.tiling import tile_key
     from .tasks import TileReachError, add_facing_counts, describe_tile_task
 
     rows, ok = rows_by_counts(pre_s.counts, post_s.counts, settings)

@@ -277,7 +277,8 @@ def describe_tile_task(store: str, tile: dict, settings_json: dict, geometry: di
     rows are those of the whole tile. `workers`: threads of the descriptor kernels (the client
     asks for one: a Dask worker runs one task a thread, the cluster's processes are the
     parallelism)."""
-    from ..change.pipeline import PipelineSettings, describe_tile
+    from ..change.pipeline import describe_tile
+    from ..change.settings import PipelineSettings
     from ..change.surface import SurfaceGeometry
     from ..formats.pointcloud import Epoch, without_noise
 
@@ -321,7 +322,7 @@ def registration_task(store: str, settings_json: dict, align, names: dict, post_
     for one, as for a tile)."""
     import logging
 
-    from ..change.pipeline import PipelineSettings
+    from ..change.settings import PipelineSettings
     from ..learning import classification as cl
 
     class Keep(logging.Handler):

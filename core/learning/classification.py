@@ -26,7 +26,8 @@ from pathlib import Path
 import numpy as np
 
 from ..change.detectability import of_building
-from ..change.pipeline import PipelineSettings, describe_pair, descriptor_matrix, settings_for_descriptors
+from ..change.pipeline import describe_pair, descriptor_matrix
+from ..change.settings import PipelineSettings, settings_for_descriptors
 from ..errors import QuakeScanError
 from ..formats.pointcloud import (
     Epoch,
@@ -436,10 +437,10 @@ class _XYByBuilding:
     epoch, with an 8-byte argsort beside it: the run's memory peak)."""
 
     def __init__(self, e: Epoch):
-        from ..change.pipeline import _members_by_id
+        from ..change.tiling import members_by_id
 
         self.xyz = e.xyz
-        self.members = _members_by_id(e.building_id)
+        self.members = members_by_id(e.building_id)
 
     def get(self, bid: int, default=None):
         idx = self.members(bid) if bid > 0 else None

@@ -34,8 +34,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..change.pipeline import PipelineSettings
 from ..change.descriptors import DESCRIPTOR_VERSION
+from ..change.settings import PipelineSettings
 from ..change.surface import NOISE_FREE_DESCRIPTORS, SurfaceSettings
 from ..runtime.progress import stage_log
 from .model_selection import MIN_CITIES_TO_GROUP, cv_groups

@@ -552,7 +552,7 @@ def _check_archive_size(path: Path) -> None:
 def _check_settings(path, meta: dict) -> None:
     """Refuse settings no QuakeScan writes: a radius or levels of detection out of range (an
     edited file would classify every building at settings it was never trained on)."""
-    from ..change.pipeline import radius_problem
+    from ..change.settings import radius_problem
     from ..change.split import SplitSettings
 
     problem = radius_problem(meta.get("radius_m"))
