@@ -29,7 +29,16 @@ from ..learning import classification as cl
 from ..learning import classify_run as run
 from ..runtime.output_folder import empty_own_subfolder, is_own_subfolder, remove_own_subfolder
 from ..runtime.progress import ProgressCallback
-from . import blocks as bk
+from .block_store import (
+    LAYOUT,
+    block_m,
+    epoch_json,
+    join_part_indexes,
+    read_manifest,
+    save_arrays,
+    write_manifest,
+)
+from .streaming import CHUNK_POINTS, EpochStats, default_origin, merge_stats, open_epoch_file
 from .cluster import dashboard_address, dask_client  # noqa: F401  (moved; still importable here)
 
 log = logging.getLogger(__name__)
@@ -70,7 +79,7 @@ def classify_distributed(pre_path, post_path, out_dir, client, *, model_path=Non
                          id_field=None, align: bool | None = None, progress: ProgressCallback | None = None,
                          write_las: bool = True, laz: bool | None = None, force: bool = False,
                          unseen_damage: bool = True, prior: dict | None = None, csv_raw: bool = False,
-                         block_cells: int = BLOCK_CELLS, chunk_points: int = bk.CHUNK_POINTS,
+                         block_cells: int = BLOCK_CELLS, chunk_points: int = CHUNK_POINTS,
                          on_stage=None) -> dict:
     """`quakescan.learning.classification.classify` with the tiles described by the workers of
     `client` (a dask.distributed Client). Same files, same rows; the summary adds "dask".
@@ -89,7 +98,7 @@ def _classify_distributed(pre_path, post_path, out_dir, client, *, model_path=No
                           id_field=None, align: bool | None = None, progress: ProgressCallback | None = None,
                           write_las: bool = True, laz: bool | None = None, force: bool = False,
                           unseen_damage: bool = True, prior: dict | None = None, csv_raw: bool = False,
-                          block_cells: int = BLOCK_CELLS, chunk_points: int = bk.CHUNK_POINTS,
+                          block_cells: int = BLOCK_CELLS, chunk_points: int = CHUNK_POINTS,
                           on_stage=None) -> dict:
     """`classify_distributed` in the output folder it has claimed."""
     t0 = time.perf_counter()
@@ -106,10 +115,10 @@ def _classify_distributed(pre_path, post_path, out_dir, client, *, model_path=No
         if on_stage:
             on_stage(name)
 
-    pre_f, post_f = bk.open_epoch_file(pre_path), bk.open_epoch_file(post_path)
+    pre_f, post_f = open_epoch_file(pre_path), open_epoch_file(post_path)
     fp = _read_footprints(footprints_path, id_field, pre_f, post_f)
     crs = _pair_crs(pre_f, post_f, fp)
-    origin = bk.default_origin(pre_f)
+    origin = default_origin(pre_f)
     out.mkdir(parents=True, exist_ok=True)
     store = out / STORE_NAME
     run.retire_previous_results(out)  # before the first write
@@ -217,7 +226,7 @@ def _classify_distributed(pre_path, post_path, out_dir, client, *, model_path=No
         summary["post_grades"] = str(graded)
     t_graded = time.perf_counter() - t_graded
     summary["dask"] = {"workers": len(client.scheduler_info().get("workers", {})),
-                       "dashboard": dashboard_address(client), "block_m": bk.block_m(block_cells),
+                       "dashboard": dashboard_address(client), "block_m": block_m(block_cells),
                        "tiles_widened": widened, "tiles_split": split,
                        "tile_memory_budget_bytes": int(budget) if np.isfinite(budget) else None}
     seconds = {"read": round(t_read - t0, 2), "describe": round(t_describe - t_read, 2),
@@ -339,13 +348,13 @@ def _tiled_epochs(client, store: Path, digest: str, pre_f, post_f, origin, fp, f
     stats = {}
     for name, f in (("pre", pre_f), ("post", post_f)):
         if not f.copc:
-            bk.join_part_indexes(store / name, len(parts[name]))
-        s = bk.merge_stats([parts[name][k] for k in sorted(parts[name])])
+            join_part_indexes(store / name, len(parts[name]))
+        s = merge_stats([parts[name][k] for k in sorted(parts[name])])
         arrays = {"stable_sample": s.stable_sample, "map_xy": s.map_xy}
         arrays.update({f"hull_{b}": v for b, v in s.hulls.items()})
-        bk.save_arrays(store / f"{name}.npz", arrays)
+        save_arrays(store / f"{name}.npz", arrays)
         stats[name] = s
-    bk.write_manifest(store / MANIFEST, {"fingerprint": digest, "block_cells": block_cells, "layout": bk.LAYOUT,
+    write_manifest(store / MANIFEST, {"fingerprint": digest, "block_cells": block_cells, "layout": LAYOUT,
                                          "pre": stats["pre"].to_json(), "post": stats["post"].to_json()})
     return stats["pre"], stats["post"]
 
@@ -355,12 +364,12 @@ def kept_epochs(store: Path, digest: str, block_cells: int):
     and block layout finished under `store`, or None (none, other, or unreadable: tiled again)."""
     if not is_own_subfolder(store):
         return None
-    manifest = bk.read_manifest(store / MANIFEST)
+    manifest = read_manifest(store / MANIFEST)
     if not (manifest and manifest.get("fingerprint") == digest and manifest.get("block_cells") == block_cells
-            and manifest.get("layout") == bk.LAYOUT):
+            and manifest.get("layout") == LAYOUT):
         return None
     try:
-        return tuple(bk.EpochStats.from_json(manifest[name], dict(np.load(store / f"{name}.npz")))
+        return tuple(EpochStats.from_json(manifest[name], dict(np.load(store / f"{name}.npz")))
                      for name in ("pre", "post"))
     except (OSError, KeyError, ValueError):
         return None
@@ -393,7 +402,7 @@ def _pair_geometry(client, store, pre_s, post_s, settings, block_cells, transfor
         if moved is not None:  # a block empty before the alignment may hold points after it
             keys = {(k[0] + dx, k[1] + dy) for k in keys for dx in (-1, 0, 1) for dy in (-1, 0, 1)}
         groups: dict[tuple, list] = {}
-        per_group = max(1, round(DENSITY_GROUP_M / bk.block_m(block_cells)))
+        per_group = max(1, round(DENSITY_GROUP_M / block_m(block_cells)))
         for k in sorted(keys):
             groups.setdefault((k[0] // per_group, k[1] // per_group), []).append(k)
         return [client.submit(group_roof_cells, str(store / name), g, block_cells, building_only, moved,
@@ -580,15 +589,15 @@ def tile_memory_bytes(store: Path, tile: dict, block_cells: int) -> float:
     """The peak memory of `describe_tile_task` on `tile`, estimated from the points of the blocks
     it reads: every point of those blocks is read, the share of them inside the tile's
     box is described (a COPC epoch: the points of the file's nodes the box overlaps)."""
-    from .blocks import blocks_in_box, stored_points
+    from .block_store import blocks_in_box, stored_points
 
     box = np.asarray(tile["box"], dtype=np.float64)
     area = float(np.prod(np.maximum(box[1] - box[0], 0.0)))
-    side = bk.block_m(block_cells)
+    side = block_m(block_cells)
     read = inside = 0.0
     for name, grow in (("pre", 0.0), ("post", float(tile.get("read_margin", 0.0)))):
         keys = blocks_in_box(box + np.array([[-grow], [grow]]), block_cells)
-        epoch = bk._epoch_json(Path(store) / name)
+        epoch = epoch_json(Path(store) / name)
         if epoch.get("file", {}).get("copc"):  # the points of the file's nodes the box overlaps
             from ..formats.copc import copc_index
 
