@@ -59,8 +59,8 @@ def test_every_progress_parameter_has_the_one_shape():
 
 
 def test_no_other_progress_or_message_callback_is_left():
-    """The old shapes are gone from the signatures: `say(str)` (now log records) and the demo's
-    `progress_factory(label)` (now `progress(done, total, stage)`)."""
+    """No signature takes `say(str)` (stage messages are log records) or the demo's
+    `progress_factory(label)` (progress is `progress(done, total, stage)`)."""
     old = {name: sorted({"say", "progress_factory", "on_progress"} & set(inspect.signature(fn).parameters))
            for name, fn in FUNCTIONS.items()}
     assert {k: v for k, v in old.items() if v} == {}

@@ -14,11 +14,26 @@ from quakescan.results import png_map
 from quakescan.results.building_result import BuildingResult
 from quakescan.results.colours import BACKGROUND_COLOUR, GRADE_COLOURS, NOT_ASSESSABLE_COLOUR, rgb8
 from quakescan.results.csv_table import csv_columns, read_csv, write_csv
+from quakescan.results.evaluation import evaluate_files
 from quakescan.results.geojson import geojson_crs_member, write_geojson
 from quakescan.results.graded_cloud import write_grade_las
-from quakescan.results.outlines import OUTLINE_BUFFER, OUTLINE_FOOTPRINT, OUTLINE_HULL, Outline, building_outlines, hull_candidates
-from quakescan.results.png_map import LABEL_ALL_MAX, MAP_DPI, MAP_SIZE_IN, labelled_ids, legible_labels, nice_length, write_map_png
-from quakescan.results.evaluation import evaluate_files
+from quakescan.results.outlines import (
+    OUTLINE_BUFFER,
+    OUTLINE_FOOTPRINT,
+    OUTLINE_HULL,
+    Outline,
+    building_outlines,
+    hull_candidates,
+)
+from quakescan.results.png_map import (
+    LABEL_ALL_MAX,
+    MAP_DPI,
+    MAP_SIZE_IN,
+    labelled_ids,
+    legible_labels,
+    nice_length,
+    write_map_png,
+)
 
 CLASSES = [0, 3, 4, 5]
 ORIGIN = np.array([500000.0, 5000000.0, 40.0])
@@ -81,8 +96,8 @@ def test_csv_not_assessable_is_empty_never_a_guess(tmp_path):
 
 
 def test_confidence_comes_after_the_first_columns_and_old_files_still_read(tmp_path):
-    """The column added for confidence goes last; a result file written before it (no
-    confidence column) reads as before, with confidence empty, in read_csv and evaluate."""
+    """The column added for confidence goes last; a result file without it (an earlier
+    QuakeScan's) reads with confidence empty, in read_csv and evaluate."""
     first = ["building_id", "assessable", "predicted_grade", "label", "p_0", "p_3", "p_4", "p_5",
              "share_changed", "n_pre", "n_post", "decided_by", "reason"]
     added = ["confidence", "grade_name", "detectable_grade", "min_opening_m2", "min_lowering_m", "walls_resolved",
@@ -388,7 +403,7 @@ def test_grade_las_keeps_register_ids_longer_than_32_bits(tmp_path):
     assert np.array_equal(np.asarray(las.building_id).astype(np.int64), ids)
     assert np.asarray(las.predicted_grade).tolist() == [255, 4, 4, 0, 5]
     write_grade_las(path, np.zeros((2, 3)), ORIGIN, None, np.array([1, 2]), {1: 0})
-    assert laspy.read(path).point_format.dimension_by_name("building_id").dtype == np.uint32  # as before
+    assert laspy.read(path).point_format.dimension_by_name("building_id").dtype == np.uint32  # IDs that fit: 4 bytes
 
 
 def test_grade_las_without_ids_or_crs_and_laz(tmp_path):

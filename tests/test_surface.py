@@ -489,7 +489,7 @@ def test_compiled_patches_and_neighbour_counts_are_numpys(spacing, table, monkey
 
 
 def _cell_tops_numpy(xyz, lo, cell, width, layer_m):
-    """The numpy code _CellTops was before its loops were compiled (the reference)."""
+    """The numpy reference of _CellTops' compiled loops."""
     from quakescan.change.surface import _BAND_STRIDE_M
 
     ij = np.floor((xyz[:, :2] - lo) / cell).astype(np.int64)

@@ -508,8 +508,8 @@ def shipped_text(ev: Evaluation | None) -> str:
     if ev is None:
         return "The shipped default model was not found; no comparison with it."
     f1 = ", ".join(f"{TARGET_SHORT_NAMES[g]} {metric_text(ev.per_grade[g], 'f1', unit='')}" for g in TARGET_GRADES)
-    # "quakescan.trainset" as in the reports of record (now quakescan.learning.trainset): the
-    # report's text stays the same bytes
+    # "quakescan.trainset": the training set's module as the reports of record and the shipped
+    # model's provenance name it, so the report's text stays the same bytes
     return (f"The shipped default model (`core/data/default_model.skops`: the transfer training set of "
             f"`quakescan.trainset`, nothing of this experiment's data), applied as it is to the same test pair: "
             f"overall accuracy {100 * ev.overall_accuracy:.1f} % on {ev.n} buildings ({ev.not_assessable} not "
