@@ -66,7 +66,7 @@ def halves(las_path: Path, out: Path) -> tuple[Path, Path]:
 
 def describe(pre: Path, post: Path, footprints: Path, settings, limits) -> dict:
     """{descriptor: values over the assessable buildings} and the buildings' densities."""
-    from quakescan.change.pipeline import quality_gate, describe_pair
+    from quakescan.change.pipeline import describe_pair, quality_gate
     from quakescan.formats.pair import load_pair
 
     data = load_pair(pre, post, footprints)
@@ -79,7 +79,7 @@ def describe(pre: Path, post: Path, footprints: Path, settings, limits) -> dict:
 
 
 def real_values(work: Path, settings, limits) -> tuple[dict, float]:
-    from quakescan.acquisition.acquire import measured_density
+    from quakescan.acquisition.density import measured_density
 
     parts, densities = [], []
     for tile in (1, 2):

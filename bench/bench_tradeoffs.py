@@ -174,7 +174,8 @@ class Study:
         key = (tag, part, radius, step)
         if key in self._desc:
             return self._desc[key]
-        from quakescan.change.pipeline import PipelineSettings, describe_pair, descriptor_matrix
+        from quakescan.change.pipeline import describe_pair, descriptor_matrix
+        from quakescan.change.settings import PipelineSettings
         from quakescan.formats.pair import load_pair
 
         settings = PipelineSettings(radius_m=radius, core_point_step=step)
@@ -252,7 +253,8 @@ def warm_up(folder: Path, workers: int = -1) -> None:
     from quakescan.acquisition.dim_settings import preset_dim
     from quakescan.acquisition.scan import scan
     from quakescan.acquisition.survey import preset
-    from quakescan.change.pipeline import PipelineSettings, describe_pair
+    from quakescan.change.pipeline import describe_pair
+    from quakescan.change.settings import PipelineSettings
     from quakescan.formats.pointcloud import read_epoch
     from quakescan.formats.synthetic import box_city
     from quakescan.learning.model import train_forest

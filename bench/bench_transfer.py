@@ -317,7 +317,7 @@ GROUPS = {
 def _describe_rows(pre, post, settings, footprints=None, limits=None):
     """Assessable rows of a pair; `limits`: the shipped model's pipeline settings, whose
     density and coverage limits decide what is assessable (as classify does)."""
-    from quakescan.change.pipeline import quality_gate, describe_pair
+    from quakescan.change.pipeline import describe_pair, quality_gate
     from quakescan.formats.pair import load_pair
 
     data = load_pair(pre, post, footprints)

@@ -24,7 +24,8 @@ from collections.abc import Sequence
 
 from .acquisition import acquire as _acquisition
 from .acquisition.acquire import Acquired, Acquisition
-from .change.pipeline import BuildingRow, describe_pair, training_settings
+from .change.pipeline import BuildingRow, describe_pair
+from .change.settings import training_settings
 from .errors import QuakeScanError
 from .formats.pointcloud import Epoch, read_epoch
 from .formats.scene import Scene, read_scene, write_scene

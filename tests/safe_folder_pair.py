@@ -1,7 +1,7 @@
 """The small classified pair the output-folder tests share (tests/test_safe_folder_*.py)."""
 import pytest
 
-from quakescan.change.pipeline import PipelineSettings
+from quakescan.change.settings import PipelineSettings
 from quakescan.learning.model import save_model
 from quakescan.learning.training import TrainingPair, train
 from tests.scenes import scan_box_pair

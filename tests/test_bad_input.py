@@ -100,7 +100,7 @@ def tiny_model(path, radius_m=1.5, split_edit=None, estimator=None, grades=(0, 3
     """A model file for the default paper descriptors (a small forest on random rows)."""
     from sklearn.ensemble import RandomForestClassifier
 
-    from quakescan.change.pipeline import PipelineSettings
+    from quakescan.change.settings import PipelineSettings
     from quakescan.learning.model import DamageModel, save_model
 
     settings = PipelineSettings()
@@ -258,7 +258,7 @@ def _enospc(*_a, **_k):
 
 
 def test_atomic_writer_names_the_output_of_a_full_disk_and_leaves_nothing(tmp_path):
-    from quakescan.results.writers import ResultsError
+    from quakescan.errors import ResultsError
     from quakescan.runtime.atomic import replacing as _atomic  # the one atomic writer (results._atomic before)
 
     target = tmp_path / "sub" / "x.json"
@@ -310,7 +310,7 @@ def test_features_on_a_full_disk(pair, tmp_path, capsys, monkeypatch):
 def test_model_save_on_a_full_disk(tmp_path, monkeypatch):
     import skops.io
 
-    from quakescan.results.writers import ResultsError
+    from quakescan.errors import ResultsError
 
     monkeypatch.setattr(skops.io, "dump", lambda obj, file, **kw: (open(file, "wb").write(b"PK"), _enospc()))
     with pytest.raises(ResultsError, match=r"m\.skops: cannot write: no space left"):
@@ -670,7 +670,7 @@ def test_align_with_too_few_stable_points_names_both_epochs(tmp_path, capsys):
 # ------------------------------------------------------------------------- caches elsewhere
 
 def test_an_unreadable_experiment_cache_is_recomputed(pair, tmp_path, caplog):
-    from quakescan.change.pipeline import PipelineSettings
+    from quakescan.change.settings import PipelineSettings
     from quakescan.studies.experiment import _table
 
     settings = PipelineSettings()

@@ -6,7 +6,7 @@ import laspy
 import numpy as np
 import pytest
 
-from quakescan.change.pipeline import PipelineSettings
+from quakescan.change.settings import PipelineSettings
 from quakescan.cli import main
 from quakescan.assessment.run import classify
 from quakescan.learning.prediction import model_settings
@@ -294,7 +294,7 @@ def test_an_automatic_alignment_must_fit_the_stable_points_markedly_better(monke
     the 0.2 m tolerance) but on flat ground no residual sees it: applied only when it removes
     at least MIN_FIT_GAIN of the rmse (0.0313 m before)."""
     from quakescan.change import align
-    from quakescan.change.pipeline import PipelineSettings
+    from quakescan.change.settings import PipelineSettings
     from quakescan.change import registration as cl
 
     turn = align.Alignment(_turn_about_z(0.1198, [150.0, 150.0, 1.0]), 0.031330, rmse_after, rmse_after, 0.99, 9, 9,

@@ -224,7 +224,8 @@ def test_a_sparse_rescan_of_a_real_tile_shows_no_displaced_surface_by_chance(ahn
     1.2 m sag)."""
     import dataclasses
 
-    from quakescan.change.pipeline import describe_pair, settings_for_descriptors
+    from quakescan.change.pipeline import describe_pair
+    from quakescan.change.settings import settings_for_descriptors
     from quakescan.change.surface import SURFACE_DESCRIPTORS
 
     las, fp = ahn3
@@ -251,7 +252,8 @@ def test_random_halves_of_a_real_tile_see_no_interior_by_chance(ahn3, tmp_path, 
     model of descriptors version 15 called that building heavily damaged; with it, no building
     of any draw sees an interior: at 3.5 pts/m² a patch needs about 2 m²."""
     import quakescan.change.surface as surface
-    from quakescan.change.pipeline import describe_pair, settings_for_descriptors
+    from quakescan.change.pipeline import describe_pair
+    from quakescan.change.settings import settings_for_descriptors
 
     las, fp = ahn3
     settings = settings_for_descriptors(surface.SURFACE_DESCRIPTORS, 1.5)

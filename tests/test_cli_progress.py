@@ -95,7 +95,7 @@ def pair(tmp_path_factory):
 @pytest.fixture(scope="module")
 def small_model(pair, tmp_path_factory):
     """A 10-tree model on the paper's descriptors: quicker to apply than the shipped one."""
-    from quakescan.change.pipeline import PipelineSettings
+    from quakescan.change.settings import PipelineSettings
     from quakescan.learning.model import save_model
     from quakescan.learning.training import TrainingPair, train
 

@@ -19,7 +19,7 @@ def box_copc(tmp_path_factory):
 
 
 def test_a_copc_file_is_read_node_by_node_as_laspy_reads_it_whole(box_copc):
-    from quakescan.distributed.blocks import open_epoch_file
+    from quakescan.distributed.streaming import open_epoch_file
     from quakescan.formats.copc import copc_index
 
     path, _ = box_copc
@@ -41,11 +41,13 @@ def test_a_box_read_from_the_copc_file_is_the_box_read_from_block_files(box_copc
     import json
     from dataclasses import replace
 
-    from quakescan.distributed import blocks
+    from quakescan.distributed.block_store import RECORD
+    from quakescan.distributed.reading import read_box, read_records
+    from quakescan.distributed.streaming import default_origin, open_epoch_file, stream_epoch
 
     path, _ = box_copc
-    f = blocks.open_epoch_file(path)
-    origin = blocks.default_origin(f)
+    f = open_epoch_file(path)
+    origin = default_origin(f)
     cells = 7
     stats = {}
     for name, epoch in (("copc", f), ("blocks", replace(f, copc=False))):
@@ -53,21 +55,21 @@ def test_a_box_read_from_the_copc_file_is_the_box_read_from_block_files(box_copc
         folder.mkdir()
         (folder / "epoch.json").write_text(json.dumps({"file": epoch.to_json(), "origin": origin.tolist(),
                                                        "parts": 0, "block_cells": cells, "footprints": None}))
-        stats[name] = blocks.stream_epoch(epoch, origin, folder, block_cells=cells, chunk_points=40_000)
+        stats[name] = stream_epoch(epoch, origin, folder, block_cells=cells, chunk_points=40_000)
     assert not list((tmp_path / "copc").glob("*.bin")) and list((tmp_path / "blocks").glob("*.bin"))
     assert stats["copc"].counts == stats["blocks"].counts and stats["copc"].blocks == stats["blocks"].blocks
     xy = laspy.read(path).xyz[:, :2] - origin[:2]
     box = np.array([np.quantile(xy, frac[0], axis=0), np.quantile(xy, frac[1], axis=0)])
-    a = blocks.read_box(tmp_path / "copc", f, origin, box, cells)
-    b = blocks.read_box(tmp_path / "blocks", replace(f, copc=False), origin, box, cells)
+    a = read_box(tmp_path / "copc", f, origin, box, cells)
+    b = read_box(tmp_path / "blocks", replace(f, copc=False), origin, box, cells)
     assert len(a[0]) > 0
     np.testing.assert_array_equal(a[0], b[0])
     np.testing.assert_array_equal(a[1], b[1])
     keys = [tuple(k) for k in stats["copc"].blocks[::3]]
     for only in (False, True):
         # the COPC records are the widest, the blocks' the narrowest the file allows: equal values
-        np.testing.assert_array_equal(blocks.read_records(tmp_path / "copc", keys, only),
-                                      blocks.read_records(tmp_path / "blocks", keys, only).astype(blocks.RECORD))
+        np.testing.assert_array_equal(read_records(tmp_path / "copc", keys, only),
+                                      read_records(tmp_path / "blocks", keys, only).astype(RECORD))
     # the densities' roof cells of a group of blocks: the group's box read from the file once
     from quakescan.distributed.tasks import group_roof_cells
 

@@ -2,7 +2,8 @@
 import numpy as np
 import pytest
 
-from quakescan.change.pipeline import PipelineError, PipelineSettings, describe_pair
+from quakescan.change.pipeline import describe_pair
+from quakescan.change.settings import PipelineError, PipelineSettings
 from quakescan.formats.pointcloud import read_epoch
 from tests.scenes import scan_box_pair
 

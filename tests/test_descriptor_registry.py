@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from quakescan.change import descriptors as registry
-from quakescan.change.pipeline import PipelineError, PipelineSettings, describe_pair, settings_for_descriptors
+from quakescan.change.pipeline import describe_pair
+from quakescan.change.settings import PipelineError, PipelineSettings, settings_for_descriptors
 from quakescan.change.surface import NOISE_FREE_DESCRIPTORS, SURFACE_DESCRIPTORS, SurfaceSettings
 from quakescan.learning.default_model import MODEL_DESCRIPTORS
 from tests.test_surface import epoch, scene

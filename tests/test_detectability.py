@@ -11,7 +11,13 @@ import shapely.geometry
 from scipy import stats
 
 from quakescan.change import detectability as D
-from quakescan.results import writers as R
+from quakescan.results import png_map
+from quakescan.results.building_result import BuildingResult
+from quakescan.results.colours import colour_of, rgb8
+from quakescan.results.csv_table import read_csv, write_csv
+from quakescan.results.geojson import write_geojson
+from quakescan.results.outlines import OUTLINE_FOOTPRINT, Outline
+from quakescan.results.png_map import HATCH, HATCH_COLOUR, HEAVY_UNRESOLVED, write_map_png
 from quakescan.results.webmap import legend_entries, write_map_html
 from test_maps import _page_data
 
@@ -149,7 +155,8 @@ def test_heavy_unresolved_is_a_building_graded_0_that_cannot_resolve_3():
 def test_the_pipeline_measures_each_buildings_area_and_lowering_resolution():
     from test_surface import epoch, scene
 
-    from quakescan.change.pipeline import PipelineSettings, describe_pair
+    from quakescan.change.pipeline import describe_pair
+    from quakescan.change.settings import PipelineSettings
     from quakescan.change.surface import SurfaceSettings
     from quakescan.assessment.record import detectability_counts
 
@@ -192,26 +199,26 @@ def _rows():
     assessable (5), graded 0 without detectability (6: an older file, a paper model)."""
     p0 = {0: 0.91, 3: 0.03, 4: 0.03, 5: 0.03}
     return [
-        R.BuildingResult(1, 300, 280, True, grade=0, probabilities=p0, share_changed=0.0, decided_by="model",
+        BuildingResult(1, 300, 280, True, grade=0, probabilities=p0, share_changed=0.0, decided_by="model",
                          confidence=0.91, detectable_grade=4, min_opening_m2=3.25, min_lowering_m=0.31,
                          walls_resolved=False, min_wall_opening_m2=22.5),
-        R.BuildingResult(2, 90, 80, True, grade=0, probabilities=p0, share_changed=0.0, decided_by="model",
+        BuildingResult(2, 90, 80, True, grade=0, probabilities=p0, share_changed=0.0, decided_by="model",
                          confidence=0.91, detectable_grade=None, min_opening_m2=14.4),
-        R.BuildingResult(3, 900, 850, True, grade=0, probabilities=p0, share_changed=0.0, decided_by="model",
+        BuildingResult(3, 900, 850, True, grade=0, probabilities=p0, share_changed=0.0, decided_by="model",
                          confidence=0.91, detectable_grade=3, min_opening_m2=0.9, min_lowering_m=0.22,
                          walls_resolved=True, min_wall_opening_m2=0.6),
-        R.BuildingResult(4, 900, 400, True, grade=5, probabilities={0: 0.1, 3: 0.1, 4: 0.1, 5: 0.7},
+        BuildingResult(4, 900, 400, True, grade=5, probabilities={0: 0.1, 3: 0.1, 4: 0.1, 5: 0.7},
                          share_changed=0.6, decided_by="model", confidence=0.7, detectable_grade=3,
                          min_opening_m2=1.2, min_lowering_m=0.25),
-        R.BuildingResult(5, 12, 300, False, "12 pre-event points < 50"),
-        R.BuildingResult(6, 500, 510, True, grade=0, probabilities={0: 1.0, 3: 0.0, 4: 0.0, 5: 0.0},
+        BuildingResult(5, 12, 300, False, "12 pre-event points < 50"),
+        BuildingResult(6, 500, 510, True, grade=0, probabilities={0: 1.0, 3: 0.0, 4: 0.0, 5: 0.0},
                          share_changed=0.0, decided_by="no change", confidence=1.0),
     ]
 
 
 def test_csv_round_trip_of_the_new_columns_and_old_files(tmp_path):
     path = tmp_path / "buildings.csv"
-    R.write_csv(_rows(), path, CLASSES)
+    write_csv(_rows(), path, CLASSES)
     with open(path, newline="") as f:
         reader = csv.DictReader(f)
         cols, lines = reader.fieldnames, {int(r["building_id"]): r for r in reader}
@@ -226,7 +233,7 @@ def test_csv_round_trip_of_the_new_columns_and_old_files(tmp_path):
         ("", "14.4", "")  # resolves nothing: grade empty, opening given
     for unknown in (5, 6):
         assert lines[unknown]["detectable_grade"] == lines[unknown]["min_opening_m2"] == ""
-    back = {r.building_id: r for r in R.read_csv(path)}
+    back = {r.building_id: r for r in read_csv(path)}
     for w in _rows():
         r = back[w.building_id]
         assert (r.detectable_grade, r.min_opening_m2, r.min_lowering_m, r.walls_resolved, r.min_wall_opening_m2) == \
@@ -239,25 +246,25 @@ def test_csv_round_trip_of_the_new_columns_and_old_files(tmp_path):
         w = csv.writer(g, lineterminator="\n")
         for line in csv.reader(f):
             w.writerow(line[:-5])
-    before = R.read_csv(old)
+    before = read_csv(old)
     assert [r.grade for r in before] == [0, 0, 0, 5, None, 0]
     assert all(r.detectable_grade is None and r.min_opening_m2 is None and not r.heavy_unresolved for r in before)
     # an opening no size resolves (an epoch without points over the building)
-    blind = [R.BuildingResult(9, 60, 10, True, grade=0, probabilities={0: 1.0}, confidence=1.0,
+    blind = [BuildingResult(9, 60, 10, True, grade=0, probabilities={0: 1.0}, confidence=1.0,
                               min_opening_m2=math.inf)]
-    R.write_csv(blind, path, CLASSES)
-    (r,) = R.read_csv(path)
+    write_csv(blind, path, CLASSES)
+    (r,) = read_csv(path)
     assert r.min_opening_m2 == math.inf and r.detectable_grade is None and r.heavy_unresolved
 
 
 def test_geojson_has_the_new_properties(tmp_path):
     rows = _rows()
-    rows.append(R.BuildingResult(9, 60, 10, True, grade=0, probabilities={0: 1.0}, confidence=1.0,
+    rows.append(BuildingResult(9, 60, 10, True, grade=0, probabilities={0: 1.0}, confidence=1.0,
                                  min_opening_m2=math.inf))
-    outlines = {r.building_id: R.Outline(shapely.geometry.box(E0 + 20 * i, N0, E0 + 20 * i + 12, N0 + 10),
-                                         R.OUTLINE_FOOTPRINT) for i, r in enumerate(rows)}
+    outlines = {r.building_id: Outline(shapely.geometry.box(E0 + 20 * i, N0, E0 + 20 * i + 12, N0 + 10),
+                                         OUTLINE_FOOTPRINT) for i, r in enumerate(rows)}
     path = tmp_path / "buildings.geojson"
-    R.write_geojson(rows, outlines, path, "EPSG:32633", CLASSES)
+    write_geojson(rows, outlines, path, "EPSG:32633", CLASSES)
     props = {f["id"]: f["properties"] for f in json.loads(path.read_text())["features"]}
     assert (props[1]["detectable_grade"], props[1]["min_opening_m2"], props[1]["min_lowering_m"]) == (4, 3.25, 0.31)
     assert props[2]["detectable_grade"] is None and props[2]["min_opening_m2"] == 14.4
@@ -269,22 +276,22 @@ def test_geojson_has_the_new_properties(tmp_path):
 
 def _map_rows():
     rows = _rows()
-    outlines = {r.building_id: R.Outline(shapely.geometry.box(E0 + 25 * i, N0, E0 + 25 * i + 16, N0 + 12),
-                                         R.OUTLINE_FOOTPRINT) for i, r in enumerate(rows)}
+    outlines = {r.building_id: Outline(shapely.geometry.box(E0 + 25 * i, N0, E0 + 25 * i + 16, N0 + 12),
+                                         OUTLINE_FOOTPRINT) for i, r in enumerate(rows)}
     return rows, outlines
 
 
 def test_png_map_hatches_the_buildings_graded_0_that_cannot_resolve_heavy(tmp_path):
     rows, outlines = _map_rows()
-    fig, ax = R._draw_map(rows, outlines, "hatched", None, "EPSG:32633")
+    fig, ax = png_map._draw_map(rows, outlines, "hatched", None, "EPSG:32633")
     (hatched,) = [c for c in ax.collections if c.get_gid() == "heavy-unresolved"]
-    assert hatched.get_hatch() == R.HATCH and len(hatched.get_paths()) == 2
+    assert hatched.get_hatch() == HATCH and len(hatched.get_paths()) == 2
     labels = [t.get_text() for t in ax.get_legend().get_texts()]
-    assert labels[:2] == ["0 no damage: 4", R.HEAVY_UNRESOLVED.replace("; ", ";\n") + ": 2"]
-    assert ax.get_legend().get_patches()[1].get_hatch() == R.HATCH
+    assert labels[:2] == ["0 no damage: 4", HEAVY_UNRESOLVED.replace("; ", ";\n") + ": 2"]
+    assert ax.get_legend().get_patches()[1].get_hatch() == HATCH
     # in the pixels: dark stripes over the green of buildings 1 and 2, plain green on 3 and 6
     path = tmp_path / "damage_map.png"
-    R.write_map_png(rows, outlines, path, "hatched", crs="EPSG:32633")
+    write_map_png(rows, outlines, path, "hatched", crs="EPSG:32633")
     import matplotlib.image
 
     img = matplotlib.image.imread(path)[:, :, :3]
@@ -295,16 +302,16 @@ def test_png_map_hatches_the_buildings_graded_0_that_cannot_resolve_heavy(tmp_pa
         x0, y0, x1, y1 = outlines[bid].geometry.bounds  # the lower left quarter: the ID label sits in the middle
         (ax0, ay0), (ax1, ay1) = ax.transData.transform([(x0 + 1, y0 + 1), (x0 + 0.4 * (x1 - x0), y0 + 0.4 * (y1 - y0))])
         patch = img[int(h_px - ay1):int(h_px - ay0), int(ax0):int(ax1)]
-        green = np.abs(patch - np.array(R._rgb8(R.colour_of(0))) / 255).max(axis=2) < 2 / 255
+        green = np.abs(patch - np.array(rgb8(colour_of(0))) / 255).max(axis=2) < 2 / 255
         assert green.mean() > 0.3, bid  # the fill is still the grade's
         return (patch.max(axis=2) < 0.35).mean()
 
     assert dark_share(1) > 0.05 and dark_share(2) > 0.05
     assert dark_share(3) == 0.0 and dark_share(6) == 0.0
     # without such buildings the map has neither hatch nor legend entry
-    fig, ax = R._draw_map(rows[2:], outlines, "plain", None, None)
+    fig, ax = png_map._draw_map(rows[2:], outlines, "plain", None, None)
     assert not [c for c in ax.collections if c.get_gid() == "heavy-unresolved"]
-    assert not any(R.HEAVY_UNRESOLVED in t.get_text() for t in ax.get_legend().get_texts())
+    assert not any(HEAVY_UNRESOLVED in t.get_text() for t in ax.get_legend().get_texts())
 
 
 def test_html_map_stripes_them_and_says_why_in_the_popup(tmp_path):
@@ -318,13 +325,13 @@ def test_html_map_stripes_them_and_says_why_in_the_popup(tmp_path):
     assert [b for b, p in sorted(by_id.items()) if p["hatched"]] == [1, 2]
     p1, p2, p3 = by_id[1]["popup"], by_id[2]["popup"], by_id[3]["popup"]
     for want in ("lowest grade resolvable</th><td>4 very heavy (extreme)", "smallest opening resolvable</th><td>3.2 m²",
-                 "smallest lowering resolvable</th><td>0.31 m", f"note</th><td>{R.HEAVY_UNRESOLVED}"):
+                 "smallest lowering resolvable</th><td>0.31 m", f"note</th><td>{HEAVY_UNRESOLVED}"):
         assert want in p1, want
     assert "lowest grade resolvable</th><td>none of grades 3-5" in p2 and "smallest lowering" not in p2
     assert "lowest grade resolvable</th><td>3 substantial to heavy (heavy)" in p3 and "note" not in p3
     assert "resolvable" not in by_id[5]["popup"] and "resolvable" not in by_id[6]["popup"]  # unknown
     legend = [(e["text"], e["count"], e.get("hatched", False)) for e in data["legend"]]
-    assert legend[:2] == [("0 no damage", 4, False), (R.HEAVY_UNRESOLVED, 2, True)]
+    assert legend[:2] == [("0 no damage", 4, False), (HEAVY_UNRESOLVED, 2, True)]
     assert not any(e.get("hatched") for e in legend_entries(rows[2:]))
 
 
@@ -348,5 +355,5 @@ def test_html_map_hatch_renders_in_headless_chromium(tmp_path):
     import matplotlib.image
 
     img = (matplotlib.image.imread(shot)[:, :, :3] * 255).round().astype(int)
-    stripe = np.rint(0.9 * np.array(R._rgb8(R.HATCH_COLOUR)) + 0.1 * np.array([0xf4, 0xf4, 0xf4]))
+    stripe = np.rint(0.9 * np.array(rgb8(HATCH_COLOUR)) + 0.1 * np.array([0xf4, 0xf4, 0xf4]))
     assert (np.abs(img - stripe).max(axis=2) <= 3).mean() > 0.002  # the stripes cover a visible area

@@ -237,7 +237,7 @@ def test_tiles_finished_before_the_registration_check_answers_are_kept_for_a_res
 def test_a_paper_descriptor_tile_whose_nearest_points_lie_beyond_its_halo_is_widened(tmp_path, cluster):
     """Building 2 loses all but a 2 m strip at one end: its query points' nearest post-event
     points lie up to ~12 m away, beyond the first halo (radius + 10 m) from the far end."""
-    from quakescan.change.pipeline import PipelineSettings
+    from quakescan.change.settings import PipelineSettings
     from quakescan.distributed.engine import classify_distributed
     from quakescan.learning.training import TrainingPair, train
 
@@ -328,12 +328,14 @@ def test_bad_cluster_options_are_named(tmp_path, pair, capsys):
 
 
 def test_blocks_hold_every_point_once_and_read_back_in_file_order(pair, tmp_path):
-    from quakescan.distributed import blocks
+    from quakescan.distributed.block_store import stored_points, stored_record
+    from quakescan.distributed.reading import read_box, read_records
+    from quakescan.distributed.streaming import default_origin, open_epoch_file, stream_epoch
 
-    f = blocks.open_epoch_file(pair / "pre.las")
-    origin = blocks.default_origin(f)
-    stats = blocks.stream_epoch(f, origin, tmp_path / "pre", block_cells=BLOCK_CELLS, chunk_points=33_333)
-    rec = blocks.read_records(tmp_path / "pre", [tuple(k) for k in stats.blocks])
+    f = open_epoch_file(pair / "pre.las")
+    origin = default_origin(f)
+    stats = stream_epoch(f, origin, tmp_path / "pre", block_cells=BLOCK_CELLS, chunk_points=33_333)
+    rec = read_records(tmp_path / "pre", [tuple(k) for k in stats.blocks])
     np.testing.assert_array_equal(rec["index"], np.arange(f.n))
     from quakescan.formats.pointcloud import read_epoch
 
@@ -345,16 +347,16 @@ def test_blocks_hold_every_point_once_and_read_back_in_file_order(pair, tmp_path
     assert stats.n == f.n
     # building points have files of their own: the densities read them alone
     keys = [tuple(k) for k in stats.blocks]
-    only = blocks.read_records(tmp_path / "pre", keys, buildings_only=True)
+    only = read_records(tmp_path / "pre", keys, buildings_only=True)
     np.testing.assert_array_equal(only, rec[rec["building_id"] > 0])
     assert 0 < len(only) < len(rec)
     # one file for the epoch streamed whole; each block's two kinds are runs of their own in it
     assert sorted(p.name for p in (tmp_path / "pre").iterdir()) == ["blocks.index.npy", "part0.bin", "record.json"]
     index = np.load(tmp_path / "pre" / "blocks.index.npy")
     assert index.flags.f_contiguous and (np.diff(index[:, 0]) > 0).all()  # one run a block and kind
-    assert index[:, 3].sum() == f.n and blocks.stored_points(tmp_path / "pre", keys) == f.n
+    assert index[:, 3].sum() == f.n and stored_points(tmp_path / "pre", keys) == f.n
     # the pair's IDs are uint32 (as QuakeScan writes them): 21-byte records, the IDs' bits kept
-    record = blocks.stored_record(tmp_path / "pre")
+    record = stored_record(tmp_path / "pre")
     assert record.itemsize == 21 and record["building_id"] == np.uint32 and record["index"] == np.uint32
     stored = np.fromfile(tmp_path / "pre" / "part0.bin", dtype=record)
     assert (tmp_path / "pre" / "part0.bin").stat().st_size == 21 * f.n
@@ -365,10 +367,10 @@ def test_blocks_hold_every_point_once_and_read_back_in_file_order(pair, tmp_path
     box = np.array([np.quantile(e.xyz[:, :2], 0.3, axis=0), np.quantile(e.xyz[:, :2], 0.6, axis=0)])
     box[0, 0] = e.xyz[123, 0]  # a point on the edge is kept
     inside = np.all((e.xyz[:, :2] >= box[0]) & (e.xyz[:, :2] <= box[1]), axis=1)
-    rec, xyz = blocks.read_box(tmp_path / "pre", f, origin, box, BLOCK_CELLS)
+    rec, xyz = read_box(tmp_path / "pre", f, origin, box, BLOCK_CELLS)
     np.testing.assert_array_equal(rec["index"], np.flatnonzero(inside))
     np.testing.assert_array_equal(xyz, e.xyz[inside])
-    rec, xyz = blocks.read_box(tmp_path / "pre", f, origin, box + 1e6, BLOCK_CELLS)
+    rec, xyz = read_box(tmp_path / "pre", f, origin, box + 1e6, BLOCK_CELLS)
     assert len(rec) == 0 and xyz.shape == (0, 3)
 
 
@@ -487,44 +489,52 @@ def test_block_runs_read_back_exactly_and_a_cut_stream_leaves_nothing(pair, tmp_
     """Runs of two parts read in any grouping give the records at their offsets; runs that
     follow on in a file are one read. A part file shorter than its index is named, and a
     stream cut mid-way leaves neither a part file nor an index."""
-    from quakescan.distributed import blocks
+    from quakescan.distributed.block_store import (
+        INDEX_NAME,
+        block_runs,
+        join_part_indexes,
+        part_path,
+        read_runs,
+        stored_record,
+    )
+    from quakescan.distributed.streaming import default_origin, open_epoch_file, stream_epoch
     from quakescan.formats.pointcloud import PointCloudError
 
-    f = blocks.open_epoch_file(pair / "pre.las")
-    origin = blocks.default_origin(f)
+    f = open_epoch_file(pair / "pre.las")
+    origin = default_origin(f)
     folder = tmp_path / "parts"
     half = f.n // 2
     for part, (a, b) in enumerate(((0, half), (half, f.n))):
-        blocks.stream_epoch(f, origin, folder, block_cells=BLOCK_CELLS, chunk_points=25_000, part=part,
+        stream_epoch(f, origin, folder, block_cells=BLOCK_CELLS, chunk_points=25_000, part=part,
                             start=a, stop=b, segment_points=60_000)
-    blocks.join_part_indexes(folder, 2)
-    index = np.load(folder / blocks.INDEX_NAME)
-    record = blocks.stored_record(folder)
-    files = [np.fromfile(blocks.part_path(folder, p), dtype=record) for p in (0, 1)]
+    join_part_indexes(folder, 2)
+    index = np.load(folder / INDEX_NAME)
+    record = stored_record(folder)
+    files = [np.fromfile(part_path(folder, p), dtype=record) for p in (0, 1)]
     assert index[:, 3].sum() == f.n == sum(len(x) for x in files)
     rng = np.random.default_rng(3)
     for pick in (np.arange(len(index)), rng.choice(len(index), 9, replace=False), np.zeros(0, int)):
         runs = index[np.sort(pick)][:, 1:4]
-        rec, starts = blocks.read_runs(folder, runs)
+        rec, starts = read_runs(folder, runs)
         assert len(starts) == len(runs) + 1 and starts[-1] == len(rec) == runs[:, 2].sum()
         for (part, offset, count), a in zip(runs.tolist(), starts[:-1].tolist()):
             np.testing.assert_array_equal(rec[a:a + count], files[part][offset:offset + count])
     # a part's file cut short (a disk that filled up behind the manifest): named, not read as garbage
-    with open(blocks.part_path(folder, 1), "r+b") as fh:
+    with open(part_path(folder, 1), "r+b") as fh:
         fh.truncate(record.itemsize * (len(files[1]) - 5))
     ones = index[index[:, 1] == 1]
     last = ones[np.argmax(ones[:, 2])][None, 1:4]  # the run at the file's end
     with pytest.raises(PointCloudError, match=r"part1\.bin: block file ends 105 bytes early"):
-        blocks.read_runs(folder, last)
+        read_runs(folder, last)
     with pytest.raises(FileNotFoundError, match="no block index"):
-        blocks.block_runs(tmp_path / "nowhere", [(0, 0)])
+        block_runs(tmp_path / "nowhere", [(0, 0)])
 
     def cut(done, total):
         if done > 50_000:
             raise KeyboardInterrupt
 
     with pytest.raises(KeyboardInterrupt):
-        blocks.stream_epoch(f, origin, tmp_path / "cut", block_cells=BLOCK_CELLS, chunk_points=25_000, on_chunk=cut)
+        stream_epoch(f, origin, tmp_path / "cut", block_cells=BLOCK_CELLS, chunk_points=25_000, on_chunk=cut)
     assert list((tmp_path / "cut").iterdir()) == []
 
 
@@ -532,24 +542,26 @@ def test_an_epoch_streamed_in_parts_is_the_epoch_streamed_whole(pair, tmp_path):
     """Three ranges of the file's points, each into its own part file of several segments:
     the same records in every block, in the same order, and the same stats (counts, boxes,
     samples, map, hulls)."""
-    from quakescan.distributed import blocks
+    from quakescan.distributed.block_store import block_runs, join_part_indexes
     from quakescan.distributed.engine import part_bounds
+    from quakescan.distributed.reading import read_records
+    from quakescan.distributed.streaming import default_origin, merge_stats, open_epoch_file, stream_epoch
 
-    f = blocks.open_epoch_file(pair / "pre.las")
-    origin = blocks.default_origin(f)
+    f = open_epoch_file(pair / "pre.las")
+    origin = default_origin(f)
     kw = dict(block_cells=BLOCK_CELLS, chunk_points=20_000, with_hulls=True, sample=(f.n, 5_000), map_step=7)
-    whole = blocks.stream_epoch(f, origin, tmp_path / "whole", **kw)
+    whole = stream_epoch(f, origin, tmp_path / "whole", **kw)
     bounds = part_bounds(f.n, 1, 40_000)
     assert bounds[0] == 0 and bounds[-1] == f.n and len(bounds) >= 3
     (tmp_path / "parts").mkdir()
     (tmp_path / "parts" / "epoch.json").write_text('{"parts": %d}' % (len(bounds) - 1))
     # parts of several segments each (a segment every two chunks): a block has runs in several places
-    parts = [blocks.stream_epoch(f, origin, tmp_path / "parts", part=k, start=a, stop=b, segment_points=30_000, **kw)
+    parts = [stream_epoch(f, origin, tmp_path / "parts", part=k, start=a, stop=b, segment_points=30_000, **kw)
              for k, (a, b) in enumerate(zip(bounds[:-1], bounds[1:]))]
-    blocks.join_part_indexes(tmp_path / "parts", len(parts))
-    assert len(blocks.block_runs(tmp_path / "parts", [tuple(k) for k in whole.blocks])) > 2 * len(
-        blocks.block_runs(tmp_path / "whole", [tuple(k) for k in whole.blocks]))
-    merged = blocks.merge_stats(parts)
+    join_part_indexes(tmp_path / "parts", len(parts))
+    assert len(block_runs(tmp_path / "parts", [tuple(k) for k in whole.blocks])) > 2 * len(
+        block_runs(tmp_path / "whole", [tuple(k) for k in whole.blocks]))
+    merged = merge_stats(parts)
     assert merged.n == whole.n == f.n and merged.counts == whole.counts
     assert merged.lo == whole.lo and merged.hi == whole.hi and merged.bounds == whole.bounds
     assert merged.blocks == whole.blocks
@@ -559,8 +571,8 @@ def test_an_epoch_streamed_in_parts_is_the_epoch_streamed_whole(pair, tmp_path):
     for b in whole.hulls:
         np.testing.assert_array_equal(merged.hulls[b], whole.hulls[b])
     for key in whole.blocks:
-        a = blocks.read_records(tmp_path / "whole", [tuple(key)])
-        b = blocks.read_records(tmp_path / "parts", [tuple(key)])
+        a = read_records(tmp_path / "whole", [tuple(key)])
+        b = read_records(tmp_path / "parts", [tuple(key)])
         np.testing.assert_array_equal(a, b)
 
 
@@ -570,11 +582,11 @@ def test_streamed_pages_are_dropped_exactly_once_each_and_change_nothing_stored(
     byte range of its points (offset + index x record size), chunk after chunk, and stores
     the records and stats it stores without. A compressed copy drops nothing: its points'
     bytes are not a range of their index."""
-    from quakescan.distributed import blocks
+    from quakescan.distributed.streaming import default_origin, open_epoch_file
     from quakescan.distributed.tasks import stream_part
 
-    f = blocks.open_epoch_file(pair / "pre.las")
-    origin = blocks.default_origin(f)
+    f = open_epoch_file(pair / "pre.las")
+    origin = default_origin(f)
     with laspy.open(pair / "pre.las") as reader:
         header = reader.header
     calls = []
@@ -597,12 +609,12 @@ def test_streamed_pages_are_dropped_exactly_once_each_and_change_nothing_stored(
     laz = tmp_path / "pre.laz"
     laspy.read(pair / "pre.las").write(laz)
     calls.clear()
-    stream_part(str(tmp_path / "laz"), blocks.open_epoch_file(laz).to_json(), *args, pair_bytes=10 ** 15)
+    stream_part(str(tmp_path / "laz"), open_epoch_file(laz).to_json(), *args, pair_bytes=10 ** 15)
     assert calls == []
 
 
 def test_the_page_cache_is_said_to_hold_a_pair_up_to_half_the_machines_memory():
-    from quakescan.distributed.blocks import PAGE_CACHE_SHARE, page_cache_cannot_hold
+    from quakescan.distributed.streaming import PAGE_CACHE_SHARE, page_cache_cannot_hold
 
     assert PAGE_CACHE_SHARE == 0.5
     assert not page_cache_cannot_hold(None) and not page_cache_cannot_hold(0)
@@ -641,24 +653,25 @@ def test_blocks_are_deleted_beside_the_results_their_manifest_first(tmp_path, mo
 
 
 def test_blocks_of_an_interrupted_run_are_kept_only_for_the_same_inputs_and_layout(tmp_path):
-    from quakescan.distributed import blocks
+    from quakescan.distributed.block_store import LAYOUT, save_arrays, write_manifest
     from quakescan.distributed.engine import MANIFEST, kept_epochs
+    from quakescan.distributed.streaming import EpochStats
     from quakescan.runtime.output_folder import FOLDER_MARKER
 
     (tmp_path / FOLDER_MARKER).write_text("")  # the store is QuakeScan's (tests/test_safe_folder_deletes.py)
-    stats = blocks.EpochStats(n=3, counts={7: 3}, lo={7: (0.0, 0.0)}, hi={7: (1.0, 1.0)}, blocks=[[0, 0]])
+    stats = EpochStats(n=3, counts={7: 3}, lo={7: (0.0, 0.0)}, hi={7: (1.0, 1.0)}, blocks=[[0, 0]])
     for name in ("pre", "post"):
-        blocks.save_arrays(tmp_path / f"{name}.npz", {"map_xy": np.zeros((1, 2))})
-    manifest = {"fingerprint": "abc", "block_cells": 50, "layout": blocks.LAYOUT,
+        save_arrays(tmp_path / f"{name}.npz", {"map_xy": np.zeros((1, 2))})
+    manifest = {"fingerprint": "abc", "block_cells": 50, "layout": LAYOUT,
                 "pre": stats.to_json(), "post": stats.to_json()}
-    blocks.write_manifest(tmp_path / MANIFEST, manifest)
+    write_manifest(tmp_path / MANIFEST, manifest)
     pre, post = kept_epochs(tmp_path, "abc", 50)
     assert pre.counts == post.counts == {7: 3}
     assert kept_epochs(tmp_path, "other inputs", 50) is None
     assert kept_epochs(tmp_path, "abc", 25) is None
     # a store of the layout before building points had files of their own: its densities
     # would read no building point, so it is tiled again
-    blocks.write_manifest(tmp_path / MANIFEST, {k: v for k, v in manifest.items() if k != "layout"})
+    write_manifest(tmp_path / MANIFEST, {k: v for k, v in manifest.items() if k != "layout"})
     assert kept_epochs(tmp_path, "abc", 50) is None
 
 
@@ -697,16 +710,18 @@ def test_block_densities_merged_are_the_whole_epochs_density_to_the_last_bit(pai
     """Each block's roof cells counted on its own (a dense grid, neighbours by shifting it),
     merged by the client: the planimetric density one process computes from every building
     point at once, exactly."""
-    from quakescan.grid.density import planimetric_density
-    from quakescan.distributed import blocks
+    from quakescan.distributed.block_store import stored_points
+    from quakescan.distributed.reading import read_records
+    from quakescan.distributed.streaming import default_origin, open_epoch_file, stream_epoch
     from quakescan.distributed.tasks import _roof_cells, block_roof_cells, group_roof_cells, merge_roof_cells
     from quakescan.formats.pointcloud import read_epoch
+    from quakescan.grid.density import planimetric_density
 
     for name in ("pre", "post"):
-        f = blocks.open_epoch_file(pair / f"{name}.las")
-        origin = blocks.default_origin(f)
+        f = open_epoch_file(pair / f"{name}.las")
+        origin = default_origin(f)
         folder = tmp_path / f"{name}{cells}"
-        stats = blocks.stream_epoch(f, origin, folder, block_cells=cells, chunk_points=50_000)
+        stats = stream_epoch(f, origin, folder, block_cells=cells, chunk_points=50_000)
         (folder / "epoch.json").write_text(json.dumps({"file": f.to_json(), "origin": origin.tolist(), "parts": 0}))
         parts = [block_roof_cells(str(folder), k, cells) for k in stats.blocks]
         merged = merge_roof_cells(parts)
@@ -714,7 +729,7 @@ def test_block_densities_merged_are_the_whole_epochs_density_to_the_last_bit(pai
         assert merged == planimetric_density(e.xyz, e.building_id > 0) > 0
         # the compiled cells of the records: each block's share as numpy's coordinates give it
         for k, part in zip(stats.blocks, parts):
-            rec = blocks.read_records(folder, [tuple(k)], buildings_only=True)
+            rec = read_records(folder, [tuple(k)], buildings_only=True)
             assert part == _roof_cells(f.local_xyz(rec["X"], rec["Y"], rec["Z"], origin), tuple(k), cells)
         # a square of 3 × 3 blocks counted as one part (as the client groups them): the same density,
         # unmoved and moved by an alignment (the blocks around the epoch's asked too, as the client does)
@@ -741,7 +756,7 @@ def test_block_densities_merged_are_the_whole_epochs_density_to_the_last_bit(pai
         for k in stats.blocks:
             squares.setdefault((k[0] // 3, k[1] // 3), []).append(tuple(k))
         def stored(g):
-            return blocks.stored_points(folder, g, buildings_only=True)
+            return stored_points(folder, g, buildings_only=True)
 
         moved_whole = merge_roof_cells([p for g in squares.values()
                                         for p in group_roof_cells(str(folder), g, cells, True, moved, 3 * cells)])
@@ -759,23 +774,23 @@ def test_block_densities_merged_are_the_whole_epochs_density_to_the_last_bit(pai
 def test_a_blocks_roof_cells_from_its_records_at_utm_offsets(tmp_path):
     """Cells and heights made from the stored records (one loop) give the counts numpy's
     coordinates give, at UTM offsets with cells of both signs, over two parts' files."""
-    from quakescan.distributed import blocks
+    from quakescan.distributed.block_store import block_of, join_part_indexes, part_index_path, part_path, run_keys
     from quakescan.distributed.tasks import _roof_cells, block_roof_cells
 
     f, origin, rec = _utm_records(30_000, seed=11)
     rec["X"] = rec["X"] % 40_000 - 20_000  # local x in -9.75..30.25 m: cells of both signs, two blocks of 50 m
     rec["Y"] = rec["Y"] % 40_000 - 20_000  # local y in -29.5..10.5 m
     xyz = f.local_xyz(rec["X"], rec["Y"], rec["Z"], origin)
-    key = tuple(blocks.block_of(xyz[:1, :2], 50)[0].tolist())
-    inside = (blocks.block_of(xyz[:, :2], 50) == key).all(axis=1) & (rec["building_id"] > 0)
+    key = tuple(block_of(xyz[:1, :2], 50)[0].tolist())
+    inside = (block_of(xyz[:, :2], 50) == key).all(axis=1) & (rec["building_id"] > 0)
     assert inside.sum() > 1000
     folder = tmp_path / "pre"
     folder.mkdir()
     kept = rec[inside]
     for part, half in enumerate((kept[::2], kept[1::2])):
-        half.tofile(blocks.part_path(folder, part))
-        np.save(blocks.part_index_path(folder, part), np.array([[blocks.run_keys(*key, 1), part, 0, len(half)]]))
-    blocks.join_part_indexes(folder, 2)
+        half.tofile(part_path(folder, part))
+        np.save(part_index_path(folder, part), np.array([[run_keys(*key, 1), part, 0, len(half)]]))
+    join_part_indexes(folder, 2)
     (folder / "epoch.json").write_text(json.dumps({"file": f.to_json(), "origin": origin.tolist(), "parts": 2}))
     want = _roof_cells(xyz[inside], key, 50)
     assert want["cells"] > 100
@@ -798,17 +813,18 @@ def test_merged_runs_are_in_the_order_a_stable_argsort_gives(runs):
 def _utm_records(n=20_000, seed=3, record=None):
     """Records (RECORD, or `record`) of a file whose integers straddle zero about a UTM offset
     (local coordinates of both signs, block edges crossed), with points on whole metres."""
-    from quakescan.distributed import blocks
+    from quakescan.distributed.block_store import RECORD
+    from quakescan.distributed.streaming import EpochFile
 
     rng = np.random.default_rng(seed)
-    rec = np.empty(n, blocks.RECORD if record is None else record)
+    rec = np.empty(n, RECORD if record is None else record)
     rec["index"] = np.sort(rng.choice(10 * n, n, replace=False))
     rec["X"], rec["Y"] = rng.integers(-90_000, 90_000, n), rng.integers(-90_000, 90_000, n)
     rec["X"][:50] = 7_000  # 7.000 m: on a block edge and on the box's edge below
     rec["Z"] = rng.integers(-5_000, 40_000, n)
     rec["classification"] = rng.integers(0, 7, n)
     rec["building_id"] = np.where(rng.random(n) < 0.4, rng.integers(1, 30, n), 0)
-    f = blocks.EpochFile("utm.las", n, [0.001, 0.001, 0.001], [500_000.25, 5_200_000.5, 100.0], [0] * 3, [0] * 3,
+    f = EpochFile("utm.las", n, [0.001, 0.001, 0.001], [500_000.25, 5_200_000.5, 100.0], [0] * 3, [0] * 3,
                          None, [])
     return f, np.array([499_990.0, 5_200_010.0, 0.0]), rec
 
@@ -817,8 +833,8 @@ def test_chunk_frame_makes_the_coordinates_bounds_and_blocks_numpy_makes():
     """The streamed chunk's compiled frame: coordinates equal to EpochFile.local_xyz to the
     bit at UTM offsets, blocks as block_of floors them (negative cells included), the
     bounds, and block codes that order blocks, other points before building points."""
-    from quakescan.distributed import blocks
     from quakescan.distributed._record_kernels import block_codes, chunk_frame
+    from quakescan.distributed.block_store import block_of
 
     f, origin, rec = _utm_records()
     n = len(rec)
@@ -827,7 +843,7 @@ def test_chunk_frame_makes_the_coordinates_bounds_and_blocks_numpy_makes():
     lo, hi, klo, khi = chunk_frame(rec["X"], rec["Y"], rec["Z"], scales, shifts, 1.0, BLOCK_CELLS, xyz, keys)
     want = f.local_xyz(rec["X"], rec["Y"], rec["Z"], origin)
     np.testing.assert_array_equal(xyz, want)
-    want_keys = blocks.block_of(want[:, :2], BLOCK_CELLS)
+    want_keys = block_of(want[:, :2], BLOCK_CELLS)
     np.testing.assert_array_equal(keys, want_keys)
     assert (keys < 0).any() and (keys > 0).any()
     np.testing.assert_array_equal(lo, want.min(axis=0))
@@ -840,7 +856,7 @@ def test_chunk_frame_makes_the_coordinates_bounds_and_blocks_numpy_makes():
 
 
 def test_group_boxes_are_the_x_y_extent_of_each_group():
-    from quakescan.change.pipeline import grouped_by_id, id_counts
+    from quakescan.change.tiling import grouped_by_id, id_counts
     from quakescan.distributed._record_kernels import group_boxes
 
     rng = np.random.default_rng(5)
@@ -859,10 +875,10 @@ def test_keep_in_box_keeps_what_the_numpy_mask_keeps_edges_included(narrow):
     """The compiled cut of a block file to a box: the records numpy's mask of local_xyz
     keeps (UTM offsets, points on the box's edge), appended after the rows already filled;
     from the widest record and from the 21-byte one (unaligned fields either way)."""
-    from quakescan.distributed import blocks
     from quakescan.distributed._record_kernels import keep_in_box
+    from quakescan.distributed.block_store import RECORD, record_dtype
 
-    record = blocks.record_dtype(20_000, "<u4") if narrow else blocks.RECORD
+    record = record_dtype(20_000, "<u4") if narrow else RECORD
     f, origin, rec = _utm_records(record=record)
     want = f.local_xyz(rec["X"], rec["Y"], rec["Z"], origin)
     box = np.array([[want[0, 0], -20.0], [want[:50, 0].max() + 30.0, 35.5]])
@@ -887,7 +903,7 @@ def test_records_are_as_narrow_as_the_file_allows():
     """A stored point's index and building ID take 4 bytes where every value fits: a file's
     point count up to 2^32 (an index is below it), building IDs of 4 bytes or fewer in the
     file (their signedness kept), footprint IDs in int32's range; 8 bytes otherwise."""
-    from quakescan.distributed.blocks import RECORD, record_dtype
+    from quakescan.distributed.block_store import RECORD, record_dtype
 
     def widths(d):
         return d["index"].str, d["building_id"].str, d.itemsize
@@ -912,7 +928,9 @@ def test_building_ids_beyond_int32_are_stored_and_read_back_exactly(tmp_path, id
     reads them."""
     import shapely
 
-    from quakescan.distributed import blocks
+    from quakescan.distributed.block_store import stored_record
+    from quakescan.distributed.reading import read_box, read_records
+    from quakescan.distributed.streaming import default_origin, open_epoch_file, stream_epoch
     from quakescan.formats.footprints import Footprints
     from quakescan.formats.pointcloud import read_epoch
 
@@ -934,17 +952,17 @@ def test_building_ids_beyond_int32_are_stored_and_read_back_exactly(tmp_path, id
     if ids_from == "footprints":
         fp = Footprints(np.array(big, dtype=np.int64),
                         [shapely.box(500_000 + 10 * k, 5_200_000, 500_010 + 10 * k, 5_200_020) for k in range(3)])
-    f = blocks.open_epoch_file(tmp_path / "pre.las")
-    origin = blocks.default_origin(f)
-    stats = blocks.stream_epoch(f, origin, tmp_path / "blocks", block_cells=7, chunk_points=999, footprints=fp)
-    record = blocks.stored_record(tmp_path / "blocks")
+    f = open_epoch_file(tmp_path / "pre.las")
+    origin = default_origin(f)
+    stats = stream_epoch(f, origin, tmp_path / "blocks", block_cells=7, chunk_points=999, footprints=fp)
+    record = stored_record(tmp_path / "blocks")
     assert record["building_id"].str == ("<u4" if ids_from == "file" else "<i8")
-    rec = blocks.read_records(tmp_path / "blocks", [tuple(k) for k in stats.blocks])
+    rec = read_records(tmp_path / "blocks", [tuple(k) for k in stats.blocks])
     want = read_epoch(tmp_path / "pre.las").building_id if ids_from == "file" else ids
     np.testing.assert_array_equal(rec["index"], np.arange(n))
     np.testing.assert_array_equal(rec["building_id"].astype(np.int64), want)
     assert set(stats.counts) == {b for b in big if (want == b).any()}
-    box, xyz = blocks.read_box(tmp_path / "blocks", f, origin, np.array([[-1.0, -1.0], [50.0, 30.0]]), 7)
+    box, xyz = read_box(tmp_path / "blocks", f, origin, np.array([[-1.0, -1.0], [50.0, 30.0]]), 7)
     np.testing.assert_array_equal(box["building_id"], want)
 
 
@@ -954,16 +972,16 @@ def test_the_registration_check_sends_its_samples_as_data_not_a_large_graph(pair
     scattered to the workers: passed inside the task, Dask warns of a large graph."""
     import warnings
 
-    from quakescan.distributed import blocks
+    from quakescan.distributed.streaming import merge_stats
 
-    real = blocks.merge_stats
+    real = merge_stats
 
     def big_sample(parts):  # in the client: the box city's stable sample made as large as a city's
         stats = real(parts)
         stats.stable_sample = np.tile(stats.stable_sample, (500_000 // len(stats.stable_sample) + 1, 1))
         return stats
 
-    monkeypatch.setattr(blocks, "merge_stats", big_sample)
+    monkeypatch.setattr("quakescan.distributed.engine.merge_stats", big_sample)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         _run(pair, tmp_path / "dask", cluster, write_las=False)

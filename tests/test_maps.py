@@ -10,7 +10,9 @@ import pytest
 import shapely.geometry
 
 from quakescan.grades import GRADE_NAMES, long_label
-from quakescan.results import writers as R
+from quakescan.results.building_result import BuildingResult, NOT_ASSESSABLE
+from quakescan.results.colours import NOT_ASSESSABLE_COLOUR, colour_of, rgb8
+from quakescan.results.outlines import OUTLINE_FOOTPRINT, Outline
 from quakescan.results.qgis_style import GRADE_FIELD, write_qml
 from quakescan.results.webmap import write_map_html
 
@@ -25,13 +27,13 @@ def _city(n=15):
     for i in range(1, n + 1):
         g = GRADES[(i - 1) % len(GRADES)]
         if g is None:
-            rows.append(R.BuildingResult(i, 12, 300, False, "12 pre-event points < 50"))
+            rows.append(BuildingResult(i, 12, 300, False, "12 pre-event points < 50"))
         else:
             probs = {c: (0.7 if c == g else 0.1) for c in CLASSES}
-            rows.append(R.BuildingResult(i, 900, 800, True, grade=g, probabilities=probs, share_changed=0.4,
+            rows.append(BuildingResult(i, 900, 800, True, grade=g, probabilities=probs, share_changed=0.4,
                                          decided_by="model", confidence=0.7))
         x, y = E0 + 25 * ((i - 1) % 5), N0 + 22 * ((i - 1) // 5)
-        outlines[i] = R.Outline(shapely.geometry.box(x, y, x + 16, y + 12), R.OUTLINE_FOOTPRINT)
+        outlines[i] = Outline(shapely.geometry.box(x, y, x + 16, y + 12), OUTLINE_FOOTPRINT)
     return rows, outlines
 
 
@@ -43,7 +45,7 @@ def _page_data(path):
 
 def test_html_map_is_self_contained_with_a_popup_per_building(tmp_path):
     rows, outlines = _city()
-    rows.append(R.BuildingResult(99, 0, 0, False, "no point inside the footprint"))  # no outline: not drawn
+    rows.append(BuildingResult(99, 0, 0, False, "no point inside the footprint"))  # no outline: not drawn
     path = tmp_path / "damage_map.html"
     write_map_html(rows, outlines, path, "Damage grades: post.las", "EPSG:32633", CLASSES)
     text, data = _page_data(path)
@@ -58,8 +60,8 @@ def test_html_map_is_self_contained_with_a_popup_per_building(tmp_path):
     xs = [c[0] for c in f1["geometry"]["coordinates"][0]]
     assert min(xs) == pytest.approx(10.0) and max(xs) == pytest.approx(26.0)
     by_id = {f["id"]: f["properties"] for f in data["features"]}
-    assert by_id[2]["colour"] == R.colour_of(3) and by_id[2]["name"] == "substantial to heavy"
-    assert by_id[5]["colour"] == R.NOT_ASSESSABLE_COLOUR and "12 pre-event points &lt; 50" in by_id[5]["popup"]
+    assert by_id[2]["colour"] == colour_of(3) and by_id[2]["name"] == "substantial to heavy"
+    assert by_id[5]["colour"] == NOT_ASSESSABLE_COLOUR and "12 pre-event points &lt; 50" in by_id[5]["popup"]
     popup = by_id[4]["popup"]
     for want in ("building ID</th><td>4", "5 destruction", "0: 10 %, 3: 10 %, 4: 10 %, 5: 70 %",
                  "confidence</th><td>70 %", "900 / 800"):
@@ -109,7 +111,7 @@ def test_html_map_renders_in_headless_chromium(tmp_path):
     assert img.shape[:2] == (650, 900)
     assert len(np.unique(img.reshape(-1, 3), axis=0)) > 20  # not blank
     for g in (0, 3, 4, 5, None):
-        want = np.array(R._rgb8(R.colour_of(g)))
+        want = np.array(rgb8(colour_of(g)))
         share = (np.abs(img - want).max(axis=2) <= 3).mean()  # fill at opacity 0.9 over the grey background
         blended = np.rint(0.9 * want + 0.1 * np.array([0xf4, 0xf4, 0xf4]))
         share = max(share, (np.abs(img - blended).max(axis=2) <= 3).mean())
@@ -129,10 +131,10 @@ def test_qml_has_one_category_per_grade_in_the_map_colours(tmp_path):
     assert [c.get("value") for c in cats] == [str(g) for g in GRADE_NAMES] + [""]
     for c in cats:
         g = int(c.get("value")) if c.get("value") else None
-        assert c.get("label") == (long_label(g) if g is not None else R.NOT_ASSESSABLE)
+        assert c.get("label") == (long_label(g) if g is not None else NOT_ASSESSABLE)
         sym = symbols[c.get("symbol")]
         colour = {o.get("name"): o.get("value") for o in sym.iter("Option") if o.get("name")}["color"]
-        assert colour == ",".join(str(v) for v in R._rgb8(R.colour_of(g))) + ",255"
+        assert colour == ",".join(str(v) for v in rgb8(colour_of(g))) + ",255"
         assert {p.get("k"): p.get("v") for p in sym.iter("prop")}["color"] == colour
     assert root.find("labeling/settings/text-style").get("fieldName") == "building_id"
     _no_part(tmp_path)

@@ -314,7 +314,8 @@ def test_a_model_file_of_the_first_format_loads_and_predicts_as_before(tmp_path)
     predict_proba give."""
     import skops.io as sio
 
-    from quakescan.change.pipeline import BuildingRow, PipelineSettings
+    from quakescan.change.pipeline import BuildingRow
+    from quakescan.change.settings import PipelineSettings
     from quakescan.learning.prediction import predict_rows
 
     settings = PipelineSettings()

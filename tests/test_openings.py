@@ -141,7 +141,8 @@ def test_random_halves_of_a_real_tile_show_no_fall_beyond_the_swapped_null(share
     count explains every one of them (no excess on any building)."""
     import laspy
 
-    from quakescan.change.pipeline import describe_pair, settings_for_descriptors
+    from quakescan.change.pipeline import describe_pair
+    from quakescan.change.settings import settings_for_descriptors
     from quakescan.change.surface import SURFACE_DESCRIPTORS
     from quakescan.formats.pair import load_pair
 

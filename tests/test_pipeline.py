@@ -2,16 +2,11 @@
 import numpy as np
 import pytest
 
-from quakescan.change.pipeline import (
-    PAPER_FEATURES,
-    GridIndex,
-    PipelineError,
-    PipelineSettings,
-    _exact_nearest,
-    describe_pair,
-    settings_for_descriptors,
-)
+from quakescan.change.paper_descriptors import exact_nearest
+from quakescan.change.pipeline import describe_pair
+from quakescan.change.settings import PAPER_FEATURES, PipelineError, PipelineSettings, settings_for_descriptors
 from quakescan.change.split import SplitSettings, nearest_neighbours
+from quakescan.change.tiling import GridIndex
 from quakescan.formats.pointcloud import Epoch, read_epoch
 from tests.scenes import UTM, scan_box_pair
 
@@ -46,7 +41,7 @@ def test_nearest_neighbour_is_exact_although_searched_in_a_box():
     post_xyz = post_xyz[(post_xyz[:, 0] > 40) | (post_xyz[:, 1] > 150)]  # nothing near the queries
     pre_q = rng.uniform(0, 10, (300, 3))
     post = Epoch(post_xyz, np.zeros(3), np.zeros(len(post_xyz), np.uint8))
-    idx, dist = _exact_nearest(pre_q, post, GridIndex(post_xyz[:, :2], 5.0), np.array([[0, 0], [10, 10.0]]), 1)
+    idx, dist = exact_nearest(pre_q, post, GridIndex(post_xyz[:, :2], 5.0), np.array([[0, 0], [10, 10.0]]), 1)
     want_i, want_d = nearest_neighbours(pre_q, post_xyz)
     np.testing.assert_array_equal(idx, want_i)
     np.testing.assert_allclose(dist, want_d)
@@ -154,7 +149,7 @@ def _stable_groups(ids, uniq):
                                  np.array([4]), np.zeros(0, np.int64),
                                  np.random.default_rng(2).integers(0, 300, 50_000).astype(np.int32)])
 def test_id_counts_and_grouping_are_numpys_unique_and_stable_argsort(ids):
-    from quakescan.change.pipeline import grouped_by_id, id_counts
+    from quakescan.change.tiling import grouped_by_id, id_counts
 
     uniq, counts = id_counts(ids)
     want_u, want_c = np.unique(ids, return_counts=True)
@@ -265,7 +260,7 @@ def test_tiles_described_side_by_side_give_the_rows_of_one_at_a_time(collapse_pa
 def test_tile_threads_follow_workers_and_the_threading_layer(monkeypatch):
     import numba
 
-    from quakescan.change.pipeline import tile_threads
+    from quakescan.change.tiling import tile_threads
 
     monkeypatch.setattr(numba, "threading_layer", lambda: "tbb")
     assert tile_threads(2, 10) == 2 and tile_threads(1, 10) == 1 and tile_threads(8, 3) == 3

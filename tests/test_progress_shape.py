@@ -59,8 +59,8 @@ def test_every_progress_parameter_has_the_one_shape():
 
 
 def test_no_other_progress_or_message_callback_is_left():
-    """The old shapes are gone from the signatures: `say(str)` (now log records) and the demo's
-    `progress_factory(label)` (now `progress(done, total, stage)`)."""
+    """No signature takes `say(str)` (stage messages are log records) or the demo's
+    `progress_factory(label)` (progress is `progress(done, total, stage)`)."""
     old = {name: sorted({"say", "progress_factory", "on_progress"} & set(inspect.signature(fn).parameters))
            for name, fn in FUNCTIONS.items()}
     assert {k: v for k, v in old.items() if v} == {}
@@ -103,7 +103,7 @@ def test_a_multi_stage_function_names_its_stages(pair):
     """training_table counts each pair's buildings as a stage named after its post-event file
     (it took progress(name, done, total) before); a single-stage callee inside it reports
     (done, total) only and gets the stage filled in."""
-    from quakescan.change.pipeline import PipelineSettings
+    from quakescan.change.settings import PipelineSettings
     from quakescan.learning.training import TrainingPair, training_table
 
     calls = []

@@ -9,8 +9,31 @@ import shapely.geometry
 
 from quakescan.formats.footprints import Footprints, read_footprints
 from quakescan.learning.model import GRADE_LABELS
-from quakescan.results import writers as R
+from quakescan.errors import ResultsError
+from quakescan.results import png_map
+from quakescan.results.building_result import BuildingResult
+from quakescan.results.colours import BACKGROUND_COLOUR, GRADE_COLOURS, NOT_ASSESSABLE_COLOUR, rgb8
+from quakescan.results.csv_table import csv_columns, read_csv, write_csv
 from quakescan.results.evaluation import evaluate_files
+from quakescan.results.geojson import geojson_crs_member, write_geojson
+from quakescan.results.graded_cloud import write_grade_las
+from quakescan.results.outlines import (
+    OUTLINE_BUFFER,
+    OUTLINE_FOOTPRINT,
+    OUTLINE_HULL,
+    Outline,
+    building_outlines,
+    hull_candidates,
+)
+from quakescan.results.png_map import (
+    LABEL_ALL_MAX,
+    MAP_DPI,
+    MAP_SIZE_IN,
+    labelled_ids,
+    legible_labels,
+    nice_length,
+    write_map_png,
+)
 
 CLASSES = [0, 3, 4, 5]
 ORIGIN = np.array([500000.0, 5000000.0, 40.0])
@@ -18,12 +41,12 @@ ORIGIN = np.array([500000.0, 5000000.0, 40.0])
 
 def _rows():
     return [
-        R.BuildingResult(7, 900, 850, True, grade=5, probabilities={0: 0.05, 3: 0.1, 4: 0.15, 5: 0.7},
+        BuildingResult(7, 900, 850, True, grade=5, probabilities={0: 0.05, 3: 0.1, 4: 0.15, 5: 0.7},
                          share_changed=0.8123456789, decided_by="model", confidence=0.7),
-        R.BuildingResult(2, 12, 400, False, reason="12 pre-event points < 50"),
-        R.BuildingResult(3, 500, 510, True, grade=0, probabilities={0: 1.0, 3: 0.0, 4: 0.0, 5: 0.0},
+        BuildingResult(2, 12, 400, False, reason="12 pre-event points < 50"),
+        BuildingResult(3, 500, 510, True, grade=0, probabilities={0: 1.0, 3: 0.0, 4: 0.0, 5: 0.0},
                          share_changed=0.0, decided_by="no change", confidence=1.0),
-        R.BuildingResult(5, 700, 300, True, grade=4, probabilities={0: 0.1, 3: 0.2, 4: 0.4, 5: 0.3},
+        BuildingResult(5, 700, 300, True, grade=4, probabilities={0: 0.1, 3: 0.2, 4: 0.4, 5: 0.3},
                          share_changed=1 / 3, decided_by="model, with \"quotes\", commas", confidence=0.4),
     ]
 
@@ -34,8 +57,8 @@ def _no_part(tmp_path):
 
 def test_csv_round_trip(tmp_path):
     path = tmp_path / "buildings.csv"
-    R.write_csv(_rows(), path, CLASSES)
-    back = R.read_csv(path)
+    write_csv(_rows(), path, CLASSES)
+    back = read_csv(path)
     assert [r.building_id for r in back] == [2, 3, 5, 7]  # sorted
     want = {r.building_id: r for r in _rows()}
     for r in back:
@@ -54,10 +77,10 @@ def test_csv_round_trip(tmp_path):
 
 def test_csv_not_assessable_is_empty_never_a_guess(tmp_path):
     path = tmp_path / "buildings.csv"
-    R.write_csv(_rows(), path, CLASSES)
+    write_csv(_rows(), path, CLASSES)
     with open(path, newline="") as f:
         rows = {int(r["building_id"]): r for r in csv.DictReader(f)}
-    assert list(next(iter(rows.values()))) == R.csv_columns(CLASSES)
+    assert list(next(iter(rows.values()))) == csv_columns(CLASSES)
     na = rows[2]
     assert na["assessable"] == "0" and na["predicted_grade"] == "" and na["label"] == "not assessable"
     assert all(na[f"p_{c}"] == "" for c in CLASSES)
@@ -66,28 +89,28 @@ def test_csv_not_assessable_is_empty_never_a_guess(tmp_path):
     assert rows[7]["share_changed"] == "0.812346"
     assert rows[7]["confidence"] == "0.7" and rows[3]["confidence"] == "1" and na["confidence"] == ""
     # a not-assessable row whose caller forgot to clear a grade still writes no grade
-    R.write_csv([R.BuildingResult(1, 0, 0, False, "no point inside the footprint", grade=3,
+    write_csv([BuildingResult(1, 0, 0, False, "no point inside the footprint", grade=3,
                                   probabilities={3: 1.0}, confidence=1.0)], path, CLASSES)
-    (r,) = R.read_csv(path)
+    (r,) = read_csv(path)
     assert r.grade is None and r.probabilities == {} and r.label == "not assessable" and r.confidence is None
 
 
 def test_confidence_comes_after_the_first_columns_and_old_files_still_read(tmp_path):
-    """The column added for confidence goes last; a result file written before it (no
-    confidence column) reads as before, with confidence empty, in read_csv and evaluate."""
+    """The column added for confidence goes last; a result file without it (an earlier
+    QuakeScan's) reads with confidence empty, in read_csv and evaluate."""
     first = ["building_id", "assessable", "predicted_grade", "label", "p_0", "p_3", "p_4", "p_5",
              "share_changed", "n_pre", "n_post", "decided_by", "reason"]
     added = ["confidence", "grade_name", "detectable_grade", "min_opening_m2", "min_lowering_m", "walls_resolved",
              "min_wall_opening_m2"]
-    assert R.csv_columns(CLASSES) == first + added
+    assert csv_columns(CLASSES) == first + added
     path = tmp_path / "buildings.csv"
-    R.write_csv(_rows(), path, CLASSES)
+    write_csv(_rows(), path, CLASSES)
     old = tmp_path / "old.csv"
     with open(path, newline="") as f, open(old, "w", newline="") as g:
         w = csv.writer(g, lineterminator="\n")
         for line in csv.reader(f):
             w.writerow(line[:-len(added)])
-    back = R.read_csv(old)
+    back = read_csv(old)
     assert [r.confidence for r in back] == [None] * 4 and [r.grade for r in back] == [None, 0, 4, 5]
     truth = tmp_path / "truth.csv"
     truth.write_text("building_id,grade\n3,0\n5,4\n7,5\n")
@@ -95,15 +118,15 @@ def test_confidence_comes_after_the_first_columns_and_old_files_still_read(tmp_p
 
 
 def test_empty_csv_round_trip(tmp_path):
-    R.write_csv([], tmp_path / "b.csv", CLASSES)
-    assert R.read_csv(tmp_path / "b.csv") == []
-    with pytest.raises(R.ResultsError, match="does not exist"):
-        R.read_csv(tmp_path / "nope.csv")
+    write_csv([], tmp_path / "b.csv", CLASSES)
+    assert read_csv(tmp_path / "b.csv") == []
+    with pytest.raises(ResultsError, match="does not exist"):
+        read_csv(tmp_path / "nope.csv")
 
 
 def test_evaluate_reads_the_csv(tmp_path):
     path = tmp_path / "buildings.csv"
-    R.write_csv(_rows(), path, CLASSES)
+    write_csv(_rows(), path, CLASSES)
     truth = tmp_path / "truth.csv"
     truth.write_text("building_id,grade\n2,5\n3,0\n5,3\n7,5\n99,0\n")
     ev = evaluate_files(path, truth)
@@ -138,7 +161,7 @@ def test_hull_candidates_give_geos_the_same_polygon_as_every_point(kind):
         xy = np.column_stack([rng.uniform(0, 50, 5_000), rng.uniform(0, 1e-7, 5_000)]) + [5e5, 4e6]
     else:
         xy = np.repeat(rng.uniform(0, 5, (40, 2)), 50, axis=0)
-    kept = R.hull_candidates(xy)
+    kept = hull_candidates(xy)
     every = shapely.convex_hull(shapely.multipoints(xy))
     culled = shapely.convex_hull(shapely.multipoints(kept))
     assert shapely.to_wkb(culled) == shapely.to_wkb(every)
@@ -153,20 +176,20 @@ def test_outlines_hull_in_world_coordinates_and_footprints():
     xy = {3: _square(side=10.0, at=(1000.0, 2000.0)) + 0.0004,  # not on the mm grid on purpose
           5: np.array([[1.0, 1.0], [1.0, 1.0]]),  # one distinct point
           7: _square(at=(0.0, 0.0))}  # ignored: the footprint wins
-    out = R.building_outlines(rows, fp, xy, ORIGIN)
+    out = building_outlines(rows, fp, xy, ORIGIN)
     assert set(out) == {3, 5, 7}  # 2 has neither footprint nor points
-    assert out[7].source == R.OUTLINE_FOOTPRINT and out[7].geometry.equals(fp_poly)
+    assert out[7].source == OUTLINE_FOOTPRINT and out[7].geometry.equals(fp_poly)
     hull = out[3]
-    assert hull.source == R.OUTLINE_HULL
+    assert hull.source == OUTLINE_HULL
     assert abs(hull.geometry.area - 100.0) < 1e-6
     minx, miny, maxx, maxy = hull.geometry.bounds
     assert np.allclose([minx, miny, maxx, maxy],
                        [501000.0004, 5002000.0004, 501010.0004, 5002010.0004], atol=1e-6)
-    assert out[5].source == R.OUTLINE_BUFFER
+    assert out[5].source == OUTLINE_BUFFER
     assert out[5].geometry.contains(shapely.geometry.Point(500001.0, 5000001.0))
     # collinear points: a buffered line, not an empty "hull"
-    line = R.building_outlines([rows[0]], None, {7: np.array([[0.0, 0], [1, 0], [2, 0]])}, ORIGIN)[7]
-    assert line.source == R.OUTLINE_BUFFER and line.geometry.area > 0
+    line = building_outlines([rows[0]], None, {7: np.array([[0.0, 0], [1, 0], [2, 0]])}, ORIGIN)[7]
+    assert line.source == OUTLINE_BUFFER and line.geometry.area > 0
 
 
 def test_geojson(tmp_path):
@@ -174,9 +197,9 @@ def test_geojson(tmp_path):
     fp_poly = shapely.geometry.box(501000.0, 5002000.0, 501012.0, 5002008.0)
     fp = Footprints(np.array([7]), [fp_poly], "EPSG:32633")
     xy = {3: _square(side=10.0, at=(1000.0, 2000.0)) + 0.0004}
-    outlines = R.building_outlines(rows, fp, xy, ORIGIN)
+    outlines = building_outlines(rows, fp, xy, ORIGIN)
     path = tmp_path / "buildings.geojson"
-    R.write_geojson(rows, outlines, path, "EPSG:32633", CLASSES)
+    write_geojson(rows, outlines, path, "EPSG:32633", CLASSES)
     doc = json.loads(path.read_text())
     assert doc["type"] == "FeatureCollection"
     assert doc["crs"] == {"type": "name", "properties": {"name": "urn:ogc:def:crs:EPSG::32633"}}
@@ -184,7 +207,7 @@ def test_geojson(tmp_path):
     assert sorted(feats) == [2, 3, 5, 7] and len(doc["features"]) == len(rows)
     assert feats[7]["properties"]["outline"] == "footprint"
     assert shapely.geometry.shape(feats[7]["geometry"]).equals(fp_poly)
-    assert feats[7]["properties"]["colour"] == R.GRADE_COLOURS[5]
+    assert feats[7]["properties"]["colour"] == GRADE_COLOURS[5]
     assert feats[7]["properties"]["predicted_grade"] == 5 and feats[7]["properties"]["p_5"] == 0.7
     assert feats[7]["properties"]["confidence"] == 0.7 and feats[2]["properties"]["confidence"] is None
     h = feats[3]
@@ -197,7 +220,7 @@ def test_geojson(tmp_path):
     assert na["geometry"] is None and na["properties"]["assessable"] is False
     assert na["properties"]["predicted_grade"] is None and na["properties"]["p_0"] is None
     assert na["properties"]["label"] == "not assessable"
-    assert na["properties"]["colour"] == R.NOT_ASSESSABLE_COLOUR
+    assert na["properties"]["colour"] == NOT_ASSESSABLE_COLOUR
     # the footprint reader takes it back, CRS included
     back = read_footprints(path)
     assert sorted(back.ids.tolist()) == [3, 7] and back.crs == "EPSG:32633"
@@ -205,38 +228,38 @@ def test_geojson(tmp_path):
 
 
 def test_geojson_crs_member():
-    assert R.geojson_crs_member(None) is None
-    assert R.geojson_crs_member("EPSG:28992")["properties"]["name"] == "urn:ogc:def:crs:EPSG::28992"
+    assert geojson_crs_member(None) is None
+    assert geojson_crs_member("EPSG:28992")["properties"]["name"] == "urn:ogc:def:crs:EPSG::28992"
     import pyproj
 
     wkt = pyproj.CRS.from_epsg(28992).to_wkt()
-    assert R.geojson_crs_member(wkt)["properties"]["name"] == "urn:ogc:def:crs:EPSG::28992"
+    assert geojson_crs_member(wkt)["properties"]["name"] == "urn:ogc:def:crs:EPSG::28992"
 
 
 def _hex_rgb(h):
-    return np.array(R._rgb8(h)) / 255.0
+    return np.array(rgb8(h)) / 255.0
 
 
 def test_map_png(tmp_path):
     a = shapely.geometry.box(500000.0, 5000000.0, 500020.0, 5000020.0)
     b = shapely.geometry.box(500040.0, 5000000.0, 500060.0, 5000020.0)
-    rows = [R.BuildingResult(1, 10, 0, False, "no post-event points"),
-            R.BuildingResult(2, 100, 100, True, grade=5, probabilities={5: 1.0}, share_changed=1.0,
+    rows = [BuildingResult(1, 10, 0, False, "no post-event points"),
+            BuildingResult(2, 100, 100, True, grade=5, probabilities={5: 1.0}, share_changed=1.0,
                              decided_by="model")]
-    outlines = {1: R.Outline(a, R.OUTLINE_FOOTPRINT), 2: R.Outline(b, R.OUTLINE_HULL)}
+    outlines = {1: Outline(a, OUTLINE_FOOTPRINT), 2: Outline(b, OUTLINE_HULL)}
     pts = np.random.default_rng(0).uniform([499990, 4999990], [500070, 5000030], (2000, 2))
     path = tmp_path / "damage_map.png"
-    R.write_map_png(rows, outlines, path, "test map", points_xy=pts, crs="EPSG:32633")
+    write_map_png(rows, outlines, path, "test map", points_xy=pts, crs="EPSG:32633")
     assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     import matplotlib.image
 
     img = matplotlib.image.imread(path)
-    w_px, h_px = (int(round(v * R.MAP_DPI)) for v in R.MAP_SIZE_IN)
+    w_px, h_px = (int(round(v * MAP_DPI)) for v in MAP_SIZE_IN)
     assert img.shape[:2] == (h_px, w_px)
     # where the map drew each building (same inputs → same layout)
-    fig, ax = R._draw_map(rows, outlines, "test map", pts, "EPSG:32633")
+    fig, ax = png_map._draw_map(rows, outlines, "test map", pts, "EPSG:32633")
     fig.canvas.draw()
-    for geom, colour in ((a, R.NOT_ASSESSABLE_COLOUR), (b, R.GRADE_COLOURS[5])):
+    for geom, colour in ((a, NOT_ASSESSABLE_COLOUR), (b, GRADE_COLOURS[5])):
         x0, y0, x1, y1 = geom.bounds  # a quarter in from the corner: the ID label sits in the middle
         px, py = ax.transData.transform((x0 + 0.25 * (x1 - x0), y0 + 0.25 * (y1 - y0)))
         pixel = img[int(round(h_px - py)), int(round(px)), :3]
@@ -256,11 +279,11 @@ def test_map_png_is_framed_on_the_buildings_with_ids_scale_bar_and_crs():
     of a small city carries its ID; a scale bar of a round length and the CRS are drawn."""
     boxes = {i: shapely.geometry.box(500000.0 + 30 * i, 5000000.0, 500020.0 + 30 * i, 5000015.0)
              for i in range(1, 5)}
-    rows = [R.BuildingResult(i, 100, 100, True, grade=g, probabilities={g: 1.0}, share_changed=0.5,
+    rows = [BuildingResult(i, 100, 100, True, grade=g, probabilities={g: 1.0}, share_changed=0.5,
                              decided_by="model") for i, g in zip(boxes, (0, 3, 4, 5))]
-    outlines = {i: R.Outline(b, R.OUTLINE_FOOTPRINT) for i, b in boxes.items()}
+    outlines = {i: Outline(b, OUTLINE_FOOTPRINT) for i, b in boxes.items()}
     scan_area = np.random.default_rng(0).uniform([499000, 4999000], [501000, 5001000], (5000, 2))
-    fig, ax = R._draw_map(rows, outlines, "framed", scan_area, "EPSG:32633")
+    fig, ax = png_map._draw_map(rows, outlines, "framed", scan_area, "EPSG:32633")
     # buildings span x 500030..500140 (110 m), y 5000000..5000015: margin max(10, 0.08 * 110) = 10 m
     assert ax.get_xlim() == pytest.approx((500020.0, 500150.0))
     assert ax.get_ylim() == pytest.approx((4999990.0, 5000025.0))
@@ -272,21 +295,21 @@ def test_map_png_is_framed_on_the_buildings_with_ids_scale_bar_and_crs():
     assert "20 m" in bar_texts  # a fifth of 130 m → 20 m
     scatter = ax.collections[0].get_offsets()
     assert len(scatter) < 50 and (scatter[:, 0] >= 500020.0).all()  # the scan area outside the frame is left out
-    _, ax = R._draw_map(rows, outlines, "no crs", None, None)
+    _, ax = png_map._draw_map(rows, outlines, "no crs", None, None)
     assert _texts(ax, "crs")[0].startswith("CRS: unknown")
 
 
 def test_map_labels_only_damaged_buildings_when_many():
-    n = R.LABEL_ALL_MAX + 10
+    n = LABEL_ALL_MAX + 10
     grades = [0 if i % 3 else 4 for i in range(1, n + 1)]
-    rows = [R.BuildingResult(i, 100, 100, True, grade=g, probabilities={g: 1.0}, decided_by="model")
+    rows = [BuildingResult(i, 100, 100, True, grade=g, probabilities={g: 1.0}, decided_by="model")
             for i, g in zip(range(1, n + 1), grades)]
-    rows.append(R.BuildingResult(n + 1, 3, 0, False, "3 pre-event points < 50"))
-    outlines = {i: R.Outline(shapely.geometry.box(10 * i, 0, 10 * i + 8, 8), R.OUTLINE_HULL) for i in range(1, n + 2)}
-    _, ax = R._draw_map(rows, outlines, "many", None, None)
+    rows.append(BuildingResult(n + 1, 3, 0, False, "3 pre-event points < 50"))
+    outlines = {i: Outline(shapely.geometry.box(10 * i, 0, 10 * i + 8, 8), OUTLINE_HULL) for i in range(1, n + 2)}
+    _, ax = png_map._draw_map(rows, outlines, "many", None, None)
     want = [str(i) for i, g in zip(range(1, n + 1), grades) if g > 0] + [str(n + 1)]
     assert sorted(_texts(ax, "building-id"), key=int) == want
-    assert R.nice_length(130) == 20 and R.nice_length(1000) == 200 and R.nice_length(7) == 1
+    assert nice_length(130) == 20 and nice_length(1000) == 200 and nice_length(7) == 1
 
 
 def test_map_draws_as_many_ids_as_can_be_read_the_worst_grade_first():
@@ -300,13 +323,13 @@ def test_map_draws_as_many_ids_as_can_be_read_the_worst_grade_first():
     for k in range(side * side):
         bid = 1000 + k
         grade = 5 if k % 7 == 0 else 1
-        rows.append(R.BuildingResult(bid, 100, 100, True, grade=grade, probabilities={grade: 1.0},
+        rows.append(BuildingResult(bid, 100, 100, True, grade=grade, probabilities={grade: 1.0},
                                      decided_by="model"))
         x, y = 4.0 * (k % side), 4.0 * (k // side)
-        outlines[bid] = R.Outline(shapely.geometry.box(x, y, x + 3, y + 3), R.OUTLINE_HULL)
-    fig, ax = R._draw_map(rows, outlines, "district", None, None)
+        outlines[bid] = Outline(shapely.geometry.box(x, y, x + 3, y + 3), OUTLINE_HULL)
+    fig, ax = png_map._draw_map(rows, outlines, "district", None, None)
     drawn = [t for t in ax.texts if t.get_gid() == "building-id"]
-    assert len(R.labelled_ids(rows, outlines)) == side * side
+    assert len(labelled_ids(rows, outlines)) == side * side
     assert 20 < len(drawn) < side * side / 2
     fig.canvas.draw()  # lays the label boxes out
     renderer = fig.canvas.get_renderer()
@@ -326,13 +349,13 @@ def test_map_draws_as_many_ids_as_can_be_read_the_worst_grade_first():
         assert any(abs(x - (b.x0 + b.x1) / 2) < b.width + 1 and abs(y - (b.y0 + b.y1) / 2) < b.height + 1
                    for n, b in named.items() if n in fives), f
     # two buildings 0.5 m apart: one label, the worse grade's, whatever their IDs' order
-    pair = [R.BuildingResult(1, 100, 100, True, grade=1, probabilities={1: 1.0}, decided_by="model"),
-            R.BuildingResult(2, 100, 100, True, grade=5, probabilities={5: 1.0}, decided_by="model")]
-    far = [R.BuildingResult(i, 100, 100, True, grade=0, probabilities={0: 1.0}, decided_by="model")
-           for i in range(3, 3 + R.LABEL_ALL_MAX)]
+    pair = [BuildingResult(1, 100, 100, True, grade=1, probabilities={1: 1.0}, decided_by="model"),
+            BuildingResult(2, 100, 100, True, grade=5, probabilities={5: 1.0}, decided_by="model")]
+    far = [BuildingResult(i, 100, 100, True, grade=0, probabilities={0: 1.0}, decided_by="model")
+           for i in range(3, 3 + LABEL_ALL_MAX)]
     lines = {1: shapely.geometry.box(0, 0, 3, 3), 2: shapely.geometry.box(0.5, 0, 3.5, 3)}
-    lines.update({i: shapely.geometry.box(100.0 + 10 * i, 0, 103.0 + 10 * i, 3) for i in range(3, 3 + R.LABEL_ALL_MAX)})
-    _, ax = R._draw_map(pair + far, {b: R.Outline(g, R.OUTLINE_HULL) for b, g in lines.items()}, "pair", None, None)
+    lines.update({i: shapely.geometry.box(100.0 + 10 * i, 0, 103.0 + 10 * i, 3) for i in range(3, 3 + LABEL_ALL_MAX)})
+    _, ax = png_map._draw_map(pair + far, {b: Outline(g, OUTLINE_HULL) for b, g in lines.items()}, "pair", None, None)
     assert _texts(ax, "building-id") == ["2"]
 
 
@@ -340,9 +363,9 @@ def test_legible_labels_keeps_boxes_apart_in_priority_order():
     """Closed form: a 10-pixel font's 2-character labels are (0.7 × 2 + 0.3) × 10 = 17 px
     wide and (1.05 + 0.3) × 10 = 13.5 px high."""
     anchors = np.array([[0.0, 0.0], [16.9, 0.0], [17.1, 0.0], [0.0, 13.4], [0.0, 13.6], [np.nan, 0.0]])
-    assert R.legible_labels([10, 11, 12, 13, 14, 15], anchors, 10.0) == [10, 12, 14]
-    assert R.legible_labels([11, 10], anchors[[1, 0]], 10.0) == [11]
-    assert R.legible_labels([], np.zeros((0, 2)), 10.0) == []
+    assert legible_labels([10, 11, 12, 13, 14, 15], anchors, 10.0) == [10, 12, 14]
+    assert legible_labels([11, 10], anchors[[1, 0]], 10.0) == [11]
+    assert legible_labels([], np.zeros((0, 2)), 10.0) == []
 
 
 def test_grade_las(tmp_path):
@@ -353,7 +376,7 @@ def test_grade_las(tmp_path):
     ids = rng.integers(0, 5, n)
     grades = {1: 0, 2: 5, 3: None, 4: 3}  # 3 not assessable, 0 no building
     path = tmp_path / "post_grades.las"
-    R.write_grade_las(path, xyz, ORIGIN, "EPSG:32633", ids, grades)
+    write_grade_las(path, xyz, ORIGIN, "EPSG:32633", ids, grades)
     las = laspy.read(path)
     assert las.header.version.minor == 4 and las.point_format.id == 7
     assert np.allclose(las.header.scales, 0.001) and np.allclose(las.header.offsets, ORIGIN)
@@ -364,9 +387,9 @@ def test_grade_las(tmp_path):
     want = np.array([255 if grades.get(int(i)) is None else grades[int(i)] for i in ids])
     assert np.array_equal(np.asarray(las.predicted_grade), want)
     rgb = np.column_stack([las.red, las.green, las.blue])
-    for b, colour in ((0, R.BACKGROUND_COLOUR), (1, R.GRADE_COLOURS[0]), (2, R.GRADE_COLOURS[5]),
-                      (3, R.NOT_ASSESSABLE_COLOUR), (4, R.GRADE_COLOURS[3])):
-        assert np.all(rgb[ids == b] == np.array(R._rgb8(colour)) * 257), b
+    for b, colour in ((0, BACKGROUND_COLOUR), (1, GRADE_COLOURS[0]), (2, GRADE_COLOURS[5]),
+                      (3, NOT_ASSESSABLE_COLOUR), (4, GRADE_COLOURS[3])):
+        assert np.all(rgb[ids == b] == np.array(rgb8(colour)) * 257), b
     _no_part(tmp_path)
 
 
@@ -374,35 +397,35 @@ def test_grade_las_keeps_register_ids_longer_than_32_bits(tmp_path):
     """Dutch BAG IDs have 15-16 digits: uint32 would wrap every one to 4294967295."""
     ids = np.array([0, 363100012185103, 363100012185103, 4294967296, 7], np.int64)
     path = tmp_path / "post_grades.las"
-    R.write_grade_las(path, np.zeros((5, 3)), ORIGIN, None, ids, {363100012185103: 4, 4294967296: 0, 7: 5})
+    write_grade_las(path, np.zeros((5, 3)), ORIGIN, None, ids, {363100012185103: 4, 4294967296: 0, 7: 5})
     las = laspy.read(path)
     assert las.point_format.dimension_by_name("building_id").dtype == np.uint64
     assert np.array_equal(np.asarray(las.building_id).astype(np.int64), ids)
     assert np.asarray(las.predicted_grade).tolist() == [255, 4, 4, 0, 5]
-    R.write_grade_las(path, np.zeros((2, 3)), ORIGIN, None, np.array([1, 2]), {1: 0})
-    assert laspy.read(path).point_format.dimension_by_name("building_id").dtype == np.uint32  # as before
+    write_grade_las(path, np.zeros((2, 3)), ORIGIN, None, np.array([1, 2]), {1: 0})
+    assert laspy.read(path).point_format.dimension_by_name("building_id").dtype == np.uint32  # IDs that fit: 4 bytes
 
 
 def test_grade_las_without_ids_or_crs_and_laz(tmp_path):
     path = tmp_path / "g.laz"
-    R.write_grade_las(path, np.array([[1.0, 2.0, 3.0]]), ORIGIN, None, None, {1: 5})
+    write_grade_las(path, np.array([[1.0, 2.0, 3.0]]), ORIGIN, None, None, {1: 5})
     las = laspy.read(path)
     assert las.predicted_grade.tolist() == [255] and las.header.parse_crs() is None
-    with pytest.raises(R.ResultsError, match=".las or .laz"):
-        R.write_grade_las(tmp_path / "g.txt", np.zeros((1, 3)), ORIGIN, None, None, {})
+    with pytest.raises(ResultsError, match=".las or .laz"):
+        write_grade_las(tmp_path / "g.txt", np.zeros((1, 3)), ORIGIN, None, None, {})
     _no_part(tmp_path)
 
 
 def test_failed_write_leaves_nothing(tmp_path):
     path = tmp_path / "b.csv"
 
-    class Boom(R.BuildingResult):
+    class Boom(BuildingResult):
         @property
         def label(self):
             raise RuntimeError("boom")
 
     with pytest.raises(RuntimeError):
-        R.write_csv([Boom(1, 1, 1, True, grade=0)], path, CLASSES)
+        write_csv([Boom(1, 1, 1, True, grade=0)], path, CLASSES)
     assert not path.exists()
     _no_part(tmp_path)
 
@@ -427,9 +450,9 @@ def test_the_graded_las_streams_its_source_in_chunks_and_keeps_every_attribute(t
     src.write(tmp_path / "src.las")
     ids = np.arange(n) % 3
     whole, chunked = tmp_path / "whole.las", tmp_path / "chunked.las"
-    R.write_grade_las(whole, xyz, ORIGIN, None, ids, {1: 3, 2: 5}, source=tmp_path / "src.las")
-    monkeypatch.setattr(R, "SOURCE_CHUNK_POINTS", 3)
-    R.write_grade_las(chunked, xyz, ORIGIN, None, ids, {1: 3, 2: 5}, source=tmp_path / "src.las")
+    write_grade_las(whole, xyz, ORIGIN, None, ids, {1: 3, 2: 5}, source=tmp_path / "src.las")
+    monkeypatch.setattr("quakescan.results.graded_cloud.SOURCE_CHUNK_POINTS", 3)
+    write_grade_las(chunked, xyz, ORIGIN, None, ids, {1: 3, 2: 5}, source=tmp_path / "src.las")
     a, b = laspy.read(whole), laspy.read(chunked)
     assert a.header.point_count == b.header.point_count == n
     for dim in a.points.array.dtype.names:
@@ -439,5 +462,5 @@ def test_the_graded_las_streams_its_source_in_chunks_and_keeps_every_attribute(t
     np.testing.assert_allclose(np.asarray(b.scan_angle) * 0.006, src.scan_angle_rank, atol=0.003)  # 0.006° steps
     np.testing.assert_array_equal(b.reflectance, src.reflectance)
     np.testing.assert_array_equal(b.predicted_grade, np.where(ids == 1, 3, np.where(ids == 2, 5, 255)))
-    with pytest.raises(R.ResultsError, match=r"the source .*src.las has 11 points, the epoch 10"):
-        R.write_grade_las(tmp_path / "bad.las", xyz[:10], ORIGIN, None, ids[:10], {}, source=tmp_path / "src.las")
+    with pytest.raises(ResultsError, match=r"the source .*src.las has 11 points, the epoch 10"):
+        write_grade_las(tmp_path / "bad.las", xyz[:10], ORIGIN, None, ids[:10], {}, source=tmp_path / "src.las")

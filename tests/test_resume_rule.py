@@ -186,7 +186,8 @@ def test_experiment_tables_and_levels_of_detection_follow_their_inputs_and_setti
     import quakescan.change.lod
     import quakescan.change.pipeline
     from quakescan.change.lod import LevelsOfDetection
-    from quakescan.change.pipeline import BuildingRow, PipelineSettings
+    from quakescan.change.pipeline import BuildingRow
+    from quakescan.change.settings import PipelineSettings
     from quakescan.studies.experiment import ExperimentSettings, _levels_of_detection, _table
 
     for name in ("pre.las", "post.las", "rescan.las"):

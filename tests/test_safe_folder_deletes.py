@@ -33,7 +33,7 @@ def test_a_users_working_folder_name_is_refused_and_kept(pair, tmp_path, name): 
 
 def test_workers_1_makes_and_removes_only_its_own_folders(pair, tmp_path, capsys):  # noqa: F811
     out = tmp_path / "out"
-    _user_folder(out / "buildings.csv.part")  # a user's folder at a name the old writer removed
+    _user_folder(out / "buildings.csv.part")  # a user's folder at a writer's temporary name: not QuakeScan's to remove
     _user_folder(out / ".blocks-mine")
     assert main(["classify", "--pre", str(pair / "pre.las"), "--post", str(pair / "post.las"), "--model",
                  str(pair / "model.skops"), "-o", str(out), "--workers", "1", "--memory-limit", "2GB"]) == 0

@@ -9,7 +9,8 @@ import json
 
 import pytest
 
-from quakescan.results import writers as R
+from quakescan.results.building_result import BuildingResult
+from quakescan.results.csv_table import read_csv, read_footprint_ids, write_csv
 from quakescan.results.evaluation import evaluate_files
 from quakescan.runtime.text_safety import csv_line, spreadsheet_cell, spreadsheet_raw
 
@@ -44,9 +45,9 @@ def _rows(n):
     out = []
     for i in range(1, n + 1):
         probs = {0: 0.1, 3: 0.2, 4: 0.3, 5: 0.4}
-        out.append(R.BuildingResult(i, 900, 800, True, grade=5, probabilities=probs, share_changed=0.4,
+        out.append(BuildingResult(i, 900, 800, True, grade=5, probabilities=probs, share_changed=0.4,
                                     decided_by="model", confidence=0.4))
-    out.append(R.BuildingResult(n + 1, 12, 300, False, "density 1.23 pts/m² < 1.9"))
+    out.append(BuildingResult(n + 1, 12, 300, False, "density 1.23 pts/m² < 1.9"))
     return out
 
 
@@ -60,7 +61,7 @@ def test_buildings_csv_escapes_footprint_ids_and_keeps_its_numbers(tmp_path):
     own = {i + 1: text for i, text in enumerate(PAYLOADS)}
     own[len(PAYLOADS) + 1] = -7  # a numeric footprint ID is a number, not text: never escaped
     path = tmp_path / "buildings.csv"
-    R.write_csv(rows, path, CLASSES, own_ids=own)
+    write_csv(rows, path, CLASSES, own_ids=own)
     table = _table(path)
     assert len(table) == len(rows)
     for r, text in zip(table, PAYLOADS):
@@ -69,10 +70,10 @@ def test_buildings_csv_escapes_footprint_ids_and_keeps_its_numbers(tmp_path):
     assert table[-1]["footprint_id"] == "-7"
     assert table[-1]["reason"] == "density 1.23 pts/m² < 1.9"
     assert table[0]["p_5"] == "0.4" and table[0]["n_pre"] == "900"  # our numbers as numbers
-    assert R.read_footprint_ids(path) == {**{i + 1: t for i, t in enumerate(PAYLOADS)}, len(PAYLOADS) + 1: "-7"}
+    assert read_footprint_ids(path) == {**{i + 1: t for i, t in enumerate(PAYLOADS)}, len(PAYLOADS) + 1: "-7"}
     # machine readers may ask for the cells as they are
     raw = tmp_path / "raw.csv"
-    R.write_csv(rows, raw, CLASSES, own_ids=own, raw_text=True)
+    write_csv(rows, raw, CLASSES, own_ids=own, raw_text=True)
     assert [r["footprint_id"] for r in _table(raw)][:len(PAYLOADS)] == PAYLOADS
 
 
@@ -80,11 +81,11 @@ def test_buildings_csv_escapes_footprint_ids_and_keeps_its_numbers(tmp_path):
 def test_cr_or_lf_in_an_id_never_splits_a_row_and_evaluate_reads_the_file(tmp_path, own_id):
     rows = _rows(3)
     path = tmp_path / "buildings.csv"
-    R.write_csv(rows, path, CLASSES, own_ids={2: own_id, 3: "plain"})
+    write_csv(rows, path, CLASSES, own_ids={2: own_id, 3: "plain"})
     table = _table(path)
     assert [int(r["building_id"]) for r in table] == [1, 2, 3, 4]  # no extra "building"
-    assert R.read_footprint_ids(path)[2] == own_id
-    assert len(R.read_csv(path)) == 4
+    assert read_footprint_ids(path)[2] == own_id
+    assert len(read_csv(path)) == 4
     truth = tmp_path / "truth.csv"
     truth.write_text("building_id,grade\n1,5\n2,5\n3,0\n4,0\n")
     ev = evaluate_files(path, truth)
@@ -94,7 +95,7 @@ def test_cr_or_lf_in_an_id_never_splits_a_row_and_evaluate_reads_the_file(tmp_pa
 @pytest.fixture(scope="module")
 def text_id_run(tmp_path_factory):
     """A scanned pair, its footprints with hostile text IDs, a small model."""
-    from quakescan.change.pipeline import PipelineSettings
+    from quakescan.change.settings import PipelineSettings
     from quakescan.formats.footprints import footprints_from_scene, write_footprints
     from quakescan.formats.synthetic import box_city
     from quakescan.learning.model import save_model
@@ -128,7 +129,7 @@ def test_classify_writes_escaped_ids_that_evaluate_reads_back(text_id_run, tmp_p
     assert len(table) == 6
     cells = [r["footprint_id"] for r in table]
     assert cells[:4] == ["'" + t for t in refs[:4]] and cells[4:] == refs[4:]
-    assert R.read_footprint_ids(tmp_path / "safe" / "buildings.csv") == {i + 1: t for i, t in enumerate(refs)}
+    assert read_footprint_ids(tmp_path / "safe" / "buildings.csv") == {i + 1: t for i, t in enumerate(refs)}
     assert main(["evaluate", str(tmp_path / "safe" / "buildings.csv"), "--truth", str(d / "truth.csv"),
                  "-o", str(tmp_path / "ev")]) == 0
     # --csv-raw: the cells as the footprints hold them, and a new fingerprint (not "up to date")

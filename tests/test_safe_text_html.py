@@ -5,7 +5,10 @@ import re
 import pytest
 import shapely.geometry
 
-from quakescan.results import writers as R
+from quakescan.results import png_map
+from quakescan.results.building_result import BuildingResult
+from quakescan.results.outlines import OUTLINE_FOOTPRINT, Outline
+from quakescan.results.png_map import write_map_png
 from quakescan.results.webmap import write_map_html
 from quakescan.runtime.text_safety import js_safe_id, script_json
 from test_maps import CHROMIUM, _chromium
@@ -19,11 +22,11 @@ HOSTILE = '<!--<script>x</script><img src=x onerror="document.title=1">'
 def _rows_and_outlines(ids):
     rows, outlines = [], {}
     for k, bid in enumerate(ids):
-        rows.append(R.BuildingResult(bid, 900, 800, True, grade=3, probabilities={0: 0.2, 3: 0.8, 4: 0.0, 5: 0.0},
+        rows.append(BuildingResult(bid, 900, 800, True, grade=3, probabilities={0: 0.2, 3: 0.8, 4: 0.0, 5: 0.0},
                                      share_changed=0.4, decided_by="model", confidence=0.8,
                                      min_opening_m2=float("inf"), detectable_grade=None))
         x = E0 + 25 * k
-        outlines[bid] = R.Outline(shapely.geometry.box(x, N0, x + 16, N0 + 12), R.OUTLINE_FOOTPRINT)
+        outlines[bid] = Outline(shapely.geometry.box(x, N0, x + 16, N0 + 12), OUTLINE_FOOTPRINT)
     return rows, outlines
 
 
@@ -81,7 +84,7 @@ def test_html_map_with_hostile_names_draws_every_building_in_chromium(tmp_path):
 def test_png_title_and_crs_are_plain_text_not_mathtext(tmp_path):
     rows, outlines = _rows_and_outlines([1])
     title = "Damage grades: post$\\foo{$.las \udcff"  # mathtext and a file name that is not UTF-8
-    fig, ax = R._draw_map(rows, outlines, title, None, "EPSG:99999 $\\frac{$")
+    fig, ax = png_map._draw_map(rows, outlines, title, None, "EPSG:99999 $\\frac{$")
     assert ax.get_title() == "Damage grades: post$\\foo{$.las \\udcff"
-    R.write_map_png(rows, outlines, tmp_path / "damage_map.png", title, crs="EPSG:99999 $\\frac{$")
+    write_map_png(rows, outlines, tmp_path / "damage_map.png", title, crs="EPSG:99999 $\\frac{$")
     assert (tmp_path / "damage_map.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

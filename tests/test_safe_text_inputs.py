@@ -139,9 +139,9 @@ def test_a_device_or_fifo_given_as_an_input_is_refused_as_not_a_regular_file(tmp
 
 
 def test_the_dask_streaming_path_refuses_a_fractional_building_id_as_well(tmp_path):
-    from quakescan.distributed import blocks
+    from quakescan.distributed.streaming import default_origin, open_epoch_file, stream_epoch
 
     bad = _las_with_ids(tmp_path / "bad.las", [1.0, 1.5, 2.0], np.float64)
-    f = blocks.open_epoch_file(bad)
+    f = open_epoch_file(bad)
     with pytest.raises(PointCloudError, match="not whole numbers"):
-        blocks.stream_epoch(f, blocks.default_origin(f), tmp_path / "blocks", block_cells=50)
+        stream_epoch(f, default_origin(f), tmp_path / "blocks", block_cells=50)

@@ -3,7 +3,7 @@ import json
 
 import numpy as np
 
-from quakescan.results import writers as R
+from quakescan.results.geojson import write_geojson
 from quakescan.runtime.atomic import write_json
 from test_safe_text_html import CLASSES, _rows_and_outlines
 
@@ -28,7 +28,7 @@ def test_geojson_with_nan_and_infinite_footprint_attributes_is_strict_json(tmp_p
     attributes = {1: {"height": float("nan"), "area": float("inf"), "nested": {"v": [float("-inf"), 3]}},
                   2: {"name": "ok"}}
     path = tmp_path / "buildings.geojson"
-    R.write_geojson(rows, outlines, path, "EPSG:32633", CLASSES, attributes)
+    write_geojson(rows, outlines, path, "EPSG:32633", CLASSES, attributes)
     doc = _strict(path.read_text())
     props = doc["features"][0]["properties"]
     assert props["footprint"] == {"height": None, "area": None, "nested": {"v": [None, 3]}}

@@ -15,28 +15,30 @@ import locale, sys
 assert locale.getpreferredencoding(False).lower() in ("ansi_x3.4-1968", "ascii", "us-ascii"), locale.getpreferredencoding(False)
 import shapely.geometry
 from quakescan.assessment.record import write_building_results
-from quakescan.results import writers as R
+from quakescan.results.building_result import BuildingResult
+from quakescan.results.csv_table import read_footprint_ids
+from quakescan.results.outlines import building_outlines
 from quakescan.results.evaluation import evaluate_files
 from quakescan.formats.footprints import Footprints
 import numpy as np
 from pathlib import Path
 
 out = Path(sys.argv[1])
-rows = [R.BuildingResult(1, 900, 800, True, grade=3, probabilities={0: 0.2, 3: 0.8, 4: 0.0, 5: 0.0},
+rows = [BuildingResult(1, 900, 800, True, grade=3, probabilities={0: 0.2, 3: 0.8, 4: 0.0, 5: 0.0},
                          decided_by="model", confidence=0.8),
-        R.BuildingResult(2, 900, 800, False, "density 1.23 pts/m\u00b2 < 1.9"),
-        R.BuildingResult(3, 900, 800, True, grade=0, probabilities={0: 1.0, 3: 0.0, 4: 0.0, 5: 0.0},
+        BuildingResult(2, 900, 800, False, "density 1.23 pts/m\u00b2 < 1.9"),
+        BuildingResult(3, 900, 800, True, grade=0, probabilities={0: 1.0, 3: 0.0, 4: 0.0, 5: 0.0},
                          decided_by="no change", confidence=1.0)]
 polys = [shapely.geometry.box(10 * i, 0, 10 * i + 8, 8) for i in range(3)]
 props = [{"ref": "Stra\u00dfe 7 \u00e9\u00e8"}, {"ref": "\ud800 lone"}, {"ref": "\u5efa\u7269"}]
 fp = Footprints(np.array([1, 2, 3]), polys, "EPSG:2056", "test", props, "ref")
-outlines = R.building_outlines(rows, fp)
+outlines = building_outlines(rows, fp)
 write_building_results(out, rows, [0, 3, 4, 5], fp, outlines, "EPSG:2056", None,
                        "Damage grades: nach-\u00e9v\u00e9nement \udcff.las")
 (out / "truth.csv").write_bytes("\ufeffbuilding_id,grade\n1,3\n3,0\n".encode("utf-8"))
 ev = evaluate_files(out / "buildings.csv", out / "truth.csv")
 assert ev.n == 2 and ev.overall_accuracy == 1.0
-print(R.read_footprint_ids(out / "buildings.csv"))
+print(read_footprint_ids(out / "buildings.csv"))
 '''
 
 

@@ -3,7 +3,8 @@ box buildings, the same answers at very different densities, and the quality gat
 import numpy as np
 import pytest
 
-from quakescan.change.pipeline import PipelineSettings, describe_pair
+from quakescan.change.pipeline import describe_pair
+from quakescan.change.settings import PipelineSettings
 from quakescan.change.surface import (
     SURFACE_DESCRIPTORS,
     SurfaceError,
@@ -488,7 +489,7 @@ def test_compiled_patches_and_neighbour_counts_are_numpys(spacing, table, monkey
 
 
 def _cell_tops_numpy(xyz, lo, cell, width, layer_m):
-    """The numpy code _CellTops was before its loops were compiled (the reference)."""
+    """The numpy reference of _CellTops' compiled loops."""
     from quakescan.change.surface import _BAND_STRIDE_M
 
     ij = np.floor((xyz[:, :2] - lo) / cell).astype(np.int64)

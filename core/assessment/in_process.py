@@ -6,7 +6,8 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
-from ..change.pipeline import describe_pair, members_by_id
+from ..change.pipeline import describe_pair
+from ..change.tiling import members_by_id
 from ..change.registration import register_pair
 from ..formats.pair import load_pair
 from ..formats.pointcloud import Epoch
@@ -51,7 +52,7 @@ class InProcess:
         pass
 
     def write_graded_cloud(self, job: Job, pair: ReadPair, path: Path, grade_by_building: dict) -> None:
-        from ..results.writers import write_grade_las
+        from ..results.graded_cloud import write_grade_las
 
         post = pair.state.post
         write_grade_las(path, post.xyz, post.origin, post.crs, post.building_id, grade_by_building,

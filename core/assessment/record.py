@@ -75,16 +75,18 @@ def write_building_results(out: Path, res, classes, fp, outlines, crs, map_xy, t
     """buildings.csv, .geojson, .qml, damage_map.png and .html of graded buildings (also a
     distributed run's, `quakescan.distributed`): `map_xy` the world x/y drawn under the map;
     `csv_raw`: footprint IDs unescaped in the CSV (`write_csv`'s `raw_text`)."""
-    from ..results import writers as results
+    from ..results.csv_table import write_csv
+    from ..results.geojson import write_geojson
+    from ..results.png_map import write_map_png
     from ..results.qgis_style import write_qml
     from ..results.webmap import write_map_html
 
     own = fp.own_ids() if fp is not None else None
-    results.write_csv(res, out / "buildings.csv", classes, own_ids=own, raw_text=csv_raw)
+    write_csv(res, out / "buildings.csv", classes, own_ids=own, raw_text=csv_raw)
     attributes = (fp.attributes() or None) if fp is not None else None
-    results.write_geojson(res, outlines, out / "buildings.geojson", crs, classes, attributes)
+    write_geojson(res, outlines, out / "buildings.geojson", crs, classes, attributes)
     write_qml(out / "buildings.qml")
-    results.write_map_png(res, outlines, out / "damage_map.png", title, points_xy=map_xy, crs=crs)
+    write_map_png(res, outlines, out / "damage_map.png", title, points_xy=map_xy, crs=crs)
     write_map_html(res, outlines, out / "damage_map.html", title, crs, classes, own_ids=own)
 
 
@@ -92,7 +94,7 @@ def counts_by_grade_name(res) -> dict:
     """{"0 no damage": n, "3 substantial to heavy (heavy)": n, ..., "not assessable": n} in
     grade order: what the CLI prints (quakescan.grades)."""
     from ..grades import long_label
-    from ..results.writers import NOT_ASSESSABLE
+    from ..results.building_result import NOT_ASSESSABLE
 
     grades = sorted({int(r.grade) for r in res if r.assessable and r.grade is not None})
     out = {long_label(g): sum(1 for r in res if r.assessable and r.grade == g) for g in grades}

@@ -49,7 +49,7 @@ def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=N
     damage each building's data could not have shown (`predict_rows`); False gives the model's
     own. `prior` {grade: share}: the mix of grades expected, for the model's equal one
     (`predict_rows`). `csv_raw`: buildings.csv keeps footprint IDs that begin like a formula as
-    they are (for machine readers; `quakescan.results.writers.write_csv`). `engine`: who reads
+    they are (for machine readers; `quakescan.results.csv_table.write_csv`). `engine`: who reads
     and describes the pair; by default this process, on `workers` threads
     (`quakescan.assessment.in_process.InProcess`); `quakescan.distributed.engine.DaskEngine`
     runs the tiles on a Dask cluster, with the same files as the result."""
@@ -68,7 +68,7 @@ def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=N
 def _classify(pre_path, post_path, out: Path, engine: Engine, *, model_path, footprints_path, id_field, align,
               progress, write_las, laz, force, unseen_damage, prior, csv_raw) -> dict:
     """`classify` in the output folder it has claimed."""
-    from ..results import writers as results
+    from ..results.outlines import building_outlines
 
     t0 = time.perf_counter()
     options = record.run_options(id_field, write_las, laz, unseen_damage, prior, csv_raw)
@@ -112,7 +112,7 @@ def _classify(pre_path, post_path, out: Path, engine: Engine, *, model_path, foo
     summary["prior"] = options.get("prior", "equal (the model's)")
     out.mkdir(parents=True, exist_ok=True)
     fp = pair.footprints
-    outlines = results.building_outlines(res, fp, pair.outline_points if fp is None else None, pair.outline_origin)
+    outlines = building_outlines(res, fp, pair.outline_points if fp is None else None, pair.outline_origin)
     record.write_building_results(out, res, model.grades, fp, outlines, pair.crs, pair.map_xy,
                                   f"Damage grades: {Path(post_path).name}", csv_raw=csv_raw)
     t_graded = time.perf_counter()

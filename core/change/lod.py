@@ -64,13 +64,9 @@ def calibrate(pre: Epoch, rescan: Epoch, radius_m: float = 1.5, *, quantile: flo
     Both epochs in one local frame (read the rescan with the first one's origin).
     `progress(done, 3)` after each step: the first cloud's features, the nearest points, the
     second cloud's features."""
-    from .pipeline import (
-        GridIndex,
-        PipelineSettings,
-        _box,
-        _exact_nearest,
-        _features_at,
-    )
+    from .paper_descriptors import exact_nearest, features_at
+    from .settings import PipelineSettings
+    from .tiling import GridIndex, box_of
 
     if not 0.5 < quantile < 1.0:
         raise CalibrationError(f"quantile must lie in (0.5, 1), got {quantile!r}")
@@ -90,12 +86,12 @@ def calibrate(pre: Epoch, rescan: Epoch, radius_m: float = 1.5, *, quantile: flo
     post_index = GridIndex(rescan.xyz[:, :2], settings.tile_m / 4)
     curv = floor.curvature_feature
     step = progress or no_progress
-    pre_f = _features_at(pre, pre_index, q, settings, workers)[curv]
+    pre_f = features_at(pre, pre_index, q, settings, workers)[curv]
     step(1, 3)
-    nn, _ = _exact_nearest(pre.xyz[q], rescan, post_index, _box(pre.xyz[q, :2], radius_m), workers)
+    nn, _ = exact_nearest(pre.xyz[q], rescan, post_index, box_of(pre.xyz[q, :2], radius_m), workers)
     step(2, 3)
     uniq, inv = np.unique(nn, return_inverse=True)
-    post_f = _features_at(rescan, post_index, uniq, settings, workers)[curv][inv]
+    post_f = features_at(rescan, post_index, uniq, settings, workers)[curv][inv]
     step(3, 3)
     d_curv = np.abs(post_f - pre_f)
     d_curv = d_curv[np.isfinite(d_curv)]

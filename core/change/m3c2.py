@@ -74,7 +74,7 @@ class M3C2Settings:
     near_m: float = 0.15  # "still there": points within this distance of the core point (`displaced`)
     # a surface counts as displaced only where so few post-event points near it are unlikely by
     # chance (binomial lower tail below this; `M3C2Result.displaced`); 0 = the fixed share rule
-    # alone, as models trained before it were (`M3C2Settings.from_json`)
+    # alone, which a model file without the setting asks for (`M3C2Settings.from_json`)
     displaced_alpha: float = 0.01
 
     def __post_init__(self):

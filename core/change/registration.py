@@ -13,7 +13,7 @@ import numpy as np
 
 from . import align as alignment
 from .align import AlignmentError, format_alignment, sample_mask, stable_mask
-from .pipeline import PipelineSettings
+from .settings import PipelineSettings
 
 log = logging.getLogger(__name__)
 

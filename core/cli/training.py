@@ -27,7 +27,7 @@ def _training_pairs(args) -> list:
 def _check_split_flags(args) -> None:
     """The pipeline's flags in the ranges a model may hold (quakescan.change.pipeline,
     quakescan.change.split), named."""
-    from ..change.pipeline import RADIUS_RANGE_M
+    from ..change.settings import RADIUS_RANGE_M
     from ..change.split import LOD_CURVATURE_RANGE, LOD_HEIGHT_RANGE_M
 
     check_number("--radius", args.radius, *RADIUS_RANGE_M)
@@ -37,7 +37,7 @@ def _check_split_flags(args) -> None:
 
 
 def _pipeline_settings(args):
-    from ..change.pipeline import training_settings
+    from ..change.settings import training_settings
     from ..change.split import SplitSettings
 
     split = SplitSettings(lod_height_m=args.lod_height, lod_curvature=args.lod_curvature,

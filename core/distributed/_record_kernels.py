@@ -1,6 +1,6 @@
 """Compiled loops over the stored blocks' records (numba): the records of a box kept as they
-are read and the order of ascending runs merged into one, for `blocks.read_box`, and records
-packed in a given order, for `blocks.stream_epoch`.
+are read and the order of ascending runs merged into one, for `reading.read_box`, and records
+packed in a given order, for `streaming.stream_epoch`.
 
 A tile's box is read from block runs whose points each lie in file order; the tile needs
 them all in file order. A stable argsort of the joined indices and a gather of (then 29-byte)
@@ -27,7 +27,7 @@ from numba import njit
 def keep_in_box(rec, scales, shifts, box, index, classification, building_id, xyz, n):
     """Append the records whose local x/y lie in `box` ((2, 2): min, max, edges included) to
     the outputs from row `n`; return the rows filled. A coordinate is made as
-    `blocks.EpochFile.local_xyz` makes it: the integer as float64 × scale + shift (offset −
+    `streaming.EpochFile.local_xyz` makes it: the integer as float64 × scale + shift (offset −
     origin), two roundings, so it is equal to the last bit."""
     x0, y0, x1, y1 = box[0, 0], box[0, 1], box[1, 0], box[1, 1]
     for i in range(rec.shape[0]):
@@ -140,8 +140,8 @@ def pack_records(rec, order, index, X, Y, Z, classification, building_id):
 @njit(nogil=True, cache=True)
 def chunk_frame(X, Y, Z, scales, shifts, cell, block_cells, xyz, keys):
     """A streamed chunk's local coordinates, blocks and bounds in one pass: xyz[i] as
-    `blocks.EpochFile.local_xyz` makes it (integer as float64 × scale + shift, two roundings:
-    the same bits), keys[i] as `blocks.block_of` (the cell floor(x / cell) floor-divided by
+    `streaming.EpochFile.local_xyz` makes it (integer as float64 × scale + shift, two roundings:
+    the same bits), keys[i] as `block_store.block_of` (the cell floor(x / cell) floor-divided by
     the block's cells). Returns the (3,) minimum and maximum of xyz and the (2,) minimum and
     maximum block."""
     lo = np.full(3, np.inf)
@@ -201,7 +201,7 @@ def group_boxes(xyz, order, starts, ends):
 @njit(nogil=True, cache=True)
 def cells_and_heights(rec, scales, shifts, cell, ci, cj, z, n, span):
     """Append each record's density cell (floor(x / cell), floor(y / cell)) and height, its
-    coordinates made as `blocks.EpochFile.local_xyz` makes them, to the outputs from row
+    coordinates made as `streaming.EpochFile.local_xyz` makes them, to the outputs from row
     `n`; widen `span` ((4,) int64: min i, min j, max i, max j) to the cells. Returns the
     rows filled."""
     for t in range(rec.shape[0]):

@@ -1,7 +1,7 @@
 """`quakescan classify --workers N | --scheduler ADDRESS`: the classify run's engine on Dask.
 
 The client never holds an epoch. It streams both files chunk by chunk into square blocks
-on disk (`quakescan.distributed.blocks`), keeping per building its point counts and x/y box.
+on disk (`quakescan.distributed.streaming`, `block_store`), keeping per building its point counts and x/y box.
 Then it asks the workers, each reading only the blocks it needs:
 
 1. the roof-cell counts of every block (the pair's densities, which set the surface
@@ -32,7 +32,16 @@ from ..errors import ClassifyError
 from ..formats.footprints import footprints_without_points, no_footprint_contains_a_point
 from ..formats.pointcloud import PointCloudError, check_coordinates_fit_crs, check_not_all_noise
 from ..runtime.output_folder import empty_own_subfolder, is_own_subfolder, remove_own_subfolder
-from . import blocks as bk
+from .block_store import (
+    LAYOUT,
+    block_m,
+    epoch_json,
+    join_part_indexes,
+    read_manifest,
+    save_arrays,
+    write_manifest,
+)
+from .streaming import CHUNK_POINTS, EpochStats, default_origin, merge_stats, open_epoch_file
 from .cluster import dashboard_address
 
 log = logging.getLogger(__name__)
@@ -78,7 +87,7 @@ class DaskEngine:
 
     working_folders = (STORE_NAME, GRADED_NAME)
 
-    def __init__(self, client, *, block_cells: int = BLOCK_CELLS, chunk_points: int = bk.CHUNK_POINTS,
+    def __init__(self, client, *, block_cells: int = BLOCK_CELLS, chunk_points: int = CHUNK_POINTS,
                  on_stage=None):
         self.client, self.block_cells, self.chunk_points, self.on_stage = client, block_cells, chunk_points, on_stage
 
@@ -89,10 +98,10 @@ class DaskEngine:
 
     def read(self, job, load):
         pre_path, post_path, out = job.pre_path, job.post_path, job.out
-        pre_f, post_f = bk.open_epoch_file(pre_path), bk.open_epoch_file(post_path)
+        pre_f, post_f = open_epoch_file(pre_path), open_epoch_file(post_path)
         fp = _read_footprints(job.footprints_path, job.id_field, pre_f, post_f)
         crs = _pair_crs(pre_f, post_f, fp)
-        origin = bk.default_origin(pre_f)
+        origin = default_origin(pre_f)
         out.mkdir(parents=True, exist_ok=True)
         store = out / STORE_NAME
         job.before_first_write()
@@ -105,7 +114,7 @@ class DaskEngine:
 
         def meanwhile():  # the client's own work while the workers stream: the model is read meanwhile
             load()
-            from ..results.writers import import_map_modules
+            from ..results.png_map import import_map_modules
 
             import_map_modules()
 
@@ -200,7 +209,7 @@ class DaskEngine:
     def add_to_summary(self, pair, summary, seconds, end):
         d = pair.state
         summary["dask"] = {"workers": len(self.client.scheduler_info().get("workers", {})),
-                           "dashboard": dashboard_address(self.client), "block_m": bk.block_m(self.block_cells),
+                           "dashboard": dashboard_address(self.client), "block_m": block_m(self.block_cells),
                            "tiles_widened": d.widened, "tiles_split": d.split,
                            "tile_memory_budget_bytes": int(d.budget) if np.isfinite(d.budget) else None}
         seconds["stages"] = _stage_seconds(pair.stages, end)
@@ -223,7 +232,7 @@ class _DaskPair:
 
 
 def classify_distributed(pre_path, post_path, out_dir, client, *, block_cells: int = BLOCK_CELLS,
-                         chunk_points: int = bk.CHUNK_POINTS, on_stage=None, **options) -> dict:
+                         chunk_points: int = CHUNK_POINTS, on_stage=None, **options) -> dict:
     """`quakescan.assessment.run.classify` with the tiles described by the workers of `client`
     (the `DaskEngine`); `options` are `classify`'s. `progress(done, total, stage)`: the points
     of each epoch streamed into blocks (stages "tiling pre", "tiling post"), then the buildings
@@ -342,13 +351,13 @@ def _tiled_epochs(client, store: Path, digest: str, pre_f, post_f, origin, fp, f
     stats = {}
     for name, f in (("pre", pre_f), ("post", post_f)):
         if not f.copc:
-            bk.join_part_indexes(store / name, len(parts[name]))
-        s = bk.merge_stats([parts[name][k] for k in sorted(parts[name])])
+            join_part_indexes(store / name, len(parts[name]))
+        s = merge_stats([parts[name][k] for k in sorted(parts[name])])
         arrays = {"stable_sample": s.stable_sample, "map_xy": s.map_xy}
         arrays.update({f"hull_{b}": v for b, v in s.hulls.items()})
-        bk.save_arrays(store / f"{name}.npz", arrays)
+        save_arrays(store / f"{name}.npz", arrays)
         stats[name] = s
-    bk.write_manifest(store / MANIFEST, {"fingerprint": digest, "block_cells": block_cells, "layout": bk.LAYOUT,
+    write_manifest(store / MANIFEST, {"fingerprint": digest, "block_cells": block_cells, "layout": LAYOUT,
                                          "pre": stats["pre"].to_json(), "post": stats["post"].to_json()})
     return stats["pre"], stats["post"]
 
@@ -358,12 +367,12 @@ def kept_epochs(store: Path, digest: str, block_cells: int):
     and block layout finished under `store`, or None (none, other, or unreadable: tiled again)."""
     if not is_own_subfolder(store):
         return None
-    manifest = bk.read_manifest(store / MANIFEST)
+    manifest = read_manifest(store / MANIFEST)
     if not (manifest and manifest.get("fingerprint") == digest and manifest.get("block_cells") == block_cells
-            and manifest.get("layout") == bk.LAYOUT):
+            and manifest.get("layout") == LAYOUT):
         return None
     try:
-        return tuple(bk.EpochStats.from_json(manifest[name], dict(np.load(store / f"{name}.npz")))
+        return tuple(EpochStats.from_json(manifest[name], dict(np.load(store / f"{name}.npz")))
                      for name in ("pre", "post"))
     except (OSError, KeyError, ValueError):
         return None
@@ -396,7 +405,7 @@ def _pair_geometry(client, store, pre_s, post_s, settings, block_cells, transfor
         if moved is not None:  # a block empty before the alignment may hold points after it
             keys = {(k[0] + dx, k[1] + dy) for k in keys for dx in (-1, 0, 1) for dy in (-1, 0, 1)}
         groups: dict[tuple, list] = {}
-        per_group = max(1, round(DENSITY_GROUP_M / bk.block_m(block_cells)))
+        per_group = max(1, round(DENSITY_GROUP_M / block_m(block_cells)))
         for k in sorted(keys):
             groups.setdefault((k[0] // per_group, k[1] // per_group), []).append(k)
         return [client.submit(group_roof_cells, str(store / name), g, block_cells, building_only, moved,
@@ -439,7 +448,8 @@ def _describe_tiles(client, store, pre_s, post_s, settings, geometry, block_cell
     raises _Realign."""
     from dask.distributed import as_completed
 
-    from ..change.pipeline import quality_gate, rows_by_counts, tile_key
+    from ..change.pipeline import quality_gate, rows_by_counts
+    from ..change.tiling import tile_key
     from .tasks import TileReachError, add_facing_counts, describe_tile_task
 
     rows, ok = rows_by_counts(pre_s.counts, post_s.counts, settings)
@@ -582,15 +592,15 @@ def tile_memory_bytes(store: Path, tile: dict, block_cells: int) -> float:
     """The peak memory of `describe_tile_task` on `tile`, estimated from the points of the blocks
     it reads: every point of those blocks is read, the share of them inside the tile's
     box is described (a COPC epoch: the points of the file's nodes the box overlaps)."""
-    from .blocks import blocks_in_box, stored_points
+    from .block_store import blocks_in_box, stored_points
 
     box = np.asarray(tile["box"], dtype=np.float64)
     area = float(np.prod(np.maximum(box[1] - box[0], 0.0)))
-    side = bk.block_m(block_cells)
+    side = block_m(block_cells)
     read = inside = 0.0
     for name, grow in (("pre", 0.0), ("post", float(tile.get("read_margin", 0.0)))):
         keys = blocks_in_box(box + np.array([[-grow], [grow]]), block_cells)
-        epoch = bk._epoch_json(Path(store) / name)
+        epoch = epoch_json(Path(store) / name)
         if epoch.get("file", {}).get("copc"):  # the points of the file's nodes the box overlaps
             from ..formats.copc import copc_index
 
@@ -647,7 +657,7 @@ def _write_graded_cloud(client, path, post_f, origin, crs, footprints, transform
     import laspy
     from dask.distributed import as_completed
 
-    from ..results.writers import grade_header, source_extra_dims, write_grade_records
+    from ..results.graded_cloud import grade_header, source_extra_dims, write_grade_records
     from .tasks import graded_part
 
     empty_own_subfolder(folder, ClassifyError)

@@ -11,7 +11,9 @@ from pathlib import Path
 import numpy as np
 
 from ..grid.density import DENSITY_CELL_M
-from .blocks import EpochFile, block_runs, read_box, read_records, read_runs, stored_points, worker_footprints
+from .block_store import block_runs, read_runs, stored_points
+from .reading import read_box, read_records
+from .streaming import EpochFile, worker_footprints
 
 # the eight neighbours a roof cell needs occupied to count as interior (roof_cell_density)
 NEIGHBOURS = [(dx, dy) for dx in (-1, 0, 1) for dy in (-1, 0, 1) if dx or dy]
@@ -58,7 +60,7 @@ def group_roof_cells(folder: str, keys, block_cells: int, building_only: bool = 
         if square is None or runs[:, 2].sum() > SQUARE_POINTS:
             return [block_roof_cells(folder, k, block_cells, building_only) for k in keys]
         return [_stored_roof_cells(folder, f, runs, square, int(square_cells))]
-    from .blocks import block_of
+    from .block_store import block_of
 
     # a COPC epoch: the group's box read from the file once (its coarse octree levels span every block)
     ring = keys if transform is None else sorted({(k[0] + dx, k[1] + dy) for k in keys
@@ -116,7 +118,7 @@ def block_roof_cells(folder: str, key, block_cells: int, building_only: bool = T
 
 def _stored_roof_cells(folder: str, f: EpochFile, runs: np.ndarray, square, square_cells: int) -> dict:
     """`block_roof_cells` of the square `square` of `square_cells` cells from the stored runs
-    `runs` (`blocks.block_runs` of the blocks in it): each record's cell and height in one
+    `runs` (`block_store.block_runs` of the blocks in it): each record's cell and height in one
     compiled loop, no coordinates made."""
     from ._record_kernels import cells_and_heights
 
@@ -182,12 +184,12 @@ def stream_part(folder: str, epoch_json: dict, origin: list, part: int, start: i
                 footprints: dict | None, with_hulls: bool, sample, map_step: int | None, chunk_points: int,
                 pair_bytes: int | None = None):
     """Points start..stop of an epoch's file streamed into the file and index of `part` under
-    `folder` (`quakescan.distributed.blocks.stream_epoch`): one of the tasks that tile an
+    `folder` (`quakescan.distributed.streaming.stream_epoch`): one of the tasks that tile an
     epoch in parallel. `footprints`: {"path", "id_field"} read here (building IDs by
     footprint), or None (the file's building_id). `pair_bytes`: both epochs' file sizes,
     which decide on the worker's own machine whether the streamed pages are dropped from its
-    page cache (`blocks.page_cache_cannot_hold`). Returns the part's EpochStats."""
-    from .blocks import page_cache_cannot_hold, stream_epoch
+    page cache (`streaming.page_cache_cannot_hold`). Returns the part's EpochStats."""
+    from .streaming import page_cache_cannot_hold, stream_epoch
 
     fp = None if footprints is None else worker_footprints(footprints["path"], footprints.get("id_field"))
     return stream_epoch(EpochFile(**epoch_json), np.asarray(origin, dtype=np.float64), Path(folder),
@@ -200,7 +202,7 @@ def stream_part(folder: str, epoch_json: dict, origin: list, part: int, start: i
 def graded_part(out_file: str, epoch_json: dict, origin: list, start: int, stop: int, footprints: dict | None,
                 transform, grade_by_building: dict, max_id: int, chunk_points: int) -> int:
     """Points start..stop of the post-event file as point records of the graded cloud
-    (`quakescan.results.writers.grade_records`: every attribute of the file, aligned as the
+    (`quakescan.results.graded_cloud.grade_records`: every attribute of the file, aligned as the
     tiles saw them, building ID, grade and colour), appended raw to `out_file` (written under
     a temporary name, complete or absent); the client puts the parts' records behind one
     header. Returns the number of points."""
@@ -209,7 +211,7 @@ def graded_part(out_file: str, epoch_json: dict, origin: list, start: int, stop:
     from ..change.align import apply_transform
     from ..formats.footprints import assign_buildings
     from ..formats.pointcloud import noise_mask
-    from ..results.writers import grade_header, grade_records, source_chunks_format7, source_extra_dims
+    from ..results.graded_cloud import grade_header, grade_records, source_chunks_format7, source_extra_dims
     from ..runtime.atomic import open_replacing
 
     f = EpochFile(**epoch_json)
@@ -277,7 +279,8 @@ def describe_tile_task(store: str, tile: dict, settings_json: dict, geometry: di
     rows are those of the whole tile. `workers`: threads of the descriptor kernels (the client
     asks for one: a Dask worker runs one task a thread, the cluster's processes are the
     parallelism)."""
-    from ..change.pipeline import PipelineSettings, describe_tile
+    from ..change.pipeline import describe_tile
+    from ..change.settings import PipelineSettings
     from ..change.surface import SurfaceGeometry
     from ..formats.pointcloud import Epoch, without_noise
 
@@ -321,8 +324,8 @@ def registration_task(store: str, settings_json: dict, align, names: dict, post_
     for one, as for a tile)."""
     import logging
 
-    from ..change.pipeline import PipelineSettings
     from ..change import registration
+    from ..change.settings import PipelineSettings
 
     class Keep(logging.Handler):
         def __init__(self):

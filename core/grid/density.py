@@ -4,7 +4,7 @@ cells of the clouds' frame.
 Every stage that speaks of density measures it here: the simulators' thinning to a target
 density (`quakescan.acquisition.density`), the descriptors' grids and chance rules
 (`quakescan.change.surface`), the model's density features, the Dask blocks, which are squares
-of these cells (`quakescan.distributed.blocks`), and the tiles' streamed shares of it
+of these cells (`quakescan.distributed.block_store`), and the tiles' streamed shares of it
 (`quakescan.distributed.tasks`).
 """
 from __future__ import annotations

@@ -34,8 +34,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..change.pipeline import PipelineSettings
 from ..change.descriptors import DESCRIPTOR_VERSION
+from ..change.settings import PipelineSettings
 from ..change.surface import NOISE_FREE_DESCRIPTORS, SurfaceSettings
 from ..runtime.progress import stage_log
 from .model import ModelError
@@ -182,8 +182,8 @@ def fit_default_model(table, plan, config: dict, scores, *, seed: int = 0, comma
     provenance = {
         "created": datetime.date.today().isoformat(),
         "command": command,
-        # "quakescan.trainset" is the module's name when the shipped model was made: model files
-        # and their reports keep it, byte for byte (the module is now quakescan.learning.trainset)
+        # "quakescan.trainset": the training set's module (quakescan.learning.trainset) as the
+        # shipped model's files and their reports name it, kept byte for byte
         "dataset": (f"transfer training set '{plan.name}' (seed {plan.seed}): {len(plan.cities)} cities, "
                     f"{len(plan.pairs)} pairs, {len(table.y)} building rows; random acquisitions, "
                     "cross-source pairs, mixed post-event cities (quakescan.trainset)"),

@@ -29,7 +29,7 @@ VERSION = 1
 # Version 2: a model trained on every row (`no_change_rule` False). A QuakeScan that reads
 # only version 1 would decide the unchanged buildings by rule without asking the model,
 # i.e. misread the file; the version makes it refuse it instead. Everything else is
-# written as version 1, which older readers read as before.
+# written as version 1, so that a reader of version 1 alone reads it right.
 VERSION_ALL_ROWS = 2
 SUPPORTED_VERSIONS = (VERSION, VERSION_ALL_ROWS)
 GRADE_LABELS = GRADE_SHORT_NAMES  # buildings.csv `label`: the paper's short names (quakescan.grades)
@@ -552,7 +552,7 @@ def _check_archive_size(path: Path) -> None:
 def _check_settings(path, meta: dict) -> None:
     """Refuse settings no QuakeScan writes: a radius or levels of detection out of range (an
     edited file would classify every building at settings it was never trained on)."""
-    from ..change.pipeline import radius_problem
+    from ..change.settings import radius_problem
     from ..change.split import SplitSettings
 
     problem = radius_problem(meta.get("radius_m"))

@@ -11,7 +11,7 @@ name derived from the file's bytes and the versions that made it; a file with th
 bytes loads from here. The pickle is what this user's QuakeScan wrote, not the file's
 content, and is trusted as Python trusts its own caches: only in a folder owned by this
 user that no one else can write to. Anything else (another owner, a folder writable by
-others, a broken entry) is not read, and the model is loaded through skops as before.
+others, a broken entry) is not read, and the model is loaded through skops.
 
 `QUAKESCAN_CACHE_DIR` moves the cache (models go to its `models/`), `off` turns it off;
 without it, `$XDG_CACHE_HOME/quakescan` or `~/.cache/quakescan`.

@@ -14,9 +14,10 @@ import numpy as np
 
 from ..change.descriptors import DESCRIPTOR_VERSION
 from ..change.detectability import of_building
-from ..change.pipeline import PipelineSettings, descriptor_matrix, settings_for_descriptors
+from ..change.pipeline import descriptor_matrix
+from ..change.settings import PipelineSettings, settings_for_descriptors
 from ..errors import QuakeScanError
-from ..results.writers import BuildingResult
+from ..results.building_result import BuildingResult
 from .model import DamageModel, ModelError, changed_share
 from .unseen_damage import prior_weights, unseen_shares, with_prior, with_unseen_damage
 

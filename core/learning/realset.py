@@ -81,8 +81,8 @@ class RealPair:
         return f"real-{self.kind}" + (f"-{self.sensor}" if self.sensor else "")
 
     def spec(self) -> dict:
-        """The fields that make the pair's rows (a pair without a drone as before drones existed,
-        so its cached rows stay current)."""
+        """The fields that make the pair's rows (`sensor` only for a pair with a drone: the
+        cached rows of a pair without one do not depend on the field)."""
         d = asdict(self)
         if not d["sensor"]:
             del d["sensor"]

@@ -19,7 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..change.pipeline import PipelineSettings, describe_pair, descriptor_matrix
+from ..change.pipeline import describe_pair, descriptor_matrix
+from ..change.settings import PipelineSettings
 from ..errors import QuakeScanError
 from ..formats.pointcloud import GRADE_UNKNOWN, Epoch
 from ..results.evaluation import Evaluation, evaluate_grades, read_grade_csv, to_target_grade

@@ -418,7 +418,8 @@ def pair_table(out_dir, pair: dict, settings: dict, labels: str = "simulator", w
     density, cells, seconds (acquisition and description). `discard`: clouds (paths) that no
     later pair reads, removed with their sidecars once the table is written (or found)."""
     from ..acquisition.acquire import Acquisition, acquire
-    from ..change.pipeline import PipelineSettings, describe_pair, descriptor_matrix
+    from ..change.pipeline import describe_pair, descriptor_matrix
+    from ..change.settings import PipelineSettings
     from ..results.evaluation import to_target_grade
     from ..formats.pair import load_pair
 

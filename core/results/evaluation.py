@@ -108,7 +108,7 @@ def evaluate_grades(truth: np.ndarray, pred: np.ndarray) -> Evaluation:
 
 
 def _read_csv(path: Path, needed: tuple) -> list[dict]:
-    from .writers import read_csv_rows
+    from .csv_table import read_csv_rows
 
     _, rows = read_csv_rows(path, EvaluationError)
     if not rows:
@@ -144,7 +144,7 @@ def read_truth(path: str | os.PathLike) -> dict[int, int]:
 def read_grade_csv(path, error=EvaluationError) -> dict[int, int]:
     """{building_id: grade} from a truth CSV (columns building_id, grade 0–5); `error`: the
     caller's error class. A building listed twice is refused (which row is the truth?)."""
-    from .writers import read_csv_rows
+    from .csv_table import read_csv_rows
 
     path = Path(path)
     _, rows = read_csv_rows(path, error, "truth file")

@@ -12,7 +12,8 @@ import xml.etree.ElementTree as ET
 
 from ..grades import GRADE_NAMES, long_label
 from ..runtime.atomic import write_text
-from .writers import NOT_ASSESSABLE, NOT_ASSESSABLE_COLOUR, _rgb8, colour_of
+from .building_result import NOT_ASSESSABLE
+from .colours import NOT_ASSESSABLE_COLOUR, colour_of, rgb8
 
 GRADE_FIELD = "predicted_grade"
 LABEL_FIELD = "building_id"
@@ -20,7 +21,7 @@ OUTLINE = "#333333"
 
 
 def _qgis_colour(hex_colour: str) -> str:
-    return ",".join(str(v) for v in _rgb8(hex_colour)) + ",255"
+    return ",".join(str(v) for v in rgb8(hex_colour)) + ",255"
 
 
 def _fill_symbol(parent, name: str, hex_colour: str):

@@ -5,7 +5,7 @@ the file works without internet and without the files beside it. There are no of
 tiles, so the map uses Leaflet's `L.CRS.Simple` (1 unit = 1 m) with the projected
 coordinates shifted to a local origin (the frame's lower-left corner, rounded to the
 metre); the popups give the real coordinates and the CRS. Colours and names are those of
-the PNG map and the CSV (`quakescan.results.writers.colour_of`, `quakescan.grades`).
+the PNG map and the CSV (`quakescan.results.colours.colour_of`, `quakescan.grades`).
 """
 from __future__ import annotations
 
@@ -15,17 +15,9 @@ from pathlib import Path
 from ..grades import grade_name, long_label, short_name
 from ..runtime.atomic import write_text
 from ..runtime.text_safety import html_text, js_safe_id, script_json
-from .writers import (
-    HATCH_COLOUR,
-    HEAVY_UNRESOLVED,
-    NOT_ASSESSABLE,
-    NOT_ASSESSABLE_COLOUR,
-    _sorted,
-    colour_of,
-    crs_text,
-    labelled_ids,
-    map_frame,
-)
+from .building_result import NOT_ASSESSABLE, in_id_order
+from .colours import NOT_ASSESSABLE_COLOUR, colour_of
+from .png_map import HATCH_COLOUR, HEAVY_UNRESOLVED, crs_text, labelled_ids, map_frame
 
 WEB = Path(__file__).resolve().parents[1] / "web"
 LEAFLET_VERSION = "1.9.4"
@@ -95,7 +87,7 @@ def map_features(rows, outlines: dict, classes, origin_xy, own_ids: dict | None 
 
     labels = set(labelled_ids(rows, outlines))
     feats = []
-    for r in _sorted(rows):
+    for r in in_id_order(rows):
         bid = int(r.building_id)
         o = outlines.get(bid)
         if o is None or o.geometry.is_empty:

@@ -80,7 +80,7 @@ def scene_fingerprint(scene) -> str:
         h.update(a.tobytes())
     h.update(json.dumps([b.to_json() for b in scene.buildings], sort_keys=True).encode())
     h.update(json.dumps([scene.crs, scene.epoch, scene.units]).encode())
-    if scene.has_porous:  # only then: fingerprints of scenes without vegetation stay what they were
+    if scene.has_porous:  # only then: a scene without vegetation hashes as opaque faces, its outputs stay current
         h.update(np.ascontiguousarray(scene.face_porous, dtype=bool).tobytes())
         h.update(json.dumps(scene.transmission).encode())
     return h.hexdigest()

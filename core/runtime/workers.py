@@ -1,8 +1,8 @@
 """The one parallelism knob of the library: `workers`, the number of worker threads.
 
 Every function that runs in parallel takes `workers: int = -1`: a number of threads >= 1, or
--1 for every core (scipy's and scikit-learn's convention; None is taken as -1, the meaning it
-had where it was the default). Outputs never depend on it.
+-1 for every core (scipy's and scikit-learn's convention; None is taken as -1, every core).
+Outputs never depend on it.
 """
 from __future__ import annotations
 

@@ -130,8 +130,8 @@ def _table(pre: Path, posts: list, cache: Path, settings, workers) -> dict:
 
     `posts`: (post cloud, grade) where grade is one grade for every building or a
     {building ID: grade} truth (a mixed city)."""
-    from ..change.pipeline import describe_pair, descriptor_matrix
     from ..change.descriptors import DESCRIPTOR_VERSION
+    from ..change.pipeline import describe_pair, descriptor_matrix
     from ..formats.pair import load_pair
 
     inputs = json.dumps([settings.to_json(), Path(pre).name, [Path(p).name for p, _ in posts]], sort_keys=True)
@@ -224,7 +224,7 @@ def run_paper_experiment(out_dir, settings: ExperimentSettings | None = None, *,
     descriptor table per dataset and the test city after their clouds; single-threaded tasks,
     each worker its own ray-casting scene); every worker must reach out_dir. The same files,
     caches and numbers as one process makes: either run resumes the other's."""
-    from ..change.pipeline import PipelineSettings
+    from ..change.settings import PipelineSettings
     from ..generator import GenerationSpec, generate
     from ..learning.prediction import predict_rows
     from ..learning.model import DamageModel
@@ -420,7 +420,7 @@ def _worker_count(client) -> int:
 def _table_after_lod(pre: Path, posts: list, cache: Path, lod, workers) -> dict:
     """`_table` with the split of the measured levels of detection; a post-event cloud's grade
     may be a scene folder whose truth holds the grades (a mixed city, read once it is made)."""
-    from ..change.pipeline import PipelineSettings
+    from ..change.settings import PipelineSettings
 
     posts = [(post, read_truth(grade) if isinstance(grade, Path) else grade) for post, grade in posts]
     return _table(pre, posts, cache, PipelineSettings(split=lod.split()), workers)
@@ -428,7 +428,8 @@ def _table_after_lod(pre: Path, posts: list, cache: Path, lod, workers) -> dict:
 
 def _describe_after_lod(pre: Path, post: Path, lod, workers) -> list:
     """The test pair's building rows with the split of the measured levels of detection."""
-    from ..change.pipeline import PipelineSettings, describe_pair
+    from ..change.pipeline import describe_pair
+    from ..change.settings import PipelineSettings
     from ..formats.pair import load_pair
 
     pair = load_pair(pre, post)
@@ -509,8 +510,8 @@ def shipped_text(ev: Evaluation | None) -> str:
     if ev is None:
         return "The shipped default model was not found; no comparison with it."
     f1 = ", ".join(f"{TARGET_SHORT_NAMES[g]} {metric_text(ev.per_grade[g], 'f1', unit='')}" for g in TARGET_GRADES)
-    # "quakescan.trainset" as in the reports of record (now quakescan.learning.trainset): the
-    # report's text stays the same bytes
+    # "quakescan.trainset": the training set's module as the reports of record and the shipped
+    # model's provenance name it, so the report's text stays the same bytes
     return (f"The shipped default model (`core/data/default_model.skops`: the transfer training set of "
             f"`quakescan.trainset`, nothing of this experiment's data), applied as it is to the same test pair: "
             f"overall accuracy {100 * ev.overall_accuracy:.1f} % on {ev.n} buildings ({ev.not_assessable} not "

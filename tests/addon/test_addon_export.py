@@ -36,8 +36,8 @@ def test_bundle_round_trip(tmp_path):
 
 
 def test_the_export_never_follows_a_planted_link_nor_writes_through_one(tmp_path):
-    """Issue 45: the old temporary name (NAME.tmp) was predictable; a link planted there sent
-    the bytes outside the folder. The temporary is now exclusive and unguessable."""
+    """Issue 45: a predictable temporary name (NAME.tmp) would let a link planted there send
+    the bytes outside the folder; the export's temporary is exclusive and unguessable."""
     import os
     import stat
 

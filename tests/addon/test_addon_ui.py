@@ -185,8 +185,8 @@ def _truncated(panel, context):
 def test_no_label_is_truncated_at_the_default_sidebar_width(blank):
     """Every label, property name, dropdown item (each one of them, not only the one shown)
     and button text fits its share of the default sidebar, for every pattern and with
-    details listed; the measure catches what the old layout cut ("Mate…", "Vuln…",
-    "Add Shell Int…", "B: simple stone, u…")."""
+    details listed; the measure catches the cuts a layout too wide for it makes ("Mate…",
+    "Vuln…", "Add Shell Int…", "B: simple stone, u…")."""
     bpy = blank
     from addon import ems98
 
@@ -202,7 +202,7 @@ def test_no_label_is_truncated_at_the_default_sidebar_width(blank):
         problems += _truncated(bpy.types.DAMAGE_PT_damage, ctx)
     problems += _truncated(bpy.types.DAMAGE_PT_scene, ctx)
     assert not problems, problems
-    # the measure flags what the old layout cut: two buttons in a row, the long class names
+    # the measure can fail: it flags two buttons in a row and the long class names, which a sidebar cuts
     row = Sized(SIDEBAR_PX, [], kind="row")
     row.operator("damage.add_interior")
     row.operator("damage.reset_building")

@@ -77,7 +77,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ...change.features import FEATURES, compute_features
-from ...change.pipeline import PAPER_FEATURES
+from ...change.settings import PAPER_FEATURES
 from ...errors import QuakeScanError
 from ...formats.pointcloud import Epoch
 from ...runtime.progress import ProgressCallback

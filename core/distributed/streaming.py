@@ -1,28 +1,10 @@
-"""An epoch streamed from its LAS/LAZ file into square blocks on disk, and read back by box.
+"""An epoch streamed from its LAS/LAZ file into the block files (`quakescan.distributed.block_store`).
 
 The tiling step of a distributed classification. The file is read in chunks (laspy's chunk
 iterator: memory holds one chunk, never the cloud), each point gets its building ID (the
 file's `building_id` or the footprint that holds it), and is appended to the file of its
-block: a square of `block_cells` density cells (1 m, `quakescan.grid.density.DENSITY_CELL_M`)
-in the pair's local frame. A block holds each point once; the halo a tile needs is read
-from the blocks around it when the tile is described, so one tiling serves every halo.
-
-Each task that streams a part of the file (a range of its points) writes one file,
-`part<k>.bin`, in which every block's points lie together: a block's points with a building
-ID and the rest are two runs (the densities of the surface descriptors read building points
-only, half of an epoch or less), and `part<k>.index.npy` says where each run lies. The part
-buffers up to SEGMENT_POINTS points, sorts them by block and writes them as one segment, so a
-block has one run a segment. The client joins the parts' indexes into `blocks.index.npy`
-(`join_part_indexes`), which every reader looks its blocks up in: an epoch streamed in
-625 parts (10 B points) is 1,250 files, not one per block, kind and part (25 M), and a tile
-reads its blocks' runs from each part's file with one system call per contiguous stretch.
-
-A point is stored as its file's integers (X, Y, Z), its classification, building ID and its
-index in the file. Reading a box turns the integers into the same float64 coordinates
-`quakescan.formats.pointcloud.read_epoch` makes (integers × scale + (offset − origin), one
-operation per element) and sorts the points by their index: a worker sees exactly the
-values, in exactly the order, that a single process sees, so its descriptors are equal to
-the last bit.
+block. Several tasks may each stream a part of the file (a range of its points); their
+stats join into the whole epoch's (`merge_stats`).
 
 While streaming, the client keeps what needs the whole epoch and is small: per building its
 point count and x/y box, the epoch's bounds, the stable points the registration check
@@ -32,28 +14,25 @@ hull of each building's pre-event points (the outline of a building without a fo
 from __future__ import annotations
 
 import contextlib
-import json
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from ..grid.density import DENSITY_CELL_M
 from ..formats.pointcloud import PointCloudError, noise_mask, read_point_range
+from ..grid.density import DENSITY_CELL_M
+from .block_store import (
+    INDEX_NAME,
+    RECORD,
+    part_index_path,
+    part_path,
+    record_dtype,
+    run_keys,
+    save_index,
+    write_record,
+)
 
-# The stored point: the file's integers, so a float64 coordinate is made once, on reading.
-# RECORD is the widest record, for any file; an epoch's blocks store the narrowest its file
-# allows (`record_dtype`): 21 bytes where the point count and the building IDs fit in 4 bytes
-# each, as in every file QuakeScan writes (uint32 IDs) and every footprint file seen so far.
-RECORD = np.dtype([("index", "<i8"), ("X", "<i4"), ("Y", "<i4"), ("Z", "<i4"), ("classification", "u1"),
-                   ("building_id", "<i8")])
-# Where a folder's blocks say which record they store (written by every streaming part)
-RECORD_NAME = "record.json"
-# Bumped whenever the block files change: a store tiled by an earlier layout is tiled again
-# (2: building points in files of their own; 3: one file a part, its runs in an index;
-# 4: the narrowest record the file allows)
-LAYOUT = 4
 # Points per chunk read from a LAS/LAZ file. Every array of a chunk this size (the LAS
 # records, ~19 MB; coordinates, 12 MB) stays under glibc's 32 MiB mmap ceiling, so its memory
 # is reused chunk after chunk; at 2 M points each array was mapped anew and its pages faulted
@@ -162,114 +141,6 @@ class EpochStats:
                    {int(k[5:]): v for k, v in arrays.items() if k.startswith("hull_")}, int(d.get("noise", 0)))
 
 
-def block_of(xy: np.ndarray, block_cells: int) -> np.ndarray:
-    """(n, 2) block indices of local x/y: the density cell (floored exactly as the density is
-    counted) divided by the block's cells, so a density cell never straddles two blocks."""
-    cells = np.floor(xy / DENSITY_CELL_M).astype(np.int64)
-    return cells // int(block_cells)
-
-
-# A run's row in an index: its sort key (block, then kind: `run_keys`), the part whose file
-# holds it, where it begins (in records) and how many records it has. Stored column by column
-# (Fortran order), so the sort keys are one contiguous column that a memory-mapped index is
-# searched in without reading the rest.
-INDEX_NAME = "blocks.index.npy"
-
-
-def part_path(folder: Path, part: int | None) -> Path:
-    """The file of one streaming part's points (`part` None: an epoch streamed whole, part 0)."""
-    return Path(folder) / f"part{int(part or 0)}.bin"
-
-
-def part_index_path(folder: Path, part: int | None) -> Path:
-    return Path(folder) / f"part{int(part or 0)}.index.npy"
-
-
-def run_keys(bx, by, buildings) -> np.ndarray:
-    """The sort key of a block's run: block x, then block y, then kind (1: building points),
-    so a block's two runs are neighbours and its building run comes second."""
-    bx, by = np.asarray(bx, dtype=np.int64), np.asarray(by, dtype=np.int64)
-    return ((bx << 32) + (by + (1 << 31))) * 2 + np.asarray(buildings, dtype=np.int64)
-
-
-def join_part_indexes(folder: Path, parts: int) -> None:
-    """Join the indexes of an epoch streamed in `parts` parts into the epoch's index, sorted
-    by run key, part and offset (a block's runs in file order), written atomically."""
-    rows = [np.load(part_index_path(folder, p)) for p in range(int(parts))]
-    _save_index(Path(folder) / INDEX_NAME, np.vstack(rows) if rows else np.zeros((0, 4), np.int64))
-
-
-def _save_index(path: Path, rows: np.ndarray) -> None:
-    from ..runtime.atomic import open_replacing
-
-    rows = rows[np.lexsort((rows[:, 2], rows[:, 1], rows[:, 0]))] if len(rows) else rows.reshape(0, 4)
-    with open_replacing(path, "wb") as out:
-        np.save(out, np.asfortranarray(rows, dtype=np.int64))
-
-
-def block_runs(folder: Path, keys, buildings_only: bool = False) -> np.ndarray:
-    """(r, 3) rows [part, offset, count] of the runs holding the points of blocks `keys`
-    (`buildings_only`: their points with a building ID), in the order of their files."""
-    path = Path(folder) / INDEX_NAME
-    try:
-        index = np.load(path, mmap_mode="r")
-    except OSError:
-        raise FileNotFoundError(f"{path}: no block index (the epoch was not streamed into {folder}, "
-                                "or its parts' indexes were not joined: join_part_indexes)") from None
-    keys = np.asarray([(int(k[0]), int(k[1])) for k in keys], dtype=np.int64).reshape(-1, 2)
-    if not len(keys) or not len(index):
-        return np.zeros((0, 3), np.int64)
-    column = index[:, 0]
-    lo = np.searchsorted(column, run_keys(keys[:, 0], keys[:, 1], 1 if buildings_only else 0), side="left")
-    hi = np.searchsorted(column, run_keys(keys[:, 0], keys[:, 1], 1), side="right")
-    runs = np.vstack([np.asarray(index[a:b, 1:4]) for a, b in zip(lo.tolist(), hi.tolist()) if b > a]
-                     or [np.zeros((0, 3), np.int64)])
-    return runs[np.lexsort((runs[:, 1], runs[:, 0]))] if len(runs) else runs
-
-
-def read_runs(folder: Path, runs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(records, starts): the records of `runs` (`block_runs`) one after another, run r in
-    records[starts[r]:starts[r + 1]]. Each part's file is opened once and read with one
-    system call per stretch of runs that lie end to end in it."""
-    runs = np.asarray(runs, dtype=np.int64).reshape(-1, 3)
-    starts = np.zeros(len(runs) + 1, np.int64)
-    np.cumsum(runs[:, 2], out=starts[1:])
-    record = stored_record(folder)
-    out = np.empty(int(starts[-1]), record)
-    raw = out.view(np.uint8)
-    size = record.itemsize
-    r = 0
-    while r < len(runs):
-        part = int(runs[r, 0])
-        path = part_path(folder, part)
-        fd = os.open(path, os.O_RDONLY)
-        try:
-            while r < len(runs) and runs[r, 0] == part:
-                e = r + 1  # runs that follow on in the file and in `out`: one read
-                while e < len(runs) and runs[e, 0] == part and runs[e, 1] == runs[e - 1, 1] + runs[e - 1, 2]:
-                    e += 1
-                _read_exactly(fd, path, raw[starts[r] * size:starts[e] * size], int(runs[r, 1]) * size)
-                r = e
-        finally:
-            os.close(fd)
-    return out, starts
-
-
-def _read_exactly(fd: int, path: Path, view: np.ndarray, offset: int) -> None:
-    done = 0
-    while done < len(view):
-        got = os.preadv(fd, [view[done:]], offset + done)
-        if got <= 0:
-            raise PointCloudError(f"{path}: block file ends {len(view) - done} bytes early at byte "
-                                  f"{offset + done}; delete the folder and stream the epoch again")
-        done += got
-
-
-def stored_points(folder: Path, keys, buildings_only: bool = False) -> int:
-    """How many points the blocks `keys` hold (from the index: no file is read)."""
-    return int(block_runs(folder, keys, buildings_only)[:, 2].sum())
-
-
 class _PartFile:
     """A streaming part's file: the chunks' points, sorted by block and kind, buffered up to
     `segment_points` and written as one segment (each block's runs of every buffered chunk
@@ -323,7 +194,7 @@ class _Hulls:
     def add(self, groups: "_Groups", xy: np.ndarray) -> None:
         import shapely
 
-        from ..results.writers import hull_candidates
+        from ..results.outlines import hull_candidates
 
         order = groups.order
         for b, s, t in zip(groups.ids.tolist(), groups.starts.tolist(), groups.ends.tolist()):
@@ -334,44 +205,6 @@ class _Hulls:
                 world = np.vstack([self.vertices[b], world])
             hull = shapely.convex_hull(shapely.multipoints(hull_candidates(world)))
             self.vertices[b] = shapely.get_coordinates(hull)  # a polygon's ring, a line or a point
-
-
-def record_dtype(n_points: int, ids) -> np.dtype:
-    """The record an epoch of `n_points` is stored in: RECORD's fields, each as narrow as the
-    file allows. `ids`: the type of the file's building_id (numpy name or dtype), or the
-    footprints' IDs (an array). Writing the blocks is the tiling's cost, and two workers
-    writing at once wait on the page cache's writeback: the 2 x 75 M-point pair's blocks are
-    3.1 GB of 21-byte records instead of 4.3 GB of 29-byte ones, and its tiling took 5.9 s
-    instead of 8.5 on two workers, 13.4 instead of 16.8 on one (medians of 4 and 3 runs in
-    turn, 2026-11-28)."""
-    index = "<u4" if int(n_points) <= 2 ** 32 else "<i8"  # a point's index is below n_points
-    if isinstance(ids, (str, np.dtype, type)):
-        t = np.dtype(ids)
-        building = ("<u4" if t.kind == "u" else "<i4") if t.kind in "iu" and t.itemsize <= 4 else "<i8"
-    else:
-        ids = np.asarray(ids)
-        fits = not len(ids) or (int(ids.min()) >= -2 ** 31 and int(ids.max()) < 2 ** 31)
-        building = "<i4" if fits else "<i8"
-    return np.dtype([("index", index), ("X", "<i4"), ("Y", "<i4"), ("Z", "<i4"), ("classification", "u1"),
-                     ("building_id", building)])
-
-
-def stored_record(folder: Path) -> np.dtype:
-    """The record the blocks under `folder` store (`record_dtype`; RECORD where no part says)."""
-    try:
-        descr = json.loads((Path(folder) / RECORD_NAME).read_text())
-    except (OSError, ValueError):
-        return RECORD
-    return np.dtype([(str(name), str(t)) for name, t in descr])
-
-
-def _write_record(folder: Path, dtype: np.dtype, part: int | None) -> None:
-    """`RECORD_NAME` under `folder`. Every part of an epoch, on any worker, writes the same
-    text: each under a temporary name of its own, renamed into place (a reader sees one
-    whole file or none)."""
-    from ..runtime.atomic import write_text
-
-    write_text(Path(folder) / RECORD_NAME, json.dumps([[name, dtype[name].str] for name in dtype.names]))
 
 
 def stream_epoch(f: EpochFile, origin: np.ndarray, folder: Path, *, block_cells: int, footprints=None,
@@ -470,11 +303,11 @@ def stream_epoch(f: EpochFile, origin: np.ndarray, folder: Path, *, block_cells:
         rows = None if f.copc else written.index()
     if rows is not None:
         # written after the part's file is complete: an index never points past its file
-        _write_record(folder, record, part)
+        write_record(folder, record, part)
         if part is None:
-            _save_index(folder / INDEX_NAME, rows)
+            save_index(folder / INDEX_NAME, rows)
         else:
-            _save_index(part_index_path(folder, part), rows)
+            save_index(part_index_path(folder, part), rows)
     stats.n = start - first
     stats.bounds = [lo_all.tolist(), hi_all.tolist()] if start > first else None
     stats.blocks = sorted([list(b) for b in blocks])
@@ -538,7 +371,7 @@ def _unique_keys(keys: np.ndarray) -> list[tuple[int, int]]:
 @dataclass
 class _Groups:
     """A chunk's points grouped by building ID: the IDs (ascending), the point indices in ID
-    then file order (a counting sort: `quakescan.change.pipeline.grouped_by_id`) and each
+    then file order (a counting sort: `quakescan.change.tiling.grouped_by_id`) and each
     ID's run."""
 
     ids: np.ndarray
@@ -548,7 +381,7 @@ class _Groups:
 
     @classmethod
     def of(cls, ids: np.ndarray) -> "_Groups":
-        from ..change.pipeline import grouped_by_id, id_counts
+        from ..change.tiling import grouped_by_id, id_counts
 
         u, counts = id_counts(ids)
         order, starts = grouped_by_id(ids, u)
@@ -634,146 +467,6 @@ def merge_stats(parts: list[EpochStats]) -> EpochStats:
     return out
 
 
-def blocks_in_box(box: np.ndarray, block_cells: int) -> list[tuple[int, int]]:
-    """Every block that can hold a point of the x/y box ((2, 2): min, max; local frame)."""
-    a, b = block_of(np.asarray(box, dtype=np.float64), block_cells)
-    return [(i, j) for i in range(int(a[0]), int(b[0]) + 1) for j in range(int(a[1]), int(b[1]) + 1)]
-
-
-def read_records(folder: Path, keys, buildings_only: bool = False, in_file_order: bool = True) -> np.ndarray:
-    """The stored points of the given blocks (`buildings_only`: those with a building ID), in
-    file order (their `index` ascending; `in_file_order=False`: in no particular order, for
-    what does not depend on it, as the densities: a sort of every point less)."""
-    epoch = _epoch_json(folder)
-    if epoch.get("file", {}).get("copc"):
-        return _copc_block_records(Path(folder), epoch, keys, buildings_only)
-    rec, _ = read_runs(folder, block_runs(folder, keys, buildings_only))
-    return rec[np.argsort(rec["index"], kind="stable")] if in_file_order and len(rec) else rec
-
-
-# what a tile reads of its points besides the coordinates
-BOX_FIELDS = np.dtype([("index", "<i8"), ("classification", "u1"), ("building_id", "<i8")])
-
-
-def read_box(folder: Path, f: EpochFile, origin, box, block_cells: int) -> tuple[np.ndarray, np.ndarray]:
-    """(BOX_FIELDS records, local float64 coordinates) of the stored points inside the x/y
-    `box` ((2, 2): min, max; local frame, edges included), in file order: the blocks the box
-    touches, each run cut to the box (a tile's box covers about half of the blocks it
-    touches), the coordinates made once. Each run's points lie in file order: merging the
-    runs (`_record_kernels.merged_order`) puts them in file order."""
-    from ._record_kernels import gather_box, keep_in_box, merged_order
-
-    box = np.asarray(box, dtype=np.float64)
-    origin = np.asarray(origin, dtype=np.float64)
-    if f.copc:
-        rec, xyz = _copc_box(Path(folder), f, origin, box)
-        return _box_fields(rec["index"], rec["classification"], rec["building_id"]), xyz
-    records, runs = read_runs(folder, block_runs(folder, blocks_in_box(box, block_cells)))
-    capacity = len(records)
-    index, cls = np.empty(capacity, np.int64), np.empty(capacity, np.uint8)
-    bid, xyz = np.empty(capacity, np.int64), np.empty((capacity, 3))
-    scales, shifts = f.frame(origin)
-    starts = [0]
-    for a, b in zip(runs[:-1].tolist(), runs[1:].tolist()):
-        starts.append(keep_in_box(records[a:b], scales, shifts, box, index, cls, bid, xyz, starts[-1]))
-    n = starts[-1]
-    order = merged_order(index[:n], np.asarray(starts, dtype=np.int64))
-    out, out_xyz = np.empty(n, BOX_FIELDS), np.empty((n, 3))
-    gather_box(order, index, cls, bid, xyz, out, out_xyz)
-    return out, out_xyz
-
-
-def _box_fields(index, classification, building_id) -> np.ndarray:
-    out = np.empty(len(index), BOX_FIELDS)
-    out["index"], out["classification"], out["building_id"] = index, classification, building_id
-    return out
-
-
-def _epoch_json(folder: Path) -> dict:
-    try:
-        return json.loads((Path(folder) / "epoch.json").read_text())
-    except (OSError, ValueError):
-        return {}
-
-
-def _copc_box(folder: Path, f: EpochFile, origin: np.ndarray, box: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """`read_box` of a COPC epoch: the nodes the box overlaps, decompressed from the file, kept
-    to the box as the block files are (local coordinates, edges included), in file order."""
-    from ..formats.copc import copc_index
-
-    margin = np.array([[-1.0], [1.0]])  # nodes chosen in world coordinates, points kept in local ones
-    index = copc_index(f.path)
-    # a record keeps x, y, z, class and building ID: the other fields are not decompressed
-    packed, where = index.points_in_nodes(index.nodes_in_box(box + origin[:2] + margin), fields="geometry")
-    xyz = f.local_xyz(packed["X"], packed["Y"], packed["Z"], origin)
-    inside = np.all((xyz[:, :2] >= box[0]) & (xyz[:, :2] <= box[1]), axis=1)
-    return _copc_records(folder, f, origin, packed[inside], where[inside], xyz[inside]), xyz[inside]
-
-
-def _copc_block_records(folder: Path, epoch: dict, keys, buildings_only: bool) -> np.ndarray:
-    """`read_records` of a COPC epoch: the points of the blocks `keys`, read by their box."""
-    keys = [(int(k[0]), int(k[1])) for k in keys]
-    if not keys:
-        return np.zeros(0, RECORD)
-    f = EpochFile(**epoch["file"])
-    origin = np.asarray(epoch["origin"], dtype=np.float64)
-    side = float(epoch.get("block_cells", 0)) * DENSITY_CELL_M
-    k = np.asarray(keys, dtype=np.int64)
-    lo, hi = k.min(axis=0), k.max(axis=0)
-    rec, xyz = _copc_box(folder, f, origin, np.array([lo * side, (hi + 1) * side]))
-    span = int(hi[1] - lo[1]) + 1
-    b = block_of(xyz[:, :2], int(epoch["block_cells"])) - lo  # every point's block lies in the keys' box
-    wanted = (k[:, 0] - lo[0]) * span + (k[:, 1] - lo[1])
-    keep = np.isin(b[:, 0] * span + b[:, 1], wanted)
-    if buildings_only:
-        keep &= rec["building_id"] > 0
-    return rec[keep]
-
-
-def _copc_records(folder: Path, f: EpochFile, origin: np.ndarray, packed: np.ndarray, index: np.ndarray,
-                  xyz: np.ndarray) -> np.ndarray:
-    """RECORDs of a COPC file's points, building IDs given as `stream_epoch` gives them (the
-    footprint holding the point, or the file's building_id)."""
-    import laspy
-
-    from ..formats.copc import copc_index
-
-    points = laspy.PackedPointRecord(packed, copc_index(f.path).header.point_format)
-    rec = np.empty(len(packed), RECORD)
-    rec["index"], rec["X"], rec["Y"], rec["Z"] = index, packed["X"], packed["Y"], packed["Z"]
-    rec["classification"] = np.asarray(points["classification"], dtype=np.uint8)
-    footprints = _epoch_json(folder).get("footprints")
-    if footprints:
-        from ..formats.footprints import assign_buildings
-
-        rec["building_id"] = assign_buildings(xyz[:, 0] + origin[0], xyz[:, 1] + origin[1],
-                                              worker_footprints(footprints["path"], footprints.get("id_field")))
-    else:
-        rec["building_id"] = np.asarray(points["building_id"], dtype=np.int64)
-    return rec
-
-
-def write_manifest(path: Path, d: dict) -> None:
-    from ..runtime.atomic import write_text
-
-    write_text(path, json.dumps(d))
-
-
-def read_manifest(path: Path) -> dict | None:
-    try:
-        return json.loads(Path(path).read_text())
-    except (OSError, ValueError):
-        return None
-
-
-def save_arrays(path: Path, arrays: dict) -> None:
-    """The stats' arrays next to the manifest, written under a temporary name."""
-    from ..runtime.atomic import open_replacing
-
-    with open_replacing(path, "wb") as f:
-        np.savez(f, **arrays)
-
-
 _FOOTPRINTS: dict = {}
 
 
@@ -788,11 +481,6 @@ def worker_footprints(path: str, id_field):
     return _FOOTPRINTS[key]
 
 
-def block_m(block_cells: int) -> float:
-    return float(block_cells) * DENSITY_CELL_M
-
-
-__all__ = ["CHUNK_POINTS", "EpochFile", "EpochStats", "RECORD", "block_of", "block_runs", "blocks_in_box",
-           "default_origin", "join_part_indexes", "merge_stats", "open_epoch_file", "page_cache_cannot_hold",
-           "read_box", "read_records", "read_runs", "record_dtype", "stored_points", "stored_record", "stream_epoch",
+__all__ = ["CHUNK_POINTS", "EpochFile", "EpochStats", "MAP_POINTS", "PAGE_CACHE_SHARE", "SEGMENT_POINTS",
+           "default_origin", "merge_stats", "open_epoch_file", "page_cache_cannot_hold", "stream_epoch",
            "worker_footprints"]
