@@ -14,13 +14,13 @@ import sys
 from pathlib import Path
 
 import quakescan as qs
-from quakescan.demo import generate
+from quakescan.generator import GenerationSpec, generate
 
 
 def main(out: Path) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     # 1. a damaged city: scene bundles city/pre and city/post (mesh + labels + grades)
-    generate("region", "mixed", 12, 7, out / "city")
+    generate(GenerationSpec("region", "mixed", 12, 7, out / "city"))
     city = qs.read_scene(out / "city" / "post")
     print(f"{len(city.buildings)} buildings, grades {sorted(b.grade for b in city.buildings)}")
 
