@@ -6,7 +6,7 @@ import json
 import bpy
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty
 
-from . import citygen, ems98, scene_tools
+from . import building_details, ems98, scene_tools
 from .geometry.details import DetailError
 from .geometry.shell import ROOF_TYPES, ShellSpec, rect_footprint
 from .props import CLASS_ITEMS, DETAIL_ITEMS, MATERIAL_ITEMS
@@ -84,8 +84,9 @@ class DAMAGE_OT_add_building(bpy.types.Operator):
         existing = [o.qs_building.building_id for o in bpy.data.objects if o.qs_building.role == "BUILDING"]
         bid = max(existing, default=0) + 1
         if self.details != "none":
-            spec.typology = citygen.typology_for(spec.material, spec.storeys)
-            spec.details = citygen.draw_details(json.loads(spec.to_json()), spec.typology, self.details_seed or bid)
+            spec.typology = building_details.typology_for(spec.material, spec.storeys)
+            spec.details = building_details.draw_details(json.loads(spec.to_json()), spec.typology,
+                                                         self.details_seed or bid)
         try:
             obj = scene_tools.create_building_object(context.collection, spec, bid,
                                                      location=context.scene.cursor.location,

@@ -453,7 +453,7 @@ def terrain_height_function(vertices, triangles):
 
 
 def plan_footprints(plan) -> list:
-    """World footprint polygons of a citygen.CityPlan's buildings (in plan order), then those
+    """World footprint polygons of a city_plan.CityPlan's buildings (in plan order), then those
     of their annexes (``details="typical"``: one-storey extensions outside the footprint)."""
     from .geometry import poly2d
 
@@ -467,7 +467,7 @@ def plan_footprints(plan) -> list:
         for d in b.shell.get("details") or []:
             if d.get("kind") != "annex":
                 continue
-            # as citygen._place_annex: along edge `edge` of the counter-clockwise footprint, outward
+            # as building_details._place_annex: along edge `edge` of the counter-clockwise footprint, outward
             a, e = ccw[d["edge"]], ccw[(d["edge"] + 1) % len(ccw)]
             u = (e - a) / np.linalg.norm(e - a)
             n = np.array([u[1], -u[0]])

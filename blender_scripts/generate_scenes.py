@@ -20,7 +20,7 @@ writes DIR/pre and DIR/post with grades drawn per building (0-5).
 
 --details typical adds roof and facade details to the buildings (dormers, chimneys, skylights,
 eaves overhangs, balconies, antennas, solar panels, rooftop structures, annexes, terraces;
-frequencies by typology in addon/citygen.py); default none.
+frequencies by typology in addon/building_details.py); default none.
 
 --set bundle --source SCENE_DIR takes the buildings and terrain of an existing scene bundle
 (e.g. one imported from CityJSON) instead of a procedural city; --buildings then picks a
@@ -172,7 +172,7 @@ def parse_args(argv):
     p.add_argument("--details", choices=generation_spec.DETAILS, default="none",
                    help="roof and facade details (dormers, chimneys, skylights, overhangs, balconies, antennas, "
                    "solar panels, rooftop structures, annexes, terraces): none (clean shells, default) or typical "
-                   "(frequencies by typology, addon/citygen.py); --set bundle: roof-top details on the roof faces")
+                   "(frequencies by typology, addon/building_details.py); --set bundle: roof-top details on the roof faces")
     p.add_argument("--origin", type=_origin, default=None,
                    help="procedural sets: world coordinates 'X,Y[,Z]' of the city's local origin, written as the "
                    "bundles' origin (e.g. 367000,4690000 with --crs EPSG:32633: L'Aquila); default 0,0,0")

@@ -67,6 +67,19 @@ def signed_distance(poly, pts) -> np.ndarray:
     return np.where(contains(poly, pts), -d, d)
 
 
+def convex_overlap(a, b, tol) -> bool:
+    """Convex polygons a and b overlap by more than `tol` (separating-axis test: no edge normal
+    of either separates them with `tol` to spare)."""
+    for poly in (a, b):
+        for k in range(len(poly)):
+            e = poly[(k + 1) % len(poly)] - poly[k]
+            n = np.array([-e[1], e[0]]) / (np.linalg.norm(e) + 1e-12)
+            pa, pb = a @ n, b @ n
+            if pa.max() <= pb.min() + tol or pb.max() <= pa.min() + tol:
+                return False
+    return True
+
+
 def clip_halfplane(poly, point, normal) -> np.ndarray:
     """Part of a (convex or concave) polygon where dot(x - point, normal) <= 0
     (Sutherland–Hodgman; exact for convex, a valid outline for simple concave cases used here)."""

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from addon import citygen
+from addon import city_plan, citygen
 from addon.geometry import poly2d
 
 
@@ -63,9 +63,9 @@ def _plan(*buildings):
         shell = {"footprint": [[-L / 2, -W / 2], [L / 2, -W / 2], [L / 2, W / 2], [-L / 2, W / 2]]}
         if party:
             shell["party_walls"] = list(party)
-        out.append(citygen.BuildingPlan(bid, shell, ((x0 + x1) / 2, (y0 + y1) / 2), 0.0, "B", bid, "t",
+        out.append(city_plan.BuildingPlan(bid, shell, ((x0 + x1) / 2, (y0 + y1) / 2), 0.0, "B", bid, "t",
                                         (x0, y0, x1, y1)))
-    return citygen.CityPlan(out, citygen._bounds(out), "test", 0)
+    return city_plan.CityPlan(out, citygen._bounds(out), "test", 0)
 
 
 def test_a_wall_facing_the_end_of_the_next_building_is_a_party_wall():
@@ -88,7 +88,7 @@ def test_a_wall_covered_over_less_than_half_its_length_stays_a_facade():
 @pytest.mark.parametrize("set_name", citygen.SETS)
 def test_no_exposed_wall_of_a_plan_faces_another_building(set_name):
     plan = citygen.city_plan(set_name, 120, 7)
-    worlds = [citygen._world_polygon(b, ccw=True) for b in plan.buildings]
+    worlds = [city_plan.world_polygon(b, ccw=True) for b in plan.buildings]
     t = (np.arange(20) + 0.5) / 20
     for k, b in enumerate(plan.buildings):
         party = set(b.shell.get("party_walls", []))

@@ -10,7 +10,7 @@ import math
 import numpy as np
 import pytest
 
-from addon import citygen
+from addon import building_details, city_plan, citygen
 
 BID = 9
 
@@ -82,7 +82,7 @@ def _fits(entry, shell, typology):
 
 
 def _has(entry, details):
-    kind = citygen.entry_kind(entry)
+    kind = building_details.entry_kind(entry)
     return any(d["kind"] == kind and (entry != "hvac" or d.get("type") == "hvac")
                and (entry != "rooftop_structure" or d.get("type") == "stair") for d in details)
 
@@ -96,7 +96,7 @@ def test_frequency_table_is_honoured():
     for set_name, n in (("generic", 700), ("region", 900), ("small", 900)):
         for seed in (1, 2):
             for b in citygen.city_plan(set_name, n, seed, details="typical").buildings:
-                for entry, p in citygen.DETAIL_FREQUENCIES[b.typology].items():
+                for entry, p in building_details.DETAIL_FREQUENCIES[b.typology].items():
                     if _fits(entry, b.shell, b.typology):
                         c = counts[(b.typology, entry)]
                         c[0] += 1
@@ -105,7 +105,7 @@ def test_frequency_table_is_honoured():
     for (typ, entry), (n, k) in sorted(counts.items()):
         if n < 60:
             continue
-        p = citygen.DETAIL_FREQUENCIES[typ][entry]
+        p = building_details.DETAIL_FREQUENCIES[typ][entry]
         f = k / n
         tol = 4 * math.sqrt(p * (1 - p) / n) + 0.02
         assert f <= p + tol, (typ, entry, f, p, n)
@@ -119,25 +119,25 @@ def test_all_kinds_but_parapet_appear_in_typical_cities():
     for set_name in citygen.SETS:
         for b in citygen.city_plan(set_name, 120, 1, details="typical").buildings:
             kinds |= {d["kind"] for d in b.shell["details"]}
-    from_table = {citygen.entry_kind(e) for e in citygen.DETAIL_ENTRIES}
+    from_table = {building_details.entry_kind(e) for e in building_details.DETAIL_ENTRIES}
     assert kinds == from_table - {"parapet"}  # plans give every flat roof a parapet already
 
 
 def test_annexes_keep_clear_of_other_buildings():
     for set_name in citygen.SETS:
         plan = citygen.city_plan(set_name, 150, 4, details="typical")
-        polys = [citygen._world_polygon(b) for b in plan.buildings]
+        polys = [city_plan.world_polygon(b) for b in plan.buildings]
         owners = list(range(len(polys)))
         for k, b in enumerate(plan.buildings):
             for d in b.shell["details"]:
                 if d["kind"] == "annex":
-                    polys.append(citygen._annex_world(b, d))
+                    polys.append(building_details._annex_world(b, d))
                     owners.append(k)
         n = len(plan.buildings)  # attached buildings may touch; annexes keep clear
         for i in range(n, len(polys)):
             for j in range(len(polys)):
                 if owners[i] != owners[j]:
-                    assert citygen._clear(polys[i], polys[j], citygen.ANNEX_CLEARANCE - 1e-6), (i, j)
+                    assert building_details._clear(polys[i], polys[j], building_details.ANNEX_CLEARANCE - 1e-6), (i, j)
 
 
 # --- geometry (bpy module) -------------------------------------------------------------------
@@ -426,8 +426,8 @@ def test_add_building_operator_details(blank):
     obj = bpy.context.active_object
     spec = ShellSpec.from_json(obj.qs_building.shell_json)
     assert spec.details and spec.typology == "detached_house"
-    again = citygen.draw_details(json.loads(ShellSpec(**{**json.loads(spec.to_json()), "details": []}).to_json()),
-                                 "detached_house", 4)
+    bare = json.loads(ShellSpec(**{**json.loads(spec.to_json()), "details": []}).to_json())
+    again = building_details.draw_details(bare, "detached_house", 4)
     assert spec.details == again
     parts = np.empty(len(obj.data.polygons), np.int32)
     obj.data.attributes[gm.PART_LAYER].data.foreach_get("value", parts)

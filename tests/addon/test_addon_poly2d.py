@@ -20,6 +20,15 @@ def test_signed_distance():
     np.testing.assert_allclose(d, [-1, 2, 3])
 
 
+def test_convex_overlap_with_tolerance():
+    sq = poly2d.rect(0, 0, 4, 2)
+    assert poly2d.convex_overlap(sq, poly2d.rect(3, 1, 6, 4), 0.0)
+    assert not poly2d.convex_overlap(sq, poly2d.rect(4, 0, 6, 2), 0.0)  # touching is not overlapping
+    assert not poly2d.convex_overlap(sq, poly2d.rect(3.99, 0, 6, 2), 0.05)  # within the tolerance
+    diamond = np.array([[5, 1], [6, 0], [7, 1], [6, 2]], float)
+    assert not poly2d.convex_overlap(sq, diamond, 0.0)
+    assert poly2d.convex_overlap(sq, diamond - (1.5, 0), 0.0)
+
 def test_clip_halfplane_and_lines():
     L = np.array([[0, 0], [10, 0], [10, 4], [4, 4], [4, 10], [0, 10]], float)
     part = poly2d.clip_halfplane(L, (6, 0), (-1, 0))  # keep x >= 6
