@@ -145,6 +145,23 @@ def test_walls_resolve_heavy_damage_where_two_percent_of_the_facade_holds_the_sm
     assert seen.detectable_grade == 3  # the roofs resolve heavy damage all the same
 
 
+
+def test_walls_are_resolved_only_where_every_open_facing_resolves_its_own_heavy_share():
+    """Facades resolved together (40 returns per m² on 240 m²) but one 60 m² facing sampled at
+    0.3: heavy damage confined to that facade (2 % of it, 1.2 m²) needs ln(40) / 0.3 = 12.3 m²
+    for one return: the walls are not resolved; with that facing at 40 too, they are."""
+    q = {"density_pre": 30.0, "density_post": 30.0, "area_m2": 100.0, "wall_density_pre": 40.0,
+         "wall_density_post": 40.0, "facade_m2": 240.0}
+    assert D.of_building(q).walls_resolved is True  # no facing recorded: the facades together
+    q["wall_facings"] = [[60.0, 40.0, 40.0], [60.0, 40.0, 40.0], [60.0, 40.0, 40.0], [60.0, 0.3, 40.0]]
+    assert D.facings_resolve(q["wall_facings"]) is False and D.of_building(q).walls_resolved is False
+    q["wall_facings"][3] = [60.0, 40.0, 40.0]
+    assert D.facings_resolve(q["wall_facings"]) is True and D.of_building(q).walls_resolved is True
+    # a table's record of the rule (`realset.SAMPLING_FIELDS`) stands for the facings
+    assert D.of_building({**q, "wall_facings": [], "wall_facings_resolved": 0.0}).walls_resolved is False
+    assert D.facings_resolve([]) is None and D.facings_resolve([[60.0, float("nan"), 1.0]]) is None
+
+
 def test_heavy_unresolved_is_a_building_graded_0_that_cannot_resolve_3():
     assert D.heavy_unresolved(0, None, 5.0) and D.heavy_unresolved(0, 4, 5.0)
     assert not D.heavy_unresolved(0, 3, 1.0)

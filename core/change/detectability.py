@@ -27,8 +27,9 @@ pre- and post-event roof densities (`planimetric_density`, pts/m²):
 - whether its **walls resolve heavy damage**, `walls_resolved`: the catalogue's smallest
   heavy damage confined to walls (holes and break-outs over `WALL_HEAVY_SHARE` of a facade)
   spans at least `min_wall_opening_m2`, the same closed form with each epoch's returns per m²
-  of facade (`quakescan.change.facade_sampling`). An airborne laser's few wall returns resolve
-  no wall holes; a drone's oblique flight does.
+  of facade (`quakescan.change.facade_sampling`), on its facades together and on each open
+  facing apart (`facings_resolve`: the damage may be on the one facade a flight never saw).
+  An airborne laser's few wall returns resolve no wall holes; a drone's oblique flight does.
 
 These are bounds of the sampling, not of the descriptors: a building may resolve heavy damage
 and still be misread by the model, but one that does not resolve it cannot be read as
@@ -157,6 +158,20 @@ def walls_resolved(facade_m2: float, wall_opening_m2: float) -> bool:
     return bool(math.isfinite(wall_opening_m2) and facade_m2 > 0 and facade_m2 * WALL_HEAVY_SHARE >= wall_opening_m2)
 
 
+def facings_resolve(facings) -> bool | None:
+    """Whether every open facing of a building (`facade_sampling.FacadeSampling.facings`:
+    (area m², pre-event, post-event returns per m²)) resolves heavy damage confined to it:
+    the catalogue's wall damage is 1-4 holes on one facade or more, and a facade the flight
+    never sampled hides it however densely the others were. None: no facing recorded."""
+    try:
+        sides = [(float(a), float(p), float(q)) for a, p, q in facings]
+    except (TypeError, ValueError):
+        return None
+    if not sides or not all(math.isfinite(v) and v >= 0 for side in sides for v in side):
+        return None
+    return all(walls_resolved(a, min_opening_m2(p, q)) for a, p, q in sides)
+
+
 @dataclass(frozen=True)
 class Detectability:
     """What one building's data could resolve."""
@@ -192,6 +207,10 @@ def of_building(quality: dict) -> Detectability | None:
     if facade > 0 and all(math.isfinite(v) and v >= 0 for v in (w_pre, w_post, facade)):
         wall_opening = min_opening_m2(w_pre, w_post)
         walls = walls_resolved(facade, wall_opening)
+        sides = quality.get("wall_facings_resolved")  # a table's record of `facings_resolve`
+        sides = facings_resolve(quality.get("wall_facings", ())) if sides is None else bool(sides)
+        if walls and sides is False:
+            walls = False
     return Detectability(opening, lowering, detectable_grade(area, opening, lowering), wall_opening, walls)
 
 
@@ -220,4 +239,4 @@ __all__ = ["ALPHA", "DESTRUCTION", "Detectability", "EXTREME", "HEAVY", "RETURNS
            "RETURNS_THROUGH_OPENING", "SIGNATURES", "Signature", "WALLS_ONLY_PATTERNS", "WALLS_ONLY_SHARE",
            "WALL_HEAVY_SHARE", "chance_fewer_than",
            "detectable_grade", "heavy_unresolved", "min_area_m2", "min_lowering_m", "min_opening_m2", "of_building",
-           "resolves", "walls_resolved"]
+           "resolves", "walls_resolved", "facings_resolve"]

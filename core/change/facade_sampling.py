@@ -13,8 +13,14 @@ highest own pre-event return, where more than 2 m above the ground: the lower pa
 roof). Returns there are wall returns (or whatever stands against the wall: both epochs
 alike). The facade area is the outline length (outline cells' outer edges) times the band's
 height; each epoch's density is its band returns over that area.
+
+Each **facing** (the outline edges open to +x, -x, +y or -y onto a cell of no building) is also
+counted apart, its band without the corner cells that hold the next wall's returns: heavy
+damage confined to walls may be on one facade, and an airborne flight may never face it.
 """
 from __future__ import annotations
+
+from typing import NamedTuple
 
 import numpy as np
 
@@ -22,22 +28,39 @@ BAND_BOTTOM_M = 1.0  # above the ground: cars, hedges and the foot of the wall's
 BAND_TOP_M = 0.5  # below the eave: the roof's edge stays out
 EAVE_PERCENTILE = 10.0
 MIN_BAND_M = 1.0  # a band lower than this (a one-storey shed under a low eave) has no facade to count
+# A facing shorter than this holds no heavy wall damage of its own (the catalogue's holes are
+# 0.5-2 m, one to four a facade, with masonry between): a jog of the outline is part of the wall beside it
+MIN_FACING_M = 3.0
+
+
+class FacadeSampling(NamedTuple):
+    """How densely each epoch sampled a building's facades: all of them together (returns per
+    m² of facade, and their area), and each open facing apart (`facings`: (area m², pre, post)
+    of the outline edges facing +x, -x, +y and -y that no other building covers and that are
+    at least `MIN_FACING_M` long), since heavy damage confined to walls may be on one facade."""
+
+    pre: float
+    post: float
+    area_m2: float
+    facings: tuple = ()
+
+
+NO_FACADE = FacadeSampling(0.0, 0.0, 0.0)
 
 
 def facade_densities(own_xyz: np.ndarray, pre_xyz: np.ndarray, post_xyz: np.ndarray, building_keys: np.ndarray,
-                     ground: float, lo, cell_m: float, width: int) -> tuple[float, float, float]:
-    """(pre-event returns per m² of facade, post-event ones, facade area m²) of one building
-    from its own pre-event returns `own_xyz`, every return of each epoch near it (`pre_xyz`,
-    `post_xyz`, its box and two cells more suffice) and every building's cells
-    (`building_keys`, key = i * width + j of the grid at `lo` with cells of `cell_m`). (0, 0, 0)
-    where it has no facade band."""
+                     ground: float, lo, cell_m: float, width: int) -> FacadeSampling:
+    """The `FacadeSampling` of one building from its own pre-event returns `own_xyz`, every
+    return of each epoch near it (`pre_xyz`, `post_xyz`, its box and two cells more suffice)
+    and every building's cells (`building_keys`, key = i * width + j of the grid at `lo` with
+    cells of `cell_m`). `NO_FACADE` where it has no facade band."""
     def keys(xyz):
         return (np.floor((xyz[:, 0] - lo[0]) / cell_m).astype(np.int64) * width
                 + np.floor((xyz[:, 1] - lo[1]) / cell_m).astype(np.int64))
 
     own_key, own_z = keys(own_xyz), own_xyz[:, 2]
     if not len(own_key):
-        return 0.0, 0.0, 0.0
+        return NO_FACADE
     cells = _closed(np.unique(own_key), width)
     steps = np.array([width, -width, 1, -1], np.int64)
     nb = cells[:, None] + steps[None, :]
@@ -50,10 +73,10 @@ def facade_densities(own_xyz: np.ndarray, pre_xyz: np.ndarray, post_xyz: np.ndar
     np.maximum.at(tops, np.searchsorted(cells, own_key), own_z)
     roof_z = tops[tops > ground + 2.0]
     if not len(roof_z):
-        return 0.0, 0.0, 0.0
+        return NO_FACADE
     z_lo, z_hi = ground + BAND_BOTTOM_M, float(np.percentile(roof_z, EAVE_PERCENTILE)) - BAND_TOP_M
     if z_hi - z_lo < MIN_BAND_M:
-        return 0.0, 0.0, 0.0
+        return NO_FACADE
     ring = np.unique(nb[outside])
     # a wall on a cell boundary puts its returns on both sides of it: the outline cells and
     # the cells just inside them
@@ -61,11 +84,32 @@ def facade_densities(own_xyz: np.ndarray, pre_xyz: np.ndarray, post_xyz: np.ndar
     band = np.unique(np.concatenate([outline, inner, ring[~np.isin(ring, building_keys)]]))
     area = length * (z_hi - z_lo)
 
-    def count(xyz):
-        if not len(xyz):
-            return 0
-        return int(np.count_nonzero(np.isin(keys(xyz), band) & (xyz[:, 2] > z_lo) & (xyz[:, 2] < z_hi)))
-    return count(pre_xyz) / area, count(post_xyz) / area, area
+    pre_keys, post_keys = (keys(xyz)[(xyz[:, 2] > z_lo) & (xyz[:, 2] < z_hi)] if len(xyz) else np.zeros(0, np.int64)
+                           for xyz in (pre_xyz, post_xyz))
+
+    def count(k, cells_of_band):
+        return int(np.count_nonzero(np.isin(k, cells_of_band)))
+
+    facings = []
+    # a facing's edges: outline cells open on that side to a cell of no building (a party wall
+    # shows nothing and falls on nothing)
+    open_side = outside & ~np.isin(nb, building_keys)
+    for side in range(4):
+        edge = open_side[:, side]
+        run_m = float(edge.sum()) * cell_m
+        if run_m < MIN_FACING_M:
+            continue
+        at = cells[edge]
+        # its band: those cells, the cell inside each and the open cell outside it, but no cell
+        # on an edge of another side: a corner's cells hold the returns of the wall round it
+        corners = cells[open_side[:, [k for k in range(4) if k != side]].any(axis=1)]
+        own_band = np.setdiff1d(np.concatenate([at, at - steps[side], at + steps[side]]), corners)
+        sampled = float(len(np.setdiff1d(at, corners))) * cell_m * (z_hi - z_lo)  # the wall the band sees
+        if sampled <= 0.0:
+            continue
+        facings.append((round(run_m * (z_hi - z_lo), 1), round(count(pre_keys, own_band) / sampled, 3),
+                        round(count(post_keys, own_band) / sampled, 3)))
+    return FacadeSampling(count(pre_keys, band) / area, count(post_keys, band) / area, area, tuple(facings))
 
 
 def _closed(cells: np.ndarray, width: int) -> np.ndarray:

@@ -323,7 +323,7 @@ def describe_surfaces(pre_xyz: np.ndarray, pre_bid: np.ndarray, pre_ground: np.n
     pre_bid: building ID per pre-event point (0 = none); pre_ground: ground mask (ASPRS 2)
     or None. Returns ({building ID: {descriptor: value}}, {building ID: CoreChange}) and,
     with `quality`, {building ID: {density_pre, density_post, coverage, cells, area_m2,
-    wall_density_pre, wall_density_post, facade_m2, lowering_lod_m}}: planimetric densities
+    wall_density_pre, wall_density_post, facade_m2, wall_facings, lowering_lod_m}}: planimetric densities
     (pts/m²) of the building's own pre-event points and of the post-event points over its
     cells, the share of its cells with post-event points, its cells and their area (m²), each
     epoch's returns per m² of its facades and their area (`quakescan.change.facade_sampling`),
@@ -544,11 +544,10 @@ def _facades(own: np.ndarray, interior: _InteriorView, building_keys, ground: fl
 
     own_lo, own_hi = row_bounds(own[:, :2])
     reach = 2.0 * c
-    d_pre, d_post, area = facade_densities(own, interior.pre.in_box(own_lo - reach, own_hi + reach),
-                                           interior.post.in_box(own_lo - reach, own_hi + reach), building_keys,
-                                           ground, lo, c, width)
-    return {"wall_density_pre": round(d_pre, 3), "wall_density_post": round(d_post, 3),
-            "facade_m2": round(area, 1)}
+    walls = facade_densities(own, interior.pre.in_box(own_lo - reach, own_hi + reach),
+                             interior.post.in_box(own_lo - reach, own_hi + reach), building_keys, ground, lo, c, width)
+    return {"wall_density_pre": round(walls.pre, 3), "wall_density_post": round(walls.post, 3),
+            "facade_m2": round(walls.area_m2, 1), "wall_facings": [list(f) for f in walls.facings]}
 
 
 def chance_missed(area_m2, pre_density: float):

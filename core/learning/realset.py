@@ -293,12 +293,20 @@ def real_table(work, data, settings, *, plan=REAL_PLAN, workers: int = -1, repea
 UNSEEN_GRADES = (3, 4, 5)
 # the quality fields a building's detectability is computed from (`detectability.of_building`)
 SAMPLING_FIELDS = ("density_pre", "density_post", "area_m2", "lowering_lod_m", "wall_density_pre",
-                   "wall_density_post", "facade_m2")
+                   "wall_density_post", "facade_m2", "wall_facings_resolved")
 
 
 def sampling_rows(rows) -> np.ndarray:
-    """(n, 7) each BuildingRow's `SAMPLING_FIELDS` (NaN where its quality record lacks one)."""
-    return np.array([[_number(r.quality.get(k)) for k in SAMPLING_FIELDS] for r in rows],
+    """(n, 8) each BuildingRow's `SAMPLING_FIELDS` (NaN where its quality record lacks one;
+    "wall_facings_resolved" 1 or 0 from its facings, `detectability.facings_resolve`)."""
+    from ..change.detectability import facings_resolve
+
+    def field(q, k):
+        if k == "wall_facings_resolved":
+            sides = facings_resolve(q.get("wall_facings", ()))
+            return float("nan") if sides is None else float(sides)
+        return _number(q.get(k))
+    return np.array([[field(r.quality, k) for k in SAMPLING_FIELDS] for r in rows],
                     dtype=np.float64).reshape(len(rows), len(SAMPLING_FIELDS))
 
 
