@@ -27,7 +27,8 @@ Beam model (`Survey.beam`):
 Vegetation (`quakescan.acquisition.vegetation`): a ray that hits a porous face (a tree crown) is returned
 there with probability 1 - transmission, else cast again from just beyond the hit; every
 beam model's rays do this, seeded per (seed, line, pulse, sub-ray, crossing). Re-cast rays
-are not counted in `rays_cast`. A scene without porous faces is cast as before.
+are not counted in `rays_cast`. A scene without porous faces draws no transmission: its rays
+stop at their first hit, so its clouds do not depend on this model.
 
 Strip misalignment (`Survey.strip_misalignment_m`, default 0): every point of flight line k
 is moved by one 3-D offset `strip_offset(survey, seed, k)`, added where the final float64

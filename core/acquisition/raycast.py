@@ -51,7 +51,7 @@ class RayCaster:
                                    np.where(self.face_surface == GROUND, GROUND_CLASS, UNCLASSIFIED)
                                    ).astype(np.uint8)
         # Porous faces (tree crowns) let rays pass (quakescan.acquisition.vegetation); None: every face is opaque
-        # and casting is exactly what it was before vegetation existed.
+        # and a ray ends at its first hit, with no transmission drawn.
         self.face_porous = scene.face_porous.astype(bool) if scene.has_porous else None
         self.transmission = float(scene.transmission)
         is_veg = (self.face_building == 0) & (self.face_surface == VEGETATION)

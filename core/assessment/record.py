@@ -53,7 +53,7 @@ def run_options(id_field, write_las: bool, laz, unseen_damage: bool, prior: dict
     """The options of a classify run that its results depend on (its fingerprint's, the
     summary's), for one process and the Dask path alike."""
     options = {"id_field": id_field, "write_las": bool(write_las), "laz": laz}
-    if not unseen_damage:  # the defaults leave the fingerprint of earlier results as it was
+    if not unseen_damage:  # only a departure from the defaults enters the fingerprint, so results stay current
         options["unseen_damage"] = False
     if csv_raw:
         options["csv_raw"] = True
