@@ -7,7 +7,6 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Protocol
 
 from ..runtime.progress import ProgressCallback
 
@@ -49,28 +48,36 @@ class ReadPair:
     stages: list = field(default_factory=list)
 
 
-class Engine(Protocol):
-    """How a run reads a pair, describes its buildings and writes the graded cloud.
+class Engine:
+    """How a run reads a pair, describes its buildings and writes the graded cloud: an engine
+    subclasses this and gives `read`, `describe` and `write_graded_cloud`; the other steps do
+    nothing unless it has something of its own to do there.
 
     `read(job, load)` calls `load()` (which reads the model and returns its pipeline
     settings) when it suits the engine, at the latest before returning; `describe` returns
     every building's row (not sorted) and how many came from a checkpoint, and records the
-    registration in `summary`; `finish` adds the engine's own summary entries and cleans up
-    what it made."""
+    registration in `summary`; `described` is told when every row is in, `add_to_summary`
+    adds the engine's own entries, `close` removes what it made for the run."""
 
-    working_folders: tuple
+    working_folders: tuple = ()
 
-    def read(self, job: Job, load: Callable[[], object]) -> ReadPair: ...
+    def read(self, job: Job, load: Callable[[], object]) -> ReadPair:
+        raise NotImplementedError
 
-    def describe(self, job: Job, pair: ReadPair, settings, summary: dict) -> tuple[list, int]: ...
+    def describe(self, job: Job, pair: ReadPair, settings, summary: dict) -> tuple[list, int]:
+        raise NotImplementedError
 
-    def described(self, job: Job, pair: ReadPair) -> None: ...
+    def write_graded_cloud(self, job: Job, pair: ReadPair, path: Path, grade_by_building: dict) -> None:
+        raise NotImplementedError
 
-    def write_graded_cloud(self, job: Job, pair: ReadPair, path: Path, grade_by_building: dict) -> None: ...
+    def described(self, job: Job, pair: ReadPair) -> None:
+        """Every row is described (the engine may start freeing what only describing needed)."""
 
-    def add_to_summary(self, pair: ReadPair, summary: dict, seconds: dict, end: float) -> None: ...
+    def add_to_summary(self, pair: ReadPair, summary: dict, seconds: dict, end: float) -> None:
+        """The engine's own entries of the summary and its `seconds`."""
 
-    def close(self, job: Job, pair: ReadPair) -> None: ...
+    def close(self, job: Job, pair: ReadPair) -> None:
+        """The run's results are written: remove what the engine made for it."""
 
 
 __all__ = ["Engine", "Job", "ReadPair"]

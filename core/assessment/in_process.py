@@ -12,15 +12,13 @@ from ..change.registration import register_pair
 from ..formats.pair import load_pair
 from ..formats.pointcloud import Epoch
 from . import record
-from .engine import Job, ReadPair
+from .engine import Engine, Job, ReadPair
 
 log = logging.getLogger(__name__)
 
 
-class InProcess:
+class InProcess(Engine):
     """Read, register and describe in this process, on `workers` threads (-1: every core)."""
-
-    working_folders: tuple = ()
 
     def __init__(self, workers: int = -1):
         self.workers = workers
@@ -48,18 +46,12 @@ class InProcess:
                              done=ckpt.rows, on_tile=ckpt.add)
         return rows, resumed
 
-    def described(self, job: Job, pair: ReadPair) -> None:
-        pass
-
     def write_graded_cloud(self, job: Job, pair: ReadPair, path: Path, grade_by_building: dict) -> None:
         from ..results.graded_cloud import write_grade_las
 
         post = pair.state.post
         write_grade_las(path, post.xyz, post.origin, post.crs, post.building_id, grade_by_building,
                         source=job.post_path)
-
-    def add_to_summary(self, pair: ReadPair, summary: dict, seconds: dict, end: float) -> None:
-        pass
 
     def close(self, job: Job, pair: ReadPair) -> None:
         (job.out / ".checkpoint.jsonl").unlink(missing_ok=True)

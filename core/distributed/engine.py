@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from ..assessment import record
-from ..assessment.engine import ReadPair
+from ..assessment.engine import Engine, ReadPair
 from ..assessment.run import classify
 from ..change.registration import check_max_points
 from ..errors import ClassifyError
@@ -78,7 +78,7 @@ REGISTRATION_PRIORITY = 10 ** 9
 MAX_SPLIT_DEPTH = 12  # quarters of a 150 m tile down to 4 cm: buildings sharing one centre stay together
 
 
-class DaskEngine:
+class DaskEngine(Engine):
     """The classify run's engine on the workers of `client` (a dask.distributed Client): the
     epochs streamed into blocks, the densities and the tiles described by the workers, the
     graded cloud's records made by them. Same files, same rows as one process; the summary
