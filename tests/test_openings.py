@@ -188,3 +188,45 @@ def test_on_a_wall_is_the_brute_force_answer():
     np.testing.assert_array_equal(got, want)
     assert want[flag & (np.arange(len(pts)) >= 800)].mean() > 0.5  # the wall's lower returns are on it
     assert not got[~flag].any()
+
+
+def _fallen_by_definition(query, reference, radius):
+    """`_fallen` spelt out by sorting every distance: the MAX_NEIGHBOURS nearest reference
+    returns within SURROUND_REACH radii, fallen when those within `radius` (one at least) all
+    lie more than SEE_THROUGH_M above, then surrounded by the ones above it."""
+    from quakescan.change.openings import (MAX_NEIGHBOURS, SEE_THROUGH_M, SURROUND_MAX, SURROUND_MIN_RETURNS,
+                                           SURROUND_REACH)
+
+    out = np.zeros(len(query), bool)
+    for i, q in enumerate(query):
+        d = np.hypot(*(reference[:, :2] - q[:2]).T)
+        order = np.argsort(d, kind="stable")[:MAX_NEIGHBOURS]
+        order = order[d[order] <= SURROUND_REACH * radius]
+        near = order[d[order] <= radius]
+        if not len(near) or not q[2] < reference[near, 2].min() - SEE_THROUGH_M:
+            continue
+        above = order[reference[order, 2] > q[2] + SEE_THROUGH_M]
+        v = reference[above, :2] - q[:2]
+        norm = np.hypot(*v.T)
+        v, norm = v[norm > 0], norm[norm > 0]
+        mean = np.hypot(*(v / norm[:, None]).sum(axis=0)) / max(len(above), 1)
+        out[i] = len(above) >= SURROUND_MIN_RETURNS and mean <= SURROUND_MAX
+    return out
+
+
+@pytest.mark.parametrize("density", [4.0, 40.0, 150.0])
+def test_the_one_neighbour_shortcut_finds_exactly_the_returns_the_definition_finds(density):
+    """`_fallen` asks one neighbour first and MAX_NEIGHBOURS only of the returns it leaves:
+    the same returns as the definition, on a roof with an opening, a light well at the rim
+    and stray low returns (so every branch is taken)."""
+    from quakescan.change.openings import _fallen, neighbourhood_radius
+
+    rng = np.random.default_rng(int(density))
+    pre = roof(rng, density, wells=[(0.0, 4.0, 1.0, 5.0)])
+    post = roof(rng, density, holes=[(3.0, 3.0, 5.0, 6.0)], wells=[(0.0, 4.0, 1.0, 5.0)])
+    post = np.vstack([post, np.c_[rng.uniform(-1, 11, (40, 2)), rng.uniform(0, 6, 40)]])
+    post = post[rng.permutation(len(post))[:2000]]
+    r = neighbourhood_radius(density)
+    got, want = _fallen(post, pre, r), _fallen_by_definition(post, pre, r)
+    assert want.sum() > 10 and (~want).sum() > 10
+    assert np.array_equal(got, want)

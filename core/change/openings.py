@@ -193,14 +193,26 @@ def _fallen(query: np.ndarray, reference: np.ndarray, radius: float) -> np.ndarr
     if len(reference) == 0 or len(query) == 0:
         return np.zeros(len(query), bool)
     tree = cKDTree(reference[:, :2])
+    # The nearest reference return is among those within `radius` whenever any is, so a return
+    # not SEE_THROUGH_M below its nearest one cannot have fallen: one neighbour decides for
+    # nearly every return of a standing surface, and only the rest pay for MAX_NEIGHBOURS (the
+    # openings took 56 % of a dense tile's time, 332 of 691 samples in this query).
+    first, nearest = tree.query(query[:, :2], k=1, distance_upper_bound=radius)
+    found = np.isfinite(first)
+    fell = np.zeros(len(query), bool)
+    fell[found] = query[found, 2] < reference[nearest[found], 2] - SEE_THROUGH_M
+    if not fell.any():
+        return fell
+    candidates = np.flatnonzero(fell)
     k = min(MAX_NEIGHBOURS, len(reference))
-    dist, idx = tree.query(query[:, :2], k=k, distance_upper_bound=SURROUND_REACH * radius)
-    dist, idx = dist.reshape(len(query), -1), idx.reshape(len(query), -1)
+    dist, idx = tree.query(query[candidates, :2], k=k, distance_upper_bound=SURROUND_REACH * radius)
+    dist, idx = dist.reshape(len(candidates), -1), idx.reshape(len(candidates), -1)
     near = dist <= radius
     z = np.where(near, reference[np.minimum(idx, len(reference) - 1), 2], np.inf)
-    fell = near.any(axis=1) & (query[:, 2] < z.min(axis=1) - SEE_THROUGH_M)
-    if fell.any():
-        fell[fell] = _surrounded(query[fell], reference, dist[fell], idx[fell])
+    below = query[candidates, 2] < z.min(axis=1) - SEE_THROUGH_M
+    fell[candidates] = below
+    if below.any():
+        fell[candidates[below]] = _surrounded(query[candidates[below]], reference, dist[below], idx[below])
     return fell
 
 
