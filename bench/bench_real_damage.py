@@ -124,7 +124,8 @@ def score(result_csv: Path, truth_csv: Path, every_building: bool = False) -> di
     conf, correct, quiet_misses, unseen_misses = [], [], [], []
     # heavy damage that shows on the roof (an airborne sensor can see it) and on walls only
     truth_rows = {int(r["building_id"]): r for r in csv.DictReader(open(truth_csv))}
-    heavy_seen = {"roof": [0, 0], "walls only": [0, 0]}
+    heavy_seen = {"roof": [0, 0], "walls only": [0, 0]}  # [graded damaged, of]
+    heavy_graded_heavy = {"roof": 0, "walls only": 0}
     for r in rows:
         b = int(r["building_id"])
         if b not in injected_or_big:  # small buildings the injector never draws: not part of the test
@@ -139,6 +140,7 @@ def score(result_csv: Path, truth_csv: Path, every_building: bool = False) -> di
             kind = "walls only" if not set(truth_rows[b]["patterns"].split()) & ROOF_PATTERNS else "roof"
             heavy_seen[kind][0] += g > 0
             heavy_seen[kind][1] += 1
+            heavy_graded_heavy[kind] += g == 3
         c = float(r["confidence"]) if r.get("confidence") else 1.0
         conf.append(c)
         correct.append(g == t)
@@ -164,7 +166,7 @@ def score(result_csv: Path, truth_csv: Path, every_building: bool = False) -> di
             "undamaged_called_damaged": false_alarms / undamaged if undamaged else float("nan"),
             "damaged_found": damaged_found / damaged_true if damaged_true else float("nan"),
             "quiet_misses": quiet_misses, "quiet_misses_no_return_moved": unseen_misses, "ece": expected_calibration_error(np.array(conf), np.array(correct)),
-            "heavy_seen": heavy_seen}
+            "heavy_seen": heavy_seen, "heavy_graded_heavy": heavy_graded_heavy}
 
 
 def expected_calibration_error(confidence: np.ndarray, correct: np.ndarray, bins: int = ECE_BINS) -> float:
@@ -423,7 +425,8 @@ def report(res: dict) -> str:
              "`quakescan inject` among buildings with ≥ 200 points; buildings scored: those injected and the "
              "undamaged ones with ≥ 200 points. `bench/bench_real_damage.py`.", ""]
     head = ["case", "F1 0", "F1 3", "F1 4", "F1 5", "heavy recall", "damaged found", "undamaged called damaged",
-            "damaged reported 0 at ≥ 0.8 (no return moved)", "ECE", "heavy graded damaged: roof / walls only"]
+            "damaged reported 0 at ≥ 0.8 (no return moved)", "ECE", "heavy graded damaged: roof / walls only",
+            "heavy graded heavy: roof / walls only"]
     rows = []
     for s in res["cases"]:
         g = s["per_grade"]
@@ -431,7 +434,9 @@ def report(res: dict) -> str:
                      _pct(g["3"]["recall"]), _pct(s["damaged_found"]), f"{100 * s['undamaged_called_damaged']:.1f} %",
                      f"{len(s['quiet_misses'])} ({len(s.get('quiet_misses_no_return_moved', []))})",
                      f"{s['ece']:.3f}",
-                     " / ".join(f"{a} of {n}" for a, n in s["heavy_seen"].values())])
+                     " / ".join(f"{a} of {n}" for a, n in s["heavy_seen"].values()),
+                     " / ".join(f"{s['heavy_graded_heavy'][k]} of {n}" for k, (_, n) in s["heavy_seen"].items())
+                     if "heavy_graded_heavy" in s else "—"])
     lines += [table(head, rows), ""]
     both = [s for s in res["cases"] if "assumed_visible" in s]
     if both:

@@ -51,3 +51,31 @@ def test_the_report_shows_the_unseen_damage_knob_every_way_in_one_table():
     assert [r.split(" | ")[1] for r in rows[1:]] == ["counted (default)", "assumed visible",
                                                      "counted, the case's own mix as prior"]
     assert rows[2].endswith("| 3 (1) | 0.150 |") and rows[3].endswith("| 0 (0) | 0.050 |")
+
+
+def test_heavy_damage_is_scored_apart_for_roof_openings_and_for_walls_only(tmp_path):
+    """The independent benchmark's heavy damage is roof openings; the catalogue's heavy damage
+    also lies in walls alone, which a nadir survey cannot see: both are counted apart, as graded
+    damaged and as graded heavy."""
+    import csv
+
+    truth, result = tmp_path / "truth.csv", tmp_path / "buildings.csv"
+    cases = [(1, 3, "roof_holes", 3), (2, 3, "roof_holes wall_holes", 4), (3, 3, "wall_holes", 0),
+             (4, 3, "infill_blowout", 3), (5, 0, "", 0)]
+    with open(truth, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["building_id", "grade", "injected", "n_points", "patterns", "moved"])
+        for b, g, pat, _ in cases:
+            w.writerow([b, g, int(g > 0), 500, pat, 10])
+    with open(result, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["building_id", "assessable", "predicted_grade", "confidence"])
+        for b, _, _, p in cases:
+            w.writerow([b, 1, p, 0.7])
+    s = bench.score(result, truth)
+    assert s["heavy_seen"] == {"roof": [2, 2], "walls only": [1, 2]}
+    assert s["heavy_graded_heavy"] == {"roof": 1, "walls only": 1}
+    case = {**s, "case": "c", "split": 5, "seed": 1, "damage": "patterns", "moved": 1}
+    text = bench.report({"machine": "m", "model": "x.skops", "seconds": 1, "peak_mib": 1, "cases": [case]})
+    row = next(line for line in text.splitlines() if line.startswith("| c | "))
+    assert row.endswith("| 2 of 2 / 1 of 2 | 1 of 2 / 1 of 2 |")
