@@ -230,3 +230,49 @@ def test_the_one_neighbour_shortcut_finds_exactly_the_returns_the_definition_fin
     got, want = _fallen(post, pre, r), _fallen_by_definition(post, pre, r)
     assert want.sum() > 10 and (~want).sum() > 10
     assert np.array_equal(got, want)
+
+
+@pytest.mark.parametrize("density", [4.0, 150.0])
+def test_the_compiled_fall_and_surround_test_gives_numpys_answers_to_the_bit(density):
+    """`_opening_kernels.fallen_and_surrounded` against `_fallen_reference` on the same kd-tree
+    answer: the same returns, and the mean direction's length to the last bit."""
+    from scipy.spatial import cKDTree
+
+    from quakescan.change._opening_kernels import fallen_and_surrounded
+    from quakescan.change.openings import (MAX_NEIGHBOURS, SEE_THROUGH_M, SURROUND_MAX, SURROUND_MIN_RETURNS,
+                                           SURROUND_REACH, _fallen_reference, _surround_mean)
+
+    rng = np.random.default_rng(7)
+    pre = roof(rng, density, wells=[(0.0, 4.0, 1.0, 5.0)])
+    post = roof(rng, density, holes=[(3.0, 3.0, 5.0, 6.0)], wells=[(0.0, 4.0, 1.0, 5.0)])
+    post = np.vstack([post, np.c_[rng.uniform(-1, 11, (40, 2)), rng.uniform(0, 6, 40)]])
+    r = neighbourhood_radius(density)
+    dist, idx = cKDTree(pre[:, :2]).query(post[:, :2], k=MAX_NEIGHBOURS, distance_upper_bound=SURROUND_REACH * r)
+    got, mean = fallen_and_surrounded(post, pre, dist, idx, r, SEE_THROUGH_M, SURROUND_MIN_RETURNS, SURROUND_MAX)
+    want = _fallen_reference(post, pre, dist, idx, r)
+    assert want.sum() > 10 and np.array_equal(got, want)
+    fell = np.isfinite(mean)
+    assert fell.sum() > want.sum()  # some fell but are not surrounded: the light well's rim
+    want_mean, _ = _surround_mean(post[fell], pre, dist[fell], idx[fell])
+    assert np.array_equal(mean[fell], want_mean)
+
+
+@pytest.mark.parametrize("density", [4.0, 150.0])
+def test_the_compiled_wall_search_finds_the_walls_the_kd_tree_pairs_find(density):
+    """`_on_a_wall` (a compiled search of the cells around each flagged return) against
+    `_on_a_wall_reference` (every pair within the radius from two kd-trees), on returns
+    under a 6 m wall, under a gentle slope, beside the wall at the radius, and in the open."""
+    from quakescan.change.openings import _on_a_wall, _on_a_wall_reference, spacing
+
+    rng = np.random.default_rng(11)
+    n = int(density * 40)
+    wall = np.c_[np.full(n, 5.0) + rng.normal(0, 0.03, n), rng.uniform(0, 10, n), rng.uniform(0, 6, n)]
+    slope_xy = rng.uniform(0, 10, (n, 2))
+    slope = np.c_[slope_xy + [10, 0], 0.4 * slope_xy[:, 0]]  # 22°: not a wall
+    own = np.vstack([wall, slope, roof(rng, density)])
+    query = np.c_[rng.uniform(-1, 21, (3000, 2)), rng.uniform(-0.5, 5, 3000)]
+    flag = rng.random(3000) < 0.7
+    d = spacing(density)
+    got, want = _on_a_wall(query, own, flag, d), _on_a_wall_reference(query, own, flag, d)
+    assert want.sum() > 20 and (flag & ~want).sum() > 20 and not (got & ~flag).any()
+    assert np.array_equal(got, want)

@@ -207,12 +207,24 @@ def _fallen(query: np.ndarray, reference: np.ndarray, radius: float) -> np.ndarr
     k = min(MAX_NEIGHBOURS, len(reference))
     dist, idx = tree.query(query[candidates, :2], k=k, distance_upper_bound=SURROUND_REACH * radius)
     dist, idx = dist.reshape(len(candidates), -1), idx.reshape(len(candidates), -1)
+    from ._opening_kernels import fallen_and_surrounded
+
+    fell[candidates], _ = fallen_and_surrounded(np.ascontiguousarray(query[candidates], dtype=np.float64),
+                                             np.ascontiguousarray(reference, dtype=np.float64), dist,
+                                             idx.astype(np.int64, copy=False), float(radius), SEE_THROUGH_M,
+                                             SURROUND_MIN_RETURNS, SURROUND_MAX)
+    return fell
+
+
+def _fallen_reference(query: np.ndarray, reference: np.ndarray, dist: np.ndarray, idx: np.ndarray,
+                      radius: float) -> np.ndarray:
+    """numpy's `_opening_kernels.fallen_and_surrounded`: of the query returns whose k nearest
+    reference returns within SURROUND_REACH radii are `dist`/`idx`, those fallen and surrounded."""
     near = dist <= radius
     z = np.where(near, reference[np.minimum(idx, len(reference) - 1), 2], np.inf)
-    below = query[candidates, 2] < z.min(axis=1) - SEE_THROUGH_M
-    fell[candidates] = below
-    if below.any():
-        fell[candidates[below]] = _surrounded(query[candidates[below]], reference, dist[below], idx[below])
+    fell = near.any(axis=1) & (query[:, 2] < z.min(axis=1) - SEE_THROUGH_M)
+    if fell.any():
+        fell[fell] = _surrounded(query[fell], reference, dist[fell], idx[fell])
     return fell
 
 
@@ -222,6 +234,11 @@ def _surrounded(query: np.ndarray, reference: np.ndarray, dist: np.ndarray, idx:
     (`SURROUND_MAX`). A roof around an opening surrounds what is seen through it; the rim of a
     light well or a deep recess, which one sensor sees lower down than another, lies on one side
     (a half disc gives 2/pi = 0.64)."""
+    return _surround_mean(query, reference, dist, idx)[1]
+
+
+def _surround_mean(query, reference, dist, idx):
+    """(the mean length of the unit directions to the returns above, whether it surrounds)."""
     found = np.isfinite(dist)
     j = np.minimum(idx, len(reference) - 1)
     above = found & (reference[j, 2] > query[:, 2:3] + SEE_THROUGH_M)
@@ -230,13 +247,34 @@ def _surrounded(query: np.ndarray, reference: np.ndarray, dist: np.ndarray, idx:
     unit = np.where((above & (norm > 0))[..., None], d / np.maximum(norm, 1e-12)[..., None], 0.0)
     n = above.sum(axis=1)
     mean = np.linalg.norm(unit.sum(axis=1), axis=1) / np.maximum(n, 1)
-    return (n >= SURROUND_MIN_RETURNS) & (mean <= SURROUND_MAX)
+    return mean, (n >= SURROUND_MIN_RETURNS) & (mean <= SURROUND_MAX)
 
 
 def _on_a_wall(query: np.ndarray, own_epoch: np.ndarray, flag: np.ndarray, point_spacing: float) -> np.ndarray:
     """Flagged query returns under a steep surface of their own epoch: a return of it within
     one point spacing (at least STACK_RADIUS_M) in x/y, STACK_LOW_M..STACK_HIGH_M above, and at
     least STACK_STEEPNESS times as far up as across (steeper than 63°: a wall)."""
+    out = np.zeros(len(query), bool)
+    sel = np.flatnonzero(flag)
+    if not len(sel) or not len(own_epoch):
+        return out
+    q = query[sel]
+    # only returns within reach above a flagged one can be the wall over it
+    z = own_epoch[:, 2]
+    cand = np.flatnonzero((z > q[:, 2].min() + STACK_LOW_M) & (z <= q[:, 2].max() + STACK_HIGH_M))
+    if not len(cand):
+        return out
+    radius = max(STACK_RADIUS_M, point_spacing)
+    from ._opening_kernels import under_a_steep_surface
+
+    out[sel] = under_a_steep_surface(np.ascontiguousarray(q, dtype=np.float64),
+                                     np.ascontiguousarray(own_epoch[cand], dtype=np.float64), float(radius),
+                                     STACK_LOW_M, STACK_HIGH_M, STACK_STEEPNESS)
+    return out
+
+
+def _on_a_wall_reference(query: np.ndarray, own_epoch: np.ndarray, flag: np.ndarray, point_spacing: float):
+    """numpy's `_on_a_wall` (every pair within the radius at once, from two kd-trees)."""
     from scipy.spatial import cKDTree
 
     out = np.zeros(len(query), bool)
@@ -244,8 +282,6 @@ def _on_a_wall(query: np.ndarray, own_epoch: np.ndarray, flag: np.ndarray, point
     if not len(sel) or not len(own_epoch):
         return out
     q = query[sel]
-    # only returns within reach above a flagged one can be the wall over it; every pair within
-    # the radius at once (a loop over the flagged returns took 9-19 s of a dense building's 1)
     z = own_epoch[:, 2]
     cand = np.flatnonzero((z > q[:, 2].min() + STACK_LOW_M) & (z <= q[:, 2].max() + STACK_HIGH_M))
     if not len(cand):
