@@ -254,22 +254,13 @@ def _on_a_wall(query: np.ndarray, own_epoch: np.ndarray, flag: np.ndarray, point
     """Flagged query returns under a steep surface of their own epoch: a return of it within
     one point spacing (at least STACK_RADIUS_M) in x/y, STACK_LOW_M..STACK_HIGH_M above, and at
     least STACK_STEEPNESS times as far up as across (steeper than 63°: a wall)."""
-    out = np.zeros(len(query), bool)
-    sel = np.flatnonzero(flag)
-    if not len(sel) or not len(own_epoch):
-        return out
-    q = query[sel]
-    # only returns within reach above a flagged one can be the wall over it
-    z = own_epoch[:, 2]
-    cand = np.flatnonzero((z > q[:, 2].min() + STACK_LOW_M) & (z <= q[:, 2].max() + STACK_HIGH_M))
-    if not len(cand):
-        return out
-    radius = max(STACK_RADIUS_M, point_spacing)
     from ._opening_kernels import under_a_steep_surface
 
-    out[sel] = under_a_steep_surface(np.ascontiguousarray(q, dtype=np.float64),
-                                     np.ascontiguousarray(own_epoch[cand], dtype=np.float64), float(radius),
-                                     STACK_LOW_M, STACK_HIGH_M, STACK_STEEPNESS)
+    out, sel, q, cand, radius = _wall_search(query, own_epoch, flag, point_spacing)
+    if len(cand):
+        out[sel] = under_a_steep_surface(np.ascontiguousarray(q, dtype=np.float64),
+                                         np.ascontiguousarray(own_epoch[cand], dtype=np.float64), float(radius),
+                                         STACK_LOW_M, STACK_HIGH_M, STACK_STEEPNESS)
     return out
 
 
@@ -277,22 +268,29 @@ def _on_a_wall_reference(query: np.ndarray, own_epoch: np.ndarray, flag: np.ndar
     """numpy's `_on_a_wall` (every pair within the radius at once, from two kd-trees)."""
     from scipy.spatial import cKDTree
 
+    out, sel, q, cand, radius = _wall_search(query, own_epoch, flag, point_spacing)
+    if len(cand):
+        pairs = cKDTree(q[:, :2]).sparse_distance_matrix(cKDTree(own_epoch[cand, :2]), radius,
+                                                         output_type="ndarray")
+        i, across = pairs["i"], pairs["v"]
+        dz = own_epoch[cand[pairs["j"]], 2] - q[i, 2]
+        steep = (dz > STACK_LOW_M) & (dz <= STACK_HIGH_M) & (dz >= STACK_STEEPNESS * across)
+        out[sel] = np.bincount(i[steep], minlength=len(sel)) > 0
+    return out
+
+
+def _wall_search(query, own_epoch, flag, point_spacing):
+    """(all False, the flagged returns' indices and points, the indices of own-epoch returns
+    within reach above the lowest and below the highest of them, the search radius)."""
     out = np.zeros(len(query), bool)
     sel = np.flatnonzero(flag)
     if not len(sel) or not len(own_epoch):
-        return out
+        return out, sel, query[:0], np.zeros(0, np.int64), 0.0
     q = query[sel]
+    # only returns within reach above a flagged one can be the wall over it
     z = own_epoch[:, 2]
     cand = np.flatnonzero((z > q[:, 2].min() + STACK_LOW_M) & (z <= q[:, 2].max() + STACK_HIGH_M))
-    if not len(cand):
-        return out
-    radius = max(STACK_RADIUS_M, point_spacing)
-    pairs = cKDTree(q[:, :2]).sparse_distance_matrix(cKDTree(own_epoch[cand, :2]), radius, output_type="ndarray")
-    i, across = pairs["i"], pairs["v"]
-    dz = z[cand[pairs["j"]]] - q[i, 2]
-    steep = (dz > STACK_LOW_M) & (dz <= STACK_HIGH_M) & (dz >= STACK_STEEPNESS * across)
-    out[sel] = np.bincount(i[steep], minlength=len(sel)) > 0
-    return out
+    return out, sel, q, cand, max(STACK_RADIUS_M, point_spacing)
 
 
 def _coherent(xy: np.ndarray, flag: np.ndarray, radius: float) -> np.ndarray:
