@@ -276,3 +276,22 @@ def test_the_compiled_wall_search_finds_the_walls_the_kd_tree_pairs_find(density
     got, want = _on_a_wall(query, own, flag, d), _on_a_wall_reference(query, own, flag, d)
     assert want.sum() > 20 and (flag & ~want).sum() > 20 and not (got & ~flag).any()
     assert np.array_equal(got, want)
+
+
+def test_the_wall_search_of_a_footprint_kilometres_long_needs_no_grid_of_its_size():
+    """Cells grow with the returns' extent (about as many cells as returns): returns 100 km apart
+    in UTM-sized coordinates, which 0.25 m cells would need 1.6e11 of, are searched as the
+    kd-tree pairs search them."""
+    from quakescan.change.openings import _on_a_wall, _on_a_wall_reference
+
+    rng = np.random.default_rng(3)
+    base = np.array([500_000.0, 5_800_000.0, 0.0])
+    wall = np.c_[np.full(200, 0.0), rng.uniform(0, 5, 200), rng.uniform(0, 6, 200)]
+    own = np.vstack([wall, wall + [100_000.0, 0, 0]]) + base
+    query = np.vstack([np.c_[rng.uniform(-0.3, 0.3, (50, 1)), rng.uniform(0, 5, (50, 1)), np.zeros((50, 1))],
+                       np.c_[rng.uniform(2, 3, (50, 1)), rng.uniform(0, 5, (50, 1)), np.zeros((50, 1))]])
+    query = np.vstack([query, query + [100_000.0, 0, 0]]) + base
+    flag = np.ones(len(query), bool)
+    got = _on_a_wall(query, own, flag, 0.5)
+    assert np.array_equal(got, _on_a_wall_reference(query, own, flag, 0.5))
+    assert got[:50].all() and not got[50:100].any() and got[100:150].all() and not got[150:].any()

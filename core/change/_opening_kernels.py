@@ -73,20 +73,24 @@ def _cell(v, v0, size):
 def under_a_steep_surface(query, points, radius, low, high, steepness):
     """Per query return: a return of `points` within `radius` in x/y (distance <= radius),
     more than `low` and at most `high` above it, and at least `steepness` times as far up as
-    across. The points are bucketed in square cells of `radius` (a counting sort), so a query
-    reads its own cell and the eight around it."""
+    across. The points are bucketed in square cells of at least `radius` (a counting sort), so
+    a query reads its own cell and the eight around it."""
     n, m = query.shape[0], points.shape[0]
     out = np.zeros(n, np.bool_)
     if n == 0 or m == 0:
         return out
     x0, y0 = points[:, 0].min(), points[:, 1].min()
+    w, h = points[:, 0].max() - x0, points[:, 1].max() - y0
+    # cells of at least the radius (a neighbour lies in the eight around a query's), and about
+    # as many as points: the grid of a 2 km footprint in 0.25 m cells would take 512 MB
+    size = max(radius, math.sqrt(w * h / m), max(w, h) / m)
     # one expression for every cell, the points' and the queries': a cell computed two ways
     # may differ by one at its edge, and a neighbour two cells away is not read
-    nx = _cell(points[:, 0].max(), x0, radius) + 1
-    ny = _cell(points[:, 1].max(), y0, radius) + 1
+    nx = _cell(points[:, 0].max(), x0, size) + 1
+    ny = _cell(points[:, 1].max(), y0, size) + 1
     key = np.empty(m, np.int64)
     for p in range(m):
-        key[p] = _cell(points[p, 0], x0, radius) * ny + _cell(points[p, 1], y0, radius)
+        key[p] = _cell(points[p, 0], x0, size) * ny + _cell(points[p, 1], y0, size)
     start = np.zeros(nx * ny + 1, np.int64)
     for p in range(m):
         start[key[p] + 1] += 1
@@ -100,7 +104,7 @@ def under_a_steep_surface(query, points, radius, low, high, steepness):
     r2 = radius * radius
     for i in range(n):
         qx, qy, qz = query[i, 0], query[i, 1], query[i, 2]
-        cx, cy = _cell(qx, x0, radius), _cell(qy, y0, radius)
+        cx, cy = _cell(qx, x0, size), _cell(qy, y0, size)
         hit = False
         for a in range(max(cx - 1, 0), min(cx + 2, nx)):
             for b in range(max(cy - 1, 0), min(cy + 2, ny)):
