@@ -11,6 +11,7 @@ import json
 import re
 import time
 import zipfile
+from pathlib import Path
 
 import laspy
 import numpy as np
@@ -681,3 +682,48 @@ def test_an_unreadable_experiment_cache_is_recomputed(pair, tmp_path, caplog):
     again = _table(pair / "pre.las", [(pair / "post.las", 0)], cache, settings, 1)
     assert np.array_equal(first["x"], again["x"]) and "unreadable cache" in caplog.text
     assert no_partials(tmp_path) == []
+
+
+@pytest.mark.parametrize("case", ["other CRS", "10 km apart", "empty", "footprints in another CRS",
+                                  "footprints 10 km away"])
+def test_what_the_headers_can_refuse_is_refused_before_a_point_is_read(pair, tmp_path, capsys, monkeypatch, case):
+    """CRS, extents and point counts come from the headers (and the footprints' file): a pair
+    that cannot work is refused without reading either cloud, naming the file at fault."""
+    import quakescan.formats.pair as pair_module
+
+    def no_read(*a, **k):
+        raise AssertionError("a cloud was read")
+
+    xyz, bid = town(seed=1, noise=0.002)
+    post, fp = pair / "post.las", None
+    if case == "other CRS":
+        post = write_cloud(tmp_path / "post.las", xyz, bid, crs="EPSG:32631")
+    elif case == "10 km apart":
+        post = write_cloud(tmp_path / "post.las", xyz + [10_000.0, 0.0, 0.0], bid)
+    elif case == "empty":
+        post = write_cloud(tmp_path / "post.las", xyz[:0], bid[:0])
+    else:
+        fp = tmp_path / "fp.geojson"
+        shift = [10_000.0, 0.0] if case == "footprints 10 km away" else [0.0, 0.0]
+        rings = [(i, [[x + shift[0], y + shift[1]] for x, y in ring]) for i, ring in box_rings()]
+        fp.write_text(json.dumps(footprint_doc(rings, crs="EPSG:32631" if "CRS" in case else RD)))
+    monkeypatch.setattr(pair_module, "read_epoch", no_read)
+    code, _, err = run(classify_args(pair, tmp_path / "res", *(["--footprints", fp] if fp else []), post=post),
+                       capsys)
+    assert code == 2, err
+    said = {"other CRS": ("differs", "EPSG:32631"), "10 km apart": ("no overlap", "headers"),
+            "empty": ("empty", "counts no point"), "footprints in another CRS": ("reproject the footprints", "EPSG:32631"),
+            "footprints 10 km away": ("no footprint contains a pre-event point", "wrong CRS?")}[case]
+    assert all(s in err for s in said) and str(fp or post) in err, err
+
+
+def test_a_header_without_an_extent_is_not_taken_for_one_apart():
+    """Some writers leave a header's extent at zero: the overlap is then judged on the points."""
+    from quakescan.formats.pointcloud import HeaderFacts, check_pair_headers
+
+    def facts(lo, hi, crs="EPSG:28992"):
+        return HeaderFacts(Path("a.las"), crs, 10, np.array(lo, float), np.array(hi, float))
+
+    check_pair_headers(facts([0, 0, 0], [0, 0, 0]), facts([5e5, 5e6, 0], [5e5 + 10, 5e6 + 10, 5]))
+    with pytest.raises(Exception, match="no overlap"):
+        check_pair_headers(facts([0, 0, 0], [10, 10, 1]), facts([5e5, 5e6, 0], [5e5 + 10, 5e6 + 10, 5]))

@@ -30,7 +30,9 @@ from ..assessment.run import classify
 from ..change.registration import check_max_points
 from ..errors import ClassifyError
 from ..formats.footprints import footprints_without_points, no_footprint_contains_a_point
-from ..formats.pointcloud import PointCloudError, check_coordinates_fit_crs, check_not_all_noise
+from ..formats.pair import check_footprints_against_headers
+from ..formats.pointcloud import (HeaderFacts, check_coordinates_fit_crs, check_not_all_noise,
+                                  check_pair_headers)
 from ..runtime.output_folder import empty_own_subfolder, is_own_subfolder, remove_own_subfolder
 from .block_store import (
     LAYOUT,
@@ -274,25 +276,20 @@ def _read_footprints(footprints_path, id_field, pre_f, post_f):
     from ..formats.footprints import read_footprints
 
     fp = read_footprints(footprints_path, id_field)
-    if fp.crs and pre_f.crs and fp.crs != pre_f.crs:
-        raise ClassifyError(f"{footprints_path}: footprints are in {fp.crs} but the point clouds in {pre_f.crs}; "
-                               "reproject the footprints")
+    check_footprints_against_headers(footprints_path, fp, _facts(pre_f), _facts(post_f))
     return fp
 
 
+def _facts(f) -> HeaderFacts:
+    return HeaderFacts(Path(f.path), f.crs, f.n, np.asarray(f.mins, dtype=np.float64),
+                       np.asarray(f.maxs, dtype=np.float64))
+
+
 def _pair_crs(pre_f, post_f, fp) -> str | None:
-    """The pair's CRS, checked as `check_pair` and `load_pair` check whole epochs."""
-    if pre_f.crs and post_f.crs and pre_f.crs != post_f.crs:
-        raise PointCloudError(f"{post_f.path}: CRS {post_f.crs} differs from the pre-event epoch's {pre_f.crs} "
-                              f"({pre_f.path}); reproject one of them first")
+    """The pair's CRS, checked from the headers as `load_pair` checks them."""
+    check_pair_headers(_facts(pre_f), _facts(post_f))
     for f in (pre_f, post_f):
-        if f.n == 0:
-            raise PointCloudError(f"{f.path}: the point cloud is empty")
         check_coordinates_fit_crs(f.crs, f.mins, f.maxs, f.path)
-    a, b = np.array([pre_f.mins[:2], pre_f.maxs[:2]]), np.array([post_f.mins[:2], post_f.maxs[:2]])
-    if a[1, 0] < b[0, 0] or b[1, 0] < a[0, 0] or a[1, 1] < b[0, 1] or b[1, 1] < a[0, 1]:
-        raise PointCloudError(f"{post_f.path}: no overlap with the pre-event epoch {pre_f.path} "
-                              f"(x/y extents {b.round(2).tolist()} vs {a.round(2).tolist()})")
     crs = pre_f.crs or post_f.crs
     if not crs and fp is not None and fp.crs:
         crs = fp.crs

@@ -14,7 +14,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import ClassifyError
-from .pointcloud import Epoch, check_pair, check_point_cloud_path, epoch_origin, read_epoch, set_noise_apart
+from .pointcloud import (Epoch, HeaderFacts, check_pair, check_pair_headers, epoch_origin, header_facts, read_epoch,
+                         set_noise_apart)
 
 log = logging.getLogger(__name__)
 
@@ -31,27 +32,31 @@ class PairData:
 def load_pair(pre_path, post_path, footprints_path=None, id_field: str | None = None, labels: bool = True) -> PairData:
     """Both epochs in the pre epoch's local frame, with building IDs (and, unless `labels` is
     False, a simulated cloud's per-point grade and surface)."""
+    # what the headers and the footprints can refuse is refused before any point is read
+    headers = header_facts(pre_path), header_facts(post_path)
+    check_pair_headers(*headers)
+    fp = None
+    if footprints_path is not None:
+        from .footprints import read_footprints
+
+        fp = read_footprints(footprints_path, id_field)
+        check_footprints_against_headers(footprints_path, fp, *headers)
+    origin = epoch_origin(pre_path)
     # both epochs at once, in the pre-event file's frame: decoding and scaling are numpy and
     # file reads, which run side by side (a 2 x 75 M-point pair in 20 s instead of 26-33 s)
-    origin = epoch_origin(pre_path)
-    check_point_cloud_path(post_path)  # before the pre-event epoch is read, not after
     with ThreadPoolExecutor(max_workers=2) as pool:
         pre_job, post_job = (pool.submit(read_epoch, pre_path, origin, labels=labels),
                              pool.submit(read_epoch, post_path, origin, labels=labels))
         pre, post = pre_job.result(), post_job.result()
     check_pair(pre, post)
-    if footprints_path is None:
+    if fp is None:
         for e in (pre, post):
             if e.building_id is None:
                 raise ClassifyError(f"{e.source}: no building_id dimension; give building footprints "
                                     "(--footprints F.geojson in the clouds' CRS)")
         return PairData(pre, post, noise_points=noise_apart(pre, post))
-    from .footprints import assign_buildings, footprints_without_points, no_footprint_contains_a_point, read_footprints
+    from .footprints import assign_buildings, footprints_without_points, no_footprint_contains_a_point
 
-    fp = read_footprints(footprints_path, id_field)
-    if fp.crs and pre.crs and fp.crs != pre.crs:
-        raise ClassifyError(f"{footprints_path}: footprints are in {fp.crs} but the point clouds in {pre.crs}; "
-                            "reproject the footprints")
     if fp.crs and not pre.crs and not post.crs:
         log.info("%s: the point clouds name no CRS; taking the footprints' %s", pre.source, fp.crs)
         pre.crs = post.crs = fp.crs  # footprints that hit the points share their CRS
@@ -71,3 +76,20 @@ def noise_apart(pre: Epoch, post: Epoch) -> dict:
         if counts[name]:
             log.info("%s: %d noise returns (ASPRS class 7/18) left out of every building", e.source, counts[name])
     return counts
+
+
+def check_footprints_against_headers(footprints_path, fp, pre: HeaderFacts, post: HeaderFacts) -> None:
+    """Footprints that cannot hold a pre-event point, refused from the headers: another CRS than
+    the clouds', or an extent apart from the pre-event cloud's."""
+    from .footprints import no_footprint_contains_a_point
+
+    clouds_crs = pre.crs or post.crs
+    if fp.crs and clouds_crs and fp.crs != clouds_crs:
+        raise ClassifyError(f"{footprints_path}: footprints are in {fp.crs} but the point clouds in {clouds_crs}; "
+                            "reproject the footprints")
+    if not pre.bounds_known() or not len(fp.ids):
+        return
+    b = fp.bounds()
+    if (b[:, 0].min() > pre.maxs[0] or b[:, 2].max() < pre.mins[0] or b[:, 1].min() > pre.maxs[1]
+            or b[:, 3].max() < pre.mins[1]):
+        raise no_footprint_contains_a_point(footprints_path, fp, [pre.mins[0], pre.maxs[0]])
