@@ -727,3 +727,21 @@ def test_a_header_without_an_extent_is_not_taken_for_one_apart():
     check_pair_headers(facts([0, 0, 0], [0, 0, 0]), facts([5e5, 5e6, 0], [5e5 + 10, 5e6 + 10, 5]))
     with pytest.raises(Exception, match="no overlap"):
         check_pair_headers(facts([0, 0, 0], [10, 10, 1]), facts([5e5, 5e6, 0], [5e5 + 10, 5e6 + 10, 5]))
+
+
+def test_a_post_event_survey_that_misses_buildings_is_said_with_the_counts(pair, tmp_path, capsys, caplog):
+    """Footprints reached by both epochs, by one, by none: counted in the summary, and said on
+    stderr when the post-event survey does not cover every building."""
+    xyz, bid = town(seed=1, noise=0.002)
+    west = xyz[:, 0] < ORIGIN[0] + 20.0  # the first box and the ground beside it
+    post = write_cloud(tmp_path / "post.las", xyz[west], bid[west])
+    fp = tmp_path / "fp.geojson"
+    rings = box_rings() + [(9, [[x + 200.0, y] for x, y in box_rings()[0][1]])]  # a fourth one off the clouds
+    fp.write_text(json.dumps(footprint_doc(rings)))
+    code, _, err = run(classify_args(pair, tmp_path / "res", "--footprints", fp, post=post), capsys)
+    assert code == 0, err
+    coverage = json.loads((tmp_path / "res" / "summary.json").read_text())["coverage"]
+    assert coverage == {"footprints": 4, "both": 1, "pre_only": 2, "post_only": 0, "neither": 1}
+    said = [r.getMessage() for r in caplog.records if r.levelname == "WARNING" and "footprints" in r.getMessage()]
+    assert any(str(post) in m and "of 4 footprints, 1 hold points of both epochs, 2 of the pre-event epoch only" in m
+               for m in said), said

@@ -34,7 +34,8 @@ class ReadPair:
 
     `map_xy`: world x/y of the pre-event points drawn under the damage map; `outline_points`
     ({building ID: local x/y} or None) and `outline_origin`: the points a building's outline is
-    drawn around where no footprint gives it; `state`: the engine's own."""
+    drawn around where no footprint gives it; `state`: the engine's own; `coverage`: how many
+    footprints each epoch's points reach (empty without footprints)."""
 
     points: dict
     noise_points: dict
@@ -46,6 +47,7 @@ class ReadPair:
     outline_origin: tuple
     state: object = None
     stages: list = field(default_factory=list)
+    coverage: dict = field(default_factory=dict)  # `quakescan.formats.footprints.coverage`
 
 
 class Engine:

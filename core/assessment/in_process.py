@@ -32,7 +32,7 @@ class InProcess(Engine):
                         footprint_ids_without_points=data.footprint_ids_without_points,
                         map_xy=pre.xyz[:: record.map_step(len(pre)), :2] + pre.origin[:2],
                         outline_points=XYByBuilding(pre) if data.footprints is None else None,
-                        outline_origin=pre.origin, state=data)
+                        outline_origin=pre.origin, state=data, coverage=data.coverage)
 
     def describe(self, job: Job, pair: ReadPair, settings, summary: dict) -> tuple[list, int]:
         data = pair.state

@@ -19,15 +19,19 @@ write removed by the record of its summary.
 """
 from __future__ import annotations
 
+import logging
 import time
 from pathlib import Path
 
+from ..formats.footprints import coverage_words
 from ..learning.model import load_model
 from ..learning.prediction import model_settings, predict_rows
 from ..learning.unseen_damage import prior_weights
 from ..runtime.progress import ProgressCallback
 from . import record
 from .engine import Engine, Job
+
+log = logging.getLogger(__name__)
 
 
 def classify(pre_path, post_path, out_dir, *, model_path=None, footprints_path=None, id_field=None,
@@ -101,6 +105,13 @@ def _classify(pre_path, post_path, out: Path, engine: Engine, *, model_path, foo
     model = loaded["model"]
     summary = record.run_summary(pre_path, post_path, model_path, model, settings, pair.points, pair.noise_points,
                                  pair.crs)
+    if pair.coverage:
+        summary["coverage"] = dict(pair.coverage)
+        # a post-event survey that misses buildings is a fact the responder must see on stderr
+        if pair.coverage["both"] < pair.coverage["footprints"]:
+            log.warning("%s: %s", post_path, coverage_words(pair.coverage))
+        else:
+            log.info("%s: %s", post_path, coverage_words(pair.coverage))
     t_read = time.perf_counter()
     rows, resumed = engine.describe(job, pair, settings, summary)
     rows += record.footprint_rows(pair.footprints, rows, pair.footprint_ids_without_points)

@@ -29,7 +29,7 @@ from ..assessment.engine import Engine, ReadPair
 from ..assessment.run import classify
 from ..change.registration import check_max_points
 from ..errors import ClassifyError
-from ..formats.footprints import footprints_without_points, no_footprint_contains_a_point
+from ..formats.footprints import coverage, footprints_without_points, no_footprint_contains_a_point
 from ..formats.pair import check_footprints_against_headers
 from ..formats.pointcloud import (HeaderFacts, check_coordinates_fit_crs, check_not_all_noise,
                                   check_pair_headers)
@@ -131,6 +131,7 @@ class DaskEngine(Engine):
         pair.points = {"pre": pre_s.n, "post": post_s.n}
         pair.noise_points = {"pre": pre_s.noise, "post": post_s.noise}
         pair.footprint_ids_without_points = footprints_without_points(fp, set(pre_s.counts) | set(post_s.counts))
+        pair.coverage = coverage(fp, set(pre_s.counts), set(post_s.counts))
         pair.map_xy = pre_s.map_xy + origin[:2]
         pair.outline_points = pre_s.hulls if fp is None else None
         pair.state = _DaskPair(pre_f, post_f, pre_s, post_s, origin, store, footprints)

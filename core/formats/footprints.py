@@ -239,6 +239,28 @@ def no_footprint_contains_a_point(footprints_path, fp: Footprints, points_x) -> 
                          f"points x {[round(float(v), 1) for v in points_x]}); wrong CRS?")
 
 
+def coverage(fp: Footprints | None, pre_ids, post_ids) -> dict:
+    """How many footprints hold points of both epochs, of the pre-event or the post-event one
+    only, and of neither (`pre_ids`, `post_ids`: the building IDs each epoch's points got);
+    empty without footprints."""
+    if fp is None:
+        return {}
+    pre, post = {int(i) for i in pre_ids}, {int(i) for i in post_ids}
+    ids = [int(i) for i in fp.ids]
+    both = sum(1 for i in ids if i in pre and i in post)
+    pre_only = sum(1 for i in ids if i in pre and i not in post)
+    post_only = sum(1 for i in ids if i in post and i not in pre)
+    return {"footprints": len(ids), "both": both, "pre_only": pre_only, "post_only": post_only,
+            "neither": len(ids) - both - pre_only - post_only}
+
+
+def coverage_words(c: dict) -> str:
+    """`coverage` in a sentence."""
+    return (f"of {c['footprints']} footprints, {c['both']} hold points of both epochs, {c['pre_only']} of the "
+            f"pre-event epoch only (not covered after: not assessable), {c['post_only']} of the post-event epoch "
+            f"only, {c['neither']} of neither")
+
+
 def footprints_without_points(fp: Footprints | None, hit) -> list[int]:
     """The IDs of the footprints no point of either epoch fell in (`hit`: the IDs that got points)."""
     return [] if fp is None else sorted(int(i) for i in fp.ids if int(i) not in hit)

@@ -27,6 +27,7 @@ class PairData:
     footprints: object = None  # quakescan.formats.footprints.Footprints
     footprint_ids_without_points: list = field(default_factory=list)
     noise_points: dict = field(default_factory=dict)  # {"pre": n, "post": n}: ASPRS noise, in no building
+    coverage: dict = field(default_factory=dict)  # `quakescan.formats.footprints.coverage`
 
 
 def load_pair(pre_path, post_path, footprints_path=None, id_field: str | None = None, labels: bool = True) -> PairData:
@@ -55,7 +56,7 @@ def load_pair(pre_path, post_path, footprints_path=None, id_field: str | None = 
                 raise ClassifyError(f"{e.source}: no building_id dimension; give building footprints "
                                     "(--footprints F.geojson in the clouds' CRS)")
         return PairData(pre, post, noise_points=noise_apart(pre, post))
-    from .footprints import assign_buildings, footprints_without_points, no_footprint_contains_a_point
+    from .footprints import assign_buildings, coverage, footprints_without_points, no_footprint_contains_a_point
 
     if fp.crs and not pre.crs and not post.crs:
         log.info("%s: the point clouds name no CRS; taking the footprints' %s", pre.source, fp.crs)
@@ -65,8 +66,9 @@ def load_pair(pre_path, post_path, footprints_path=None, id_field: str | None = 
     if not (pre.building_id > 0).any():
         raise no_footprint_contains_a_point(footprints_path, fp, pre.bounds_xy()[:, 0])
     noise = noise_apart(pre, post)
-    hit = set(np.unique(pre.building_id).tolist()) | set(np.unique(post.building_id).tolist())
-    return PairData(pre, post, fp, footprints_without_points(fp, hit), noise)
+    pre_ids, post_ids = set(np.unique(pre.building_id).tolist()), set(np.unique(post.building_id).tolist())
+    return PairData(pre, post, fp, footprints_without_points(fp, pre_ids | post_ids), noise,
+                    coverage(fp, pre_ids, post_ids))
 
 
 def noise_apart(pre: Epoch, post: Epoch) -> dict:
