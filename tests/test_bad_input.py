@@ -745,3 +745,13 @@ def test_a_post_event_survey_that_misses_buildings_is_said_with_the_counts(pair,
     said = [r.getMessage() for r in caplog.records if r.levelname == "WARNING" and "footprints" in r.getMessage()]
     assert any(str(post) in m and "of 4 footprints, 1 hold points of both epochs, 2 of the pre-event epoch only" in m
                for m in said), said
+
+
+def test_footprints_beyond_both_clouds_are_counted_but_not_warned_of(pair, tmp_path, capsys, caplog):
+    fp = tmp_path / "fp.geojson"
+    rings = box_rings() + [(9, [[x + 200.0, y] for x, y in box_rings()[0][1]])]  # off both clouds
+    fp.write_text(json.dumps(footprint_doc(rings)))
+    code, _, err = run(classify_args(pair, tmp_path / "res", "--footprints", fp), capsys)
+    assert code == 0, err
+    assert json.loads((tmp_path / "res" / "summary.json").read_text())["coverage"]["neither"] == 1
+    assert not [r for r in caplog.records if r.levelname == "WARNING" and "footprints, " in r.getMessage()]

@@ -107,8 +107,9 @@ def _classify(pre_path, post_path, out: Path, engine: Engine, *, model_path, foo
                                  pair.crs)
     if pair.coverage:
         summary["coverage"] = dict(pair.coverage)
-        # a post-event survey that misses buildings is a fact the responder must see on stderr
-        if pair.coverage["both"] < pair.coverage["footprints"]:
+        # an epoch that misses buildings the other saw is a fact the responder must see on
+        # stderr; footprints beyond both clouds (a city's file over one tile) are not
+        if pair.coverage["pre_only"] or pair.coverage["post_only"]:
             log.warning("%s: %s", post_path, coverage_words(pair.coverage))
         else:
             log.info("%s: %s", post_path, coverage_words(pair.coverage))
