@@ -18,6 +18,8 @@ import math
 import numpy as np
 from numba import njit
 
+from ..grid.cells import bucket_order
+
 _JIT = dict(nogil=True, cache=True, error_model="numpy")
 
 
@@ -73,7 +75,7 @@ def _cell(v, v0, size):
 def under_a_steep_surface(query, points, radius, low, high, steepness):
     """Per query return: a return of `points` within `radius` in x/y (distance <= radius),
     more than `low` and at most `high` above it, and at least `steepness` times as far up as
-    across. The points are bucketed in square cells of at least `radius` (a counting sort), so
+    across. The points are bucketed in square cells of at least `radius` (`grid.cells.bucket_order`), so
     a query reads its own cell and the eight around it."""
     n, m = query.shape[0], points.shape[0]
     out = np.zeros(n, np.bool_)
@@ -91,16 +93,8 @@ def under_a_steep_surface(query, points, radius, low, high, steepness):
     key = np.empty(m, np.int64)
     for p in range(m):
         key[p] = _cell(points[p, 0], x0, size) * ny + _cell(points[p, 1], y0, size)
-    start = np.zeros(nx * ny + 1, np.int64)
-    for p in range(m):
-        start[key[p] + 1] += 1
-    for c in range(nx * ny):
-        start[c + 1] += start[c]
-    fill = start[:-1].copy()
     order = np.empty(m, np.int64)
-    for p in range(m):
-        order[fill[key[p]]] = p
-        fill[key[p]] += 1
+    start = bucket_order(key, nx * ny, order)
     r2 = radius * radius
     for i in range(n):
         qx, qy, qz = query[i, 0], query[i, 1], query[i, 2]
