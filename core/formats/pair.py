@@ -15,7 +15,7 @@ import numpy as np
 
 from ..errors import ClassifyError
 from .pointcloud import (Epoch, HeaderFacts, check_pair, check_pair_headers, epoch_origin, header_facts, read_epoch,
-                         set_noise_apart)
+                         set_noise_apart, xy_extents_apart)
 
 log = logging.getLogger(__name__)
 
@@ -92,6 +92,5 @@ def check_footprints_against_headers(footprints_path, fp, pre: HeaderFacts, post
     if not pre.bounds_known() or not len(fp.ids):
         return
     b = fp.bounds()
-    if (b[:, 0].min() > pre.maxs[0] or b[:, 2].max() < pre.mins[0] or b[:, 1].min() > pre.maxs[1]
-            or b[:, 3].max() < pre.mins[1]):
+    if xy_extents_apart(b[:, :2].min(axis=0), b[:, 2:].max(axis=0), pre.mins, pre.maxs):
         raise no_footprint_contains_a_point(footprints_path, fp, [pre.mins[0], pre.maxs[0]])

@@ -644,19 +644,27 @@ def header_facts(path: str | os.PathLike) -> HeaderFacts:
         raise PointCloudError(f"{path}: cannot read as LAS/LAZ ({e})") from None
 
 
+def xy_extents_apart(lo_a, hi_a, lo_b, hi_b) -> bool:
+    """Whether two x/y extents (lower and upper corners) share no point."""
+    return bool(hi_a[0] < lo_b[0] or hi_b[0] < lo_a[0] or hi_a[1] < lo_b[1] or hi_b[1] < lo_a[1])
+
+
+def check_same_crs(pre_crs, post_crs, pre_name, post_name) -> None:
+    """Refuse a post-event epoch that names another CRS than the pre-event one."""
+    if pre_crs and post_crs and pre_crs != post_crs:
+        raise PointCloudError(f"{post_name}: CRS {post_crs} differs from the pre-event epoch's {pre_crs} "
+                              f"({pre_name}); reproject one of them first")
+
+
 def check_pair_headers(pre: HeaderFacts, post: HeaderFacts) -> None:
     """`check_pair`'s refusals that the headers alone can make, before either cloud is read (a
     pair of 2 x 75 M points takes 20 s to read, its headers milliseconds): CRS that differ, an
     empty cloud, extents that do not overlap (where both headers give one)."""
-    if pre.crs and post.crs and pre.crs != post.crs:
-        raise PointCloudError(f"{post.path}: CRS {post.crs} differs from the pre-event epoch's {pre.crs} "
-                              f"({pre.path}); reproject one of them first")
+    check_same_crs(pre.crs, post.crs, pre.path, post.path)
     for h in (pre, post):
         if h.point_count == 0:
             raise PointCloudError(f"{h.path}: the point cloud is empty (its header counts no point)")
-    if pre.bounds_known() and post.bounds_known() and (
-            pre.maxs[0] < post.mins[0] or post.maxs[0] < pre.mins[0] or pre.maxs[1] < post.mins[1]
-            or post.maxs[1] < pre.mins[1]):
+    if pre.bounds_known() and post.bounds_known() and xy_extents_apart(pre.mins, pre.maxs, post.mins, post.maxs):
         a = np.array([pre.mins[:2], pre.maxs[:2]]).round(2).tolist()
         b = np.array([post.mins[:2], post.maxs[:2]]).round(2).tolist()
         raise PointCloudError(f"{post.path}: no overlap with the pre-event epoch {pre.path} "
@@ -670,9 +678,7 @@ def check_pair(pre: Epoch, post: Epoch) -> None:
     metadata) is taken as one CRS, with a warning naming both files: the overlap check
     below still refuses clouds in frames kilometres apart, and a responder should not be
     stopped by missing metadata. Both epochs then carry the known CRS (the outputs' CRS)."""
-    if pre.crs and post.crs and pre.crs != post.crs:
-        raise PointCloudError(f"{post.source}: CRS {post.crs} differs from the pre-event epoch's {pre.crs} "
-                              f"({pre.source}); reproject one of them first")
+    check_same_crs(pre.crs, post.crs, pre.source, post.source)
     if bool(pre.crs) != bool(post.crs):
         known, unknown = (pre, post) if pre.crs else (post, pre)
         log.warning("%s names no CRS but %s is in %s: taking both as %s (their x/y extents overlap); "
@@ -682,6 +688,6 @@ def check_pair(pre: Epoch, post: Epoch) -> None:
         if len(e) == 0:
             raise PointCloudError(f"{e.source}: the point cloud is empty")
     a, b = pre.bounds_xy(), post.bounds_xy()
-    if a[1, 0] < b[0, 0] or b[1, 0] < a[0, 0] or a[1, 1] < b[0, 1] or b[1, 1] < a[0, 1]:
+    if xy_extents_apart(a[0], a[1], b[0], b[1]):
         raise PointCloudError(f"{post.source}: no overlap with the pre-event epoch {pre.source} "
                               f"(x/y extents {b.round(2).tolist()} vs {a.round(2).tolist()})")
